@@ -1,0 +1,3 @@
+from genesis_rl.cli import main
+
+raise SystemExit(main())

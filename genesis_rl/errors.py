@@ -1,0 +1,9 @@
+"""One error type for bad user input: the CLI prints its message and exits with status 2, no traceback."""
+
+from __future__ import annotations
+
+
+class UserInputError(ValueError):
+    """Bad input from a user (a flag, a file, a config value). The message names the field and what is allowed."""
+
+    exit_code = 2

@@ -1,0 +1,239 @@
+"""Parametric knobs: the weather the agent turns, named and ranged as CARLA's ``carla.WeatherParameters``.
+
+One agent drives either backend because both read the same knob names. The agent's action is always
+Box(-1, 1); :class:`KnobActionMapper` scales it so that one step moves a knob by at most a fixed fraction
+of its range (the paper's naturalness limit, 5%), clips to the range and wraps angles that wrap.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+
+
+@dataclass(frozen=True)
+class KnobSpec:
+    """A weather parameter: its range, unit, and whether it wraps around (azimuth does)."""
+
+    name: str
+    low: float
+    high: float
+    unit: str
+    default: float
+    wraps: bool = False
+    description: str = ""
+
+    @property
+    def span(self) -> float:
+        return self.high - self.low
+
+
+def _k(name: str, low: float, high: float, unit: str, default: float, desc: str, wraps: bool = False) -> KnobSpec:
+    return KnobSpec(name, low, high, unit, default, wraps, desc)
+
+
+#: Every field of carla.WeatherParameters (0.9.16), with CARLA's documented ranges. Unbounded CARLA
+#: ranges (fog_distance, fog_falloff, scattering) get a finite range, as a Box action space needs.
+KNOBS: dict[str, KnobSpec] = {
+    k.name: k
+    for k in (
+        _k("fog_density", 0, 100, "%", 0, "fog concentration; visibility falls with it (Koschmieder)"),
+        _k("precipitation", 0, 100, "%", 0, "rain intensity: streaks, lower contrast and visibility"),
+        _k("precipitation_deposits", 0, 100, "%", 0, "water on the road: dark, glossy, puddles"),
+        _k("sun_altitude_angle", -90, 90, "deg", 75, "sun elevation: noon at 90, sunset near 0, night below"),
+        _k("sun_azimuth_angle", 0, 360, "deg", 45, "sun heading: shadows and glare", wraps=True),
+        _k("cloudiness", 0, 100, "%", 5, "cloud cover: dims the sun and greys the sky"),
+        _k("wetness", 0, 100, "%", 0, "wetness of surfaces (darkens them)"),
+        _k("wind_intensity", 0, 100, "%", 10, "wind: slants the rain"),
+        _k("fog_distance", 0, 200, "m", 0, "distance at which fog starts"),
+        _k("fog_falloff", 0, 5, "", 0.2, "fog density falloff with height (CARLA only)"),
+        _k("scattering_intensity", 0, 2, "", 1, "light contribution to volumetric fog (CARLA only)"),
+        _k("mie_scattering_scale", 0, 5, "", 0.03, "Mie scattering (CARLA only)"),
+        _k("rayleigh_scattering_scale", 0, 2, "", 0.0331, "Rayleigh scattering (CARLA only)"),
+        _k("dust_storm", 0, 100, "%", 0, "dust storm strength (CARLA only)"),
+    )
+}
+
+#: The paper's five knobs, in the order of the agent's action vector.
+PAPER_KNOBS: tuple[str, ...] = (
+    "fog_density",
+    "precipitation",
+    "precipitation_deposits",
+    "sun_altitude_angle",
+    "sun_azimuth_angle",
+)
+
+#: Named weathers for people and tests (names after CARLA's presets where one exists).
+PRESETS: dict[str, dict[str, float]] = {
+    "clear_noon": {"sun_altitude_angle": 75.0, "sun_azimuth_angle": 45.0},
+    "clear_sunset": {"sun_altitude_angle": 5.0, "sun_azimuth_angle": 270.0, "cloudiness": 15.0},
+    "dense_fog": {"fog_density": 90.0, "sun_altitude_angle": 40.0, "cloudiness": 60.0},
+    "heavy_rain_night": {
+        "precipitation": 90.0,
+        "precipitation_deposits": 80.0,
+        "wetness": 80.0,
+        "cloudiness": 90.0,
+        "sun_altitude_angle": -40.0,
+        "wind_intensity": 40.0,
+    },
+    "wet_sunset_glare": {
+        "precipitation_deposits": 70.0,
+        "wetness": 70.0,
+        "sun_altitude_angle": 4.0,
+        "sun_azimuth_angle": 0.0,
+        "cloudiness": 10.0,
+    },
+    "clear_night": {"sun_altitude_angle": -50.0, "sun_azimuth_angle": 45.0},
+}
+
+
+def knob_spec(name: str) -> KnobSpec:
+    try:
+        return KNOBS[name]
+    except KeyError:
+        raise UserInputError(f"unknown knob '{name}'; allowed: {', '.join(KNOBS)}") from None
+
+
+@dataclass(frozen=True)
+class Weather:
+    """A full assignment of every knob. Immutable: each step makes a new one."""
+
+    values: Mapping[str, float]
+
+    def __post_init__(self) -> None:
+        missing = set(KNOBS) - set(self.values)
+        unknown = set(self.values) - set(KNOBS)
+        if missing or unknown:
+            raise UserInputError(f"weather must set exactly the knobs {list(KNOBS)}; missing {sorted(missing)}, "
+                                 f"unknown {sorted(unknown)}")
+
+    @classmethod
+    def default(cls) -> Weather:
+        return cls({k.name: float(k.default) for k in KNOBS.values()})
+
+    @classmethod
+    def from_partial(cls, partial: Mapping[str, float], base: Weather | None = None) -> Weather:
+        """Start from ``base`` (clear noon by default) and override some knobs, checking names and ranges."""
+        values = dict((base or cls.default()).values)
+        for name, value in partial.items():
+            spec = knob_spec(name)
+            v = float(value)
+            if not math.isfinite(v) or not spec.low <= v <= spec.high:
+                raise UserInputError(
+                    f"knob '{name}' = {value} is out of range; allowed {spec.low:g}..{spec.high:g} {spec.unit}"
+                )
+            values[name] = v
+        return cls(values)
+
+    @classmethod
+    def preset(cls, name: str) -> Weather:
+        if name not in PRESETS:
+            raise UserInputError(f"unknown weather preset '{name}'; allowed: {', '.join(PRESETS)}")
+        return cls.from_partial(PRESETS[name])
+
+    def __getitem__(self, name: str) -> float:
+        return self.values[name]
+
+    def replace(self, **changes: float) -> Weather:
+        return Weather.from_partial(changes, base=self)
+
+    def vector(self, names: Sequence[str]) -> np.ndarray:
+        return np.array([self.values[n] for n in names], dtype=np.float64)
+
+    def normalized(self, names: Sequence[str]) -> np.ndarray:
+        """Knob values scaled to [0, 1] by their ranges (for observations and plots)."""
+        return np.array([(self.values[n] - KNOBS[n].low) / KNOBS[n].span for n in names], dtype=np.float32)
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(self.values)
+
+
+def parse_weather(text: str, base: Weather | None = None) -> Weather:
+    """Parse ``--weather``: ``fog_density=60,sun_altitude_angle=10`` or a preset name, optionally followed
+    by overrides (``heavy_rain_night,fog_density=30``)."""
+    text = text.strip()
+    if not text:
+        return base or Weather.default()
+    weather = base or Weather.default()
+    overrides: dict[str, float] = {}
+    for i, part in enumerate(p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        if "=" not in part:
+            if i == 0:
+                weather = Weather.from_partial(PRESETS.get(part, {}), base=weather) if part in PRESETS else None
+                if weather is None:
+                    raise UserInputError(
+                        f"--weather: '{part}' is neither KNOB=VALUE nor a preset; presets: {', '.join(PRESETS)}; "
+                        f"knobs: {', '.join(KNOBS)}"
+                    )
+                continue
+            raise UserInputError(f"--weather: malformed item '{part}'; expected KNOB=VALUE, e.g. fog_density=60")
+        name, _, raw = part.partition("=")
+        name = name.strip()
+        knob_spec(name)
+        try:
+            overrides[name] = float(raw)
+        except ValueError:
+            raise UserInputError(f"--weather: value of '{name}' must be a number, got '{raw}'") from None
+    return Weather.from_partial(overrides, base=weather)
+
+
+class KnobActionMapper:
+    """Maps an agent action in [-1, 1]^n to a new weather: each knob moves at most
+    ``max_step_fraction`` of its range per step; disabled knobs never move."""
+
+    def __init__(
+        self,
+        knobs: Sequence[str] = PAPER_KNOBS,
+        max_step_fraction: float = 0.05,
+        disabled: Iterable[str] = (),
+    ) -> None:
+        for name in knobs:
+            knob_spec(name)
+        if len(set(knobs)) != len(knobs) or not knobs:
+            raise UserInputError(f"knobs must be a non-empty list without repeats, got {list(knobs)}")
+        disabled = tuple(disabled)
+        for name in disabled:
+            if name not in knobs:
+                raise UserInputError(f"disabled knob '{name}' is not among the controlled knobs {list(knobs)}")
+        if not 0.0 < max_step_fraction <= 1.0:
+            raise UserInputError(f"max_step_fraction must be in (0, 1], got {max_step_fraction}")
+        self.knobs = tuple(knobs)
+        self.max_step_fraction = float(max_step_fraction)
+        self.disabled = disabled
+        specs = [KNOBS[n] for n in self.knobs]
+        self._low = np.array([s.low for s in specs])
+        self._high = np.array([s.high for s in specs])
+        self._wraps = np.array([s.wraps for s in specs])
+        active = np.array([n not in disabled for n in self.knobs], dtype=np.float64)
+        #: largest change per step of each knob, in the knob's unit (0 for disabled knobs)
+        self.max_delta = (self._high - self._low) * self.max_step_fraction * active
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.knobs)
+
+    def deltas(self, action: np.ndarray) -> np.ndarray:
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (self.action_dim,):
+            raise ValueError(f"action must have {self.action_dim} entries ({', '.join(self.knobs)}), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            bad = [self.knobs[i] for i in np.flatnonzero(~np.isfinite(a))]
+            raise ValueError(f"action is not finite (NaN or inf) for knob(s) {bad}")
+        return np.clip(a, -1.0, 1.0) * self.max_delta
+
+    def apply(self, weather: Weather, action: np.ndarray) -> Weather:
+        old = weather.vector(self.knobs)
+        new = old + self.deltas(action)
+        span = self._high - self._low
+        wrapped = self._low + np.mod(new - self._low, span)
+        new = np.where(self._wraps, wrapped, np.clip(new, self._low, self._high))
+        values = dict(weather.values)
+        values.update({n: float(v) for n, v in zip(self.knobs, new, strict=True)})
+        return Weather(values)

@@ -1,0 +1,244 @@
+"""Simulator interface: a backend is a connection (lives long), a simulation is one episode.
+
+After Scenic's ``Simulator``/``Simulation`` split: a :class:`Backend` creates :class:`Simulation` objects;
+a simulation loads one scene, takes knob settings and the ego's control, advances by a fixed time step
+(CARLA's synchronous mode, 0.05 s) and returns sensor frames. It is destroyed in ``finally`` (use it as a
+context manager), so a crash never leaves actors behind on a server.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from genesis_rl.knobs import Weather
+
+if TYPE_CHECKING:
+    from genesis_rl.scenes.catalog import Scene
+
+#: Simulation time step in seconds (CARLA synchronous mode with fixed_delta_seconds = 0.05).
+FIXED_DELTA_SECONDS = 0.05
+
+
+@dataclass(frozen=True)
+class VehicleControl:
+    """Ego control, as CARLA's ``VehicleControl``: throttle and brake in [0, 1], steer in [-1, 1]
+    (positive steers right, as in CARLA)."""
+
+    throttle: float = 0.0
+    brake: float = 0.0
+    steer: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("throttle", 0.0, 1.0), ("brake", 0.0, 1.0), ("steer", -1.0, 1.0)):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise ValueError(f"VehicleControl.{name} = {v} must be in [{lo}, {hi}]")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The ego's RGB + depth camera. Mount is in the ego frame (x forward, y left, z up, metres, from the
+    vehicle's centre on the ground); fov is horizontal, as CARLA's ``fov`` attribute."""
+
+    width: int = 320
+    height: int = 240
+    fov_deg: float = 90.0
+    mount_x: float = 0.8
+    mount_y: float = 0.0
+    mount_z: float = 1.5
+    pitch_deg: float = 0.0
+    max_range: float = 200.0
+
+    def __post_init__(self) -> None:
+        if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096):
+            raise ValueError(f"camera width/height must be in 16..4096, got {self.width}x{self.height}")
+        if not 10.0 <= self.fov_deg <= 170.0:
+            raise ValueError(f"camera fov_deg must be in 10..170, got {self.fov_deg}")
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length in pixels (same for both axes: square pixels)."""
+        return self.width / (2.0 * math.tan(math.radians(self.fov_deg) / 2.0))
+
+    def intrinsics(self) -> np.ndarray:
+        """3x3 pinhole matrix K (pixel centres at +0.5)."""
+        f = self.focal_px
+        return np.array([[f, 0.0, self.width / 2.0], [0.0, f, self.height / 2.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class GroundTruthBox:
+    """A visible vehicle in the image: pixel box [x0, x1) x [y0, y1) clipped at the border, from its visible
+    pixels (occlusion-aware). ``distance`` is the metric depth (along the optical axis) of its nearest
+    visible point; ``visible_fraction`` the share of its projected box not hidden by others."""
+
+    vehicle_id: int
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    distance: float
+    visible_fraction: float
+    truncated: bool
+
+    @property
+    def xyxy(self) -> tuple[int, int, int, int]:
+        return (self.x0, self.y0, self.x1, self.y1)
+
+    @property
+    def area(self) -> int:
+        return max(0, self.x1 - self.x0) * max(0, self.y1 - self.y0)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "vehicle_id": self.vehicle_id,
+            "box_xyxy": [self.x0, self.y0, self.x1, self.y1],
+            "distance_m": round(self.distance, 3),
+            "visible_fraction": round(self.visible_fraction, 3),
+            "truncated": self.truncated,
+        }
+
+
+@dataclass
+class SensorFrame:
+    """One camera frame: RGB (H, W, 3) uint8, metric depth (H, W) float32 in metres along the optical
+    axis (as CARLA's depth camera), per-pixel labels (H, W) uint8 (see ``lite.render.labels``) and the
+    ground-truth boxes of visible vehicles."""
+
+    step: int
+    rgb: np.ndarray
+    depth: np.ndarray
+    boxes: list[GroundTruthBox]
+    labels: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ActorState:
+    """Ground truth of one vehicle (world frame: x east, y north, z up; yaw counter-clockwise from x)."""
+
+    vehicle_id: int
+    role: str
+    make: str
+    x: float
+    y: float
+    z: float
+    yaw: float
+    pitch: float
+    speed: float
+    length: float
+    width: float
+    height: float
+
+
+@dataclass(frozen=True)
+class Collision:
+    """Two vehicles' boxes overlapped at ``step``; speeds (m/s) are those just before the impact."""
+
+    step: int
+    vehicle_a: int
+    vehicle_b: int
+    speed_a: float
+    speed_b: float
+    relative_speed: float
+
+
+@dataclass(frozen=True)
+class LeadInfo:
+    """The nearest vehicle ahead in the ego's path (ground truth): bumper-to-bumper gap in metres."""
+
+    vehicle_id: int
+    gap: float
+    speed: float
+
+
+@dataclass(frozen=True)
+class TickResult:
+    step: int
+    time: float
+    collisions: list[Collision] = field(default_factory=list)
+
+
+class Simulation(abc.ABC):
+    """One episode on a backend. Subclasses implement the abstract methods; use as a context manager."""
+
+    dt: float = FIXED_DELTA_SECONDS
+
+    def __enter__(self) -> Simulation:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.destroy()
+
+    @property
+    @abc.abstractmethod
+    def step_count(self) -> int: ...
+
+    @property
+    @abc.abstractmethod
+    def weather(self) -> Weather: ...
+
+    @abc.abstractmethod
+    def set_weather(self, weather: Weather) -> None:
+        """Set every knob; takes effect for the next frame."""
+
+    @abc.abstractmethod
+    def apply_ego_control(self, control: VehicleControl) -> None:
+        """Control the ego uses from the next tick on (held until changed)."""
+
+    @abc.abstractmethod
+    def tick(self) -> TickResult:
+        """Advance the world by ``dt``."""
+
+    @abc.abstractmethod
+    def observe(self) -> SensorFrame:
+        """Render the ego camera at the current state."""
+
+    @abc.abstractmethod
+    def actors(self) -> list[ActorState]:
+        """Ground-truth state of every vehicle, the ego first."""
+
+    @abc.abstractmethod
+    def lead(self) -> LeadInfo | None:
+        """The vehicle ahead in the ego's path, or None when the path is clear within range."""
+
+    @abc.abstractmethod
+    def destroy(self) -> None:
+        """Release everything this episode created. Safe to call twice."""
+
+    def ego(self) -> ActorState:
+        return self.actors()[0]
+
+
+class Backend(abc.ABC):
+    """A simulator connection: knows its maps, creates simulations, lives across episodes."""
+
+    name: str = "abstract"
+
+    @abc.abstractmethod
+    def map_names(self) -> list[str]: ...
+
+    @abc.abstractmethod
+    def create_simulation(
+        self,
+        scene: Scene,
+        *,
+        seed: int,
+        weather: Weather | None = None,
+        camera: CameraConfig | None = None,
+        render: bool = True,
+    ) -> Simulation:
+        """Load ``scene``; ``seed`` drives everything random in the episode (NPC behaviour, sensor noise)."""
+
+    def close(self) -> None:
+        """Release the connection (renderer, sockets)."""
+
+    def __enter__(self) -> Backend:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
