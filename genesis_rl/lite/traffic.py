@@ -1,0 +1,257 @@
+"""Traffic of the lite backend: every vehicle a kinematic bicycle, NPCs on an autopilot, all vectorised.
+
+Autopilot (per NPC, as numpy arrays over all vehicles): pure-pursuit lane keeping along its lane and the
+successor it picked at the last junction; IDM car following against the nearest vehicle in its predicted
+corridor and against red or yellow lights at its lane's stop line; seeded stochastic behaviour: the target
+speed wanders (an Ornstein-Uhlenbeck process) and now and then a vehicle brakes to a stop, waits and moves
+on. The ego is driven by its caller's throttle/brake/steer. Colliding vehicles are put back to their
+pre-impact pose and stopped, never passing through each other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from genesis_rl.lite.collisions import colliding_pairs
+from genesis_rl.lite.maps.lane_graph import DS, RoadMap
+from genesis_rl.lite.vehicles import MAKES
+from genesis_rl.sim.interface import Collision, LeadInfo, VehicleControl
+
+MAX_STEER = np.radians(35.0)  # front wheel angle at steer = 1 [rad]
+MAX_BRAKE = 8.0  # deceleration at brake = 1 [m/s^2]
+LEAD_RANGE = 80.0  # how far ahead a leader is looked for [m]
+
+
+@dataclass(frozen=True)
+class AutopilotParams:
+    """Per-vehicle autopilot settings (catalog fields; units in the names' comments)."""
+
+    target_speed: float  # desired speed [m/s]
+    time_gap: float  # IDM safe time headway [s]
+    min_gap: float  # IDM standstill gap [m]
+    max_accel: float  # IDM maximum acceleration [m/s^2]
+    comfort_decel: float  # IDM comfortable deceleration [m/s^2]
+    stop_rate: float  # spontaneous stops per minute
+    speed_noise: float  # std of the target speed's random walk [m/s]
+
+
+class Traffic:
+    """State of all vehicles (index 0 is the ego) and one fixed-step update."""
+
+    def __init__(
+        self,
+        road_map: RoadMap,
+        makes: list[str],
+        lanes: list[int],
+        s: list[float],
+        speeds: list[float],
+        params: list[AutopilotParams | None],
+        next_lanes: list[int],
+        rng: np.random.Generator,
+        dt: float,
+    ) -> None:
+        self.map = road_map
+        self.rng = rng
+        self.dt = dt
+        n = len(makes)
+        self.n = n
+        self.makes = makes
+        m = [MAKES[k] for k in makes]
+        self.length = np.array([k.length for k in m])
+        self.width = np.array([k.width for k in m])
+        self.height = np.array([k.height for k in m])
+        self.wheelbase = np.array([k.wheelbase for k in m])
+        self.ego_max_accel = m[0].max_accel
+        self.ego_max_speed = m[0].max_speed
+        self.lane = np.array(lanes, dtype=np.int64)
+        self.s = np.array(s, dtype=np.float64)
+        self.next_lane = np.array(next_lanes, dtype=np.int64)
+        idx = road_map.point_index(self.lane, self.s)
+        self.x = road_map.points[idx, 0].copy()
+        self.y = road_map.points[idx, 1].copy()
+        self.yaw = road_map.headings[idx].copy()
+        self.v = np.array(speeds, dtype=np.float64)
+        self.accel = np.zeros(n)
+        self.steer_angle = np.zeros(n)
+        self.braking = np.zeros(n, bool)
+        self.stuck = np.zeros(n, bool)
+        p = [q or AutopilotParams(0, 1.5, 2, 2, 3, 0, 0) for q in params]
+        self.v0_base = np.array([q.target_speed for q in p])
+        self.v0 = self.v0_base.copy()
+        self.time_gap = np.array([q.time_gap for q in p])
+        self.min_gap = np.array([q.min_gap for q in p])
+        self.a_max = np.array([q.max_accel for q in p])
+        self.b_comf = np.array([q.comfort_decel for q in p])
+        self.stop_rate = np.array([q.stop_rate for q in p]) / 60.0  # per second
+        self.speed_noise = np.array([q.speed_noise for q in p])
+        self.stop_timer = np.zeros(n)  # > 0: holding a spontaneous stop [s]
+        self.stop_decel = np.zeros(n)
+        self.is_npc = np.ones(n, bool)
+        self.is_npc[0] = False
+        self.ego_control = VehicleControl()
+        self.time = 0.0
+
+    # -- queries ---------------------------------------------------------------------------------------
+    def z_pitch(self) -> tuple[np.ndarray, np.ndarray]:
+        idx = self.map.point_index(self.lane, self.s)
+        return self.map.points[idx, 2], self.map.slopes[idx]
+
+    def _frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """Longitudinal and lateral offsets of every vehicle j in every vehicle i's frame (i rows)."""
+        dx = self.x[None, :] - self.x[:, None]
+        dy = self.y[None, :] - self.y[:, None]
+        c, s = np.cos(self.yaw)[:, None], np.sin(self.yaw)[:, None]
+        return dx * c + dy * s, -dx * s + dy * c
+
+    def _leaders(self, curvature: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For every vehicle: index of the nearest vehicle in its predicted corridor, the bumper gap and
+        that vehicle's speed along the follower's heading (gap = inf when none)."""
+        lon, lat = self._frames()
+        expected = 0.5 * curvature[:, None] * lon**2
+        half = 0.5 * (self.width[:, None] + self.width[None, :]) + 0.2
+        same_way = np.cos(self.yaw[None, :] - self.yaw[:, None]) > -0.3
+        gap = lon - 0.5 * (self.length[:, None] + self.length[None, :])
+        cand = (lon > 0) & (lon < LEAD_RANGE) & (np.abs(lat - expected) < half) & same_way
+        np.fill_diagonal(cand, False)
+        gap = np.where(cand, gap, np.inf)
+        j = np.argmin(gap, axis=1)
+        g = gap[np.arange(self.n), j]
+        vj = self.v[j] * np.cos(self.yaw[j] - self.yaw)
+        return j, g, vj
+
+    def lead(self) -> LeadInfo | None:
+        """The ego's leader by the same corridor test the NPCs use (ego curvature from its steering)."""
+        curv = np.tan(self.steer_angle) / self.wheelbase
+        j, g, _ = self._leaders(curv)
+        if not np.isfinite(g[0]):
+            return None
+        return LeadInfo(int(j[0]), float(max(g[0], 0.0)), float(self.v[j[0]]))
+
+    # -- update ----------------------------------------------------------------------------------------
+    def _lookahead_points(self, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m = self.map
+        s_t = self.s + dist
+        lane = self.lane.copy()
+        over = s_t > m.length[lane]
+        s_t = np.where(over, s_t - m.length[lane], s_t)
+        lane = np.where(over, self.next_lane, lane)
+        idx = m.point_index(lane, s_t)  # clipped: a second spill is rare and harmless (target at lane end)
+        return m.points[idx, 0], m.points[idx, 1]
+
+    def _autopilot(self) -> tuple[np.ndarray, np.ndarray]:
+        """Acceleration [m/s^2] and wheel angle [rad] of every vehicle (ego rows are overwritten)."""
+        m, dt = self.map, self.dt
+        # target speed wanders, spontaneous stops start and end
+        self.v0 += -0.05 * (self.v0 - self.v0_base) * dt + self.speed_noise * np.sqrt(dt) * self.rng.normal(size=self.n)
+        self.v0 = np.clip(self.v0, 0.5 * self.v0_base, 1.3 * self.v0_base + 0.1)
+        start = (self.stop_timer <= 0) & (self.rng.random(self.n) < self.stop_rate * dt) & self.is_npc
+        durations = self.rng.uniform(2.0, 6.0, self.n)
+        decels = self.rng.uniform(2.5, 6.5, self.n)
+        self.stop_timer = np.where(start, durations + self.v / decels, self.stop_timer)
+        self.stop_decel = np.where(start, decels, self.stop_decel)
+        self.stop_timer = np.maximum(self.stop_timer - dt, 0.0)
+
+        # lane keeping: pure pursuit on the rear axle
+        look = np.clip(3.0 + 0.45 * self.v, 4.0, 14.0)
+        tx, ty = self._lookahead_points(look)
+        rear_x = self.x - 0.5 * self.wheelbase * np.cos(self.yaw)
+        rear_y = self.y - 0.5 * self.wheelbase * np.sin(self.yaw)
+        alpha = np.arctan2(ty - rear_y, tx - rear_x) - self.yaw
+        ld = np.maximum(np.hypot(tx - rear_x, ty - rear_y), 1.0)
+        delta = np.clip(np.arctan2(2.0 * self.wheelbase * np.sin(alpha), ld), -MAX_STEER, MAX_STEER)
+
+        # car following (IDM) against the corridor leader and the stop line of a red/yellow light
+        _, gap, v_lead = self._leaders(np.tan(delta) / self.wheelbase)
+        gap_light = np.full(self.n, np.inf)
+        for i in np.flatnonzero(self.is_npc):
+            sig = m.lanes[self.lane[i]].signal
+            if sig is None:
+                continue
+            state = m.signal_state(sig[0], sig[1], self.time)
+            dist = m.length[self.lane[i]] - self.s[i] - 0.5 * self.length[i] - 1.0
+            if state == "red" or (state == "yellow" and dist > self.v[i] ** 2 / (2 * self.b_comf[i])):
+                if dist > -0.5:
+                    gap_light[i] = max(dist, 0.01)
+                    v_lead_light = 0.0
+                    if gap_light[i] < gap[i]:
+                        gap[i], v_lead[i] = gap_light[i], v_lead_light
+        v0 = np.maximum(self.v0, 0.1)
+        dv = self.v - v_lead
+        s_star = self.min_gap + np.maximum(
+            0.0, self.v * self.time_gap + self.v * dv / (2.0 * np.sqrt(self.a_max * self.b_comf))
+        )
+        free = 1.0 - (self.v / v0) ** 4
+        interact = np.where(np.isfinite(gap), (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
+        acc = self.a_max * (free - interact)
+        stopping = self.stop_timer > 0
+        acc = np.where(stopping, np.minimum(acc, -self.stop_decel), acc)
+        return np.clip(acc, -MAX_BRAKE, self.a_max), delta
+
+    def step(self, step_index: int) -> list[Collision]:
+        dt = self.dt
+        acc, delta = self._autopilot()
+        c = self.ego_control
+        v_e = self.v[0]
+        acc[0] = (
+            c.throttle * self.ego_max_accel * max(0.0, 1.0 - v_e / self.ego_max_speed)
+            - c.brake * MAX_BRAKE
+            - 0.05
+            - 0.0004 * v_e * v_e
+        )
+        delta[0] = c.steer * MAX_STEER * -1.0  # CARLA: positive steer turns right (clockwise)
+        self.braking = acc < -0.5
+        self.accel = acc
+        self.steer_angle = delta
+
+        prev = (self.x.copy(), self.y.copy(), self.yaw.copy())
+        v_new = np.maximum(self.v + acc * dt, 0.0)
+        v_mid = 0.5 * (self.v + v_new)
+        beta = np.arctan(0.5 * np.tan(delta))  # slip angle at the centre (lr = wheelbase / 2)
+        self.x = self.x + v_mid * np.cos(self.yaw + beta) * dt
+        self.y = self.y + v_mid * np.sin(self.yaw + beta) * dt
+        self.yaw = self.yaw + v_mid / (0.5 * self.wheelbase) * np.sin(beta) * dt
+        self.v = v_new
+
+        collisions = []
+        pairs = colliding_pairs(self.x, self.y, self.yaw, self.length, self.width)
+        for i, j in pairs:
+            collisions.append(
+                Collision(step_index, i, j, float(prev_speed := self.v[i]), float(self.v[j]),
+                          float(abs(prev_speed - self.v[j] * np.cos(self.yaw[j] - self.yaw[i]))))
+            )
+        if pairs:
+            hit = np.unique(np.array(pairs).ravel())
+            self.x[hit], self.y[hit], self.yaw[hit] = prev[0][hit], prev[1][hit], prev[2][hit]
+            # impact speeds are the speeds just before the contact (v before the stop)
+            collisions = [
+                Collision(cl.step, cl.vehicle_a, cl.vehicle_b, cl.speed_a, cl.speed_b, cl.relative_speed)
+                for cl in collisions
+            ]
+            self.v[hit] = 0.0
+            self.stuck[hit] = True
+        self._advance_lanes()
+        self.time += dt
+        return collisions
+
+    def _advance_lanes(self) -> None:
+        m = self.map
+        idx = m.point_index(self.lane, self.s)
+        hx, hy = np.cos(m.headings[idx]), np.sin(m.headings[idx])
+        # progress along the lane = projection of the position on the lane tangent
+        ds = (self.x - m.points[idx, 0]) * hx + (self.y - m.points[idx, 1]) * hy
+        self.s = np.maximum(self.s + ds, 0.0)
+        for i in np.flatnonzero(self.s > m.length[self.lane]):
+            self.s[i] -= m.length[self.lane[i]]
+            self.lane[i] = self.next_lane[i]
+            succ = m.lanes[self.lane[i]].successors
+            self.next_lane[i] = succ[int(self.rng.integers(len(succ)))]
+        # the ego may leave its lane (its driver is the system under test): re-anchor it when it does
+        i0 = int(m.point_index(self.lane[0], self.s[0]))
+        if (self.x[0] - m.points[i0, 0]) ** 2 + (self.y[0] - m.points[i0, 1]) ** 2 > 4.0**2:
+            k = m.nearest_lane_point(self.x[0], self.y[0], self.yaw[0])
+            lane = int(m.point_lane[k])
+            self.lane[0], self.s[0] = lane, (k - m.offset[lane]) * DS
+            succ = m.lanes[lane].successors
+            self.next_lane[0] = succ[int(self.rng.integers(len(succ)))]
