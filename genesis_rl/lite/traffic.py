@@ -92,6 +92,7 @@ class Traffic:
         self.is_npc[0] = False
         self.ego_control = VehicleControl()
         self.time = 0.0
+        self._contacts: set[tuple[int, int]] = set()
 
     # -- queries ---------------------------------------------------------------------------------------
     def z_pitch(self) -> tuple[np.ndarray, np.ndarray]:
@@ -206,6 +207,7 @@ class Traffic:
         self.steer_angle = delta
 
         prev = (self.x.copy(), self.y.copy(), self.yaw.copy())
+        v_before = self.v.copy()
         v_new = np.maximum(self.v + acc * dt, 0.0)
         v_mid = 0.5 * (self.v + v_new)
         beta = np.arctan(0.5 * np.tan(delta))  # slip angle at the centre (lr = wheelbase / 2)
@@ -214,21 +216,18 @@ class Traffic:
         self.yaw = self.yaw + v_mid / (0.5 * self.wheelbase) * np.sin(beta) * dt
         self.v = v_new
 
-        collisions = []
         pairs = colliding_pairs(self.x, self.y, self.yaw, self.length, self.width)
-        for i, j in pairs:
-            collisions.append(
-                Collision(step_index, i, j, float(prev_speed := self.v[i]), float(self.v[j]),
-                          float(abs(prev_speed - self.v[j] * np.cos(self.yaw[j] - self.yaw[i]))))
-            )
+        # a collision is reported once, when contact begins; vehicles in contact stay stopped
+        collisions = [
+            Collision(step_index, i, j, float(v_before[i]), float(v_before[j]),
+                      float(abs(v_before[i] - v_before[j] * np.cos(self.yaw[j] - self.yaw[i]))))
+            for i, j in pairs
+            if (i, j) not in self._contacts
+        ]
+        self._contacts = set(pairs)
         if pairs:
             hit = np.unique(np.array(pairs).ravel())
             self.x[hit], self.y[hit], self.yaw[hit] = prev[0][hit], prev[1][hit], prev[2][hit]
-            # impact speeds are the speeds just before the contact (v before the stop)
-            collisions = [
-                Collision(cl.step, cl.vehicle_a, cl.vehicle_b, cl.speed_a, cl.speed_b, cl.relative_speed)
-                for cl in collisions
-            ]
             self.v[hit] = 0.0
             self.stuck[hit] = True
         self._advance_lanes()

@@ -77,7 +77,8 @@ def build_highway() -> RoadMap:
     cand = rng.uniform([bounds[0], bounds[1]], [bounds[2], bounds[3]], size=(9000, 2))
     r_town = np.hypot(cand[:, 0] - TOWN_CENTER[0], cand[:, 1] - TOWN_CENTER[1])
     # pines thicken with distance from the town, in clumps
-    density = np.clip((r_town - 150) / 200, 0.05, 1.0) * (0.55 + 0.45 * np.sin(cand[:, 0] / 37) * np.cos(cand[:, 1] / 29))
+    clumps = 0.55 + 0.45 * np.sin(cand[:, 0] / 37) * np.cos(cand[:, 1] / 29)
+    density = np.clip((r_town - 150) / 200, 0.05, 1.0) * clumps
     keep = tree_clear.free(cand[:, 0], cand[:, 1]) & (rng.uniform(size=len(cand)) < density)
     for x, y in cand[keep][:4000]:
         if len(occupied) and np.any((np.abs(occupied[:, 0] - x) < occupied[:, 2] / 2 + 3)

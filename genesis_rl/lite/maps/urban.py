@@ -62,7 +62,8 @@ def build_urban() -> RoadMap:
         x, y = rng.uniform(bounds[0], bounds[2]), rng.uniform(bounds[1], bounds[3])
         if near.free(np.array([x]), np.array([y]))[0] and not mask.free(np.array([x]), np.array([y]))[0]:
             if not len(occupied) or not np.any(
-                (np.abs(occupied[:, 0] - x) < occupied[:, 2] / 2 + 2) & (np.abs(occupied[:, 1] - y) < occupied[:, 3] / 2 + 2)
+                (np.abs(occupied[:, 0] - x) < occupied[:, 2] / 2 + 2)
+                & (np.abs(occupied[:, 1] - y) < occupied[:, 3] / 2 + 2)
             ):
                 trees.append(Tree(x, y, float(rng.uniform(5, 9)), "broadleaf"))
     return RoadMap(

@@ -1,0 +1,135 @@
+"""The lite backend: a Simulation over :class:`Traffic` with the Panda3D camera (created lazily)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.knobs import Weather
+from genesis_rl.lite.maps import MAP_NAMES, load_map
+from genesis_rl.lite.traffic import AutopilotParams, Traffic
+from genesis_rl.scenes.catalog import Scene
+from genesis_rl.sim.interface import (
+    ActorState,
+    Backend,
+    CameraConfig,
+    LeadInfo,
+    SensorFrame,
+    Simulation,
+    TickResult,
+    VehicleControl,
+)
+
+
+class LiteSimulation(Simulation):
+    """One episode on a lite map. All randomness comes from ``seed`` (NPC behaviour, sensor noise)."""
+
+    def __init__(self, backend: LiteBackend, scene: Scene, seed: int, weather: Weather,
+                 camera: CameraConfig, render: bool) -> None:
+        self._backend = backend
+        self.scene = scene
+        self.map = load_map(scene.map)
+        self.camera = camera
+        self._weather = weather
+        self._step = 0
+        self.seed = int(seed)
+        rng = np.random.default_rng(np.random.SeedSequence([scene.seed, self.seed]))
+        vs = scene.vehicles
+        self.traffic = Traffic(
+            self.map,
+            [v.make for v in vs],
+            [v.lane for v in vs],
+            [v.s for v in vs],
+            [v.speed for v in vs],
+            [AutopilotParams(**v.autopilot) if v.autopilot else None for v in vs],
+            [v.next_lane for v in vs],
+            rng,
+            self.dt,
+        )
+        self.traffic.time = scene.signal_offset
+        self._renderer = backend.renderer_for(self.map.name, camera, self.seed) if render else None
+        if self._renderer is not None:
+            self._renderer.set_vehicles([(i, v.make, v.color) for i, v in enumerate(vs)])
+        self._destroyed = False
+
+    @property
+    def step_count(self) -> int:
+        return self._step
+
+    @property
+    def weather(self) -> Weather:
+        return self._weather
+
+    def set_weather(self, weather: Weather) -> None:
+        self._weather = weather
+
+    def apply_ego_control(self, control: VehicleControl) -> None:
+        self.traffic.ego_control = control
+
+    def tick(self) -> TickResult:
+        collisions = self.traffic.step(self._step)
+        self._step += 1
+        return TickResult(self._step, self._step * self.dt, collisions)
+
+    def poses(self) -> np.ndarray:
+        t = self.traffic
+        z, pitch = t.z_pitch()
+        return np.column_stack([t.x, t.y, z, t.yaw, pitch])
+
+    def observe(self) -> SensorFrame:
+        if self._renderer is None:
+            raise RuntimeError("this simulation was created with render=False")
+        t = self.traffic
+        dims = np.column_stack([t.length, t.width, t.height])
+        rgb, depth, labels, boxes = self._renderer.render(
+            self.poses(), t.braking, dims, self._weather, t.time, self._step
+        )
+        return SensorFrame(self._step, rgb, depth, boxes, labels)
+
+    def actors(self) -> list[ActorState]:
+        t = self.traffic
+        p = self.poses()
+        return [
+            ActorState(i, v.role, v.make, *map(float, p[i]), float(t.v[i]), float(t.length[i]),
+                       float(t.width[i]), float(t.height[i]))
+            for i, v in enumerate(self.scene.vehicles)
+        ]
+
+    def lead(self) -> LeadInfo | None:
+        return self.traffic.lead()
+
+    def destroy(self) -> None:
+        if not self._destroyed and self._renderer is not None:
+            self._renderer.clear_vehicles()
+        self._destroyed = True
+
+
+class LiteBackend(Backend):
+    """Holds one renderer per (map, camera) so that episodes reuse the built scenery."""
+
+    name = "lite"
+
+    def __init__(self) -> None:
+        self._renderers: dict[tuple, object] = {}
+
+    def map_names(self) -> list[str]:
+        return list(MAP_NAMES)
+
+    def renderer_for(self, map_name: str, camera: CameraConfig, seed: int):  # noqa: ANN201
+        from genesis_rl.lite.render.panda_renderer import LiteRenderer
+
+        key = (map_name, camera, seed)
+        if key not in self._renderers:
+            self._renderers[key] = LiteRenderer(load_map(map_name), camera, seed=seed)
+        return self._renderers[key]
+
+    def create_simulation(self, scene: Scene, *, seed: int, weather: Weather | None = None,
+                          camera: CameraConfig | None = None, render: bool = True) -> LiteSimulation:
+        if scene.map not in MAP_NAMES:
+            raise UserInputError(f"scene map '{scene.map}' is not a lite map; allowed: {', '.join(MAP_NAMES)}")
+        return LiteSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        self._renderers.clear()

@@ -1,0 +1,121 @@
+"""Scene generator for the lite maps: ego, lead ahead in its lane, neighbour front-right, 27 others nearby."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from genesis_rl.lite.collisions import box_corners, boxes_overlap
+from genesis_rl.lite.maps import load_map
+from genesis_rl.lite.maps.lane_graph import DS, RoadMap
+from genesis_rl.lite.vehicles import MAKES, PALETTE
+from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+
+#: the paper's catalog sizes: Town10 (train) and Town05 (test)
+DEFAULT_COUNTS = {"urban": 1202, "highway": 1199}
+N_VEHICLES = 30
+RADIUS = 90.0  # others are placed within this distance of the ego [m]
+
+
+def _speed_limit(road_map: RoadMap, lane: int) -> float:
+    """Highway lanes (3 each way) allow 25 m/s, town streets 12 m/s."""
+    road = road_map.lanes[lane].road
+    return 25.0 if road >= 0 and road_map.roads[road].lanes_each_way >= 3 else 12.0
+
+
+def _autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
+    return {
+        "target_speed": float(limit * rng.uniform(0.75, 1.05)),
+        "time_gap": float(rng.uniform(1.0, 2.0)),
+        "min_gap": float(rng.uniform(1.5, 3.0)),
+        "max_accel": float(rng.uniform(1.2, 2.5)),
+        "comfort_decel": float(rng.uniform(2.0, 3.5)),
+        # the lead brakes to a stop now and then so the ego must react
+        "stop_rate": float(rng.uniform(1.5, 3.0) if role == "lead" else rng.uniform(0.0, 0.5)),
+        "speed_noise": float(rng.uniform(0.1, 0.4)),
+    }
+
+
+def _vehicle(rng, road_map, role, lane, s, make, speed_frac) -> VehicleSpec:
+    x, y, _, yaw = road_map.pose(lane, s)
+    succ = road_map.lanes[lane].successors
+    color_name = str(rng.choice(list(PALETTE)))
+    limit = _speed_limit(road_map, lane)
+    ap = None if role == "ego" else _autopilot(rng, limit, role)
+    return VehicleSpec(role, make, color_name, PALETTE[color_name], int(lane), float(s), x, y, yaw,
+                       float(limit * speed_frac), int(succ[int(rng.integers(len(succ)))]), ap)
+
+
+def _draw_make(rng: np.random.Generator) -> str:
+    names = list(MAKES)
+    w = np.array([MAKES[n].weight for n in names])
+    return str(names[int(rng.choice(len(names), p=w / w.sum()))])
+
+
+def _fits(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
+    m = MAKES[spec.make]
+    a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
+    for other in placed:
+        if (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2 > 15.0**2:
+            continue
+        mo = MAKES[other.make]
+        if boxes_overlap(a, box_corners(other.x, other.y, other.yaw, mo.length + 2.0, mo.width + 0.4)):
+            return False
+    return True
+
+
+def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
+    rng = np.random.default_rng(seed)
+    # ego: a road lane with a lane to its right (for the neighbour) and room for the lead ahead
+    egos = [ln.id for ln in road_map.lanes if ln.road >= 0 and ln.right >= 0 and ln.length > 60]
+    while True:
+        lane = int(egos[int(rng.integers(len(egos)))])
+        length = road_map.length[lane]
+        s_ego = float(rng.uniform(5.0, length - 45.0))
+        gap_lead = float(rng.uniform(15.0, min(40.0, length - s_ego - 5.0)))
+        speed = float(rng.uniform(0.5, 0.9))
+        ego = _vehicle(rng, road_map, "ego", lane, s_ego, str(rng.choice(["sedan", "hatchback", "suv"])), speed)
+        lead = _vehicle(rng, road_map, "lead", lane, s_ego + gap_lead, _draw_make(rng), speed)
+        right = road_map.lanes[lane].right
+        s_nb = min(s_ego + float(rng.uniform(6.0, 20.0)), road_map.length[right] - 1.0)
+        neighbour = _vehicle(rng, road_map, "neighbour", right, s_nb, _draw_make(rng), speed)
+        placed = [ego]
+        if _fits(lead, placed) and _fits(neighbour, placed + [lead]):
+            placed += [lead, neighbour]
+            break
+    # others: lane samples on roads within RADIUS of the ego
+    pts = road_map.points
+    on_road = np.array([road_map.lanes[k].road >= 0 for k in range(len(road_map.lanes))])[road_map.point_lane]
+    near = np.flatnonzero(on_road & ((pts[:, 0] - ego.x) ** 2 + (pts[:, 1] - ego.y) ** 2 < RADIUS**2))
+    tries = 0
+    while len(placed) < N_VEHICLES and tries < 5000:
+        tries += 1
+        k = int(near[int(rng.integers(len(near)))])
+        lane = int(road_map.point_lane[k])
+        s = (k - int(road_map.offset[lane])) * DS
+        if s < 3.0 or s > road_map.length[lane] - 3.0:
+            continue
+        spec = _vehicle(rng, road_map, "other", lane, s, _draw_make(rng), float(rng.uniform(0.0, 0.9)))
+        if _fits(spec, placed):
+            placed.append(spec)
+    if len(placed) < N_VEHICLES:
+        raise RuntimeError(f"scene {index}: could only place {len(placed)} vehicles")
+    return Scene(index, road_map.name, int(rng.integers(2**31)), float(rng.uniform(0, road_map.timing.cycle)),
+                 tuple(placed))
+
+
+def iter_scenes(map_name: str, count: int, seed: int) -> Iterator[Scene]:
+    road_map = load_map(map_name)
+    seeds = np.random.SeedSequence(seed).spawn(count)
+    for i, ss in enumerate(seeds):
+        yield generate_scene(road_map, i, int(ss.generate_state(1)[0]))
+
+
+def generate_catalog(map_name: str, count: int, seed: int, progress: bool = False) -> Catalog:
+    scenes = iter_scenes(map_name, count, seed)
+    if progress:
+        from tqdm import tqdm
+
+        scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
+    return Catalog(map_name, seed, "lite", tuple(scenes))

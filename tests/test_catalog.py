@@ -1,0 +1,66 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.lite.maps import load_map
+from genesis_rl.lite.vehicles import MAKES
+from genesis_rl.scenes.catalog import catalog_from_json, load_catalog
+from genesis_rl.scenes.lite_generator import generate_catalog
+
+
+@pytest.mark.parametrize("map_name", ["urban", "highway"])
+def test_scene_composition(map_name):
+    cat = generate_catalog(map_name, 10, 0)
+    m = load_map(map_name)
+    makes = set()
+    for sc in cat.scenes:
+        roles = [v.role for v in sc.vehicles]
+        assert len(sc.vehicles) == 30 and roles[:3] == ["ego", "lead", "neighbour"]
+        ego, lead, nb = sc.vehicles[:3]
+        assert lead.lane == ego.lane and lead.s > ego.s
+        assert nb.lane == m.lanes[ego.lane].right
+        xy = np.array([[v.x, v.y] for v in sc.vehicles])
+        d = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) + np.eye(30) * 99
+        assert d.min() > 1.5  # no overlaps
+        assert np.hypot(*(xy - xy[0]).T).max() < 95
+        makes |= {v.make for v in sc.vehicles}
+    assert makes >= {"sedan", "suv", "van", "truck", "bus"}
+
+
+def test_same_seed_same_catalog_other_seed_differs():
+    a = generate_catalog("highway", 5, 11).to_json()
+    assert a == generate_catalog("highway", 5, 11).to_json()
+    assert a != generate_catalog("highway", 5, 12).to_json()
+
+
+def test_roundtrip_and_bad_catalogs(tmp_path):
+    cat = generate_catalog("urban", 2, 0)
+    path = tmp_path / "c.json"
+    cat.save(path)
+    assert load_catalog(path).to_json() == cat.to_json()
+    data = json.loads(path.read_text())
+    data["version"] = 99
+    with pytest.raises(UserInputError, match="version"):
+        catalog_from_json(data)
+    data = json.loads(path.read_text())
+    data["scenes"][1]["vehicles"][4]["make"] = "tank"
+    with pytest.raises(UserInputError, match=r"scenes\[1\]\.vehicles\[4\]\.make.*allowed: " + ", ".join(MAKES)):
+        catalog_from_json(data)
+    path.write_text("{ not json")
+    with pytest.raises(UserInputError, match="not valid JSON"):
+        load_catalog(path)
+
+
+def test_cli_scenes_refuses_overwrite_and_bad_map(tmp_path):
+    out = tmp_path / "s.json"
+    cmd = [sys.executable, "-m", "genesis_rl", "scenes", "--map", "highway", "--count", "3",
+           "--out", str(out), "--quiet"]
+    assert subprocess.run(cmd, capture_output=True).returncode == 0
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 2 and "--force" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run(cmd[:5] + ["mars"] + cmd[6:] + ["--force"], capture_output=True, text=True)
+    assert r.returncode == 2 and "allowed: urban, highway" in r.stderr
