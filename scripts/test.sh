@@ -5,12 +5,5 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 echo "[test] ruff"
 .venv/bin/ruff check genesis_rl tests
-echo "[test] pytest (fast)"
-.venv/bin/python -m pytest -q -m "not slow" "$@"
-echo "[test] pytest (slow)"
-set +e
-.venv/bin/python -m pytest -q -m slow "$@"
-rc=$?
-set -e
-# exit code 5 = no slow tests collected: not a failure
-if [ "$rc" -ne 0 ] && [ "$rc" -ne 5 ]; then exit "$rc"; fi
+echo "[test] pytest (all tests, slow and render ones included)"
+.venv/bin/python -m pytest -q "$@"
