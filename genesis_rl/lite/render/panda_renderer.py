@@ -1,0 +1,754 @@
+"""Offscreen Panda3D renderer of the lite backend: RGB, metric depth, per-pixel labels and GT boxes.
+
+One geometry pass draws the static scene (built once, flattened per kind) and the vehicles; every surface
+is opaque with alpha = label / 255 (see ``labels.py``), so the framebuffer's alpha channel is the label
+image. The colour then goes through :class:`WeatherCompositor` (fog, rain, wet roads, sky, noise).
+
+No ShowBase: a module-level headless GL pipe and the global GraphicsEngine are shared by every renderer;
+each renderer owns its own offscreen buffer, scene root and camera, so several can live in one process.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+
+import numpy as np
+from panda3d.core import (
+    AmbientLight,
+    DirectionalLight,
+    FrameBufferProperties,
+    Geom,
+    GeomNode,
+    GeomTriangles,
+    GeomVertexData,
+    GeomVertexFormat,
+    GraphicsEngine,
+    GraphicsOutput,
+    GraphicsPipe,
+    GraphicsPipeSelection,
+    NodePath,
+    PerspectiveLens,
+    Point3,
+    Spotlight,
+    Texture,
+    WindowProperties,
+    loadPrcFileData,
+)
+
+from genesis_rl.knobs import Weather
+from genesis_rl.lite.maps.lane_graph import LANE_WIDTH, RoadMap
+from genesis_rl.lite.render import labels as L
+from genesis_rl.lite.render.lighting import lighting_for
+from genesis_rl.lite.render.vehicle_models import VehicleModel, build_vehicle_model
+from genesis_rl.lite.render.weather_effects import WeatherCompositor
+from genesis_rl.sim.interface import CameraConfig, GroundTruthBox
+
+NEAR = 0.3
+MAX_BOX_RANGE = 150.0
+MIN_BOX_PIXELS = 12
+#: share of a vehicle's projected 3D-box rectangle that its silhouette covers (for visible_fraction)
+_SILHOUETTE_FILL = 0.72
+
+_FORMAT = GeomVertexFormat.get_v3n3c4()
+_RECORD = np.dtype([("pos", "<f4", 3), ("nrm", "<f4", 3), ("col", "u1", 4)])
+
+_PIPE: GraphicsPipe | None = None
+
+
+def _pipe() -> GraphicsPipe:
+    global _PIPE
+    if _PIPE is None:
+        loadPrcFileData(
+            "genesis-lite-renderer",
+            "window-type offscreen\nload-display p3headlessgl\naudio-library-name null\n"
+            "framebuffer-multisample 0\nmulti-samples 0\nsync-video 0\nframebuffer-srgb 0\n"
+            "notify-level-display error\nnotify-level-glgsg error\n",
+        )
+        sel = GraphicsPipeSelection.get_global_ptr()
+        pipe = sel.make_module_pipe("p3headlessgl")
+        if pipe is None:
+            pipe = sel.make_default_pipe()
+        if pipe is None:
+            raise RuntimeError("no Panda3D graphics pipe (p3headlessgl) available for offscreen rendering")
+        _PIPE = pipe
+    return _PIPE
+
+
+# --- mesh building ------------------------------------------------------------------------------------
+class _Mesh:
+    """Accumulates indexed triangles (numpy chunks) with per-vertex colour; alpha = label."""
+
+    def __init__(self) -> None:
+        self.pos: list[np.ndarray] = []
+        self.nrm: list[np.ndarray] = []
+        self.col: list[np.ndarray] = []
+        self.idx: list[np.ndarray] = []
+        self.n = 0
+
+    def add(self, pos: np.ndarray, nrm: np.ndarray, col: np.ndarray, idx: np.ndarray, label: int) -> None:
+        pos = np.asarray(pos, np.float32).reshape(-1, 3)
+        k = len(pos)
+        nrm = np.broadcast_to(np.asarray(nrm, np.float32), (k, 3))
+        rgb = np.broadcast_to(np.asarray(col, np.float64), (k, 3))
+        c = np.empty((k, 4), np.uint8)
+        c[:, :3] = np.clip(np.rint(rgb * 255.0), 0, 255)
+        c[:, 3] = label
+        self.pos.append(pos)
+        self.nrm.append(np.array(nrm))
+        self.col.append(c)
+        self.idx.append(np.asarray(idx, np.int64).reshape(-1) + self.n)
+        self.n += k
+
+    def quad(self, a, b, c, d, col, label: int) -> None:  # noqa: ANN001 - counter-clockwise seen from outside
+        p = np.array([a, b, c, d], np.float64)
+        nrm = np.cross(p[1] - p[0], p[2] - p[0])
+        nrm /= max(1e-9, float(np.linalg.norm(nrm)))
+        self.add(p, nrm, col, np.array([0, 1, 2, 0, 2, 3]), label)
+
+    def strip(self, left: np.ndarray, right: np.ndarray, col, label: int) -> None:  # noqa: ANN001
+        """Quads between two (N, 3) polylines, facing up (left is to the left of the direction of travel)."""
+        n = len(left)
+        if n < 2:
+            return
+        pos = np.concatenate([right, left])
+        i = np.arange(n - 1)
+        tri = np.stack([i, i + 1, n + i + 1, i, n + i + 1, n + i], axis=1)
+        self.add(pos, (0.0, 0.0, 1.0), col, tri, label)
+
+    def node(self, name: str) -> GeomNode | None:
+        if not self.n:
+            return None
+        rec = np.empty(self.n, _RECORD)
+        rec["pos"] = np.concatenate(self.pos)
+        rec["nrm"] = np.concatenate(self.nrm)
+        rec["col"] = np.concatenate(self.col)
+        vdata = GeomVertexData(name, _FORMAT, Geom.UH_static)
+        vdata.unclean_set_num_rows(self.n)
+        memoryview(vdata.modify_array(0)).cast("B")[:] = rec.tobytes()
+        prim = GeomTriangles(Geom.UH_static)
+        prim.set_index_type(Geom.NT_uint32)
+        idx = np.concatenate(self.idx).astype(np.uint32)
+        handle = prim.modify_vertices()
+        handle.unclean_set_num_rows(len(idx))
+        memoryview(handle).cast("B")[:] = idx.tobytes()
+        geom = Geom(vdata)
+        geom.add_primitive(prim)
+        node = GeomNode(name)
+        node.add_geom(geom)
+        return node
+
+
+def _box(
+    m: _Mesh,
+    cx: float,
+    cy: float,
+    z0: float,
+    yaw: float,
+    w: float,
+    d: float,
+    h: float,
+    col,  # noqa: ANN001
+    label: int,
+    top: bool = True,
+) -> None:
+    """Box with footprint w (along yaw) x d, from z0 to z0 + h."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    ax = np.array([c, s, 0.0]) * w / 2
+    ay = np.array([-s, c, 0.0]) * d / 2
+    base = np.array([cx, cy, z0])
+    up = np.array([0.0, 0.0, h])
+    corners = [base + ax + ay, base - ax + ay, base - ax - ay, base + ax - ay]  # counter-clockwise
+    col = np.asarray(col, np.float64)
+    for k in range(4):
+        p, q = corners[k], corners[(k + 1) % 4]
+        shade = 0.85 + 0.15 * ((k % 2) == 0)
+        m.quad(q, p, p + up, q + up, col * shade, label)
+    if top:
+        m.quad(*(cr + up for cr in corners), col * 0.95, label)
+
+
+def _normals2(poly: np.ndarray) -> np.ndarray:
+    t = np.gradient(poly, axis=0)
+    t /= np.maximum(1e-9, np.linalg.norm(t, axis=1, keepdims=True))
+    return np.stack([-t[:, 1], t[:, 0]], axis=1)  # left normal
+
+
+def _elev(rm: RoadMap, xy: np.ndarray) -> np.ndarray:
+    return np.asarray(rm.elevation(xy[:, 0], xy[:, 1]), np.float64) * np.ones(len(xy))
+
+
+def _offset_line(rm: RoadMap, cl: np.ndarray, nrm: np.ndarray, off: float, dz: float) -> np.ndarray:
+    xy = cl + nrm * off
+    return np.column_stack([xy, _elev(rm, xy) + dz])
+
+
+# --- the renderer -------------------------------------------------------------------------------------
+class LiteRenderer:
+    """Renders a :class:`RoadMap` and its vehicles from the ego's camera."""
+
+    _count = 0
+
+    def __init__(self, road_map: RoadMap, camera: CameraConfig, seed: int = 0) -> None:
+        self.map = road_map
+        self.camera = camera
+        self.seed = int(seed)
+        self.width, self.height = int(camera.width), int(camera.height)
+        self.near = NEAR
+        self.far = float(max(1000.0, camera.max_range * 5.0))
+        pipe = _pipe()
+        self._engine = GraphicsEngine.get_global_ptr()
+        LiteRenderer._count += 1
+        fb = FrameBufferProperties()
+        fb.set_rgb_color(True)
+        fb.set_rgba_bits(8, 8, 8, 8)
+        fb.set_depth_bits(24)
+        fb.set_multisamples(0)
+        fb.set_srgb_color(False)
+        props = WindowProperties.size(self.width, self.height)
+        self._buffer = self._engine.make_output(
+            pipe,
+            f"lite-renderer-{LiteRenderer._count}",
+            -2,
+            fb,
+            props,
+            GraphicsPipe.BF_refuse_window,
+            None,
+            None,
+        )
+        if self._buffer is None:
+            raise RuntimeError("could not create the Panda3D offscreen buffer")
+        self._color_tex = Texture("color")
+        self._depth_tex = Texture("depth")
+        self._depth_tex.set_format(Texture.F_depth_component)
+        self._buffer.add_render_texture(
+            self._color_tex, GraphicsOutput.RTM_copy_ram, GraphicsOutput.RTP_color
+        )
+        self._buffer.add_render_texture(
+            self._depth_tex, GraphicsOutput.RTM_copy_ram, GraphicsOutput.RTP_depth
+        )
+        self._buffer.set_clear_color_active(True)
+        self._buffer.set_clear_color((0.0, 0.0, 0.0, 0.0))
+        self._buffer.set_clear_depth_active(True)
+        self._buffer.set_clear_depth(1.0)
+
+        self.root = NodePath("lite-render-root")
+        self.lens = PerspectiveLens()
+        hfov = float(camera.fov_deg)
+        vfov = math.degrees(2 * math.atan(math.tan(math.radians(hfov) / 2) * self.height / self.width))
+        self.lens.set_fov(hfov, vfov)
+        self.lens.set_near_far(self.near, self.far)
+        from panda3d.core import Camera
+
+        cam_node = Camera("lite-camera", self.lens)
+        self.cam = self.root.attach_new_node(cam_node)
+        dr = self._buffer.make_display_region()
+        dr.set_camera(self.cam)
+        dr.set_clear_color_active(False)
+        self._dr = dr
+
+        # lights
+        self._sun = DirectionalLight("sun")
+        self._sun_np = self.root.attach_new_node(self._sun)
+        self._amb = AmbientLight("ambient")
+        self._amb_np = self.root.attach_new_node(self._amb)
+        self._head = Spotlight("ego-headlights")
+        hl = PerspectiveLens()
+        hl.set_fov(70.0, 40.0)
+        hl.set_near_far(0.5, 120.0)
+        self._head.set_lens(hl)
+        self._head.set_exponent(6.0)
+        self._head.set_attenuation((1.0, 0.0, 0.0012))
+        self._head_np = self.cam.attach_new_node(self._head)
+        self._head_np.set_pos(0.0, 0.0, -0.6)
+        self._head_np.set_p(-2.0)
+        self.root.set_light(self._sun_np)
+        self.root.set_light(self._amb_np)
+
+        self._compositor = WeatherCompositor(self.width, self.height, hfov, self.seed)
+        self._vehicles: dict[int, VehicleModel] = {}
+        self._build_static()
+        self._closed = False
+
+    # -- static scene ----------------------------------------------------------------------------------
+    def _build_static(self) -> None:
+        rm = self.map
+        highway = rm.name == "highway"
+        static = self.root.attach_new_node("static")
+        rng = np.random.default_rng(zlib.crc32(rm.name.encode()))
+
+        # ground
+        xmin, ymin, xmax, ymax = rm.bounds
+        cell = max(8.0, max(xmax - xmin, ymax - ymin) / 110.0)
+        nx = int(math.ceil((xmax - xmin) / cell)) + 1
+        ny = int(math.ceil((ymax - ymin) / cell)) + 1
+        gx, gy = np.meshgrid(np.linspace(xmin, xmax, nx), np.linspace(ymin, ymax, ny))
+        gz = np.asarray(rm.elevation(gx.ravel(), gy.ravel()), np.float64) * np.ones(gx.size)
+        gz = gz - (0.3 if highway else 0.05)
+        zz = gz.reshape(ny, nx)
+        dzdy, dzdx = np.gradient(zz, (ymax - ymin) / (ny - 1), (xmax - xmin) / (nx - 1))
+        nrm = np.stack([-dzdx.ravel(), -dzdy.ravel(), np.ones(gx.size)], axis=1)
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        gcol = np.asarray(rm.ground_color) * (0.92 + 0.16 * rng.random((gx.size, 1)))
+        i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
+        a = (j * nx + i).ravel()
+        tri = np.stack([a, a + 1, a + nx + 1, a, a + nx + 1, a + nx], axis=1)
+        m = _Mesh()
+        m.add(np.column_stack([gx.ravel(), gy.ravel(), gz]), nrm, gcol, tri, L.GROUND)
+        self._attach(static, m, "ground")
+
+        # roads, junctions, markings, sidewalks, puddles
+        road, mark, side, puddle = _Mesh(), _Mesh(), _Mesh(), _Mesh()
+        asphalt = (0.28, 0.28, 0.29)
+        white, yellow = (0.85, 0.85, 0.82), (0.85, 0.68, 0.12)
+        for r in rm.roads:
+            cl = np.asarray(r.centerline, np.float64)
+            if len(cl) < 2:
+                continue
+            nv = _normals2(cl)
+            hw = r.width / 2
+            road.strip(
+                _offset_line(rm, cl, nv, hw, 0.02), _offset_line(rm, cl, nv, -hw, 0.02), asphalt, L.ROAD
+            )
+            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cl, axis=0), axis=1))])
+            for off in (0.12, -0.12):  # double yellow centre line
+                self._line(mark, rm, cl, nv, off, 0.12, yellow, None, s)
+            for k in range(1, r.lanes_each_way):  # dashed white between same-direction lanes
+                for sign in (1, -1):
+                    self._line(mark, rm, cl, nv, sign * k * LANE_WIDTH, 0.15, white, (3.0, 9.0), s)
+            for sign in (1, -1):  # solid edge lines
+                self._line(mark, rm, cl, nv, sign * (hw - 0.25), 0.15, white, None, s)
+            if not highway:
+                for sign in (1, -1):
+                    inner = _offset_line(rm, cl, nv, sign * hw, 0.15)
+                    outer = _offset_line(rm, cl, nv, sign * (hw + 2.5), 0.15)
+                    lo = _offset_line(rm, cl, nv, sign * hw, 0.0)
+                    if sign > 0:
+                        side.strip(outer, inner, (0.56, 0.55, 0.53), L.SIDEWALK)
+                        side.strip(inner, lo, (0.45, 0.45, 0.44), L.SIDEWALK)
+                    else:
+                        side.strip(inner, outer, (0.56, 0.55, 0.53), L.SIDEWALK)
+                        side.strip(lo, inner, (0.45, 0.45, 0.44), L.SIDEWALK)
+            # puddles at deterministic places
+            n_p = int(rng.integers(1, 4))
+            for _ in range(n_p):
+                k = int(rng.integers(0, len(cl)))
+                lat = float(rng.uniform(-hw + 1.0, hw - 1.0))
+                rad = float(rng.uniform(0.8, 2.2))
+                cxy = cl[k] + nv[k] * lat
+                ang = np.linspace(0, 2 * math.pi, 10, endpoint=False)
+                ell = np.column_stack([cxy[0] + rad * 1.6 * np.cos(ang), cxy[1] + rad * np.sin(ang)])
+                pts = np.column_stack([np.vstack([cxy, ell]), _elev(rm, np.vstack([cxy, ell])) + 0.03])
+                fan = np.array([[0, 1 + q, 1 + (q + 1) % 10] for q in range(10)])
+                puddle.add(pts, (0.0, 0.0, 1.0), (0.22, 0.22, 0.23), fan, L.PUDDLE)
+        for jn in rm.junctions:
+            c = np.asarray(jn.center, np.float64)
+            ang = np.linspace(0, 2 * math.pi, 28, endpoint=False)
+            ring = np.column_stack([c[0] + jn.radius * np.cos(ang), c[1] + jn.radius * np.sin(ang)])
+            pts = np.vstack([c, ring])
+            fan = np.array([[0, 1 + q, 1 + (q + 1) % 28] for q in range(28)])
+            road.add(np.column_stack([pts, _elev(rm, pts) + 0.025]), (0.0, 0.0, 1.0), asphalt, fan, L.ROAD)
+        self._attach(static, road, "roads")
+        self._attach(static, mark, "markings")
+        self._attach(static, side, "sidewalks")
+        self._attach(static, puddle, "puddles")
+
+        # buildings
+        bm = _Mesh()
+        for b in rm.buildings:
+            z0 = float(_elev(rm, np.array([[b.x, b.y]]))[0]) - 0.5
+            col = np.asarray(b.color, np.float64)
+            _box(bm, b.x, b.y, z0, b.yaw, b.width, b.depth, b.height + 0.5, col, L.BUILDING)
+            win = col * 0.35 + np.array([0.02, 0.03, 0.05])
+            c, s_ = math.cos(b.yaw), math.sin(b.yaw)
+            ex, ey = np.array([c, s_, 0.0]), np.array([-s_, c, 0.0])
+            for fx, fy, half_len, half_out in (
+                (ex, ey, b.width, b.depth),
+                (ey, -ex, b.depth, b.width),
+                (-ex, -ey, b.width, b.depth),
+                (-ey, ex, b.depth, b.width),
+            ):
+                # facade with outward normal fy, running along fx
+                centre = np.array([b.x, b.y, z0 + 0.5]) + fy * (half_out / 2 + 0.05)
+                u = fx * max(0.0, half_len / 2 - 0.8)
+                zz0 = 1.6
+                while zz0 + 1.3 < b.height - 0.6:
+                    lo, hi = np.array([0, 0, zz0]), np.array([0, 0, zz0 + 1.3])
+                    bm.quad(
+                        centre + u + lo, centre - u + lo, centre - u + hi, centre + u + hi, win, L.BUILDING
+                    )
+                    zz0 += 3.2
+        self._attach(static, bm, "buildings")
+
+        # trees
+        tm = _Mesh()
+        if rm.trees:
+            txy = np.array([[t.x, t.y] for t in rm.trees])
+            tz = _elev(rm, txy) - (0.3 if highway else 0.0)
+            for t, z in zip(rm.trees, tz, strict=True):
+                self._tree(tm, t.x, t.y, float(z), t.height, t.kind, rng)
+        self._attach(static, tm, "trees")
+
+        # traffic lights: poles static, lamps one dynamic geom
+        pm = _Mesh()
+        lamps: list[tuple[int, int, int]] = []  # (junction, group, lamp 0 red 1 yellow 2 green)
+        lamp_pos: list[np.ndarray] = []
+        for jn in rm.junctions:
+            for xy, heading, group in jn.signal_heads:
+                x, y = float(xy[0]), float(xy[1])
+                z = float(_elev(rm, np.array([[x, y]]))[0])
+                _box(pm, x, y, z, heading, 0.16, 0.16, 4.6, (0.22, 0.23, 0.24), L.POLE)
+                _box(pm, x, y, z + 3.2, heading, 0.32, 0.36, 1.1, (0.08, 0.08, 0.07), L.POLE)
+                f = np.array([math.cos(heading), math.sin(heading), 0.0])
+                rgt = np.array([math.sin(heading), -math.cos(heading), 0.0])
+                for li in range(3):
+                    cz = z + 4.05 - li * 0.33
+                    ctr = np.array([x, y, cz]) + f * 0.17
+                    h = 0.12
+                    lamp_pos.append(
+                        np.array(
+                            [
+                                ctr - rgt * h - [0, 0, h],
+                                ctr + rgt * h - [0, 0, h],
+                                ctr + rgt * h + [0, 0, h],
+                                ctr - rgt * h + [0, 0, h],
+                            ]
+                        )
+                    )
+                    lamps.append((jn.id, int(group), li))
+        self._attach(static, pm, "poles")
+        static.flatten_strong()
+        self._lamps = lamps
+        self._lamp_vdata = None
+        if lamps:
+            n = 4 * len(lamps)
+            rec = np.zeros(n, _RECORD)
+            rec["pos"] = np.concatenate(lamp_pos)
+            rec["nrm"] = (0.0, 0.0, 1.0)
+            rec["col"][:, 3] = L.POLE
+            self._lamp_rec = rec
+            vdata = GeomVertexData("lamps", _FORMAT, Geom.UH_dynamic)
+            vdata.unclean_set_num_rows(n)
+            memoryview(vdata.modify_array(0)).cast("B")[:] = rec.tobytes()
+            prim = GeomTriangles(Geom.UH_static)
+            prim.set_index_type(Geom.NT_uint32)
+            for q in range(len(lamps)):
+                prim.add_vertices(4 * q, 4 * q + 1, 4 * q + 2)
+                prim.add_vertices(4 * q, 4 * q + 2, 4 * q + 3)
+            geom = Geom(vdata)
+            geom.add_primitive(prim)
+            node = GeomNode("lamps")
+            node.add_geom(geom)
+            self._lamps_np = self.root.attach_new_node(node)
+            self._lamps_np.set_light_off(1)
+            self._lamp_vdata = geom.modify_vertex_data()
+            self._lamp_state: list[str] | None = None
+
+    @staticmethod
+    def _attach(parent: NodePath, m: _Mesh, name: str) -> None:
+        node = m.node(name)
+        if node is not None:
+            parent.attach_new_node(node)
+
+    @staticmethod
+    def _line(
+        m: _Mesh,
+        rm: RoadMap,
+        cl: np.ndarray,
+        nv: np.ndarray,
+        off: float,
+        w: float,
+        col,  # noqa: ANN001
+        dash: tuple[float, float] | None,
+        s: np.ndarray,
+    ) -> None:
+        left = _offset_line(rm, cl, nv, off + w / 2, 0.045)
+        right = _offset_line(rm, cl, nv, off - w / 2, 0.045)
+        if dash is None:
+            m.strip(left, right, col, L.LANE_MARKING)
+            return
+        on_len, period = dash
+        mid = 0.5 * (s[:-1] + s[1:])
+        on = (mid % period) < on_len
+        n = len(cl)
+        i = np.nonzero(on)[0]
+        if not len(i):
+            return
+        pos = np.concatenate([right, left])
+        tri = np.stack([i, i + 1, n + i + 1, i, n + i + 1, n + i], axis=1)
+        m.add(pos, (0.0, 0.0, 1.0), col, tri, L.LANE_MARKING)
+
+    @staticmethod
+    def _tree(
+        m: _Mesh, x: float, y: float, z: float, height: float, kind: str, rng: np.random.Generator
+    ) -> None:
+        trunk_h = height * (0.25 if kind == "pine" else 0.4)
+        _box(m, x, y, z, 0.0, 0.3, 0.3, trunk_h + 0.3, (0.30, 0.22, 0.14), L.VEGETATION, top=False)
+        tint = 0.85 + 0.3 * float(rng.random())
+        sides = 6
+        ang = np.linspace(0, 2 * math.pi, sides, endpoint=False) + float(rng.random())
+        if kind == "pine":
+            col = np.array([0.10, 0.24, 0.12]) * tint
+            rad = height * 0.22
+            for lo, hi, rr in (
+                (trunk_h, height, rad),
+                (trunk_h + 0.35 * (height - trunk_h), height, rad * 0.7),
+            ):
+                ring = np.column_stack([x + rr * np.cos(ang), y + rr * np.sin(ang), np.full(sides, z + lo)])
+                apex = np.array([[x, y, z + hi]])
+                pts = np.vstack([ring, apex])
+                nrm = np.column_stack([np.cos(ang), np.sin(ang), np.full(sides, 0.5)])
+                nrm = np.vstack([nrm, [[0, 0, 1.0]]])
+                nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+                tri = np.array([[q, (q + 1) % sides, sides] for q in range(sides)])
+                m.add(pts, nrm, col, tri, L.VEGETATION)
+        else:
+            col = np.array([0.20, 0.36, 0.14]) * tint
+            rad = height * 0.3
+            cz = z + trunk_h + rad * 0.8
+            lat = np.array([-0.6, 0.0, 0.6]) * math.pi / 2
+            rings = [
+                np.column_stack(
+                    [np.cos(a) * np.cos(ang), np.cos(a) * np.sin(ang), np.full(sides, math.sin(a))]
+                )
+                for a in lat
+            ]
+            unit = np.vstack([[[0, 0, -1.0]], *rings, [[0, 0, 1.0]]])
+            pts = unit * np.array([rad, rad, rad * 0.85]) + np.array([x, y, cz])
+            tri = []
+            for q in range(sides):
+                qn = (q + 1) % sides
+                tri.append([0, 1 + qn, 1 + q])
+                for rix in range(len(rings) - 1):
+                    a0, b0 = 1 + rix * sides, 1 + (rix + 1) * sides
+                    tri.append([a0 + q, a0 + qn, b0 + qn])
+                    tri.append([a0 + q, b0 + qn, b0 + q])
+                top = 1 + len(rings) * sides
+                last = 1 + (len(rings) - 1) * sides
+                tri.append([last + q, last + qn, top])
+            m.add(pts, unit, col, np.array(tri), L.VEGETATION)
+
+    # -- vehicles --------------------------------------------------------------------------------------
+    def set_vehicles(self, vehicles: list[tuple[int, str, tuple[float, float, float]]]) -> None:
+        """(vehicle index, make, colour) per vehicle; index 0 (the ego) is not drawn."""
+        self.clear_vehicles()
+        for idx, make, color in vehicles:
+            if idx == 0:
+                continue
+            vm = build_vehicle_model(make, tuple(color), L.vehicle_label(idx))
+            vm.root.reparent_to(self.root)
+            vm.root.hide()
+            self._vehicles[int(idx)] = vm
+
+    def clear_vehicles(self) -> None:
+        for vm in self._vehicles.values():
+            vm.root.remove_node()
+        self._vehicles.clear()
+
+    # -- frame -----------------------------------------------------------------------------------------
+    def _camera_pose(self, pose: np.ndarray) -> tuple[np.ndarray, float, float]:
+        x, y, z, yaw, pitch = (float(v) for v in pose[:5])
+        cam = self.camera
+        cy_, sy_ = math.cos(yaw), math.sin(yaw)
+        cp = math.cos(pitch)
+        fwd = np.array([cp * cy_, cp * sy_, math.sin(pitch)])
+        left = np.array([-sy_, cy_, 0.0])
+        up = np.cross(fwd, -left)
+        up = -up if up[2] < 0 else up
+        pos = np.array([x, y, z]) + fwd * cam.mount_x + left * cam.mount_y + up * cam.mount_z
+        return pos, yaw, pitch + math.radians(cam.pitch_deg)
+
+    def _update_lamps(self, time_s: float) -> None:
+        if self._lamp_vdata is None:
+            return
+        states = [self.map.signal_state(j, g, time_s) for j, g, _ in self._lamps]
+        if states == self._lamp_state:
+            return
+        self._lamp_state = states
+        on = {0: "red", 1: "yellow", 2: "green"}
+        lit = {0: (1.0, 0.12, 0.08), 1: (1.0, 0.72, 0.05), 2: (0.15, 1.0, 0.45)}
+        off = {0: (0.20, 0.04, 0.03), 1: (0.20, 0.15, 0.03), 2: (0.03, 0.16, 0.07)}
+        col = np.array(
+            [lit[li] if st == on[li] else off[li] for (_, _, li), st in zip(self._lamps, states, strict=True)]
+        )
+        self._lamp_rec["col"][:, :3] = np.repeat(np.rint(col * 255), 4, axis=0).astype(np.uint8)
+        memoryview(self._lamp_vdata.modify_array(0)).cast("B")[:] = self._lamp_rec.tobytes()
+
+    def render(
+        self,
+        poses: np.ndarray,
+        braking: np.ndarray,
+        dims: np.ndarray,
+        weather: Weather,
+        time_s: float,
+        step: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[GroundTruthBox]]:
+        if self._closed:
+            raise RuntimeError("renderer is closed")
+        poses = np.asarray(poses, np.float64)
+        braking = np.asarray(braking, bool)
+        dims = np.asarray(dims, np.float64)
+        lighting = lighting_for(weather)
+
+        # camera
+        cpos, cyaw, cpitch = self._camera_pose(poses[0])
+        self.cam.set_pos(*cpos)
+        self.cam.set_hpr(math.degrees(cyaw) - 90.0, math.degrees(cpitch), 0.0)
+
+        # lights
+        sd = lighting.sun_direction
+        self._sun.set_color((*lighting.sun_color, 1.0))
+        self._sun_np.set_pos(0, 0, 0)
+        self._sun_np.look_at(Point3(-sd[0], -sd[1], -sd[2]))
+        self._amb.set_color((*lighting.ambient_color, 1.0))
+        hs = float(lighting.headlight_strength)
+        if hs > 0.01:
+            self._head.set_color((1.6 * hs, 1.55 * hs, 1.35 * hs, 1.0))
+            self.root.set_light(self._head_np)
+        else:
+            self.root.clear_light(self._head_np)
+
+        # vehicles
+        sz = max(0.25, sd[2])
+        sh_len = min(4.0, 1.4 / sz) if sd[2] > 0 else 0.0
+        for idx, vm in self._vehicles.items():
+            if idx >= len(poses):
+                vm.root.hide()
+                continue
+            x, y, z, yaw, pitch = (float(v) for v in poses[idx, :5])
+            vm.root.show()
+            vm.root.set_pos(x, y, z)
+            vm.root.set_hpr(math.degrees(yaw) - 90.0, math.degrees(pitch), 0.0)
+            vm.set_lights(hs > 0.3, bool(braking[idx]) if idx < len(braking) else False)
+            # shadow offset in the model frame (x right, y forward), away from the sun
+            ox, oy = -sd[0] * sh_len, -sd[1] * sh_len
+            c, s = math.cos(yaw), math.sin(yaw)
+            fwd_o = ox * c + oy * s
+            right_o = ox * s - oy * c
+            vm.set_shadow(right_o, fwd_o, float(lighting.shadow_darkness) if sh_len > 0 else 0.3)
+        self._update_lamps(time_s)
+
+        self._engine.render_frame()
+        self._engine.sync_frame()
+        self._engine.render_frame()  # RTM_copy_ram textures are filled after the frame finishes
+        h, w = self.height, self.width
+        rgba = np.frombuffer(self._color_tex.get_ram_image_as("RGBA"), np.uint8).reshape(h, w, 4)[::-1]
+        depth_raw = self._read_depth()
+        labels = np.ascontiguousarray(rgba[:, :, 3])
+        rgb0 = np.ascontiguousarray(rgba[:, :, :3])
+        depth = (self.near * self.far / (self.far - depth_raw * (self.far - self.near))).astype(np.float32)
+        depth[labels == L.SKY] = np.float32(self.far)
+        rgb = self._compositor.apply(rgb0, depth, labels, weather, lighting, cyaw, cpitch, int(step))
+        boxes = self._boxes(poses, dims, cpos, cyaw, cpitch, labels, depth)
+        return rgb, depth, labels, boxes
+
+    def _read_depth(self) -> np.ndarray:
+        tex = self._depth_tex
+        h, w = self.height, self.width
+        data = memoryview(tex.get_ram_image())
+        ct = tex.get_component_type()
+        if ct == Texture.T_float:
+            d = np.frombuffer(data, np.float32).reshape(h, w)
+        elif ct == Texture.T_unsigned_int_24_8:
+            d = (np.frombuffer(data, np.uint32).reshape(h, w) >> 8).astype(np.float64) / float(2**24 - 1)
+        elif ct == Texture.T_unsigned_int:
+            d = np.frombuffer(data, np.uint32).reshape(h, w).astype(np.float64) / float(2**32 - 1)
+        elif ct == Texture.T_unsigned_short:
+            d = np.frombuffer(data, np.uint16).reshape(h, w).astype(np.float64) / 65535.0
+        else:
+            raise RuntimeError(f"unsupported depth texture component type {ct}")
+        return np.asarray(d[::-1], np.float64)
+
+    def _boxes(
+        self,
+        poses: np.ndarray,
+        dims: np.ndarray,
+        cpos: np.ndarray,
+        cyaw: float,
+        cpitch: float,
+        labels: np.ndarray,
+        depth: np.ndarray,
+    ) -> list[GroundTruthBox]:
+        h, w = self.height, self.width
+        f = self.camera.focal_px
+        cy_, sy_ = math.cos(cyaw), math.sin(cyaw)
+        cp, sp = math.cos(cpitch), math.sin(cpitch)
+        right = np.array([sy_, -cy_, 0.0])
+        up = np.array([-sp * cy_, -sp * sy_, cp])
+        fwd = np.array([cp * cy_, cp * sy_, sp])
+        out: list[GroundTruthBox] = []
+        for idx, vm in self._vehicles.items():
+            if idx >= len(poses):
+                continue
+            x, y, z, yaw, pitch = (float(v) for v in poses[idx, :5])
+            ln, wd, ht = (float(v) for v in dims[idx, :3])
+            if math.hypot(x - cpos[0], y - cpos[1]) > MAX_BOX_RANGE:
+                continue
+            c, s = math.cos(yaw), math.sin(yaw)
+            ex, ey = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
+            corners = (
+                np.array(
+                    [
+                        [x, y, z] + ex * a * ln / 2 + ey * b * wd / 2 + np.array([0, 0, zz])
+                        for a in (-1, 1)
+                        for b in (-1, 1)
+                        for zz in (0.0, ht)
+                    ]
+                )
+                - cpos
+            )
+            zc = corners @ fwd
+            if zc.max() <= self.near:
+                continue
+            front = zc > self.near
+            u = w / 2 + f * (corners @ right)[front] / zc[front]
+            v = h / 2 - f * (corners @ up)[front] / zc[front]
+            if not front.all():  # partly behind the camera: the box reaches the border it crosses
+                u0, u1, v0, v1 = 0.0, float(w), 0.0, float(h)
+                u0 = u0 if u.min() <= w / 2 else u.min()
+                u1 = u1 if u.max() >= w / 2 else u.max()
+                v0, v1 = max(0.0, v.min()), min(float(h), v.max())
+            else:
+                u0, u1, v0, v1 = u.min(), u.max(), v.min(), v.max()
+            truncated = bool(u0 < 0 or v0 < 0 or u1 > w or v1 > h or not front.all())
+            ix0, iy0 = max(0, int(math.floor(u0)) - 1), max(0, int(math.floor(v0)) - 1)
+            ix1, iy1 = min(w, int(math.ceil(u1)) + 1), min(h, int(math.ceil(v1)) + 1)
+            if ix1 <= ix0 or iy1 <= iy0:
+                continue
+            mask = labels[iy0:iy1, ix0:ix1] == vm.label
+            count = int(mask.sum())
+            if count < MIN_BOX_PIXELS:
+                continue
+            rows = np.nonzero(mask.any(axis=1))[0]
+            cols = np.nonzero(mask.any(axis=0))[0]
+            dist = float(depth[iy0:iy1, ix0:ix1][mask].min())
+            area = max(1.0, (min(u1, w) - max(u0, 0)) * (min(v1, h) - max(v0, 0)))
+            frac = float(min(1.0, count / (_SILHOUETTE_FILL * area)))
+            out.append(
+                GroundTruthBox(
+                    vehicle_id=int(idx),
+                    x0=int(ix0 + cols[0]),
+                    y0=int(iy0 + rows[0]),
+                    x1=int(ix0 + cols[-1] + 1),
+                    y1=int(iy0 + rows[-1] + 1),
+                    distance=dist,
+                    visible_fraction=frac,
+                    truncated=truncated,
+                )
+            )
+        return out
+
+    def close(self) -> None:
+        if getattr(self, "_closed", True):
+            return
+        self._closed = True
+        self.clear_vehicles()
+        self._engine.remove_window(self._buffer)
+        self._buffer = None
+        self.root.remove_node()
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:
+            pass
