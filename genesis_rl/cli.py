@@ -34,6 +34,36 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_render(args: argparse.Namespace) -> int:
+    from genesis_rl.knobs import parse_weather
+    from genesis_rl.lite.maps import MAP_NAMES
+    from genesis_rl.render_cmd import render_one, render_sweep
+    from genesis_rl.scenes.catalog import load_catalog
+    from genesis_rl.scenes.lite_generator import generate_catalog
+    from genesis_rl.sim.interface import CameraConfig
+
+    if args.catalog:
+        catalog = load_catalog(args.catalog)
+    else:
+        if args.map not in MAP_NAMES:
+            raise UserInputError(f"--map '{args.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
+        if args.scene < 0:
+            raise UserInputError(f"--scene must be >= 0, got {args.scene}")
+        catalog = generate_catalog(args.map, args.scene + 1, args.seed)
+    scene = catalog.scene(args.scene)
+    try:
+        camera = CameraConfig(width=args.width, height=args.height)
+    except ValueError as err:
+        raise UserInputError(str(err)) from None
+    out = Path(args.out)
+    if args.sweep:
+        result = render_sweep(scene, camera, out, args.force, args.warmup)
+    else:
+        result = render_one(scene, parse_weather(args.weather), camera, out, args.force, args.warmup)
+    print(json.dumps(result))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_sim
 
@@ -58,6 +88,21 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
     sc.add_argument("--quiet", action="store_true", help="no progress bar")
     sc.set_defaults(func=_cmd_scenes)
+
+    rd = sub.add_parser("render", help="render a scene's camera frame (rgb, depth, boxes) or a knob sweep sheet")
+    rd.add_argument("--map", default="urban", help="map name: urban or highway (scene generated with --seed)")
+    rd.add_argument("--catalog", default=None, help="take the scene from this catalog file instead")
+    rd.add_argument("--scene", type=int, default=0, help="scene index")
+    rd.add_argument("--seed", type=int, default=0, help="catalog seed when no --catalog is given")
+    rd.add_argument("--weather", default="clear_noon",
+                    help="preset and/or KNOB=VALUE list, e.g. fog_density=60,sun_altitude_angle=10")
+    rd.add_argument("--sweep", action="store_true", help="write a contact sheet sweeping each knob")
+    rd.add_argument("--width", type=int, default=320, help="image width [px]")
+    rd.add_argument("--height", type=int, default=240, help="image height [px]")
+    rd.add_argument("--warmup", type=int, default=0, help="simulation steps before the frame")
+    rd.add_argument("--out", required=True, help="output directory")
+    rd.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    rd.set_defaults(func=_cmd_render)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim"], help="sim: physics steps/s and rendered frames/s")

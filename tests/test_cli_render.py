@@ -1,0 +1,31 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.render
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "genesis_rl", *args], capture_output=True, text=True)
+
+
+def test_render_writes_rgb_depth_boxes_and_refuses_overwrite(tmp_path):
+    out = tmp_path / "r"
+    r = _run("render", "--map", "urban", "--scene", "0", "--weather", "fog_density=60,sun_altitude_angle=10",
+             "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    for name in ("rgb.png", "depth.png", "boxes.png", "boxes.json"):
+        assert (out / name).is_file()
+    info = json.loads((out / "boxes.json").read_text())
+    assert info["weather"]["fog_density"] == 60 and info["width"] == 320
+    r = _run("render", "--map", "urban", "--out", str(out))
+    assert r.returncode == 2 and "--force" in r.stderr
+
+
+@pytest.mark.parametrize("weather, field", [("fog_density=abc", "fog_density"), ("rain=5", "unknown knob 'rain'"),
+                                            ("fog_density=101", "allowed 0..100")])
+def test_render_bad_weather_exits_2_naming_the_field(tmp_path, weather, field):
+    r = _run("render", "--map", "urban", "--weather", weather, "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and field in r.stderr and "Traceback" not in r.stderr
