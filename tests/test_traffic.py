@@ -54,3 +54,20 @@ def test_ego_without_braking_hits_the_lead_and_stops(scene):
         assert hits, "full throttle into traffic must end in a collision"
         assert hits[0].speed_a > 1.0
         assert sim.traffic.v[0] == 0.0  # stopped, not passed through
+
+
+def test_vectorised_collision_check_matches_pairwise_sat():
+    from genesis_rl.lite.collisions import colliding_pairs
+
+    rng = np.random.default_rng(0)
+    found = 0
+    for _ in range(200):
+        n = 8
+        x, y = rng.uniform(0, 8, n), rng.uniform(0, 8, n)
+        yaw, length, width = rng.uniform(-3, 3, n), rng.uniform(3, 8, n), rng.uniform(1.5, 2.5, n)
+        ref = [(i, j) for i in range(n) for j in range(i + 1, n)
+               if boxes_overlap(box_corners(x[i], y[i], yaw[i], length[i], width[i]),
+                                box_corners(x[j], y[j], yaw[j], length[j], width[j]))]
+        assert colliding_pairs(x, y, yaw, length, width) == ref
+        found += len(ref)
+    assert found > 100

@@ -22,6 +22,7 @@ from genesis_rl.sim.interface import Collision, LeadInfo, VehicleControl
 MAX_STEER = np.radians(35.0)  # front wheel angle at steer = 1 [rad]
 MAX_BRAKE = 8.0  # deceleration at brake = 1 [m/s^2]
 LEAD_RANGE = 80.0  # how far ahead a leader is looked for [m]
+GREEN, YELLOW, RED = 0, 1, 2
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,16 @@ class Traffic:
         self.ego_control = VehicleControl()
         self.time = 0.0
         self._contacts: set[tuple[int, int]] = set()
+        sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
+        self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
+        self._lane_sig_g = np.array([g for _, g in sig], dtype=np.int64)
+
+    def _signal_phases(self, t: float) -> np.ndarray:
+        """(junctions, 2) phase codes of both signal groups of every junction at time ``t``."""
+        tm = self.map.timing
+        half = tm.green + tm.yellow + tm.all_red
+        u = np.mod(t + self.map.signal_offsets[:, None] + np.array([0.0, half]), tm.cycle)
+        return np.where(u < tm.green, GREEN, np.where(u < tm.green + tm.yellow, YELLOW, RED))
 
     # -- queries ---------------------------------------------------------------------------------------
     def z_pitch(self) -> tuple[np.ndarray, np.ndarray]:
@@ -165,19 +176,16 @@ class Traffic:
 
         # car following (IDM) against the corridor leader and the stop line of a red/yellow light
         _, gap, v_lead = self._leaders(np.tan(delta) / self.wheelbase)
-        gap_light = np.full(self.n, np.inf)
-        for i in np.flatnonzero(self.is_npc):
-            sig = m.lanes[self.lane[i]].signal
-            if sig is None:
-                continue
-            state = m.signal_state(sig[0], sig[1], self.time)
-            dist = m.length[self.lane[i]] - self.s[i] - 0.5 * self.length[i] - 1.0
-            if state == "red" or (state == "yellow" and dist > self.v[i] ** 2 / (2 * self.b_comf[i])):
-                if dist > -0.5:
-                    gap_light[i] = max(dist, 0.01)
-                    v_lead_light = 0.0
-                    if gap_light[i] < gap[i]:
-                        gap[i], v_lead[i] = gap_light[i], v_lead_light
+        # stop lines: lanes that end at a red light, or a yellow one the vehicle can still stop for
+        sig_j = self._lane_sig_j[self.lane]
+        phase = self._signal_phases(self.time)[np.maximum(sig_j, 0), self._lane_sig_g[self.lane]]
+        dist = m.length[self.lane] - self.s - 0.5 * self.length - 1.0
+        can_stop = dist > self.v**2 / (2 * self.b_comf)
+        must_stop = (sig_j >= 0) & self.is_npc & (dist > -0.5) & ((phase == RED) | ((phase == YELLOW) & can_stop))
+        gap_light = np.where(must_stop, np.maximum(dist, 0.01), np.inf)
+        use_light = gap_light < gap
+        gap = np.where(use_light, gap_light, gap)
+        v_lead = np.where(use_light, 0.0, v_lead)
         v0 = np.maximum(self.v0, 0.1)
         dv = self.v - v_lead
         s_star = self.min_gap + np.maximum(
