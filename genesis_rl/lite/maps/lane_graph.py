@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 DS = 0.5  # lane sample spacing [m]
+GRID_CELL = 25.0  # spatial hash cell for nearest-lane queries [m]
 LANE_WIDTH = 3.5  # [m]
 
 Elevation = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -138,6 +139,7 @@ class RoadMap:
     count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     length: np.ndarray = field(default_factory=lambda: np.zeros(0))
     point_lane: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    _grid: dict | None = field(default=None, repr=False)
 
     def finalize(self) -> RoadMap:
         xy = np.concatenate([ln.xy for ln in self.lanes])
@@ -182,12 +184,30 @@ class RoadMap:
         return [ln.id for ln in self.lanes if ln.road >= 0]
 
     def nearest_lane_point(self, x: float, y: float, heading: float | None = None) -> int:
-        """Flat index of the lane sample nearest to (x, y), optionally among headings within 60 degrees."""
-        d2 = (self.points[:, 0] - x) ** 2 + (self.points[:, 1] - y) ** 2
+        """Flat index of the lane sample nearest to (x, y), optionally among headings within 60 degrees.
+        Searches the 3x3 grid cells around the point first (a spatial hash), the whole map if those are empty."""
+        if self._grid is None:
+            keys = np.floor(self.points[:, :2] / GRID_CELL).astype(np.int64)
+            order = np.lexsort((keys[:, 1], keys[:, 0]))
+            self._grid = {}
+            for k, idx in zip(map(tuple, keys[order]), order, strict=True):
+                self._grid.setdefault(k, []).append(int(idx))
+            self._grid = {k: np.array(v) for k, v in self._grid.items()}
+        cx, cy = int(np.floor(x / GRID_CELL)), int(np.floor(y / GRID_CELL))
+        parts = [self._grid.get((cx + i, cy + j)) for i in (-1, 0, 1) for j in (-1, 0, 1)]
+        parts = [p for p in parts if p is not None]
+        cand = np.concatenate(parts) if parts else np.arange(len(self.points))
+        best = self._nearest_among(cand, x, y, heading)
+        if best < 0 and len(cand) < len(self.points):
+            best = self._nearest_among(np.arange(len(self.points)), x, y, heading)
+        return max(best, 0)
+
+    def _nearest_among(self, cand: np.ndarray, x: float, y: float, heading: float | None) -> int:
+        d2 = (self.points[cand, 0] - x) ** 2 + (self.points[cand, 1] - y) ** 2
         if heading is not None:
-            dh = np.cos(self.headings - heading)
-            d2 = np.where(dh > 0.5, d2, np.inf)
-        return int(np.argmin(d2))
+            d2 = np.where(np.cos(self.headings[cand] - heading) > 0.5, d2, np.inf)
+        k = int(np.argmin(d2))
+        return int(cand[k]) if np.isfinite(d2[k]) else -1
 
 
 # --- construction -------------------------------------------------------------------------------------
