@@ -628,9 +628,7 @@ class LiteRenderer:
             vm.set_shadow(right_o, fwd_o, float(lighting.shadow_darkness) if sh_len > 0 else 0.3)
         self._update_lamps(time_s)
 
-        self._engine.render_frame()
-        self._engine.sync_frame()
-        self._engine.render_frame()  # RTM_copy_ram textures are filled after the frame finishes
+        self._engine.render_frame()  # single-threaded pipeline: RTM_copy_ram textures hold this frame
         h, w = self.height, self.width
         rgba = np.frombuffer(self._color_tex.get_ram_image_as("RGBA"), np.uint8).reshape(h, w, 4)[::-1]
         depth_raw = self._read_depth()
