@@ -77,7 +77,6 @@ class Traffic:
         self.accel = np.zeros(n)
         self.steer_angle = np.zeros(n)
         self.braking = np.zeros(n, bool)
-        self.stuck = np.zeros(n, bool)
         p = [q or AutopilotParams(0, 1.5, 2, 2, 3, 0, 0) for q in params]
         self.v0_base = np.array([q.target_speed for q in p])
         self.v0 = self.v0_base.copy()
@@ -237,7 +236,6 @@ class Traffic:
             hit = np.unique(np.array(pairs).ravel())
             self.x[hit], self.y[hit], self.yaw[hit] = prev[0][hit], prev[1][hit], prev[2][hit]
             self.v[hit] = 0.0
-            self.stuck[hit] = True
         self._advance_lanes()
         self.time += dt
         return collisions

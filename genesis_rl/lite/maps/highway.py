@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from genesis_rl.lite.maps.lane_graph import Building, NetworkSpec, RoadMap, Tree, build_network
-from genesis_rl.lite.maps.scenery import RoadMask, lane_and_junction_points
+from genesis_rl.lite.maps.scenery import RoadMask, grid_network, lane_and_junction_points, overlaps_any
 
 TOWN_SPACING = 90.0
 TOWN_N = 3
@@ -28,14 +28,7 @@ def elevation(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def build_highway() -> RoadMap:
-    nodes = {i * TOWN_N + j: (i * TOWN_SPACING, j * TOWN_SPACING) for i in range(TOWN_N) for j in range(TOWN_N)}
-    roads: list = []
-    for i in range(TOWN_N):
-        for j in range(TOWN_N):
-            if i + 1 < TOWN_N:
-                roads.append((i * TOWN_N + j, (i + 1) * TOWN_N + j, [], 2))
-            if j + 1 < TOWN_N:
-                roads.append((i * TOWN_N + j, i * TOWN_N + j + 1, [], 2))
+    nodes, roads = grid_network(TOWN_N, TOWN_SPACING, lanes_each_way=2)
     east, north = 2 * TOWN_N + 1, 1 * TOWN_N + 2  # (180, 90) and (90, 180)
     # highway loop: leaves the town eastward, sweeps around through the hills and re-enters from the north
     loop = [(300, 95), (470, 60), (640, 150), (760, 330), (730, 560), (560, 720), (330, 760),
@@ -43,7 +36,7 @@ def build_highway() -> RoadMap:
     roads.append((east, north, loop, 3))
     # a second, shorter highway spur: west side of town out to the hills and back to the south edge
     spur = [(-120, 160), (-300, 120), (-380, -60), (-260, -230), (-60, -220), (60, -140)]
-    roads.append((TOWN_N - 1, TOWN_N * 0 + 0 + 3, spur, 3))  # node (0,180) -> node (90, 0)
+    roads.append((TOWN_N - 1, TOWN_N, spur, 3))  # node (0, 180) -> node (90, 0)
     corners = {0, TOWN_N - 1, (TOWN_N - 1) * TOWN_N, TOWN_N * TOWN_N - 1}
     radius = {n: (20.0 if n in corners else 13.0) for n in nodes}
     radius[east] = radius[north] = 15.0
@@ -64,10 +57,7 @@ def build_highway() -> RoadMap:
         cy = np.array([y - d / 2, y + d / 2, y + d / 2, y - d / 2, y])
         if not road_clear.free(cx, cy).all():
             continue
-        if len(occupied) and np.any(
-            (np.abs(occupied[:, 0] - x) < (occupied[:, 2] + w) / 2 + 3.0)
-            & (np.abs(occupied[:, 1] - y) < (occupied[:, 3] + d) / 2 + 3.0)
-        ):
+        if overlaps_any(occupied, x, y, w, d, margin=3.0):
             continue
         buildings.append(Building(x, y, 0.0, w, d, float(rng.uniform(5, 11)),
                                   HOUSE_COLORS[int(rng.integers(len(HOUSE_COLORS)))]))
@@ -81,8 +71,7 @@ def build_highway() -> RoadMap:
     density = np.clip((r_town - 150) / 200, 0.05, 1.0) * clumps
     keep = tree_clear.free(cand[:, 0], cand[:, 1]) & (rng.uniform(size=len(cand)) < density)
     for x, y in cand[keep][:4000]:
-        if len(occupied) and np.any((np.abs(occupied[:, 0] - x) < occupied[:, 2] / 2 + 3)
-                                    & (np.abs(occupied[:, 1] - y) < occupied[:, 3] / 2 + 3)):
+        if overlaps_any(occupied, x, y, 0.0, 0.0, margin=3.0):
             continue
         trees.append(Tree(float(x), float(y), float(rng.uniform(9, 17)), "pine"))
     return RoadMap(

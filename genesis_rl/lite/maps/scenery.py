@@ -46,3 +46,28 @@ def lane_and_junction_points(lanes: list, junctions: list) -> np.ndarray:
         ring = np.column_stack([(j.center[0] + r * np.cos(a)).ravel(), (j.center[1] + r * np.sin(a)).ravel()])
         pts.append(ring)
     return np.vstack(pts)
+
+
+def grid_network(n: int, spacing: float, lanes_each_way: int) -> tuple[dict, list]:
+    """Nodes ``i * n + j`` at (i, j) * spacing and the roads between grid neighbours (a street grid)."""
+    nodes = {i * n + j: (i * spacing, j * spacing) for i in range(n) for j in range(n)}
+    roads: list = []
+    for i in range(n):
+        for j in range(n):
+            if i + 1 < n:
+                roads.append((i * n + j, (i + 1) * n + j, [], lanes_each_way))
+            if j + 1 < n:
+                roads.append((i * n + j, i * n + j + 1, [], lanes_each_way))
+    return nodes, roads
+
+
+def overlaps_any(occupied: np.ndarray, x: float, y: float, w: float, d: float, margin: float) -> bool:
+    """Whether an axis-aligned w x d rectangle at (x, y) comes within ``margin`` of any placed one
+    (rows of ``occupied``: x, y, w, d). A point is a 0 x 0 rectangle."""
+    return bool(
+        len(occupied)
+        and np.any(
+            (np.abs(occupied[:, 0] - x) < (occupied[:, 2] + w) / 2 + margin)
+            & (np.abs(occupied[:, 1] - y) < (occupied[:, 3] + d) / 2 + margin)
+        )
+    )

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from genesis_rl.lite.maps.lane_graph import Building, NetworkSpec, RoadMap, Tree, build_network, flat
-from genesis_rl.lite.maps.scenery import RoadMask, lane_and_junction_points
+from genesis_rl.lite.maps.scenery import RoadMask, grid_network, lane_and_junction_points, overlaps_any
 
 SPACING = 110.0
 N = 4
@@ -17,14 +17,7 @@ FACADES = [
 
 
 def build_urban() -> RoadMap:
-    nodes = {i * N + j: (i * SPACING, j * SPACING) for i in range(N) for j in range(N)}
-    roads = []
-    for i in range(N):
-        for j in range(N):
-            if i + 1 < N:
-                roads.append((i * N + j, (i + 1) * N + j, [], 2))
-            if j + 1 < N:
-                roads.append((i * N + j, i * N + j + 1, [], 2))
+    nodes, roads = grid_network(N, SPACING, lanes_each_way=2)
     corners = {0, N - 1, (N - 1) * N, N * N - 1}
     radius = {n: (22.0 if n in corners else 12.0) for n in nodes}
     lanes, road_list, junctions = build_network(NetworkSpec(nodes, roads, radius))
@@ -46,10 +39,7 @@ def build_urban() -> RoadMap:
                                [x + w / 2, y - d / 2], [x, y]])
         if not mask.free(corners_xy[:, 0], corners_xy[:, 1]).all():
             continue
-        if len(occupied) and np.any(
-            (np.abs(occupied[:, 0] - x) < (occupied[:, 2] + w) / 2 + 1.0)
-            & (np.abs(occupied[:, 1] - y) < (occupied[:, 3] + d) / 2 + 1.0)
-        ):
+        if overlaps_any(occupied, x, y, w, d, margin=1.0):
             continue
         h = float(rng.choice([rng.uniform(8, 18), rng.uniform(18, 45)], p=[0.6, 0.4]))
         color = FACADES[int(rng.integers(len(FACADES)))]
@@ -61,10 +51,7 @@ def build_urban() -> RoadMap:
     for _ in range(1500):
         x, y = rng.uniform(bounds[0], bounds[2]), rng.uniform(bounds[1], bounds[3])
         if near.free(np.array([x]), np.array([y]))[0] and not mask.free(np.array([x]), np.array([y]))[0]:
-            if not len(occupied) or not np.any(
-                (np.abs(occupied[:, 0] - x) < occupied[:, 2] / 2 + 2)
-                & (np.abs(occupied[:, 1] - y) < occupied[:, 3] / 2 + 2)
-            ):
+            if not overlaps_any(occupied, x, y, 0.0, 0.0, margin=2.0):
                 trees.append(Tree(x, y, float(rng.uniform(5, 9)), "broadleaf"))
     return RoadMap(
         name="urban",
