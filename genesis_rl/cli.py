@@ -64,6 +64,46 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_catalog_arg(args: argparse.Namespace, needed: int):  # noqa: ANN202
+    """The catalog from --catalog, or the first ``needed`` scenes generated on --map with --seed."""
+    from genesis_rl.lite.maps import MAP_NAMES
+    from genesis_rl.scenes.catalog import load_catalog
+    from genesis_rl.scenes.lite_generator import generate_catalog
+
+    if args.catalog:
+        return load_catalog(args.catalog)
+    if args.map not in MAP_NAMES:
+        raise UserInputError(f"--map '{args.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
+    return generate_catalog(args.map, needed, args.seed)
+
+
+def _cmd_drive(args: argparse.Namespace) -> int:
+    from genesis_rl.drive_cmd import drive_scenes, parse_scene_range, print_summary
+    from genesis_rl.knobs import parse_weather
+    from genesis_rl.weather_schedule import load_schedule
+
+    if args.steps < 1:
+        raise UserInputError(f"--steps must be >= 1, got {args.steps}")
+    if args.gif_stride < 1:
+        raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
+    indices = parse_scene_range(args.scene)
+    catalog = _load_catalog_arg(args, max(indices) + 1)
+    parse_scene_range(args.scene, len(catalog.scenes))
+    base = parse_weather(args.weather)
+    schedule = load_schedule(args.schedule, base, args.steps) if args.schedule else None
+    kwargs = {}
+    if args.weights:
+        if args.system != "builtin":
+            raise UserInputError("--weights applies to --system builtin only")
+        kwargs["weights"] = args.weights
+    summary = drive_scenes(catalog, indices, args.system, kwargs, base, schedule, args.steps, args.episode_seed,
+                           Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
+                           gif_stride=args.gif_stride, camera_size=(args.width, args.height),
+                           progress=not args.quiet)
+    print_summary(summary)
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_sim
 
@@ -103,6 +143,28 @@ def build_parser() -> argparse.ArgumentParser:
     rd.add_argument("--out", required=True, help="output directory")
     rd.add_argument("--force", action="store_true", help="overwrite existing outputs")
     rd.set_defaults(func=_cmd_render)
+
+    dr = sub.add_parser("drive", help="drive the system under test closed-loop; telemetry, GIF, summary")
+    dr.add_argument("--map", default="highway", help="map name: urban or highway (scenes generated with --seed)")
+    dr.add_argument("--catalog", default=None, help="take scenes from this catalog file instead")
+    dr.add_argument("--scene", default="0", help="scene index (3) or range START:STOP (0:50)")
+    dr.add_argument("--seed", type=int, default=0, help="catalog seed when no --catalog is given")
+    dr.add_argument("--episode-seed", type=int, default=0, help="seed of NPC behaviour and sensor noise")
+    dr.add_argument("--weather", default="clear_noon", help="preset and/or KNOB=VALUE list (base of --schedule)")
+    dr.add_argument("--schedule", default=None, help="CSV of per-step knob values: one row a step, one column a knob")
+    dr.add_argument("--system", default="builtin",
+                    help="system under test: builtin, blind, oracle, yolo, or package.module:Class")
+    dr.add_argument("--weights", default=None, help="detector weights for --system builtin (default: shipped)")
+    dr.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
+    dr.add_argument("--width", type=int, default=320, help="camera width [px]")
+    dr.add_argument("--height", type=int, default=240, help="camera height [px]")
+    dr.add_argument("--out", required=True, help="output directory")
+    dr.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    dr.add_argument("--no-gif", action="store_true", help="skip the animation")
+    dr.add_argument("--gif", action="store_true", help="also write a GIF per scene when driving a range")
+    dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF")
+    dr.add_argument("--quiet", action="store_true", help="no progress bar")
+    dr.set_defaults(func=_cmd_drive)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim"], help="sim: physics steps/s and rendered frames/s")

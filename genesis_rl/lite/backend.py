@@ -47,8 +47,9 @@ class LiteSimulation(Simulation):
             self.dt,
         )
         self.traffic.time = scene.signal_offset
-        self._renderer = backend.renderer_for(self.map.name, camera, self.seed) if render else None
+        self._renderer = backend.acquire_renderer(self.map.name, camera) if render else None
         if self._renderer is not None:
+            self._renderer.set_episode_seed(self.seed)
             self._renderer.set_vehicles([(i, v.make, v.color) for i, v in enumerate(vs)])
         self._destroyed = False
 
@@ -101,27 +102,38 @@ class LiteSimulation(Simulation):
     def destroy(self) -> None:
         if not self._destroyed and self._renderer is not None:
             self._renderer.clear_vehicles()
+            self._backend.release_renderer(self._renderer)
         self._destroyed = True
 
 
 class LiteBackend(Backend):
-    """Holds one renderer per (map, camera) so that episodes reuse the built scenery."""
+    """Pools renderers per (map, camera) so that episodes reuse the built scenery (seconds to build); a
+    renderer serves one live simulation at a time, so simulations open side by side never share one."""
 
     name = "lite"
 
     def __init__(self) -> None:
-        self._renderers: dict[tuple, object] = {}
+        self._renderers: dict[tuple, list] = {}
+        self._in_use: set[int] = set()
 
     def map_names(self) -> list[str]:
         return list(MAP_NAMES)
 
-    def renderer_for(self, map_name: str, camera: CameraConfig, seed: int):  # noqa: ANN201
+    def acquire_renderer(self, map_name: str, camera: CameraConfig):  # noqa: ANN201
         from genesis_rl.lite.render.panda_renderer import LiteRenderer
 
-        key = (map_name, camera, seed)
-        if key not in self._renderers:
-            self._renderers[key] = LiteRenderer(load_map(map_name), camera, seed=seed)
-        return self._renderers[key]
+        pool = self._renderers.setdefault((map_name, camera), [])
+        for r in pool:
+            if id(r) not in self._in_use:
+                break
+        else:
+            r = LiteRenderer(load_map(map_name), camera, seed=0)
+            pool.append(r)
+        self._in_use.add(id(r))
+        return r
+
+    def release_renderer(self, renderer: object) -> None:
+        self._in_use.discard(id(renderer))
 
     def create_simulation(self, scene: Scene, *, seed: int, weather: Weather | None = None,
                           camera: CameraConfig | None = None, render: bool = True) -> LiteSimulation:
@@ -130,6 +142,8 @@ class LiteBackend(Backend):
         return LiteSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
 
     def close(self) -> None:
-        for r in self._renderers.values():
-            r.close()
+        for pool in self._renderers.values():
+            for r in pool:
+                r.close()
         self._renderers.clear()
+        self._in_use.clear()

@@ -18,12 +18,6 @@ N_VEHICLES = 30
 RADIUS = 90.0  # others are placed within this distance of the ego [m]
 
 
-def _speed_limit(road_map: RoadMap, lane: int) -> float:
-    """Highway lanes (3 each way) allow 25 m/s, town streets 12 m/s."""
-    road = road_map.lanes[lane].road
-    return 25.0 if road >= 0 and road_map.roads[road].lanes_each_way >= 3 else 12.0
-
-
 def _autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
     return {
         "target_speed": float(limit * rng.uniform(0.75, 1.05)),
@@ -41,7 +35,7 @@ def _vehicle(rng, road_map, role, lane, s, make, speed_frac) -> VehicleSpec:
     x, y, _, yaw = road_map.pose(lane, s)
     succ = road_map.lanes[lane].successors
     color_name = str(rng.choice(list(PALETTE)))
-    limit = _speed_limit(road_map, lane)
+    limit = road_map.speed_limit(lane)
     ap = None if role == "ego" else _autopilot(rng, limit, role)
     return VehicleSpec(role, make, color_name, PALETTE[color_name], int(lane), float(s), x, y, yaw,
                        float(limit * speed_frac), int(succ[int(rng.integers(len(succ)))]), ap)

@@ -179,6 +179,11 @@ class RoadMap:
     def signal_state(self, junction: int, group: int, t: float) -> str:
         return self.timing.state(t + float(self.signal_offsets[junction]), group)
 
+    def speed_limit(self, lane: int) -> float:
+        """Speed limit [m/s]: highway lanes (3 each way) allow 25 m/s, town streets and junctions 12 m/s."""
+        road = self.lanes[lane].road
+        return 25.0 if road >= 0 and self.roads[road].lanes_each_way >= 3 else 12.0
+
     def driving_lanes(self) -> list[int]:
         """Lanes on roads (not junction connectors): where vehicles are spawned."""
         return [ln.id for ln in self.lanes if ln.road >= 0]

@@ -528,6 +528,10 @@ class LiteRenderer:
                 tri.append([last + q, last + qn, top])
             m.add(pts, unit, col, np.array(tri), L.VEGETATION)
 
+    def set_episode_seed(self, seed: int) -> None:
+        """Seed of the per-frame sensor noise for the episode now using this renderer."""
+        self._compositor.episode_seed = int(seed)
+
     # -- vehicles --------------------------------------------------------------------------------------
     def set_vehicles(self, vehicles: list[tuple[int, str, tuple[float, float, float]]]) -> None:
         """(vehicle index, make, colour) per vehicle; index 0 (the ego) is not drawn."""

@@ -94,6 +94,8 @@ class WeatherCompositor:
         normal = rng.standard_normal(bank_shape, dtype=np.float32)
         self._noise = np.clip(np.rint(128.0 + _NOISE_SCALE * normal), 0, 255).astype(np.uint8)
         self._rain_rng_seed = int(rng.integers(2**31))
+        #: picks the per-step sensor-noise window; set per episode (the banks above stay per camera)
+        self.episode_seed = self.seed
         self._rain_cache: dict[int, list[tuple[np.ndarray, np.ndarray, float]]] = {}
 
         # Vertical one-sided decaying kernel (half resolution): light reflections smear toward the viewer.
@@ -366,7 +368,7 @@ class WeatherCompositor:
         u8 = cv2.GaussianBlur(u8, (ksize, ksize), sigma_blur, dst=self._u8b)
         light = luminance(lighting.ambient_color) + 0.5 * luminance(lighting.sun_color)
         sigma_noise = 4.0 + 4.5 * (1.0 - smoothstep(0.06, 0.35, light))  # dark scene: more gain, more noise
-        rng = np.random.default_rng((self.seed, int(step)))
+        rng = np.random.default_rng((self.episode_seed, int(step)))
         oy = int(rng.integers(self._noise_pad[0]))
         ox = int(rng.integers(self._noise_pad[1]))
         noise = self._noise[oy : oy + h, ox : ox + w]

@@ -1,0 +1,209 @@
+"""The built-in vehicle detector (weights shipped in ``genesis_rl/perception/weights/``) and a null detector.
+
+A detector takes RGB frames (H, W, 3) uint8, as ``SensorFrame.rgb``, and returns boxes as (N, 5) float32
+arrays ``x0, y0, x1, y1, score`` in the frame's pixels, best first.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+#: the shipped checkpoint (see docs/detector.md for the command that made it)
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "vehicle_detector.pt"
+CHECKPOINT_FORMAT = "genesis-rl/vehicle-detector"
+CHECKPOINT_VERSION = 1
+
+
+@runtime_checkable
+class Detector(Protocol):
+    """What the system under test needs from a detector."""
+
+    def detect(self, rgb: np.ndarray) -> np.ndarray: ...
+
+    def detect_batch(self, rgbs: np.ndarray) -> list[np.ndarray]: ...
+
+
+def _empty() -> np.ndarray:
+    return np.zeros((0, 5), np.float32)
+
+
+def _check_frame(rgb: np.ndarray, what: str = "rgb") -> np.ndarray:
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise ValueError(f"{what} must be an (H, W, 3) uint8 array, got {a.shape} {a.dtype}")
+    return a
+
+
+class NullDetector:
+    """Sees nothing: every frame gives an empty (0, 5) array (for the perception-dependence test)."""
+
+    score_threshold = 1.0
+    weights_path: Path | None = None
+    weights_sha256: str | None = None
+    name = "null"
+
+    def detect(self, rgb: np.ndarray) -> np.ndarray:
+        _check_frame(rgb)
+        return _empty()
+
+    def detect_batch(self, rgbs: np.ndarray) -> list[np.ndarray]:
+        return [self.detect(r) for r in rgbs]
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def load_checkpoint(path: Path) -> dict:
+    """Read and check a detector checkpoint; any problem raises :class:`UserInputError` naming the file."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserInputError(f"weights file {path} does not exist (expected a genesis-rl detector checkpoint, "
+                             f"e.g. {DEFAULT_WEIGHTS.name} from 'genesis-rl detector train')")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001  (torch raises many types for a bad file)
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise UserInputError(f"weights file {path} is not a genesis-rl detector checkpoint: {msg}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise UserInputError(f"weights file {path} is not a genesis-rl detector checkpoint: "
+                             f"no '{CHECKPOINT_FORMAT}' format tag")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise UserInputError(f"weights file {path} has checkpoint version {ckpt.get('version')}; "
+                             f"this genesis-rl reads version {CHECKPOINT_VERSION}")
+    for key in ("model_config", "state_dict", "score_threshold"):
+        if key not in ckpt:
+            raise UserInputError(f"weights file {path} is not a genesis-rl detector checkpoint: missing '{key}'")
+    return ckpt
+
+
+class VehicleDetector:
+    """The CenterNet-style CNN of :mod:`genesis_rl.perception.model` with its trained weights.
+
+    ``weights``: a checkpoint from ``genesis-rl detector train`` (default: the shipped one).
+    ``score_threshold``: overrides the one chosen on validation data and stored in the checkpoint.
+    ``num_threads``: torch CPU threads (None leaves torch's setting alone).
+    """
+
+    def __init__(
+        self,
+        weights: str | Path | None = None,
+        score_threshold: float | None = None,
+        max_detections: int = 50,
+        batch_size: int = 16,
+        num_threads: int | None = None,
+    ) -> None:
+        import torch
+
+        from genesis_rl.perception.model import DetectorModelConfig, VehicleDetectorNet
+
+        self.weights_path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
+        ckpt = load_checkpoint(self.weights_path)
+        try:
+            self.model_config = DetectorModelConfig.from_dict(dict(ckpt["model_config"]))
+            net = VehicleDetectorNet(self.model_config)
+            net.load_state_dict(ckpt["state_dict"])
+        except (ValueError, TypeError, RuntimeError) as e:
+            msg = str(e).strip().splitlines()[0]
+            raise UserInputError(f"weights file {self.weights_path} does not match the detector network: "
+                                 f"{msg}") from None
+        thr = float(ckpt["score_threshold"]) if score_threshold is None else float(score_threshold)
+        if not 0.0 < thr < 1.0:
+            raise UserInputError(f"score_threshold must be in (0, 1), got {thr}")
+        if max_detections < 1 or batch_size < 1:
+            raise UserInputError(f"max_detections and batch_size must be >= 1, got {max_detections}, {batch_size}")
+        self.score_threshold = thr
+        self.max_detections = int(max_detections)
+        self.batch_size = int(batch_size)
+        self.metadata: dict = dict(ckpt.get("metadata", {}))
+        if num_threads is not None:
+            torch.set_num_threads(int(num_threads))
+        self._net = net.eval().to(memory_format=torch.channels_last)
+        self._sha256: str | None = None
+        self.name = f"vehicle_detector:{self.weights_path.name}"
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        """(width, height) the network runs at; other frame sizes are resized to it."""
+        return self.model_config.input_width, self.model_config.input_height
+
+    @property
+    def weights_sha256(self) -> str:
+        """SHA-256 of the weights file (for edge-case records)."""
+        if self._sha256 is None:
+            self._sha256 = file_sha256(self.weights_path)
+        return self._sha256
+
+    def detect(self, rgb: np.ndarray) -> np.ndarray:
+        """Boxes (N, 5) x0, y0, x1, y1, score in ``rgb``'s pixels."""
+        a = _check_frame(rgb)
+        return self.detect_batch(a[None])[0]
+
+    def detect_batch(self, rgbs: np.ndarray) -> list[np.ndarray]:
+        """One (N, 5) array per frame of ``rgbs`` (B, H, W, 3) uint8 (or a list of same-size frames)."""
+        import cv2
+        import torch
+
+        from genesis_rl.perception.model import decode
+
+        if isinstance(rgbs, (list, tuple)):
+            if not rgbs:
+                return []
+            rgbs = np.stack([_check_frame(r) for r in rgbs])
+        a = np.asarray(rgbs)
+        if a.ndim != 4 or a.shape[3] != 3 or a.dtype != np.uint8:
+            raise ValueError(f"rgbs must be a (B, H, W, 3) uint8 array, got {a.shape} {a.dtype}")
+        iw, ih = self.input_size
+        h, w = a.shape[1:3]
+        resize = (w, h) != (iw, ih)
+        out: list[np.ndarray] = []
+        with torch.inference_mode():
+            for s in range(0, len(a), self.batch_size):
+                chunk = a[s : s + self.batch_size]
+                if resize:
+                    interp = cv2.INTER_AREA if w > iw else cv2.INTER_LINEAR
+                    chunk = np.stack([cv2.resize(f, (iw, ih), interpolation=interp) for f in chunk])
+                x = torch.from_numpy(np.ascontiguousarray(chunk)).permute(0, 3, 1, 2).float().div_(255.0)
+                x = x.contiguous(memory_format=torch.channels_last)
+                dets = decode(self._net(x), self.score_threshold, self.max_detections,
+                              self.model_config.output_stride, image_size=(iw, ih))
+                if resize:
+                    scale = np.array([w / iw, h / ih, w / iw, h / ih, 1.0], np.float32)
+                    dets = [d * scale for d in dets]
+                out.extend(dets)
+        return out
+
+    def describe(self) -> dict:
+        """What an edge-case record should store about this detector."""
+        return {
+            "name": self.name,
+            "weights": str(self.weights_path),
+            "weights_sha256": self.weights_sha256,
+            "score_threshold": self.score_threshold,
+            "input_size": list(self.input_size),
+        }
+
+
+def read_weights_json(weights: Path) -> dict:
+    """The metrics JSON written next to a checkpoint (empty dict when there is none)."""
+    p = Path(weights).with_suffix(".json")
+    if not p.is_file():
+        return {}
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise UserInputError(f"weights metadata {p} is not valid JSON: {e}") from None

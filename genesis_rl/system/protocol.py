@@ -1,0 +1,126 @@
+"""The system-under-test protocol and the loader for user systems given by import path.
+
+A system is anything with ``reset(context)`` and ``step(frame, ego, time_s) -> SystemOutput`` (a
+:class:`typing.Protocol`, so users need not inherit from us). It returns its control *and* the detections
+it acted on: the reward needs them for the IoU, and the failure analysis for the detection timeline.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.sim.interface import ActorState, CameraConfig, SensorFrame, VehicleControl
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One detected vehicle: pixel box, confidence, and (when localised) its nearest visible point in the
+    ego frame (x forward, y left, z up; metres from the ego's centre on the ground)."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    score: float
+    position: tuple[float, float, float] | None = None
+
+    @property
+    def xyxy(self) -> tuple[float, float, float, float]:
+        return (self.x0, self.y0, self.x1, self.y1)
+
+    def as_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"box_xyxy": [round(v, 1) for v in self.xyxy], "score": round(self.score, 4)}
+        d["position"] = None if self.position is None else [round(v, 3) for v in self.position]
+        return d
+
+
+@dataclass(frozen=True)
+class EpisodeContext:
+    """What a system may know about an episode before it starts: the map (for its route and traffic
+    lights, as CARLA's BehaviorAgent reads the map), its own start, the camera, the time step and a seed for
+    its own random choices (e.g. turns at junctions). Never the other vehicles' states."""
+
+    backend: str
+    map_name: str
+    road_map: Any
+    camera: CameraConfig
+    dt: float
+    seed: int
+    ego_lane: int = -1
+    ego_s: float = 0.0
+    ego_next_lane: int = -1
+    signal_time_offset: float = 0.0
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SystemOutput:
+    """A system's answer for one step. ``lead_distance`` is the bumper gap to the vehicle it is following
+    as it perceives it (None: it perceives nothing in its path); ``status`` is a short free-text state for
+    telemetry (e.g. 'cruise', 'follow', 'red_light', 'emergency')."""
+
+    control: VehicleControl
+    detections: list[Detection]
+    lead_distance: float | None = None
+    status: str = ""
+
+
+@runtime_checkable
+class SystemUnderTest(Protocol):
+    """The protocol a system under test implements."""
+
+    def reset(self, context: EpisodeContext) -> None:
+        """Start an episode."""
+
+    def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
+        """Perceive ``frame``, decide, and return the control for the next tick."""
+
+    def identity(self) -> dict[str, Any]:
+        """Class name, version and weights hash: recorded with every edge case so it can be replayed."""
+
+
+REQUIRED_METHODS = ("reset", "step", "identity")
+BUILTIN_SYSTEMS = {
+    "builtin": "genesis_rl.system.builtin:BuiltinSystem",
+    "blind": "genesis_rl.system.builtin:BlindSystem",
+    "oracle": "genesis_rl.system.builtin:OracleSystem",
+    "yolo": "genesis_rl.system.yolo_adapter:YoloSystem",
+}
+
+
+def load_system(spec: str, **kwargs: Any) -> SystemUnderTest:
+    """Instantiate a system from ``package.module:Class`` or a built-in name (builtin, blind, oracle, yolo).
+
+    Errors name what is wrong: a malformed path, a module that does not import, a missing class, a class
+    that lacks the protocol's methods, or a constructor that fails.
+    """
+    path = BUILTIN_SYSTEMS.get(spec, spec)
+    if ":" not in path:
+        raise UserInputError(
+            f"system '{spec}' is not an import path 'package.module:Class' nor a built-in "
+            f"({', '.join(BUILTIN_SYSTEMS)})"
+        )
+    module_name, _, class_name = path.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
+        raise UserInputError(f"system '{spec}': cannot import module '{module_name}': {err}") from None
+    cls = getattr(module, class_name, None)
+    if cls is None or not inspect.isclass(cls):
+        raise UserInputError(f"system '{spec}': module '{module_name}' has no class '{class_name}'")
+    missing = [m for m in REQUIRED_METHODS if not callable(getattr(cls, m, None))]
+    if missing:
+        raise UserInputError(
+            f"system '{spec}': class {class_name} lacks the protocol's methods: {', '.join(missing)} "
+            f"(a system needs {', '.join(REQUIRED_METHODS)}; see genesis_rl.system.protocol)"
+        )
+    try:
+        return cls(**kwargs)
+    except UserInputError:
+        raise
+    except Exception as err:  # noqa: BLE001
+        raise UserInputError(f"system '{spec}': constructing {class_name} failed: {err}") from None

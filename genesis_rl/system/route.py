@@ -1,0 +1,122 @@
+"""The ego's route on a lite map: a chain of lanes ahead, chosen at junctions by a seeded draw.
+
+The controller reads its route and the traffic lights from the map (ground truth, as CARLA's BehaviorAgent
+does through its global route planner); everything about other vehicles comes from perception.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from genesis_rl.lite.maps.lane_graph import DS, RoadMap
+
+PLAN_AHEAD = 160.0  # keep at least this much route ahead [m]
+SEARCH_BACK, SEARCH_AHEAD = 20, 80  # projection window around the last index [samples]
+
+
+class LaneRoute:
+    """Route points (N, 2) with the lane each came from and the arc length from the route's start."""
+
+    def __init__(self, road_map: RoadMap, lane: int, s: float, next_lane: int, rng: np.random.Generator) -> None:
+        self.map = road_map
+        self.rng = rng
+        self.lanes: list[int] = []
+        self._xy: list[np.ndarray] = []
+        self._lane_of: list[np.ndarray] = []
+        self.lane_end_s: list[float] = []  # route arc length at the end of each lane in ``lanes``
+        self._append(lane)
+        if next_lane >= 0:
+            self._append(next_lane)
+        self._rebuild()
+        self.index = int(np.clip(round(s / DS), 0, len(self.xy) - 1))
+
+    def _append(self, lane: int) -> None:
+        xy = self.map.lanes[lane].xy
+        if self._xy:
+            xy = xy[1:]  # a lane starts where its predecessor ends
+        self.lanes.append(lane)
+        self._xy.append(xy)
+        self._lane_of.append(np.full(len(xy), lane))
+        total = sum(len(a) for a in self._xy)
+        self.lane_end_s.append((total - 1) * DS)
+
+    def _rebuild(self) -> None:
+        self.xy = np.concatenate(self._xy)
+        self.lane_of = np.concatenate(self._lane_of)
+
+    def _extend(self) -> None:
+        while (len(self.xy) - 1 - self.index) * DS < PLAN_AHEAD:
+            succ = self.map.lanes[self.lanes[-1]].successors
+            self._append(int(succ[int(self.rng.integers(len(succ)))]))
+            self._rebuild()
+
+    @property
+    def s(self) -> float:
+        """Arc length of the ego's projection on the route [m]."""
+        return self.index * DS
+
+    def update(self, x: float, y: float) -> None:
+        """Project the ego's position on the route near its last projection (never jumps backwards far)."""
+        lo = max(self.index - SEARCH_BACK, 0)
+        hi = min(self.index + SEARCH_AHEAD, len(self.xy))
+        d2 = np.sum((self.xy[lo:hi] - (x, y)) ** 2, axis=1)
+        self.index = lo + int(np.argmin(d2))
+        self._extend()
+
+    def point_at(self, s: float) -> np.ndarray:
+        i = int(np.clip(round(s / DS), 0, len(self.xy) - 1))
+        return self.xy[i]
+
+    def heading_at(self, s: float) -> float:
+        i = int(np.clip(round(s / DS), 0, len(self.xy) - 2))
+        d = self.xy[i + 1] - self.xy[i]
+        return float(np.arctan2(d[1], d[0]))
+
+    def curvature_ahead(self, dist: float) -> float:
+        """Largest absolute curvature [1/m] on the next ``dist`` metres (heading change per metre)."""
+        i0 = self.index
+        i1 = min(i0 + int(dist / DS), len(self.xy) - 2)
+        if i1 - i0 < 4:
+            return 0.0
+        d = np.diff(self.xy[i0 : i1 + 2], axis=0)
+        h = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+        k = np.abs(np.diff(h)) / DS
+        # smooth over 2 m so that sample noise does not read as a bend
+        w = max(int(2.0 / DS), 1)
+        return float(np.max(np.convolve(k, np.ones(w) / w, mode="valid"))) if len(k) >= w else float(np.max(k))
+
+    def frame_of(self, points: np.ndarray, max_ahead: float) -> tuple[np.ndarray, np.ndarray]:
+        """For world points (M, 2): arc length ahead of the ego along the route and signed lateral offset
+        (left positive) from the nearest route point within ``max_ahead``; NaN for points beyond it."""
+        i1 = min(self.index + int(max_ahead / DS) + 1, len(self.xy) - 1)
+        seg = self.xy[self.index : i1 + 1]
+        if len(points) == 0 or len(seg) < 2:
+            return np.full(len(points), np.nan), np.full(len(points), np.nan)
+        d2 = ((points[:, None, :] - seg[None, :, :]) ** 2).sum(-1)
+        k = np.argmin(d2, axis=1)
+        k = np.minimum(k, len(seg) - 2)
+        t = seg[k + 1] - seg[k]
+        t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-9)
+        rel = points - seg[k]
+        along = k * DS + (rel * t).sum(1)
+        lateral = t[:, 0] * rel[:, 1] - t[:, 1] * rel[:, 0]
+        beyond = (k >= len(seg) - 2) & (along > max_ahead)
+        along = np.where(beyond, np.nan, along)
+        return along, np.where(beyond, np.nan, lateral)
+
+    def next_signal(self, max_ahead: float) -> tuple[float, tuple[int, int]] | None:
+        """Distance along the route to the next signalised stop line within ``max_ahead`` and its
+        (junction, group); None when there is none."""
+        for lane, end_s in zip(self.lanes, self.lane_end_s, strict=True):
+            ahead = end_s - self.s
+            if ahead < -1.0:
+                continue
+            if ahead > max_ahead:
+                return None
+            sig = self.map.lanes[lane].signal
+            if sig is not None:
+                return ahead, sig
+        return None
+
+    def speed_limit(self) -> float:
+        return self.map.speed_limit(int(self.lane_of[self.index]))

@@ -1,0 +1,1 @@
+"""Pictures for people: annotated camera frames, animations, plots."""
