@@ -43,7 +43,8 @@ def episode_context(sim: Simulation, backend_name: str, seed: int) -> EpisodeCon
 
 def step_record(step: int, sim: Simulation, frame: SensorFrame, out: SystemOutput, collisions: list,
                 weather: Weather, ego_speed: float, knob_names: Sequence[str]) -> dict[str, Any]:
-    """The telemetry row of one step (state at observation time; collisions from the tick that follows)."""
+    """The telemetry row of one step: the state after the step's tick, the frame observed then and the
+    system's answer to it; collisions are those of that tick."""
     lead = sim.lead()
     dets = np.array([d.xyxy for d in out.detections], np.float64).reshape(-1, 4)
     iou, _ = frame_iou(frame.boxes, dets)
@@ -125,6 +126,45 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+class ClosedLoop:
+    """The step template shared by ``drive``, the Gymnasium env and campaigns.
+
+    ``start`` observes the first frame and lets the system choose its first control; each ``advance``
+    then sets the step's weather, ticks (the ego moves under the last control), observes, lets the
+    system choose the next control, and returns the step record (collisions are those of this tick).
+    """
+
+    def __init__(self, sim: Simulation, system: SystemUnderTest, backend_name: str, seed: int) -> None:
+        from genesis_rl.knobs import KNOBS
+
+        self.sim = sim
+        self.system = system
+        self.knob_names = list(KNOBS)
+        system.reset(episode_context(sim, backend_name, seed))
+        self.frame: SensorFrame | None = None
+        self.output: SystemOutput | None = None
+
+    def _perceive(self) -> None:
+        sim = self.sim
+        self.frame = sim.observe()
+        self.ego = sim.ego()
+        self.output = self.system.step(self.frame, self.ego, sim.step_count * sim.dt)
+        sim.apply_ego_control(self.output.control)
+
+    def start(self, weather: Weather) -> None:
+        self.sim.set_weather(weather)
+        self._perceive()
+
+    def advance(self, weather: Weather) -> dict[str, Any]:
+        sim = self.sim
+        sim.set_weather(weather)
+        tick = sim.tick()
+        self._perceive()
+        assert self.frame is not None and self.output is not None
+        return step_record(sim.step_count, sim, self.frame, self.output, tick.collisions, weather,
+                           self.ego.speed, self.knob_names)
+
+
 def run_episode(
     backend: Backend,
     scene: Scene,
@@ -137,27 +177,20 @@ def run_episode(
     progress: bool = False,
     stop_on_collision: bool = False,
 ) -> EpisodeResult:
-    """Drive ``scene`` for ``steps`` steps; ``weather_at(step)`` gives each step's weather."""
+    """Drive ``scene`` for ``steps`` steps; ``weather_at(k)`` is the weather of step k (0-based), set
+    before the tick that step k makes."""
     from tqdm import tqdm
 
-    from genesis_rl.knobs import KNOBS
-
-    knob_names = list(KNOBS)
     records: list[dict[str, Any]] = []
     with backend.create_simulation(scene, seed=seed, weather=weather_at(0), camera=camera) as sim:
-        system.reset(episode_context(sim, backend.name, seed))
-        for step in tqdm(range(steps), desc=f"scene {scene.index}", disable=not progress, unit="step"):
-            weather = weather_at(step)
-            sim.set_weather(weather)
-            frame = sim.observe()
-            ego = sim.ego()
-            out = system.step(frame, ego, sim.step_count * sim.dt)
-            sim.apply_ego_control(out.control)
-            tick = sim.tick()
-            rec = step_record(step, sim, frame, out, tick.collisions, weather, ego.speed, knob_names)
+        loop = ClosedLoop(sim, system, backend.name, seed)
+        loop.start(weather_at(0))
+        for k in tqdm(range(steps), desc=f"scene {scene.index}", disable=not progress, unit="step"):
+            rec = loop.advance(weather_at(k))
             records.append(rec)
             if frame_hook is not None:
-                frame_hook(step, frame, out, rec)
+                assert loop.frame is not None and loop.output is not None
+                frame_hook(k, loop.frame, loop.output, rec)
             if stop_on_collision and rec["collision"]:
                 break
     return EpisodeResult(records, identity=system.identity())

@@ -96,7 +96,7 @@ def test_user_system_loaded_by_import_path_drives_an_episode(tmp_path, monkeypat
     monkeypatch.syspath_prepend(str(tmp_path))
     system = load_system("tiny_user_system:CreepForward")
     result = run_episode(backend, highway_scenes.scene(0), system, lambda _: Weather.default(), 40, seed=0)
-    assert system.steps == 40
+    assert system.steps == 41  # the first frame, then one per step
     assert [r["status"] for r in result.records] == ["creep"] * 40
     assert result.records[-1]["throttle"] == 0.3
     assert result.identity == {"class": "tiny_user_system:CreepForward"}

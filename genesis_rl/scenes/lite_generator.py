@@ -59,6 +59,21 @@ def _fits(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
     return True
 
 
+def _safe_headway(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
+    """No vehicle starts so close behind another in its lane that it cannot brake in time: the bumper gap
+    must exceed 2 m + 2.5 s x the closing speed (a follower at 21 m/s 4 m behind an ego at 15 m/s would
+    rear-end it whatever the ego does)."""
+    half = MAKES[spec.make].length / 2.0
+    for other in placed:
+        if other.lane != spec.lane:
+            continue
+        gap = abs(other.s - spec.s) - half - MAKES[other.make].length / 2.0
+        behind, ahead = (spec, other) if spec.s < other.s else (other, spec)
+        if gap < 2.0 + 2.5 * max(0.0, behind.speed - ahead.speed):
+            return False
+    return True
+
+
 def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
     rng = np.random.default_rng(seed)
     # ego: a road lane with a lane to its right (for the neighbour) and room for the lead ahead
@@ -91,7 +106,7 @@ def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
         if s < 3.0 or s > road_map.length[lane] - 3.0:
             continue
         spec = _vehicle(rng, road_map, "other", lane, s, _draw_make(rng), float(rng.uniform(0.0, 0.9)))
-        if _fits(spec, placed):
+        if _fits(spec, placed) and _safe_headway(spec, placed):
             placed.append(spec)
     if len(placed) < N_VEHICLES:
         raise RuntimeError(f"scene {index}: could only place {len(placed)} vehicles")

@@ -111,7 +111,8 @@ class FollowingController:
     # -- control ---------------------------------------------------------------------------------------
     def _idm(self, v: float, v0: float, gap: float, v_lead: float) -> float:
         c = self.config
-        s_star = c.min_gap + max(0.0, v * c.time_gap + v * (v - v_lead) / (2.0 * math.sqrt(c.max_accel * c.comfort_decel)))
+        brake_term = v * (v - v_lead) / (2.0 * math.sqrt(c.max_accel * c.comfort_decel))
+        s_star = c.min_gap + max(0.0, v * c.time_gap + brake_term)
         return c.max_accel * (1.0 - (v / max(v0, 0.1)) ** 4 - (s_star / max(gap, 0.1)) ** 2)
 
     def step(self, ego: ActorState, detections: list[Detection], time_s: float) -> tuple[VehicleControl, float | None]:

@@ -33,7 +33,10 @@ def box_depth(depth: np.ndarray, box: tuple[float, float, float, float], max_ran
     return float(np.quantile(patch, DEPTH_QUANTILE))
 
 
-def localise(box: tuple[float, float, float, float], depth_m: float, camera: CameraConfig) -> tuple[float, float, float]:
+Box = tuple[float, float, float, float]
+
+
+def localise(box: Box, depth_m: float, camera: CameraConfig) -> tuple[float, float, float]:
     """Back-project the box centre at ``depth_m`` into the ego frame (x forward, y left, z up), with the
     camera's mount offsets; camera pitch is taken into account."""
     f = camera.focal_px

@@ -34,7 +34,8 @@ def annotate_frame(rgb: np.ndarray, record: dict[str, Any], scale: int = 1) -> n
 
     lines = [
         f"t {record['time_s']:5.2f}s v {record['ego_speed']:4.1f}m/s {record['status']}",
-        f"lead gap {fmt(record['true_lead_distance'])} seen {fmt(record['perceived_lead_distance'])} IoU {record['iou']:.2f}",
+        f"lead gap {fmt(record['true_lead_distance'])} seen {fmt(record['perceived_lead_distance'])}"
+        f" IoU {record['iou']:.2f}",
         f"thr {record['throttle']:.2f} brk {record['brake']:.2f} fog {record.get('fog_density', 0):.0f}"
         f" rain {record.get('precipitation', 0):.0f} sun {record.get('sun_altitude_angle', 0):.0f}",
     ]

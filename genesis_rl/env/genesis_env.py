@@ -1,0 +1,210 @@
+"""``GenesisEnv``: the agent turns the weather knobs while the system under test drives.
+
+Step template (fixed): action -> knob deltas (at most ``max_step_fraction`` of each range) -> simulator
+tick -> sensors -> system under test -> rulebook -> reward -> terminated/truncated -> info. Each reset
+samples a scene from the catalog with the env's seeded generator, so ``reset(seed=s)`` replays an episode.
+The observation is the ego camera's RGB frame (downscaled for the policy), optionally with the knob vector.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import cv2
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
+from genesis_rl.rules.reward import PaperReward, RewardConfig
+from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
+
+ENV_ID = "genesis_rl/Weather-v0"
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Every setting of the environment, with units; defaults are the paper's where it has one."""
+
+    map: str = "urban"  # lite map of generated scenes (when no catalog is given)
+    catalog: str | None = None  # scene catalog file; None: generate `scenes` scenes with `catalog_seed`
+    scenes: int = 1202  # catalog size when generating (the paper's Town10 count)
+    catalog_seed: int = 0
+    system: str = "builtin"  # system under test: builtin, blind, oracle, yolo or package.module:Class
+    system_kwargs: dict[str, Any] = field(default_factory=dict)
+    knobs: tuple[str, ...] = PAPER_KNOBS  # the knobs the agent turns (action dimensions, in order)
+    disabled_knobs: tuple[str, ...] = ()  # ablation: these stay at their starting value
+    max_step_fraction: float = 0.05  # naturalness limit: largest change per step, as a fraction of range
+    start_weather: str = "clear_noon"  # preset and/or KNOB=VALUE list
+    episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
+    camera_width: int = 320  # the system's camera [px]
+    camera_height: int = 240
+    obs_width: int = 128  # the policy's image [px] (the paper's 640x480, downscaled)
+    obs_height: int = 96
+    obs_knobs: bool = False  # observe {"image", "knobs"} instead of the image alone
+    rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    terminate_on_collision: bool = False  # the paper runs every episode for its full length
+
+    def __post_init__(self) -> None:
+        if self.episode_steps < 1:
+            raise UserInputError(f"env.episode_steps = {self.episode_steps} must be >= 1")
+        for k in ("obs_width", "obs_height"):
+            if not 36 <= getattr(self, k) <= 1024:
+                raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 36..1024 (CNN policies need >= 36)")
+        if self.scenes < 1:
+            raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in fields(cls)]
+
+
+class GenesisEnv(gym.Env):
+    """Gymnasium env over a lite backend; see the module docstring for the step template."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None, **overrides: Any) -> None:
+        super().__init__()
+        if overrides:
+            unknown = set(overrides) - set(EnvConfig.field_names())
+            if unknown:
+                raise UserInputError(f"unknown env setting(s) {sorted(unknown)}; allowed: "
+                                     f"{', '.join(EnvConfig.field_names())}")
+            base = config or EnvConfig()
+            config = EnvConfig(**{**{f: getattr(base, f) for f in EnvConfig.field_names()}, **overrides})
+        self.config = c = config or EnvConfig()
+        if render_mode not in (None, "rgb_array"):
+            raise UserInputError(f"render_mode '{render_mode}' is not supported; allowed: rgb_array")
+        self.render_mode = render_mode
+        self.mapper = KnobActionMapper(c.knobs, c.max_step_fraction, c.disabled_knobs)
+        self.start_weather: Weather = parse_weather(c.start_weather)
+        self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
+        self.reward_fn = PaperReward(c.reward)
+        self.catalog = self._load_catalog()
+
+        from genesis_rl.lite.backend import LiteBackend
+        from genesis_rl.sim.interface import CameraConfig
+        from genesis_rl.system.protocol import load_system
+
+        self.camera = CameraConfig(width=c.camera_width, height=c.camera_height)
+        self.backend = LiteBackend()
+        self.system = load_system(c.system, **c.system_kwargs)
+
+        image = spaces.Box(0, 255, (c.obs_height, c.obs_width, 3), np.uint8)
+        if c.obs_knobs:
+            knobs = spaces.Box(0.0, 1.0, (len(c.knobs),), np.float32)
+            self.observation_space = spaces.Dict({"image": image, "knobs": knobs})
+        else:
+            self.observation_space = image
+        self.action_space = spaces.Box(-1.0, 1.0, (self.mapper.action_dim,), np.float32)
+
+        self._sim = None
+        self._loop = None
+        self.weather = self.start_weather
+        self.records: list[dict[str, Any]] = []
+        self.scene_index = -1
+        self.episode_seed = -1
+
+    def _load_catalog(self):  # noqa: ANN202
+        from genesis_rl.scenes.catalog import load_catalog
+        from genesis_rl.scenes.lite_generator import generate_catalog
+
+        c = self.config
+        if c.catalog:
+            return load_catalog(c.catalog)
+        from genesis_rl.lite.maps import MAP_NAMES
+
+        if c.map not in MAP_NAMES:
+            raise UserInputError(f"env.map '{c.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
+        return generate_catalog(c.map, c.scenes, c.catalog_seed)
+
+    # -- observation -------------------------------------------------------------------------------------
+    def _observation(self) -> Any:
+        assert self._loop is not None and self._loop.frame is not None
+        c = self.config
+        rgb = self._loop.frame.rgb
+        if rgb.shape[:2] != (c.obs_height, c.obs_width):
+            rgb = cv2.resize(rgb, (c.obs_width, c.obs_height), interpolation=cv2.INTER_AREA)
+        if c.obs_knobs:
+            return {"image": rgb, "knobs": self.weather.normalized(c.knobs)}
+        return rgb
+
+    # -- gymnasium API -----------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        """Sample a scene (or take ``options['scene']``) and an episode seed from the env's generator."""
+        super().reset(seed=seed)
+        from genesis_rl.drive import ClosedLoop
+
+        self._close_sim()
+        options = options or {}
+        n = len(self.catalog.scenes)
+        idx = int(options["scene"]) if "scene" in options else int(self.np_random.integers(n))
+        if not 0 <= idx < n:
+            raise UserInputError(f"reset option scene = {idx} is out of range; the catalog has {n} scenes")
+        self.scene_index = idx
+        self.episode_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
+        self.weather = options.get("weather", self.start_weather)
+        scene = self.catalog.scene(idx)
+        self._sim = self.backend.create_simulation(scene, seed=self.episode_seed, weather=self.weather,
+                                                   camera=self.camera)
+        self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.episode_seed)
+        self._loop.start(self.weather)
+        self.records = []
+        info = {"scene": idx, "episode_seed": self.episode_seed, "knobs": self._knob_info()}
+        return self._observation(), info
+
+    def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        if self._loop is None:
+            raise RuntimeError("call reset() before step()")
+        self.weather = self.mapper.apply(self.weather, action)
+        rec = self._loop.advance(self.weather)
+        rule_terms = self.rulebook.step_terms(rec)
+        reward_terms = self.reward_fn.terms(rec["iou"], rule_terms)
+        rec.update({f"rule_{k}": v for k, v in rule_terms.items()})
+        rec.update(reward_terms)
+        self.records.append(rec)
+        terminated = bool(self.config.terminate_on_collision and rec["collision"])
+        truncated = len(self.records) >= self.config.episode_steps
+        info = {
+            "step": rec["step"],
+            "knobs": self._knob_info(),
+            "ego_speed": rec["ego_speed"],
+            "lead_distance": rec["true_lead_distance"],
+            "lead_speed": rec["lead_speed"],
+            "perceived_lead_distance": rec["perceived_lead_distance"],
+            "n_detections": rec["n_detections"],
+            "iou": rec["iou"],
+            "collision": rec["collision"],
+            "rules": rule_terms,
+            "rss_deficit": rule_terms.get("rss_deficit", 0.0),
+            **reward_terms,
+        }
+        if terminated or truncated:
+            info["episode_violations"] = self.rulebook.violations(self.records)
+        return self._observation(), float(reward_terms["reward"]), terminated, truncated, info
+
+    def _knob_info(self) -> dict[str, float]:
+        return {k: float(self.weather[k]) for k in self.config.knobs}
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array" or self._loop is None or self._loop.frame is None:
+            return None
+        from genesis_rl.viz.frames import annotate_frame
+
+        if self.records:
+            return annotate_frame(self._loop.frame.rgb, self.records[-1])
+        return self._loop.frame.rgb.copy()
+
+    def _close_sim(self) -> None:
+        if self._sim is not None:
+            self._sim.destroy()
+        self._sim = None
+        self._loop = None
+
+    def close(self) -> None:
+        self._close_sim()
+        self.backend.close()
