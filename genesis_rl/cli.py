@@ -104,6 +104,43 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     return 0
 
 
+def _csv_list(text: str | None) -> list[str] | None:
+    return None if text is None else [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from genesis_rl.knobs import KNOBS
+    from genesis_rl.training.config import load_run_config
+    from genesis_rl.training.train import train
+
+    env: dict = {}
+    for flag, key in (("knobs", "knobs"), ("disable_knobs", "disabled_knobs")):
+        names = _csv_list(getattr(args, flag))
+        if names is not None:
+            bad = [n for n in names if n not in KNOBS]
+            if bad:
+                raise UserInputError(f"--{flag.replace('_', '-')}: unknown knob(s) {bad}; allowed: {', '.join(KNOBS)}")
+            env[key] = names
+    for flag in ("system", "scenes", "catalog", "map"):
+        if getattr(args, flag) is not None:
+            env[flag] = getattr(args, flag)
+    tr: dict = {}
+    for flag, key in (("envs", "envs"), ("steps", "total_timesteps"), ("seed", "seed")):
+        if getattr(args, flag) is not None:
+            tr[key] = getattr(args, flag)
+    ppo = {"n_steps": args.n_steps} if args.n_steps is not None else {}
+    if args.episode_steps is not None:
+        env["episode_steps"] = args.episode_steps
+    extra = {k: v for k, v in tr.items() if k != "total_timesteps"}
+    if args.resume and (env or extra or ppo or args.config):
+        raise UserInputError("--resume continues a run with its own config.toml; only --steps may change")
+    cfg = load_run_config(args.config, {"env": env, "train": tr, "ppo": ppo})
+    result = train(cfg, Path(args.out), force=args.force, resume=args.resume, progress=not args.quiet,
+                   argv=sys.argv, total_timesteps=args.steps if args.resume else None)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_sim
 
@@ -165,6 +202,25 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF")
     dr.add_argument("--quiet", action="store_true", help="no progress bar")
     dr.set_defaults(func=_cmd_drive)
+
+    tr = sub.add_parser("train", help="train the weather agent (SB3 PPO) against the system under test")
+    tr.add_argument("--config", default=None, help="TOML config (default: the paper's values, configs/paper.toml)")
+    tr.add_argument("--out", required=True, help="run folder (runs/NAME)")
+    tr.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    tr.add_argument("--force", action="store_true", help="replace an existing run folder")
+    tr.add_argument("--envs", type=int, default=None, help="parallel environments (subprocesses)")
+    tr.add_argument("--steps", type=int, default=None, help="total env steps (train.total_timesteps)")
+    tr.add_argument("--n-steps", type=int, default=None, help="steps per PPO update (ppo.n_steps)")
+    tr.add_argument("--episode-steps", type=int, default=None, help="steps per episode (env.episode_steps)")
+    tr.add_argument("--seed", type=int, default=None, help="training seed (train.seed)")
+    tr.add_argument("--knobs", default=None, help="comma list of knobs the agent turns (env.knobs)")
+    tr.add_argument("--disable-knobs", default=None, help="comma list of knobs held at their start (ablation)")
+    tr.add_argument("--system", default=None, help="system under test (env.system)")
+    tr.add_argument("--map", default=None, help="map of generated scenes (env.map)")
+    tr.add_argument("--scenes", type=int, default=None, help="number of generated scenes (env.scenes)")
+    tr.add_argument("--catalog", default=None, help="scene catalog file (env.catalog)")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=_cmd_train)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim"], help="sim: physics steps/s and rendered frames/s")

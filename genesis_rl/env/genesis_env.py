@@ -56,6 +56,8 @@ class EnvConfig:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 36..1024 (CNN policies need >= 36)")
         if self.scenes < 1:
             raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
+        KnobActionMapper(self.knobs, self.max_step_fraction, self.disabled_knobs)  # names, limits checked
+        parse_weather(self.start_weather)
 
     @classmethod
     def field_names(cls) -> list[str]:

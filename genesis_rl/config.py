@@ -1,0 +1,137 @@
+"""Typed configuration from TOML: every section a frozen dataclass, unknown keys and wrong types rejected
+with the key's dotted path and what is allowed."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from genesis_rl.errors import UserInputError
+
+T = TypeVar("T")
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Check ``value`` against the annotation ``tp`` (int, float, str, bool, tuple[str, ...], X | None)."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(value, inner[0], key)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise UserInputError(f"{key} = {value!r} must be a list")
+        (item,) = typing.get_args(tp)[:1]
+        return tuple(_coerce(v, item, f"{key}[{i}]") for i, v in enumerate(value))
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            raise UserInputError(f"{key} = {value!r} must be a table")
+        return dict(value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise UserInputError(f"{key} = {value!r} must be true or false")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise UserInputError(f"{key} = {value!r} must be an integer")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise UserInputError(f"{key} = {value!r} must be a number")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise UserInputError(f"{key} = {value!r} must be a string")
+        return value
+    if dataclasses.is_dataclass(tp):
+        return from_mapping(tp, value, key)
+    return value
+
+
+def from_mapping(cls: type[T], data: Mapping[str, Any] | None, section: str) -> T:
+    """Build dataclass ``cls`` from a TOML table; errors name ``section.key``."""
+    data = dict(data or {})
+    if not isinstance(data, dict):
+        raise UserInputError(f"[{section}] must be a table")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise UserInputError(f"unknown key(s) {', '.join(f'{section}.{k}' for k in unknown)}; "
+                             f"allowed in [{section}]: {', '.join(names)}")
+    kwargs = {k: _coerce(v, hints[k], f"{section}.{k}") for k, v in data.items()}
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as err:
+        raise UserInputError(f"[{section}]: {err}") from None
+
+
+def to_mapping(obj: Any) -> dict[str, Any]:
+    """A dataclass as a TOML-ready dict (tuples as lists, None values dropped)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            v = to_mapping(v)
+        elif isinstance(v, tuple):
+            v = list(v)
+        if v is not None:
+            out[f.name] = v
+    return out
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise UserInputError(f"config file '{path}' does not exist")
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as err:
+        raise UserInputError(f"config '{path}' is not valid TOML: {err}") from None
+
+
+def dump_toml(data: Mapping[str, Any]) -> str:
+    """A minimal TOML writer for our configs (tables of scalars, lists and nested tables)."""
+
+    def scalar(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, int | float):
+            return repr(v)
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        if isinstance(v, list | tuple):
+            return "[" + ", ".join(scalar(x) for x in v) + "]"
+        if isinstance(v, Mapping):
+            return "{ " + ", ".join(f"{k} = {scalar(x)}" for k, x in v.items()) + " }"
+        raise TypeError(f"cannot write {type(v)} to TOML")
+
+    lines: list[str] = []
+
+    def table(name: str, d: Mapping[str, Any]) -> None:
+        lines.append(f"[{name}]")
+        nested = []
+        for k, v in d.items():
+            flat_table = isinstance(v, Mapping) and v and all(not isinstance(x, Mapping) for x in v.values())
+            if flat_table and k != "system_kwargs":
+                nested.append((k, v))
+            else:
+                lines.append(f"{k} = {scalar(v)}")
+        lines.append("")
+        for k, v in nested:
+            table(f"{name}.{k}", v)
+
+    for name, d in data.items():
+        table(name, d)
+    return "\n".join(lines)

@@ -1,0 +1,79 @@
+"""The training configuration: [env], [ppo] and [train] tables; ``configs/paper.toml`` spells out the
+paper's values with units."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from genesis_rl.config import dump_toml, from_mapping, read_toml, to_mapping
+from genesis_rl.env.genesis_env import EnvConfig
+from genesis_rl.errors import UserInputError
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """Stable-Baselines3 PPO settings (SB3's defaults, and the paper's rollout of 2048 steps)."""
+
+    learning_rate: float = 3e-4
+    n_steps: int = 2048  # steps per policy update over all envs together (the paper: 4 episodes of 512)
+    batch_size: int = 64
+    n_epochs: int = 10
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_range: float = 0.2
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    device: str = "auto"  # torch device for the policy: auto, cpu, cuda
+
+    def __post_init__(self) -> None:
+        if self.n_steps < 2 or self.batch_size < 2:
+            raise UserInputError(f"ppo.n_steps = {self.n_steps} and ppo.batch_size = {self.batch_size} must be >= 2")
+        if not 0 < self.learning_rate < 1:
+            raise UserInputError(f"ppo.learning_rate = {self.learning_rate} must be in (0, 1)")
+        if not (0 < self.gamma <= 1 and 0 < self.gae_lambda <= 1):
+            raise UserInputError("ppo.gamma and ppo.gae_lambda must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    total_timesteps: int = 40960  # env steps (the paper: 40,960 = 20 updates of 2048)
+    envs: int = 1  # parallel environments, each in its own process when > 1
+    seed: int = 0  # seeds the envs' scene draws, the policy's initialisation and its sampling
+    checkpoint_every: int = 2048  # env steps between checkpoints
+    torch_threads: int = 0  # torch threads in the trainer (0: torch's default)
+
+    def __post_init__(self) -> None:
+        if self.total_timesteps < 1:
+            raise UserInputError(f"train.total_timesteps = {self.total_timesteps} must be >= 1")
+        if not 1 <= self.envs <= 64:
+            raise UserInputError(f"train.envs = {self.envs} must be in 1..64")
+        if self.checkpoint_every < 1:
+            raise UserInputError(f"train.checkpoint_every = {self.checkpoint_every} must be >= 1")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    env: EnvConfig = field(default_factory=EnvConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_toml(self) -> str:
+        return dump_toml({"env": to_mapping(self.env), "ppo": to_mapping(self.ppo), "train": to_mapping(self.train)})
+
+
+def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None) -> RunConfig:
+    """Read a config file (None: all defaults) and apply per-section overrides from the command line."""
+    data = read_toml(path) if path is not None else {}
+    unknown = sorted(set(data) - {"env", "ppo", "train"})
+    if unknown:
+        raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, train")
+    for section, values in (overrides or {}).items():
+        data.setdefault(section, {}).update(values)
+    return RunConfig(
+        env=from_mapping(EnvConfig, data.get("env"), "env"),
+        ppo=from_mapping(PPOConfig, data.get("ppo"), "ppo"),
+        train=from_mapping(TrainConfig, data.get("train"), "train"),
+    )

@@ -1,0 +1,239 @@
+"""``genesis-rl train``: SB3 PPO against GenesisEnv, with checkpoints, resume, TensorBoard and a progress bar.
+
+The run folder keeps everything needed to trust and reuse the agent: the resolved config, the scene
+catalog it trained on, seeds, package version and git commit (``run.json``), checkpoints with their step
+counts, per-episode metrics (``episodes.csv``), TensorBoard logs (``tb/``) and the final ``agent.zip``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl import __version__
+from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
+from genesis_rl.training.config import RunConfig, load_run_config
+
+CHECKPOINTS = "checkpoints"
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int):  # noqa: ANN202
+    def thunk():  # noqa: ANN202
+        import torch
+        from stable_baselines3.common.monitor import Monitor
+
+        from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+
+        if torch_threads:
+            torch.set_num_threads(torch_threads)
+        env = GenesisEnv(EnvConfig(**config_dict))
+        env.reset(seed=seed + rank)
+        return Monitor(env)
+
+    return thunk
+
+
+def build_vec_env(cfg: RunConfig, catalog_path: Path):  # noqa: ANN201
+    from dataclasses import asdict, replace
+
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    from genesis_rl.rules.reward import RewardConfig
+
+    env_cfg = replace(cfg.env, catalog=str(catalog_path))
+    d = asdict(env_cfg)
+    d["reward"] = RewardConfig(**d["reward"])
+    n = cfg.train.envs
+    fns = [_make_env(d, i, cfg.train.seed, 1 if n > 1 else cfg.train.torch_threads) for i in range(n)]
+    return SubprocVecEnv(fns, start_method="spawn") if n > 1 else DummyVecEnv(fns)
+
+
+class _Callbacks:
+    """Progress bar, per-episode metrics (CSV + TensorBoard) and periodic atomic checkpoints."""
+
+    @staticmethod
+    def make(run: Path, cfg: RunConfig, start_steps: int, progress: bool):  # noqa: ANN205
+        from stable_baselines3.common.callbacks import BaseCallback
+        from tqdm import tqdm
+
+        knobs = list(cfg.env.knobs)
+
+        class TrainingCallback(BaseCallback):
+            def __init__(self) -> None:
+                super().__init__()
+                self.bar = None
+                self.acc: dict[int, dict[str, Any]] = {}
+                self.last_ckpt = start_steps
+                self.episodes_path = run / "episodes.csv"
+
+            def _on_training_start(self) -> None:
+                self.bar = tqdm(total=cfg.train.total_timesteps, initial=start_steps, unit="step",
+                                desc="train", disable=not progress, smoothing=0.05)
+
+            def _on_step(self) -> bool:
+                n_envs = self.training_env.num_envs
+                self.bar.update(n_envs)
+                for i, info in enumerate(self.locals["infos"]):
+                    a = self.acc.setdefault(i, {"reward": 0.0, "iou": [], "knobs": [], "collisions": 0})
+                    a["reward"] += float(self.locals["rewards"][i])
+                    a["iou"].append(info["iou"])
+                    a["knobs"].append([info["knobs"][k] for k in knobs])
+                    a["collisions"] += int(info["collision"])
+                    if "episode_violations" in info:
+                        self._episode_done(a, info["episode_violations"])
+                        self.acc.pop(i)
+                if self.num_timesteps - self.last_ckpt >= cfg.train.checkpoint_every:
+                    save_checkpoint(run, self.model, self.num_timesteps)
+                    self.last_ckpt = self.num_timesteps
+                return True
+
+            def _episode_done(self, a: dict[str, Any], violations: dict[str, float]) -> None:
+                knob_mean = np.mean(a["knobs"], axis=0)
+                row = {"timesteps": self.num_timesteps, "episode_reward": round(a["reward"], 4),
+                       "mean_iou": round(float(np.mean(a["iou"])), 4), "collisions": a["collisions"],
+                       **{f"violation_{k}": round(v, 4) for k, v in violations.items()},
+                       **{f"mean_{k}": round(float(v), 3) for k, v in zip(knobs, knob_mean, strict=True)}}
+                for k, v in row.items():
+                    if k != "timesteps":
+                        self.logger.record(f"episode/{k}", v)
+                new = not self.episodes_path.exists()
+                with self.episodes_path.open("a", newline="") as fh:
+                    w = csv.DictWriter(fh, fieldnames=list(row))
+                    if new:
+                        w.writeheader()
+                    w.writerow(row)
+                self.bar.set_postfix(ep_reward=f"{a['reward']:.0f}", coll=a["collisions"])
+
+            def _on_training_end(self) -> None:
+                self.bar.close()
+
+        return TrainingCallback()
+
+
+def save_checkpoint(run: Path, model: Any, steps: int) -> None:
+    """``checkpoints/step_N.zip`` and ``last.zip`` + ``last.json`` (its step count), each written atomically."""
+    ck = run / CHECKPOINTS
+    atomic_write(ck / f"step_{steps:08d}.zip", lambda p: model.save(p))
+    atomic_write(ck / "last.zip", lambda p: model.save(p))
+    atomic_write_json(ck / "last.json", {"timesteps": int(steps), "time": time.time()})
+
+
+def load_checkpoint(run: Path, env: Any, device: str) -> tuple[Any, int]:
+    from stable_baselines3 import PPO
+
+    ck = run / CHECKPOINTS
+    meta_path = ck / "last.json"
+    if not meta_path.is_file() or not (ck / "last.zip").is_file():
+        raise UserInputError(f"--resume: run '{run}' has no checkpoint ({meta_path} is missing)")
+    try:
+        steps = int(json.loads(meta_path.read_text())["timesteps"])
+        model = PPO.load(ck / "last.zip", env=env, device=device)
+    except Exception as err:  # noqa: BLE001 - a corrupt checkpoint is the user's to see, clearly
+        raise UserInputError(f"--resume: checkpoint '{ck / 'last.zip'}' cannot be loaded: {err}") from None
+    model.num_timesteps = steps
+    return model, steps
+
+
+def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
+                total_timesteps: int | None = None) -> RunConfig:
+    """Create (or reopen with ``resume``) the run folder; returns the config the run uses. On resume,
+    ``total_timesteps`` may raise the run's target (it is written back to its config.toml)."""
+    import shutil
+
+    if resume:
+        if not (out / "config.toml").is_file():
+            raise UserInputError(f"--resume: '{out}' is not a run folder (no config.toml)")
+        if total_timesteps is None:
+            return load_run_config(out / "config.toml")
+        cfg = load_run_config(out / "config.toml", {"train": {"total_timesteps": total_timesteps}})
+        atomic_write_text(out / "config.toml", cfg.to_toml())
+        return cfg
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise UserInputError(f"run folder '{out}' exists; pass --resume to continue it or --force to replace it")
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    from genesis_rl.scenes.catalog import load_catalog
+    from genesis_rl.scenes.lite_generator import generate_catalog
+
+    catalog = load_catalog(cfg.env.catalog) if cfg.env.catalog else generate_catalog(
+        cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed, progress=True)
+    catalog.save(out / "catalog.json")
+    atomic_write_text(out / "config.toml", cfg.to_toml())
+    atomic_write_json(out / "run.json", {
+        "package": "genesis-rl", "version": __version__, "git_commit": git_commit(),
+        "python": sys.version.split()[0], "command": argv, "seed": cfg.train.seed,
+        "catalog": {"map": catalog.map, "seed": catalog.seed, "scenes": len(catalog.scenes)},
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }, indent=2)
+    return cfg
+
+
+def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, progress: bool = True,
+          argv: list[str] | None = None, total_timesteps: int | None = None) -> dict[str, Any]:
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import configure
+
+    cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps)
+    if cfg.train.torch_threads:
+        torch.set_num_threads(cfg.train.torch_threads)
+    p = cfg.ppo
+    if p.n_steps % cfg.train.envs:
+        raise UserInputError(f"ppo.n_steps = {p.n_steps} must be a multiple of train.envs = {cfg.train.envs}")
+    env = build_vec_env(cfg, out / "catalog.json")
+    try:
+        policy = "MultiInputPolicy" if cfg.env.obs_knobs else "CnnPolicy"
+        if resume:
+            model, done = load_checkpoint(out, env, p.device)
+        else:
+            model = PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
+                        batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma, gae_lambda=p.gae_lambda,
+                        clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
+                        max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device, verbose=0)
+            done = 0
+        formats = ["csv"]
+        try:
+            import tensorboard  # noqa: F401
+
+            formats.append("tensorboard")
+        except ImportError:
+            pass
+        model.set_logger(configure(str(out / "tb"), formats))
+        remaining = cfg.train.total_timesteps - done
+        t0 = time.perf_counter()
+        if remaining > 0:
+            cb = _Callbacks.make(out, cfg, done, progress)
+            try:
+                model.learn(total_timesteps=remaining, callback=cb, reset_num_timesteps=not resume,
+                            progress_bar=False)
+            except KeyboardInterrupt:
+                save_checkpoint(out, model, model.num_timesteps)  # --resume continues from here
+                raise
+            save_checkpoint(out, model, model.num_timesteps)
+        atomic_write(out / "agent.zip", lambda q: model.save(q))
+        seconds = time.perf_counter() - t0
+        result = {"run": str(out), "timesteps": int(model.num_timesteps), "trained_steps_now": max(remaining, 0),
+                  "seconds": round(seconds, 1),
+                  "steps_per_second": round(max(remaining, 0) / seconds, 2) if seconds > 0 else None}
+        atomic_write_json(out / "train_result.json", result, indent=2)
+        return result
+    finally:
+        env.close()

@@ -1,0 +1,69 @@
+"""Training: config validation, the run folder, checkpoints and resume with the step count intact."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from genesis_rl.cli import main
+from genesis_rl.errors import UserInputError
+from genesis_rl.training.config import RunConfig, load_run_config
+
+
+def test_paper_config_holds_the_papers_values() -> None:
+    cfg = load_run_config("configs/paper.toml")
+    assert cfg == RunConfig()  # the file spells out the defaults
+    assert (cfg.ppo.n_steps, cfg.train.total_timesteps, cfg.env.episode_steps) == (2048, 40960, 512)
+    assert (cfg.env.reward.collision_weight, cfg.env.reward.proximity_weight) == (500.0, 100.0)
+    assert cfg.env.max_step_fraction == 0.05 and cfg.env.scenes == 1202
+
+
+@pytest.mark.parametrize(
+    ("toml", "message"),
+    [
+        ("[ppo]\nlearning_rat = 0.1\n", "unknown key\\(s\\) ppo.learning_rat; allowed in \\[ppo\\]: learning_rate"),
+        ("[train]\nenvs = 'two'\n", "train.envs = 'two' must be an integer"),
+        ("[train]\nenvs = 0\n", "train.envs = 0 must be in 1..64"),
+        ("[env]\nknobs = ['fog']\n", "unknown knob 'fog'"),
+        ("[env.reward]\ncollision_weight = -1\n", "reward.collision_weight = -1.0 must be a finite number >= 0"),
+        ("[trainer]\n", "unknown table\\(s\\) \\['trainer'\\]"),
+    ],
+)
+def test_bad_config_names_the_key(tmp_path, toml: str, message: str) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text(toml)
+    with pytest.raises(UserInputError, match=message):
+        load_run_config(p)
+
+
+def test_train_refuses_an_existing_run_folder(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "something").write_text("x")
+    assert main(["train", "--out", str(run), "--system", "blind", "--scenes", "2"]) == 2
+    assert "exists; pass --resume to continue it or --force" in capsys.readouterr().err
+
+
+@pytest.mark.render
+def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    common = ["--quiet"]
+    assert main(["train", "--out", str(run), "--system", "oracle", "--scenes", "3", "--steps", "32",
+                 "--n-steps", "16", "--episode-steps", "8", *common]) == 0
+    first = json.loads((run / "checkpoints" / "last.json").read_text())
+    assert first["timesteps"] == 32
+    for name in ("agent.zip", "config.toml", "run.json", "catalog.json", "episodes.csv"):
+        assert (run / name).is_file(), name
+    assert any((run / "tb").glob("events.out.tfevents.*"))
+    episodes = (run / "episodes.csv").read_text().strip().splitlines()
+    assert len(episodes) == 1 + 4  # header + 32 steps / 8 per episode
+    assert "violation_collision" in episodes[0] and "mean_fog_density" in episodes[0]
+    capsys.readouterr()
+    assert main(["train", "--out", str(run), "--resume", "--steps", "48", *common]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["timesteps"] == 48 and result["trained_steps_now"] == 16
+    assert json.loads((run / "checkpoints" / "last.json").read_text())["timesteps"] == 48
+    (run / "checkpoints" / "last.zip").write_bytes(b"not a zip")
+    assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
+    assert "cannot be loaded" in capsys.readouterr().err
