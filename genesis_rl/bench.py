@@ -37,3 +37,63 @@ def bench_sim(physics_steps: int = 2000, frames: int = 100, render: bool = True)
     finally:
         backend.close()
     return out
+
+
+def bench_system(frames: int = 200, batch: int = 16, steps: int = 200, system: str = "builtin") -> dict:
+    """Detector frames/s (batched, at its input resolution) and closed-loop steps/s (physics + render +
+    detect + control, one process, default camera), with the time split per stage."""
+    import os
+
+    import numpy as np
+    import torch
+
+    from genesis_rl.drive import ClosedLoop
+    from genesis_rl.system.protocol import load_system
+
+    out: dict = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
+                 "torch_threads": torch.get_num_threads(), "python": platform.python_version()}
+    scene = generate_catalog("highway", 1, 0).scenes[0]
+    sut = load_system(system)
+    backend = LiteBackend()
+    try:
+        with backend.create_simulation(scene, seed=0) as sim:
+            loop = ClosedLoop(sim, sut, backend.name, 0)
+            loop.start(Weather.default())
+            rgbs = []
+            for _ in range(batch):
+                loop.advance(Weather.default())
+                rgbs.append(loop.frame.rgb)
+            detector = getattr(sut, "detector", None)
+            if detector is not None:
+                stack = np.stack(rgbs)
+                detector.detect_batch(stack)  # warm-up
+                n = max(frames // batch, 1)
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    detector.detect_batch(stack)
+                out["detector_batch"] = batch
+                out["detector_input"] = list(getattr(detector, "input_size", (0, 0)))
+                out["detector_frames_per_s"] = round(n * batch / (time.perf_counter() - t0), 1)
+                t0 = time.perf_counter()
+                for r in rgbs:
+                    detector.detect(r)
+                out["detector_single_frames_per_s"] = round(len(rgbs) / (time.perf_counter() - t0), 1)
+            t_tick = t_obs = t_sys = 0.0
+            w = Weather.default()
+            for _ in range(steps):
+                a = time.perf_counter()
+                sim.tick()
+                b = time.perf_counter()
+                frame = sim.observe()
+                c = time.perf_counter()
+                sut.step(frame, sim.ego(), sim.step_count * sim.dt)
+                d = time.perf_counter()
+                t_tick, t_obs, t_sys = t_tick + b - a, t_obs + c - b, t_sys + d - c
+                sim.set_weather(w)
+            total = t_tick + t_obs + t_sys
+            out["closed_loop_steps_per_s"] = round(steps / total, 1)
+            out["ms_per_step"] = {"physics": round(1e3 * t_tick / steps, 2), "render": round(1e3 * t_obs / steps, 2),
+                                  "system": round(1e3 * t_sys / steps, 2)}
+    finally:
+        backend.close()
+    return out

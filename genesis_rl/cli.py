@@ -142,8 +142,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from genesis_rl.bench import bench_sim
+    from genesis_rl.bench import bench_sim, bench_system
 
+    if args.what == "system":
+        print(json.dumps(bench_system(frames=args.frames, steps=args.steps, system=args.system), indent=2))
+        return 0
     print(json.dumps(bench_sim(physics_steps=args.steps, frames=args.frames, render=not args.no_render), indent=2))
     return 0
 
@@ -223,8 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.set_defaults(func=_cmd_train)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
-    bench.add_argument("what", choices=["sim"], help="sim: physics steps/s and rendered frames/s")
-    bench.add_argument("--steps", type=int, default=2000, help="physics steps to time")
+    bench.add_argument("what", choices=["sim", "system"],
+                       help="sim: physics steps/s and rendered frames/s; system: detector fps and closed-loop steps/s")
+    bench.add_argument("--steps", type=int, default=2000, help="physics steps (sim) or closed-loop steps (system)")
+    bench.add_argument("--system", default="builtin", help="system under test for 'bench system'")
     bench.add_argument("--frames", type=int, default=100, help="frames to time per resolution")
     bench.add_argument("--no-render", action="store_true", help="physics only")
     bench.set_defaults(func=_cmd_bench)

@@ -205,7 +205,8 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
             model, done = load_checkpoint(out, env, p.device)
         else:
             model = PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
-                        batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma, gae_lambda=p.gae_lambda,
+                        batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
+                        gae_lambda=p.gae_lambda,
                         clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
                         max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device, verbose=0)
             done = 0
