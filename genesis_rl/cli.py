@@ -93,8 +93,8 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     schedule = load_schedule(args.schedule, base, args.steps) if args.schedule else None
     kwargs = {}
     if args.weights:
-        if args.system != "builtin":
-            raise UserInputError("--weights applies to --system builtin only")
+        if args.system not in ("builtin", "yolo"):
+            raise UserInputError("--weights applies to --system builtin or yolo only")
         kwargs["weights"] = args.weights
     summary = drive_scenes(catalog, indices, args.system, kwargs, base, schedule, args.steps, args.episode_seed,
                            Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),

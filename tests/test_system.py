@@ -51,6 +51,23 @@ def test_load_system_errors_name_the_problem(spec: str, message: str) -> None:
         load_system(spec)
 
 
+def test_yolo_adapter_never_downloads_and_says_what_to_install(tmp_path) -> None:
+    with pytest.raises(UserInputError, match="needs --weights PATH"):
+        load_system("yolo")
+    with pytest.raises(UserInputError, match="'.*missing.pt' does not exist \\(nothing is downloaded"):
+        load_system("yolo", weights=str(tmp_path / "missing.pt"))
+
+
+def test_yolo_adapter_without_ultralytics_names_the_extra(tmp_path, monkeypatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ultralytics", None)  # as if not installed
+    weights = tmp_path / "yolov5s.pt"
+    weights.write_bytes(b"x")
+    with pytest.raises(UserInputError, match="pip install -e '.\\[yolo\\]'"):
+        load_system("yolo", weights=str(weights))
+
+
 TINY_SYSTEM = textwrap.dedent(
     '''
     from genesis_rl.sim.interface import VehicleControl

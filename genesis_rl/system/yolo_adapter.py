@@ -1,0 +1,73 @@
+"""Optional system: ultralytics YOLO (the paper's yolov5s) with weights the user supplies, behind the same
+depth localisation and following controller as the built-in system.
+
+Install with ``pip install -e .[yolo]``. Nothing is downloaded at run time: the weights file must exist
+locally (ultralytics would otherwise fetch it from the internet), and ultralytics' online checks are
+switched off before it is imported.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.sim.interface import SensorFrame
+from genesis_rl.system.builtin import PerceptionDrivenSystem
+from genesis_rl.system.controller import ControllerConfig
+
+#: COCO class ids of vehicles: car, motorcycle, bus, truck
+COCO_VEHICLE_CLASSES = (2, 3, 5, 7)
+
+
+def import_ultralytics():  # noqa: ANN201
+    os.environ.setdefault("YOLO_OFFLINE", "1")  # no update checks, no asset downloads
+    try:
+        import ultralytics
+    except ImportError:
+        raise UserInputError(
+            "the yolo system needs the optional 'ultralytics' package: pip install -e '.[yolo]' "
+            "(then pass --weights PATH to a local YOLO .pt file, e.g. the paper's yolov5s.pt)"
+        ) from None
+    return ultralytics
+
+
+class YoloSystem(PerceptionDrivenSystem):
+    """YOLO boxes of COCO vehicle classes (score >= ``score_threshold``) -> depth -> controller."""
+
+    def __init__(self, weights: str | None = None, score_threshold: float = 0.25, image_size: int = 640,
+                 controller: ControllerConfig | dict[str, Any] | None = None) -> None:
+        super().__init__(controller)
+        if not weights:
+            raise UserInputError("the yolo system needs --weights PATH to a local YOLO .pt file "
+                                 "(nothing is downloaded)")
+        path = Path(weights)
+        if not path.is_file():
+            raise UserInputError(f"YOLO weights file '{path}' does not exist (nothing is downloaded at run time)")
+        ultralytics = import_ultralytics()
+        try:
+            self.model = ultralytics.YOLO(str(path))
+        except Exception as err:  # noqa: BLE001
+            raise UserInputError(f"YOLO weights file '{path}' cannot be loaded: {err}") from None
+        self.weights_path = path
+        self.score_threshold = float(score_threshold)
+        self.image_size = int(image_size)
+
+    def _boxes(self, frame: SensorFrame) -> np.ndarray:
+        result = self.model.predict(frame.rgb[..., ::-1], imgsz=self.image_size, conf=self.score_threshold,
+                                    classes=list(COCO_VEHICLE_CLASSES), verbose=False)[0]
+        boxes = result.boxes
+        if boxes is None or len(boxes) == 0:
+            return np.zeros((0, 5), np.float32)
+        xyxy = boxes.xyxy.cpu().numpy().astype(np.float32)
+        conf = boxes.conf.cpu().numpy().astype(np.float32)[:, None]
+        return np.hstack([xyxy, conf])
+
+    def identity(self) -> dict[str, Any]:
+        from genesis_rl.perception.detector import file_sha256
+
+        return {**super().identity(), "weights": str(self.weights_path),
+                "weights_sha256": file_sha256(self.weights_path), "score_threshold": self.score_threshold}
