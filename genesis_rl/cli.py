@@ -225,6 +225,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)
 
+    from genesis_rl.perception.commands import add_detector_commands
+
+    add_detector_commands(sub)
+
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim", "system"],
                        help="sim: physics steps/s and rendered frames/s; system: detector fps and closed-loop steps/s")

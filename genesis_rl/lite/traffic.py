@@ -96,6 +96,15 @@ class Traffic:
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
         self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
         self._lane_sig_g = np.array([g for _, g in sig], dtype=np.int64)
+        # junction connectors inherit the signal group of the lane that feeds them: a vehicle on one
+        # occupies its junction for that group (cross traffic waits until the junction is clear)
+        self._conn_j = np.full(len(road_map.lanes), -1, dtype=np.int64)
+        self._conn_g = np.zeros(len(road_map.lanes), dtype=np.int64)
+        for ln in road_map.lanes:
+            if ln.signal is not None:
+                for c in ln.successors:
+                    if road_map.lanes[c].junction >= 0:
+                        self._conn_j[c], self._conn_g[c] = ln.signal
 
     def _signal_phases(self, t: float) -> np.ndarray:
         """(junctions, 2) phase codes of both signal groups of every junction at time ``t``."""
@@ -180,7 +189,14 @@ class Traffic:
         phase = self._signal_phases(self.time)[np.maximum(sig_j, 0), self._lane_sig_g[self.lane]]
         dist = m.length[self.lane] - self.s - 0.5 * self.length - 1.0
         can_stop = dist > self.v**2 / (2 * self.b_comf)
-        must_stop = (sig_j >= 0) & self.is_npc & (dist > -0.5) & ((phase == RED) | ((phase == YELLOW) & can_stop))
+        # junction occupancy: (junction, group) pairs with a vehicle on one of their connectors
+        occupied = np.zeros((len(m.junctions), 2), bool)
+        cj = self._conn_j[self.lane]
+        inside = cj >= 0
+        occupied[cj[inside], self._conn_g[self.lane][inside]] = True
+        cross_busy = occupied[np.maximum(sig_j, 0), 1 - self._lane_sig_g[self.lane]]
+        red = (phase == RED) | ((phase == YELLOW) & can_stop) | (cross_busy & can_stop)
+        must_stop = (sig_j >= 0) & self.is_npc & (dist > -0.5) & red
         gap_light = np.where(must_stop, np.maximum(dist, 0.01), np.inf)
         use_light = gap_light < gap
         gap = np.where(use_light, gap_light, gap)

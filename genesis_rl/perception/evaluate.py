@@ -15,9 +15,12 @@ Protocol
   pixels to call a miss a failure of the detector, and mostly hidden vehicles are ambiguous to label.
   Every other ground-truth vehicle is an *ignore* region.
 * Matching: detections, best score first, each take the unmatched counted vehicle with the highest IoU
-  if that IoU is >= 0.5 (true positive). A detection that does not match a counted vehicle but overlaps an
-  ignore region with IoU >= 0.5 is neither a true nor a false positive; any other detection is a false
-  positive (a second detection of a matched vehicle included). Counted vehicles left unmatched are misses.
+  if that IoU is >= 0.5 (true positive). A detection that does not match a counted vehicle but lies mostly
+  inside an ignore region (intersection over the detection's own area >= 0.5, the Caltech-pedestrian rule
+  for "don't care" regions, which also covers a box drawn around the whole of a mostly hidden vehicle whose
+  ground-truth box is only its visible part) is neither a true nor a false positive; any other detection is
+  a false positive (a second detection of a matched vehicle included). Counted vehicles left unmatched are
+  misses.
 * Figures: precision = TP / (TP + FP) (undefined, shown as "-", when the detector reports nothing),
   recall = TP / counted, mean IoU over the matched pairs.
 """
@@ -51,6 +54,7 @@ class EvalProtocol:
     min_visible_fraction: float = 0.3
     min_height: float = 8.0  # [px] at 320x240 (scaled with the frame height)
     iou_threshold: float = 0.5
+    ignore_overlap: float = 0.5  # intersection / detection area with an ignore region that excuses a detection
 
     def counted(self, gt: np.ndarray, image_height: int = 240) -> np.ndarray:
         """Mask of counted rows of ``gt`` (K, 9) in dataset.BOX_COLUMNS layout."""
@@ -95,6 +99,17 @@ class MatchCounts:
         return 2 * self.tp / d if d else float("nan")
 
 
+def _overlap_of_first(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(len(a), len(b)): area of a_i & b_j over the area of a_i."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)))
+    a, b = np.asarray(a, np.float64)[:, :4], np.asarray(b, np.float64)[:, :4]
+    w = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
+    h = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
+    area = np.maximum((a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1]), 1e-9)
+    return w * h / area[:, None]
+
+
 def match_frame(dets: np.ndarray, gt: np.ndarray, protocol: EvalProtocol | None = None,
                 image_height: int = 240) -> MatchCounts:
     """Greedy matching of one frame's detections (N, 5) to its ground truth (K, 9 dataset rows)."""
@@ -107,7 +122,7 @@ def match_frame(dets: np.ndarray, gt: np.ndarray, protocol: EvalProtocol | None 
     if len(dets):
         dets = dets[np.argsort(-dets[:, 4], kind="stable")]
     iou_c = box_iou(dets, gt_c)
-    iou_i = box_iou(dets, gt_i)
+    ioa_i = _overlap_of_first(dets, gt_i)
     taken = np.zeros(len(gt_c), bool)
     for d in range(len(dets)):
         cand = np.where(taken, -1.0, iou_c[d]) if len(gt_c) else np.zeros(0)
@@ -116,7 +131,7 @@ def match_frame(dets: np.ndarray, gt: np.ndarray, protocol: EvalProtocol | None 
             taken[j] = True
             m.tp += 1
             m.iou_sum += float(cand[j])
-        elif len(gt_i) and float(iou_i[d].max()) >= p.iou_threshold:
+        elif len(gt_i) and float(ioa_i[d].max()) >= p.ignore_overlap:
             m.ignored += 1
         else:
             m.fp += 1

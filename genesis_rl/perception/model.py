@@ -199,11 +199,13 @@ def decode(
     stride: int = 4,
     image_size: tuple[int, int] | None = None,
     heatmap_is_logits: bool = True,
+    nms_iou: float | None = 0.6,
 ) -> list[np.ndarray]:
     """Boxes from network outputs: one (N, 5) float32 array x0, y0, x1, y1, score per image, best first.
 
     Peaks are cells equal to the 3x3 max of their neighbourhood with a score >= ``score_threshold``;
-    ``image_size`` (width, height) clips the boxes to the image.
+    ``image_size`` (width, height) clips the boxes to the image. A small greedy box NMS (``nms_iou``; None
+    turns it off) drops the second peak a long vehicle (bus, truck) sometimes gets.
     """
     heat = outputs["heatmap"].detach().float()
     if heatmap_is_logits:
@@ -229,8 +231,19 @@ def decode(
         if image_size is not None:
             boxes[:, 0:4:2] = boxes[:, 0:4:2].clamp(0, image_size[0])
             boxes[:, 1:4:2] = boxes[:, 1:4:2].clamp(0, image_size[1])
-        result.append(boxes.numpy().astype(np.float32))
+        out = boxes.numpy().astype(np.float32)
+        result.append(nms(out, nms_iou) if nms_iou is not None and len(out) > 1 else out)
     return result
+
+
+def nms(dets: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Greedy NMS of (N, 5) detections sorted best first: drop any box overlapping a kept one by IoU > threshold."""
+    iou = box_iou(dets, dets)
+    keep = np.ones(len(dets), bool)
+    for i in range(len(dets)):
+        if keep[i]:
+            keep[i + 1 :] &= iou[i, i + 1 :] <= iou_threshold
+    return dets[keep]
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:

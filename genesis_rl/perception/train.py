@@ -200,7 +200,21 @@ def pick_threshold(dets: list[np.ndarray], data: DetectionDataset,
     """The grid threshold with the best F1 on ``data`` (``dets`` decoded at the lowest grid threshold)."""
     by_t = {t: score_dataset([d[d[:, 4] >= t] for d in dets], data, protocol) for t in THRESHOLD_GRID}
     best = max(THRESHOLD_GRID, key=lambda t: (round(by_t[t].f1, 4), t))
-    return best, by_t
+    return float(best), by_t
+
+
+def validation_metrics(net, val: DetectionDataset, cfg: DetectorTrainConfig) -> dict:  # noqa: ANN001
+    """Pick the score threshold on ``val`` (best F1) and report precision/recall there and per threshold."""
+    dets = _predict(net, val, cfg, THRESHOLD_GRID[0])
+    thr, by_t = pick_threshold(dets, val)
+    m = by_t[thr]
+    return {
+        "score_threshold": thr, "precision": _r(m.precision), "recall": _r(m.recall),
+        "mean_iou": _r(m.mean_iou), "f1": _r(m.f1), "tp": m.tp, "fp": m.fp, "fn": m.fn,
+        "by_threshold": {str(t): {"precision": _r(c.precision), "recall": _r(c.recall)}
+                         for t, c in by_t.items()},
+        "protocol": dataclasses.asdict(EvalProtocol()),
+    }
 
 
 def train_detector(config: DetectorTrainConfig | None = None, out_dir: str | Path = "out/detector",
@@ -289,17 +303,10 @@ def train_detector(config: DetectorTrainConfig | None = None, out_dir: str | Pat
             bar.close()
     t_train = time.perf_counter() - t0
 
-    dets = _predict(net, val, cfg, THRESHOLD_GRID[0])
-    thr, by_t = pick_threshold(dets, val)
-    m = by_t[thr]
-    val_metrics = {
-        "score_threshold": thr, "precision": _r(m.precision), "recall": _r(m.recall),
-        "mean_iou": _r(m.mean_iou), "f1": _r(m.f1), "tp": m.tp, "fp": m.fp, "fn": m.fn,
-        "by_threshold": {str(t): {"precision": _r(c.precision), "recall": _r(c.recall)}
-                         for t, c in by_t.items()},
-        "protocol": dataclasses.asdict(EvalProtocol()),
-    }
-    log(f"[detector] validation at threshold {thr}: precision {m.precision:.3f} recall {m.recall:.3f}")
+    val_metrics = validation_metrics(net, val, cfg)
+    thr = val_metrics["score_threshold"]
+    log(f"[detector] validation at threshold {thr}: precision {val_metrics['precision']} "
+        f"recall {val_metrics['recall']}")
 
     net.eval()
     state = {k: v.detach().to(torch.float32).contiguous().clone() if v.is_floating_point() else v.clone()

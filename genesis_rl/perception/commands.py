@@ -1,0 +1,102 @@
+"""``genesis-rl detector train`` and ``genesis-rl detector eval``."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+from genesis_rl.errors import UserInputError
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from genesis_rl.perception.train import DetectorTrainConfig, train_detector
+
+    defaults = DetectorTrainConfig()
+    changes: dict = {"seed": args.seed}
+    if args.frames is not None:
+        if args.frames < 1:
+            raise UserInputError(f"--frames must be >= 1, got {args.frames}")
+        changes["train_scenes"] = max(1, math.ceil(args.frames / defaults.frames_per_scene))
+        changes["val_scenes"] = max(1, min(defaults.val_scenes, math.ceil(changes["train_scenes"] / 6)))
+    if args.epochs is not None:
+        if args.epochs < 1:
+            raise UserInputError(f"--epochs must be >= 1, got {args.epochs}")
+        changes["epochs"] = args.epochs
+    cfg = dataclasses.replace(defaults, **changes)
+    metrics = train_detector(cfg, Path(args.out), progress=not args.quiet, force=args.force,
+                             log=(lambda *_: None) if args.quiet else print)
+    print(json.dumps({"out": args.out, "score_threshold": metrics["score_threshold"],
+                      "validation": {k: metrics["validation"][k] for k in ("precision", "recall", "mean_iou")},
+                      "timing_s": metrics["timing_s"]}))
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from genesis_rl.io_utils import ensure_writable
+    from genesis_rl.lite.maps import MAP_NAMES
+    from genesis_rl.perception.dataset import CONDITIONS
+    from genesis_rl.perception.detector import DEFAULT_WEIGHTS, VehicleDetector
+    from genesis_rl.perception.evaluate import evaluate_detector, measure_speed, write_detector_report
+
+    maps = [m.strip() for m in args.maps.split(",") if m.strip()]
+    bad = [m for m in maps if m not in MAP_NAMES]
+    if bad or not maps:
+        raise UserInputError(f"--maps: unknown map(s) {bad or '(none given)'}; allowed: {', '.join(MAP_NAMES)}")
+    conds = [c.strip() for c in args.conditions.split(",") if c.strip()] if args.conditions else list(CONDITIONS)
+    bad = [c for c in conds if c not in CONDITIONS]
+    if bad or not conds:
+        raise UserInputError(f"--conditions: unknown condition(s) {bad or '(none given)'}; "
+                             f"allowed: {', '.join(CONDITIONS)}")
+    if args.frames_per_condition < 1:
+        raise UserInputError(f"--frames-per-condition must be >= 1, got {args.frames_per_condition}")
+    out = Path(args.out)
+    for ext in ("md", "png", "json"):
+        ensure_writable(out / f"detector_eval.{ext}", args.force)
+    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
+    det = VehicleDetector(weights)
+    t0 = time.perf_counter()
+    rows = evaluate_detector(det, maps, conds, args.frames_per_condition, args.seed, progress=not args.quiet)
+    speed = measure_speed(det)
+    extra = {"weights": str(weights), "weights_sha256": det.weights_sha256, "score_threshold": det.score_threshold,
+             "seed": args.seed, "frames_per_condition": args.frames_per_condition, "speed": speed,
+             "eval_seconds": round(time.perf_counter() - t0, 1)}
+    paths = write_detector_report(rows, out, force=args.force, extra=extra)
+    print(json.dumps({"out": {k: str(v) for k, v in paths.items()}, "frames_per_s": speed["frames_per_s"],
+                      "rows": [{k: r[k] for k in ("map", "condition", "precision", "recall")} for r in rows]}))
+    return 0
+
+
+def add_detector_commands(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``detector train`` and ``detector eval`` to the CLI's subparsers."""
+    dp = subparsers.add_parser("detector", help="train or evaluate the built-in vehicle detector")
+    dsub = dp.add_subparsers(dest="detector_command", required=True)
+
+    tr = dsub.add_parser("train", help="render typical-weather urban frames and train the detector")
+    tr.add_argument("--out", default="out/detector",
+                    help="output directory (vehicle_detector.pt, vehicle_detector.json, cached datasets)")
+    tr.add_argument("--frames", type=int, default=None,
+                    help="training frames (default: the shipped recipe's 3600; 4 frames per scene)")
+    tr.add_argument("--epochs", type=int, default=None, help="training epochs (default: the shipped recipe's)")
+    tr.add_argument("--seed", type=int, default=0, help="seed of weather draws, init, shuffling, augmentation")
+    tr.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch log")
+    tr.set_defaults(func=_cmd_train)
+
+    ev = dsub.add_parser("eval", help="precision/recall per map and weather condition; table, plot, JSON")
+    ev.add_argument("--weights", default=None, help="detector checkpoint (default: the shipped weights)")
+    ev.add_argument("--frames-per-condition", type=int, default=200, help="frames per (map, condition)")
+    ev.add_argument("--maps", default="urban,highway", help="comma-separated maps: urban, highway")
+    ev.add_argument("--conditions", default=None,
+                    help="comma-separated conditions (default: all: typical, clear, fog30, fog60, fog90, rain, "
+                         "night, wet_road, low_sun_glare)")
+    ev.add_argument("--seed", type=int, default=7, help="seed of traffic steps and weather draws")
+    ev.add_argument("--out", default="out/detector_eval",
+                    help="output directory (detector_eval.md, detector_eval.png, detector_eval.json)")
+    ev.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_cmd_eval)
+    return dp
