@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The main job on the embedded simulator: set up, generate both scene catalogs (the paper's counts),
-# and render the showcase pictures (once the renderer lands). Outputs go to out/quickstart/.
+# render the showcase pictures, drive the system under test in clear weather and in fog, and train a
+# small weather agent. Outputs go to out/quickstart/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -8,8 +9,13 @@ OUT="${OUT:-out/quickstart}"
 mkdir -p "$OUT"
 .venv/bin/genesis-rl scenes --map urban --seed 0 --out "$OUT/urban_scenes.json" --force
 .venv/bin/genesis-rl scenes --map highway --seed 0 --out "$OUT/highway_scenes.json" --force
-if .venv/bin/genesis-rl --help | grep -q " render"; then
-    .venv/bin/genesis-rl render --map urban --scene 0 --weather clear_noon --out "$OUT/render_urban" --force
-    .venv/bin/genesis-rl render --sweep --map highway --scene 0 --out "$OUT/sweep_highway" --force
-fi
+.venv/bin/genesis-rl render --map urban --scene 0 --weather clear_noon --out "$OUT/render_urban" --force
+.venv/bin/genesis-rl render --sweep --map highway --scene 0 --out "$OUT/sweep_highway" --force
+# the system under test on a test-town scene: clear noon, then dense fog
+.venv/bin/genesis-rl drive --catalog "$OUT/highway_scenes.json" --scene 3 --weather clear_noon \
+    --out "$OUT/drive_clear" --force --quiet
+.venv/bin/genesis-rl drive --catalog "$OUT/highway_scenes.json" --scene 3 --weather dense_fog \
+    --out "$OUT/drive_fog" --force --quiet
+# a small adversarial weather agent (configs/paper.toml is the paper's full schedule)
+.venv/bin/genesis-rl train --config configs/quickstart.toml --out "$OUT/run" --force
 echo "[quickstart] done: $OUT"
