@@ -98,7 +98,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
         kwargs["weights"] = args.weights
     summary = drive_scenes(catalog, indices, args.system, kwargs, base, schedule, args.steps, args.episode_seed,
                            Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
-                           gif_stride=args.gif_stride, camera_size=(args.width, args.height),
+                           gif_stride=args.gif_stride, gif_from=args.gif_from, camera_size=(args.width, args.height),
                            progress=not args.quiet)
     print_summary(summary)
     return 0
@@ -203,6 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--no-gif", action="store_true", help="skip the animation")
     dr.add_argument("--gif", action="store_true", help="also write a GIF per scene when driving a range")
     dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF")
+    dr.add_argument("--gif-from", type=int, default=0, help="first step shown in the GIF")
     dr.add_argument("--quiet", action="store_true", help="no progress bar")
     dr.set_defaults(func=_cmd_drive)
 

@@ -42,6 +42,7 @@ def drive_scenes(
     force: bool,
     gif: bool,
     gif_stride: int = 2,
+    gif_from: int = 0,
     camera_size: tuple[int, int] = (320, 240),
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -73,7 +74,7 @@ def drive_scenes(
             frames = []
 
             def hook(step: int, frame, out_, rec, frames=frames) -> None:  # noqa: ANN001
-                if gif and step % gif_stride == 0:
+                if gif and step >= gif_from and (step - gif_from) % gif_stride == 0:
                     frames.append(annotate_frame(frame.rgb, rec))
 
             result = run_episode(backend, scene, system, weather_at, steps, seed, camera, hook,

@@ -24,8 +24,9 @@ def annotate_frame(rgb: np.ndarray, record: dict[str, Any], scale: int = 1) -> n
     for d in record.get("detections", []):
         x0, y0, x1, y1 = (int(round(v * scale)) for v in d["box_xyxy"])
         cv2.rectangle(img, (x0, y0), (x1 - 1, y1 - 1), DET_COLOR, 2)
-        cv2.putText(img, f"{d['score']:.2f}", (x0, max(y0 - 3, 10)), cv2.FONT_HERSHEY_PLAIN, 0.9, DET_COLOR, 1,
-                    cv2.LINE_AA)
+        if x1 - x0 >= 28 * scale:  # label only boxes wide enough to carry it
+            cv2.putText(img, f"{d['score']:.2f}", (x0, max(y0 - 3, 10)), cv2.FONT_HERSHEY_PLAIN, 0.9,
+                        DET_COLOR, 1, cv2.LINE_AA)
     if record.get("collision"):
         cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), HIT_COLOR, 6)
 
