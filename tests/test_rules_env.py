@@ -55,6 +55,11 @@ def test_rulebook_toml_errors_name_the_key(tmp_path) -> None:
 
 def test_reward_is_the_papers_formula() -> None:
     r = PaperReward()
+    rb = default_rulebook()
+    crash = rb.step_terms(_rec(speed=10.0, collision=True, collision_speed=10.0, gap=0.0, lead_speed=0.0))
+    # a collision at 10 m/s with the lead at 0 m (so also proximity at 10 m/s), IoU 0.5
+    assert r.terms(0.5, crash)["reward"] == pytest.approx(math.exp(-0.5) + math.log(1 + 500 * 10 + 100 * 10))
+    assert r.terms(0.5, {"collision": 10.0})["reward"] == pytest.approx(math.exp(-0.5) + math.log(1 + 5000))
     t = r.terms(0.25, {"collision": 3.0, "proximity": 0.0})
     assert t["reward"] == pytest.approx(math.exp(-0.25) + math.log(1 + 500 * 3.0))
     t = r.terms(1.0, {"collision": 0.0, "proximity": 2.0})

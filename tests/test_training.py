@@ -59,6 +59,18 @@ def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> 
     episodes = (run / "episodes.csv").read_text().strip().splitlines()
     assert len(episodes) == 1 + 4  # header + 32 steps / 8 per episode
     assert "violation_collision" in episodes[0] and "mean_fog_density" in episodes[0]
+    from stable_baselines3 import PPO
+
+    from genesis_rl.env import GenesisEnv
+
+    agent = PPO.load(run / "agent.zip", device="cpu")
+    env = GenesisEnv(system="oracle", scenes=2, episode_steps=4)
+    try:
+        obs, _ = env.reset(seed=0)
+        action, _ = agent.predict(obs, deterministic=True)
+        assert action.shape == (5,) and env.action_space.contains(action.astype("float32"))
+    finally:
+        env.close()
     capsys.readouterr()
     assert main(["train", "--out", str(run), "--resume", "--steps", "48", *common]) == 0
     result = json.loads(capsys.readouterr().out)
