@@ -97,3 +97,52 @@ def bench_system(frames: int = 200, batch: int = 16, steps: int = 200, system: s
     finally:
         backend.close()
     return out
+
+
+def bench_train(n_steps: int = 512, updates: int = 2, system: str = "builtin") -> dict:
+    """PPO on GenesisEnv (one env, the paper's settings but ``n_steps`` per update): env steps/s while
+    collecting rollouts, seconds per PPO update, and the projected wall time of the paper's 40,960 steps."""
+    import os
+
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from genesis_rl.env.genesis_env import GenesisEnv
+
+    marks: list[tuple[str, float]] = []
+
+    class Timer(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            marks.append(("rollout_start", time.perf_counter()))
+
+        def _on_rollout_end(self) -> None:
+            marks.append(("rollout_end", time.perf_counter()))
+
+        def _on_step(self) -> bool:
+            return True
+
+    env = DummyVecEnv([lambda: GenesisEnv(system=system, scenes=20, episode_steps=512)])
+    try:
+        model = PPO("CnnPolicy", env, n_steps=n_steps, batch_size=64, n_epochs=10, seed=0, device="cpu", verbose=0)
+        t0 = time.perf_counter()
+        model.learn(total_timesteps=n_steps * updates, callback=Timer())
+        total = time.perf_counter() - t0
+    finally:
+        env.close()
+    starts = [t for k, t in marks if k == "rollout_start"]
+    ends = [t for k, t in marks if k == "rollout_end"]
+    rollout = sum(e - s for s, e in zip(starts, ends, strict=False))
+    update = total - rollout
+    steps_per_s = n_steps * updates / rollout
+    update_s = update / updates
+    paper_updates = 40960 / 2048
+    return {
+        "machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(), "system": system, "n_steps": n_steps, "updates": updates,
+        "rollout_env_steps_per_s": round(steps_per_s, 2),
+        "seconds_per_update": round(update_s, 1),
+        "projected_paper_schedule_minutes": round((40960 / steps_per_s + paper_updates * update_s * 2048 / n_steps)
+                                                  / 60.0, 1),
+    }

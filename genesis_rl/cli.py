@@ -142,8 +142,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from genesis_rl.bench import bench_sim, bench_system
+    from genesis_rl.bench import bench_sim, bench_system, bench_train
 
+    if args.what == "train":
+        print(json.dumps(bench_train(n_steps=args.steps if args.steps != 2000 else 512, system=args.system), indent=2))
+        return 0
     if args.what == "system":
         print(json.dumps(bench_system(frames=args.frames, steps=args.steps, system=args.system), indent=2))
         return 0
@@ -231,8 +234,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_detector_commands(sub)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
-    bench.add_argument("what", choices=["sim", "system"],
-                       help="sim: physics steps/s and rendered frames/s; system: detector fps and closed-loop steps/s")
+    bench.add_argument("what", choices=["sim", "system", "train"],
+                       help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "
+                            "train: PPO rollout steps/s, seconds per update, projected paper-schedule time")
     bench.add_argument("--steps", type=int, default=2000, help="physics steps (sim) or closed-loop steps (system)")
     bench.add_argument("--system", default="builtin", help="system under test for 'bench system'")
     bench.add_argument("--frames", type=int, default=100, help="frames to time per resolution")
