@@ -12,9 +12,9 @@ mkdir -p "$OUT"
 .venv/bin/genesis-rl render --map urban --scene 0 --weather clear_noon --out "$OUT/render_urban" --force
 .venv/bin/genesis-rl render --sweep --map highway --scene 0 --out "$OUT/sweep_highway" --force
 # the system under test on a test-town scene: clear noon, then dense fog
-.venv/bin/genesis-rl drive --catalog "$OUT/highway_scenes.json" --scene 3 --weather clear_noon \
+.venv/bin/genesis-rl drive --catalog "$OUT/highway_scenes.json" --scene 9 --weather clear_noon \
     --out "$OUT/drive_clear" --force --quiet
-.venv/bin/genesis-rl drive --catalog "$OUT/highway_scenes.json" --scene 3 --weather dense_fog \
+.venv/bin/genesis-rl drive --catalog "$OUT/highway_scenes.json" --scene 9 --weather dense_fog \
     --out "$OUT/drive_fog" --force --quiet
 # a small adversarial weather agent (configs/paper.toml is the paper's full schedule)
 .venv/bin/genesis-rl train --config configs/quickstart.toml --out "$OUT/run" --force
