@@ -40,6 +40,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text, ensure_writable
 from genesis_rl.perception.dataset import CONDITIONS, EVAL_CONDITIONS, DetectionDataset, check_conditions
 from genesis_rl.perception.model import box_iou
+from genesis_rl.system.matching import IN_VIEW_RANGE, MIN_BOX_HEIGHT, MIN_VISIBLE_FRACTION
 
 #: catalog seeds of the evaluation scenes (training uses 100, validation 101: see train.py)
 EVAL_CATALOG_SEEDS = {"urban": 102, "highway": 103}
@@ -50,9 +51,9 @@ DEFAULT_EVAL_SEED = 7
 class EvalProtocol:
     """Which ground-truth vehicles count (see the module docstring)."""
 
-    max_distance: float = 40.0  # [m]
-    min_visible_fraction: float = 0.3
-    min_height: float = 8.0  # [px] at 320x240 (scaled with the frame height)
+    max_distance: float = IN_VIEW_RANGE  # [m]
+    min_visible_fraction: float = MIN_VISIBLE_FRACTION
+    min_height: float = float(MIN_BOX_HEIGHT)  # [px] at 320x240 (scaled with the frame height)
     iou_threshold: float = 0.5
     ignore_overlap: float = 0.5  # intersection / detection area with an ignore region that excuses a detection
 

@@ -247,19 +247,12 @@ def nms(dets: np.ndarray, iou_threshold: float) -> np.ndarray:
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix (len(a), len(b)) of xyxy boxes (extra columns ignored)."""
+    """IoU matrix (len(a), len(b)) of xyxy boxes (extra columns, e.g. scores, ignored)."""
+    from genesis_rl.system.matching import iou_matrix
+
     a = np.asarray(a, np.float64).reshape(-1, max(4, np.shape(a)[-1] if np.size(a) else 4))[:, :4]
     b = np.asarray(b, np.float64).reshape(-1, max(4, np.shape(b)[-1] if np.size(b) else 4))[:, :4]
-    if len(a) == 0 or len(b) == 0:
-        return np.zeros((len(a), len(b)))
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 2], b[None, :, 2])
-    y1 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
+    return iou_matrix(a, b)
 
 
 def count_parameters(model: nn.Module) -> int:
