@@ -36,20 +36,13 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
 
 def _cmd_render(args: argparse.Namespace) -> int:
     from genesis_rl.knobs import parse_weather
-    from genesis_rl.lite.maps import MAP_NAMES
     from genesis_rl.render_cmd import render_one, render_sweep
-    from genesis_rl.scenes.catalog import load_catalog
-    from genesis_rl.scenes.lite_generator import generate_catalog
+    from genesis_rl.scenes.lite_generator import catalog_or_generate
     from genesis_rl.sim.interface import CameraConfig
 
-    if args.catalog:
-        catalog = load_catalog(args.catalog)
-    else:
-        if args.map not in MAP_NAMES:
-            raise UserInputError(f"--map '{args.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
-        if args.scene < 0:
-            raise UserInputError(f"--scene must be >= 0, got {args.scene}")
-        catalog = generate_catalog(args.map, args.scene + 1, args.seed)
+    if not args.catalog and args.scene < 0:
+        raise UserInputError(f"--scene must be >= 0, got {args.scene}")
+    catalog = catalog_or_generate(args.catalog, args.map, args.scene + 1, args.seed)
     scene = catalog.scene(args.scene)
     try:
         camera = CameraConfig(width=args.width, height=args.height)
@@ -64,22 +57,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_catalog_arg(args: argparse.Namespace, needed: int):  # noqa: ANN202
-    """The catalog from --catalog, or the first ``needed`` scenes generated on --map with --seed."""
-    from genesis_rl.lite.maps import MAP_NAMES
-    from genesis_rl.scenes.catalog import load_catalog
-    from genesis_rl.scenes.lite_generator import generate_catalog
-
-    if args.catalog:
-        return load_catalog(args.catalog)
-    if args.map not in MAP_NAMES:
-        raise UserInputError(f"--map '{args.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
-    return generate_catalog(args.map, needed, args.seed)
-
-
 def _cmd_drive(args: argparse.Namespace) -> int:
     from genesis_rl.drive_cmd import drive_scenes, parse_scene_range, print_summary
     from genesis_rl.knobs import parse_weather
+    from genesis_rl.scenes.lite_generator import catalog_or_generate
     from genesis_rl.weather_schedule import load_schedule
 
     if args.steps < 1:
@@ -87,7 +68,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     if args.gif_stride < 1:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
     indices = parse_scene_range(args.scene)
-    catalog = _load_catalog_arg(args, max(indices) + 1)
+    catalog = catalog_or_generate(args.catalog, args.map, max(indices) + 1, args.seed)
     parse_scene_range(args.scene, len(catalog.scenes))
     base = parse_weather(args.weather)
     schedule = load_schedule(args.schedule, base, args.steps) if args.schedule else None

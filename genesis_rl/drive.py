@@ -17,10 +17,8 @@ import numpy as np
 from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import Backend, CameraConfig, SensorFrame, Simulation
-from genesis_rl.system.matching import frame_iou, in_view
+from genesis_rl.system.matching import frame_iou, in_view, iou_matrix
 from genesis_rl.system.protocol import EpisodeContext, SystemOutput, SystemUnderTest
-
-PROXIMITY_DISTANCE = 5.0  # the paper's proximity rule threshold [m]
 
 
 def episode_context(sim: Simulation, backend_name: str, seed: int) -> EpisodeContext:
@@ -88,8 +86,6 @@ def _lead_detected(lead: Any, frame: SensorFrame, dets: np.ndarray) -> bool | No
         return None
     if len(dets) == 0:
         return False
-    from genesis_rl.system.matching import iou_matrix
-
     return bool(iou_matrix(np.array([box.xyxy], np.float64), dets).max() >= 0.3)
 
 
@@ -104,21 +100,24 @@ class EpisodeResult:
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Episode figures: collisions, proximity, gaps, IoU, distance driven."""
+    """Episode figures: collisions, proximity (the rulebook's proximity rule), gaps, IoU, distance driven."""
+    from genesis_rl.rules.rulebook import ProximityRule
+
+    proximity = ProximityRule()
     if not records:
         return {"steps": 0}
     speed = np.array([r["ego_speed"] for r in records])
     gap = np.array([r["true_lead_distance"] for r in records], float)
     hits = [r for r in records if r["collision"]]
     dt = records[1]["time_s"] - records[0]["time_s"] if len(records) > 1 else 0.05
-    near = np.nan_to_num(gap, nan=np.inf) < PROXIMITY_DISTANCE
+    near = np.nan_to_num(gap, nan=np.inf) < proximity.distance
     return {
         "steps": len(records),
         "collisions": len(hits),
         "first_collision_step": hits[0]["step"] if hits else None,
         "collision_speed": round(float(hits[0]["collision_speed"]), 3) if hits else 0.0,
         "proximity_steps": int(near.sum()),
-        "proximity_violation": round(float(speed[near].sum()), 3),
+        "proximity_violation": round(proximity.violation(records), 3),
         "min_true_gap": round(float(np.nanmin(gap)), 3) if np.isfinite(gap).any() else None,
         "mean_speed": round(float(speed.mean()), 3),
         "distance_m": round(float(speed.sum() * dt), 2),

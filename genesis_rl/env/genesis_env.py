@@ -86,7 +86,9 @@ class GenesisEnv(gym.Env):
         self.start_weather: Weather = parse_weather(c.start_weather)
         self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
         self.reward_fn = PaperReward(c.reward)
-        self.catalog = self._load_catalog()
+        from genesis_rl.scenes.lite_generator import catalog_or_generate
+
+        self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map")
 
         from genesis_rl.lite.backend import LiteBackend
         from genesis_rl.sim.interface import CameraConfig
@@ -110,19 +112,6 @@ class GenesisEnv(gym.Env):
         self.records: list[dict[str, Any]] = []
         self.scene_index = -1
         self.episode_seed = -1
-
-    def _load_catalog(self):  # noqa: ANN202
-        from genesis_rl.scenes.catalog import load_catalog
-        from genesis_rl.scenes.lite_generator import generate_catalog
-
-        c = self.config
-        if c.catalog:
-            return load_catalog(c.catalog)
-        from genesis_rl.lite.maps import MAP_NAMES
-
-        if c.map not in MAP_NAMES:
-            raise UserInputError(f"env.map '{c.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
-        return generate_catalog(c.map, c.scenes, c.catalog_seed)
 
     # -- observation -------------------------------------------------------------------------------------
     def _observation(self) -> Any:

@@ -121,6 +121,22 @@ def iter_scenes(map_name: str, count: int, seed: int) -> Iterator[Scene]:
         yield generate_scene(road_map, i, int(ss.generate_state(1)[0]))
 
 
+def catalog_or_generate(path: str | None, map_name: str, count: int, seed: int, map_field: str = "--map",
+                        progress: bool = False) -> Catalog:
+    """The catalog in ``path``, or else the first ``count`` scenes generated on ``map_name`` with ``seed``
+    (the same seed and index give the same scene whatever the count). ``map_field`` names the setting in
+    the error for an unknown map."""
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.lite.maps import MAP_NAMES
+    from genesis_rl.scenes.catalog import load_catalog
+
+    if path:
+        return load_catalog(path)
+    if map_name not in MAP_NAMES:
+        raise UserInputError(f"{map_field} '{map_name}' is unknown; allowed: {', '.join(MAP_NAMES)}")
+    return generate_catalog(map_name, count, seed, progress=progress)
+
+
 def generate_catalog(map_name: str, count: int, seed: int, progress: bool = False) -> Catalog:
     scenes = iter_scenes(map_name, count, seed)
     if progress:

@@ -165,16 +165,16 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
         cfg = load_run_config(out / "config.toml", {"train": {"total_timesteps": total_timesteps}})
         atomic_write_text(out / "config.toml", cfg.to_toml())
         return cfg
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise UserInputError(f"run folder '{out}' exists; pass --resume to continue it or --force to replace it")
+    from genesis_rl.scenes.lite_generator import catalog_or_generate
+
+    if out.exists() and any(out.iterdir()) and not force:
+        raise UserInputError(f"run folder '{out}' exists; pass --resume to continue it or --force to replace it")
+    # the catalog is resolved before an old run is removed, so a bad catalog setting loses nothing
+    catalog = catalog_or_generate(cfg.env.catalog, cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed,
+                                  map_field="env.map", progress=True)
+    if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
-    from genesis_rl.scenes.catalog import load_catalog
-    from genesis_rl.scenes.lite_generator import generate_catalog
-
-    catalog = load_catalog(cfg.env.catalog) if cfg.env.catalog else generate_catalog(
-        cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed, progress=True)
     catalog.save(out / "catalog.json")
     atomic_write_text(out / "config.toml", cfg.to_toml())
     atomic_write_json(out / "run.json", {
