@@ -125,13 +125,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_sim, bench_system, bench_train
 
+    steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 512}[args.what]
     if args.what == "train":
-        print(json.dumps(bench_train(n_steps=args.steps if args.steps != 2000 else 512, system=args.system), indent=2))
+        print(json.dumps(bench_train(n_steps=steps, system=args.system), indent=2))
         return 0
     if args.what == "system":
-        print(json.dumps(bench_system(frames=args.frames, steps=args.steps, system=args.system), indent=2))
+        print(json.dumps(bench_system(frames=args.frames, steps=steps, system=args.system), indent=2))
         return 0
-    print(json.dumps(bench_sim(physics_steps=args.steps, frames=args.frames, render=not args.no_render), indent=2))
+    print(json.dumps(bench_sim(physics_steps=steps, frames=args.frames, render=not args.no_render), indent=2))
     return 0
 
 
@@ -218,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("what", choices=["sim", "system", "train"],
                        help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "
                             "train: PPO rollout steps/s, seconds per update, projected paper-schedule time")
-    bench.add_argument("--steps", type=int, default=2000, help="physics steps (sim) or closed-loop steps (system)")
+    bench.add_argument("--steps", type=int, default=None,
+                       help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, 512)")
     bench.add_argument("--system", default="builtin", help="system under test for 'bench system'")
     bench.add_argument("--frames", type=int, default=100, help="frames to time per resolution")
     bench.add_argument("--no-render", action="store_true", help="physics only")

@@ -54,8 +54,18 @@ def drive_scenes(
     from genesis_rl.system.protocol import load_system
     from genesis_rl.viz.frames import annotate_frame, write_gif
 
+    single = len(scene_indices) == 1
+
+    def telemetry_path(i: int) -> Path:
+        return out / ("telemetry.parquet" if single else f"telemetry_scene_{i:04d}.parquet")
+
+    def gif_path(i: int) -> Path:
+        return out / ("drive.gif" if single else f"drive_scene_{i:04d}.gif")
+
     summary_path = out / "summary.json"
-    ensure_writable(summary_path, force)
+    # refuse before driving: no earlier result is overwritten without --force, whichever file it is
+    for path in [summary_path, *map(telemetry_path, scene_indices), *(map(gif_path, scene_indices) if gif else [])]:
+        ensure_writable(path, force)
     system = load_system(system_spec, **system_kwargs)
     try:
         camera = CameraConfig(width=camera_size[0], height=camera_size[1])
@@ -65,7 +75,6 @@ def drive_scenes(
     def weather_at(step: int) -> Weather:
         return schedule[step] if schedule is not None else base_weather
 
-    single = len(scene_indices) == 1
     rows = []
     with LiteBackend() as backend:
         bar = tqdm(scene_indices, desc="scenes", unit="scene", disable=not progress or single)
@@ -79,10 +88,9 @@ def drive_scenes(
 
             result = run_episode(backend, scene, system, weather_at, steps, seed, camera, hook,
                                  progress=progress and single)
-            stem = "telemetry" if single else f"telemetry_scene_{i:04d}"
-            write_telemetry(out / f"{stem}.parquet", result.records)
+            write_telemetry(telemetry_path(i), result.records)
             if gif and frames:
-                write_gif(out / ("drive.gif" if single else f"drive_scene_{i:04d}.gif"), frames,
+                write_gif(gif_path(i), frames,
                           fps=1.0 / (0.05 * gif_stride))
             row = {"scene": i, **result.summary()}
             rows.append(row)

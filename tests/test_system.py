@@ -201,3 +201,19 @@ def test_same_seed_same_episode(backend, highway_scenes) -> None:
     a = run_episode(backend, highway_scenes.scene(2), load_system("oracle"), fog, 60, seed=5)
     b = run_episode(backend, highway_scenes.scene(2), load_system("oracle"), fog, 60, seed=5)
     assert a.records == b.records
+
+
+@pytest.mark.render
+def test_drive_never_overwrites_a_result_without_force(tmp_path, capsys) -> None:
+    from genesis_rl.cli import main
+
+    args = ["drive", "--map", "highway", "--scene", "0", "--system", "blind", "--steps", "3", "--out", str(tmp_path),
+            "--quiet"]
+    assert main(args) == 0
+    assert {p.name for p in tmp_path.iterdir()} == {"summary.json", "telemetry.parquet", "drive.gif"}
+    (tmp_path / "summary.json").unlink()  # e.g. an interrupted earlier run left its telemetry
+    before = (tmp_path / "telemetry.parquet").read_bytes()
+    assert main(args) == 2
+    assert "telemetry.parquet' already exists; pass --force" in capsys.readouterr().err
+    assert (tmp_path / "telemetry.parquet").read_bytes() == before
+    assert main([*args, "--force"]) == 0
