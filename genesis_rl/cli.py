@@ -215,6 +215,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_detector_commands(sub)
 
+    from genesis_rl.evaluation.commands import add_evaluation_commands
+
+    add_evaluation_commands(sub)
+
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim", "system", "train"],
                        help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "

@@ -178,6 +178,12 @@ class GenesisEnv(gym.Env):
             info["episode_violations"] = self.rulebook.violations(self.records)
         return self._observation(), float(reward_terms["reward"]), terminated, truncated, info
 
+    def camera_frame(self) -> np.ndarray:
+        """The system's current camera image (RGB, full resolution), e.g. to keep frames of a failure."""
+        if self._loop is None or self._loop.frame is None:
+            raise RuntimeError("call reset() before camera_frame()")
+        return self._loop.frame.rgb
+
     def _knob_info(self) -> dict[str, float]:
         return {k: float(self.weather[k]) for k in self.config.knobs}
 

@@ -1,0 +1,336 @@
+"""Evaluation campaigns: every policy drives the same held-out scenes with the same episode seeds.
+
+The paper's testing protocol: scenes picked from the test catalog by the campaign seed, each with an
+episode seed drawn from it, so NPC appearance and paths are identical across policies; 512 steps each.
+Episodes run in worker processes. Each writes its own files and, last, its summary row, which marks it
+done: an interrupted campaign resumes (``--resume``) without redoing finished episodes.
+
+Layout of a campaign folder::
+
+    campaign.json                    the spec, scenes, episode seeds, version, git commit
+    catalog.json                     the test catalog the scenes come from
+    episodes/<policy>/scene_NNNN.json     one summary row per episode (violations, failure mode, ...)
+    steps/<policy>/scene_NNNN.parquet     every step: knobs, ego/lead state, controls, detections, IoU, rules
+    frames/<policy>/scene_NNNN/step_NNNN.jpg  camera frames around the first collision
+    records/<policy>_scene_NNNN.json      self-contained edge-case records (replayable)
+    summary.json, episodes.csv            written by ``summarize_campaign``
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl import __version__
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds, label_collision
+from genesis_rl.evaluation.policies import EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
+from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
+
+CAMPAIGN_SCHEMA = "genesis-rl/campaign"
+CAMPAIGN_VERSION = 1
+
+
+@dataclass(frozen=True)
+class CampaignSpec:
+    """Everything that decides a campaign's results (``workers`` does not)."""
+
+    policies: tuple[str, ...]
+    map: str = "highway"
+    catalog: str | None = None  # test catalog file; None: generate the map's default catalog
+    catalog_seed: int = 0
+    scenes: int = 50
+    seed: int = 0
+    steps: int = 512
+    agent: str | None = None  # run folder or .zip of the trained agent
+    env: dict[str, Any] = field(default_factory=dict)  # EnvConfig fields (from the agent's run)
+    options: dict[str, Any] = field(default_factory=dict)  # policy options (search_budget, ...)
+    frames_before: int = 40  # steps of camera frames kept before the first collision
+    frames_after: int = 6
+    frame_stride: int = 2
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["policies"] = list(self.policies)
+        return d
+
+
+def pick_scenes(n_catalog: int, count: int, seed: int) -> list[tuple[int, int]]:
+    """(scene index, episode seed) pairs: ``count`` distinct scenes drawn by ``seed``, in catalog order."""
+    if not 1 <= count <= n_catalog:
+        raise UserInputError(f"--scenes = {count} must be in 1..{n_catalog} (the test catalog's size)")
+    rng = np.random.default_rng(seed)
+    indices = sorted(int(i) for i in rng.choice(n_catalog, size=count, replace=False))
+    return [(i, int(np.random.default_rng([seed, i]).integers(0, 2**31 - 1))) for i in indices]
+
+
+def episode_name(scene: int) -> str:
+    return f"scene_{scene:04d}"
+
+
+class CampaignRunner:
+    """One worker's environment: plays a policy's actions on a scene and captures frames around the
+    first collision. Implements ``policies.EpisodeRunner``."""
+
+    def __init__(self, spec: CampaignSpec, folder: Path) -> None:
+        from genesis_rl.config import from_mapping
+        from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+
+        env_cfg = {**spec.env, "catalog": str(folder / "catalog.json"), "episode_steps": spec.steps}
+        self.config = from_mapping(EnvConfig, env_cfg, "env")
+        self.env = GenesisEnv(self.config)
+        self.spec = spec
+
+    def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int) -> EpisodeOutcome:
+        env, spec = self.env, self.spec
+        obs, _ = env.reset(options={"scene": scene, "episode_seed": episode_seed})
+        ring: deque[tuple[int, np.ndarray]] = deque(maxlen=spec.frames_before + 1)
+        frames: dict[int, np.ndarray] = {}
+        hit_step: int | None = None
+        for _ in range(spec.steps):
+            obs, _, terminated, truncated, _ = env.step(act(obs))
+            rec = env.records[-1]
+            rgb = env.camera_frame()
+            if hit_step is None:
+                ring.append((rec["step"], rgb))
+                if rec["collision"]:
+                    hit_step = rec["step"]
+                    frames.update((s, f) for s, f in ring if (hit_step - s) % spec.frame_stride == 0)
+            elif rec["step"] <= hit_step + spec.frames_after and (rec["step"] - hit_step) % spec.frame_stride == 0:
+                frames[rec["step"]] = rgb
+            if terminated or truncated:
+                break
+        return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records))
+
+    def close(self) -> None:
+        self.env.close()
+
+
+# -- one episode, in a worker ---------------------------------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(spec_json: dict[str, Any], folder: str, torch_threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(torch_threads)
+    spec_json = dict(spec_json)
+    spec_json["policies"] = tuple(spec_json["policies"])
+    _WORKER.clear()
+    _WORKER.update(spec=CampaignSpec(**spec_json), folder=Path(folder), runner=None, policies={})
+
+
+def _policy(name: str) -> WeatherPolicy:
+    spec: CampaignSpec = _WORKER["spec"]
+    if name not in _WORKER["policies"]:
+        runner: CampaignRunner = _WORKER["runner"]
+        ctx = PolicyContext(action_dim=runner.env.mapper.action_dim, seed=spec.seed,
+                            agent_path=Path(spec.agent) if spec.agent else None,
+                            options={**spec.options, "steps": spec.steps})
+        _WORKER["policies"][name] = resolve_policy(name)(ctx)
+    return _WORKER["policies"][name]
+
+
+def run_task(task: tuple[str, int, int]) -> dict[str, Any]:
+    """Play one (policy, scene, episode seed) and write its files; returns its summary row."""
+    policy_name, scene, episode_seed = task
+    spec: CampaignSpec = _WORKER["spec"]
+    folder: Path = _WORKER["folder"]
+    if _WORKER["runner"] is None:
+        _WORKER["runner"] = CampaignRunner(spec, folder)
+    runner: CampaignRunner = _WORKER["runner"]
+    t0 = time.perf_counter()
+    outcome = _policy(policy_name).run_episode(runner, scene, episode_seed)
+    seconds = time.perf_counter() - t0
+    return write_episode(folder, spec, runner, policy_name, scene, episode_seed, outcome, seconds)
+
+
+def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, policy: str, scene: int,
+                  episode_seed: int, outcome: EpisodeOutcome, seconds: float) -> dict[str, Any]:
+    from genesis_rl.drive import write_telemetry
+    from genesis_rl.evaluation.records import make_record, save_record
+
+    env = runner.env
+    name = episode_name(scene)
+    records = outcome.records
+    write_telemetry(folder / "steps" / policy / f"{name}.parquet", records)
+    row = episode_row(policy, scene, episode_seed, outcome, env.rulebook.violations(records), env.config.knobs)
+    row["seconds"] = round(seconds, 2)
+    for step, rgb in sorted(outcome.frames.items()):
+        _write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
+    if row["collision"] > 0 or row["proximity"] > 0:
+        record = make_record(spec, runner, policy, scene, episode_seed, records, row)
+        save_record(folder / "records" / f"{policy}_{name}.json", record)
+        row["record"] = f"records/{policy}_{name}.json"
+    atomic_write_json(folder / "episodes" / policy / f"{name}.json", row, indent=1)  # last: marks it done
+    return row
+
+
+def _write_jpeg(path: Path, rgb: np.ndarray) -> None:
+    from PIL import Image
+
+    atomic_write(path, lambda p: Image.fromarray(rgb).save(p, format="JPEG", quality=92))
+
+
+def episode_row(policy: str, scene: int, episode_seed: int, outcome: EpisodeOutcome,
+                violations: dict[str, float], knobs: Sequence[str]) -> dict[str, Any]:
+    """One episode's summary: rule violations, collisions and their failure mode, IoU, return, knobs."""
+    recs = outcome.records
+    hits = np.array([r["collision"] for r in recs], bool)
+    events = int(hits[0]) + int((hits[1:] & ~hits[:-1]).sum()) if len(hits) else 0
+    failure = label_collision(recs)
+    gap = np.array([r["true_lead_distance"] for r in recs], float)
+    row: dict[str, Any] = {
+        "policy": policy, "scene": scene, "episode_seed": episode_seed, "steps": len(recs),
+        "collision": round(violations.get("collision", 0.0), 6),
+        "proximity": round(violations.get("proximity", 0.0), 6),
+        "rss_deficit": round(violations.get("rss_deficit", 0.0), 6),
+        "total": round(violations.get("collision", 0.0) + violations.get("proximity", 0.0), 6),
+        "violations": {k: round(v, 6) for k, v in violations.items()},
+        "collision_events": events,
+        "first_collision_step": failure["step"] if failure else None,
+        "collision_speed": round(failure["speed"], 3) if failure else 0.0,
+        "failure_mode": failure["mode"] if failure else None,
+        "failure": failure,
+        "min_gap": round(float(np.nanmin(gap)), 3) if np.isfinite(gap).any() else None,
+        "mean_iou": round(float(np.mean([r["iou"] for r in recs])), 4) if recs else None,
+        "return": round(outcome.total_reward, 4),
+        "sim_steps": outcome.sim_steps,
+        "knobs_mean": {k: round(float(np.mean([r[k] for r in recs])), 3) for k in knobs} if recs else {},
+        "knobs_final": {k: round(float(recs[-1][k]), 3) for k in knobs} if recs else {},
+        "extra": outcome.extra,
+    }
+    return row
+
+
+# -- the campaign ---------------------------------------------------------------------------------------
+def env_settings_for(agent: str | None, config: str | None, system: str | None) -> dict[str, Any]:
+    """The env settings policies play under: the trained agent's own (so its observation matches), else a
+    config file's [env], else the defaults; ``system`` overrides the system under test."""
+    from genesis_rl.config import read_toml
+
+    env: dict[str, Any] = {}
+    if agent:
+        run = Path(agent)
+        run_dir = run.parent.parent if run.suffix == ".zip" and run.parent.name == "checkpoints" else (
+            run.parent if run.suffix == ".zip" else run)
+        cfg_path = run_dir / "config.toml"
+        if not run.exists():
+            raise UserInputError(f"--agent '{agent}' does not exist")
+        if not cfg_path.is_file():
+            raise UserInputError(f"--agent '{agent}': no config.toml in '{run_dir}', so its env settings are unknown")
+        env = dict(read_toml(cfg_path).get("env", {}))
+    elif config:
+        env = dict(read_toml(config).get("env", {}))
+    if system:
+        env["system"] = system
+    for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps"):
+        env.pop(key, None)  # the campaign decides these
+    return env
+
+
+def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
+                     progress: bool = True) -> list[tuple[str, int, int]]:
+    """Create (or reopen) the campaign folder; return the tasks still to run."""
+    from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, catalog_or_generate
+
+    for name in spec.policies:
+        cls = resolve_policy(name)
+        if cls.needs_agent and not spec.agent:
+            raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
+    if spec.steps < 1:
+        raise UserInputError(f"--steps = {spec.steps} must be >= 1")
+    meta = folder / "campaign.json"
+    if resume:
+        if not meta.is_file():
+            raise UserInputError(f"--resume: '{folder}' is not a campaign folder (no campaign.json)")
+        saved = json.loads(meta.read_text())
+        now = json.loads(json.dumps(spec.to_json()))
+        if saved.get("spec") != now:
+            diff = sorted(k for k in now if saved.get("spec", {}).get(k) != now[k])
+            raise UserInputError(f"--resume: the campaign in '{folder}' was run with other settings "
+                                 f"({', '.join(diff)}); pass the same arguments, or --force to start over")
+        pairs = [tuple(p) for p in saved["scenes"]]
+    else:
+        if folder.exists() and any(folder.iterdir()) and not force:
+            raise UserInputError(f"campaign folder '{folder}' exists; pass --resume to continue it or --force "
+                                 "to replace it")
+        count = DEFAULT_COUNTS.get(spec.map, 1)
+        catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)
+        pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
+        if folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True)
+        catalog.save(folder / "catalog.json")
+        from genesis_rl.training.train import git_commit
+
+        atomic_write_json(meta, {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION, "package_version": __version__,
+                                 "git_commit": git_commit(), "spec": spec.to_json(), "scenes": pairs,
+                                 "catalog": {"map": catalog.map, "seed": catalog.seed,
+                                             "scenes": len(catalog.scenes)},
+                                 "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
+    return [(p, s, e) for p in spec.policies for s, e in pairs
+            if not (folder / "episodes" / p / f"{episode_name(s)}.json").is_file()]
+
+
+def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool = False, resume: bool = False,
+                 progress: bool = True) -> dict[str, Any]:
+    """Run every (policy, scene) not yet done, then write summary.json; returns the summary."""
+    from tqdm import tqdm
+
+    from genesis_rl.evaluation.summary import summarize_campaign
+
+    if workers < 1:
+        raise UserInputError(f"--workers = {workers} must be >= 1")
+    tasks = prepare_campaign(spec, folder, force, resume, progress)
+    # policies are built before any episode runs, so a bad agent fails at once, not in a worker
+    probe = [resolve_policy(p) for p in spec.policies]
+    if any(c.needs_agent for c in probe):
+        from genesis_rl.evaluation.policies import load_agent
+
+        load_agent(Path(spec.agent) if spec.agent else None)
+    t0 = time.perf_counter()
+    init_args = (spec.to_json(), str(folder), 1)
+    bar = tqdm(total=len(tasks), desc="evaluate", unit="episode", disable=not progress)
+    try:
+        if workers == 1 or len(tasks) <= 1:
+            _worker_init(*init_args)
+            try:
+                for task in tasks:
+                    row = run_task(task)
+                    bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")
+                    bar.update()
+            finally:
+                if _WORKER.get("runner") is not None:
+                    _WORKER["runner"].close()
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            # longest tasks first (search baselines) so workers finish together
+            tasks.sort(key=lambda t: 0 if resolve_policy(t[0]).name == "cmaes" else 1)
+            with ctx.Pool(min(workers, len(tasks)), initializer=_worker_init, initargs=init_args) as pool:
+                for row in pool.imap_unordered(run_task, tasks):
+                    bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")
+                    bar.update()
+    finally:
+        bar.close()
+    summary = summarize_campaign(folder)
+    summary["run_seconds"] = round(time.perf_counter() - t0, 1)
+    summary["workers"] = workers
+    atomic_write_text(folder / "run_time.json", json.dumps({"seconds": summary["run_seconds"], "workers": workers,
+                                                           "episodes_run": len(tasks), "cpus": os.cpu_count()}))
+    return summary
+
+
+__all__ = ["CampaignSpec", "CampaignRunner", "FAILURE_MODES", "FailureModeThresholds", "pick_scenes",
+           "prepare_campaign", "run_campaign", "env_settings_for"]

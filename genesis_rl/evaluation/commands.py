@@ -1,0 +1,140 @@
+"""``genesis-rl evaluate | report | replay | export``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from genesis_rl.errors import UserInputError
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
+    from genesis_rl.evaluation.policies import resolve_policy
+
+    policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
+    if not policies:
+        raise UserInputError("--policies is empty; allowed: sunny, random, agent, cmaes or package.module:Class")
+    if len(set(policies)) != len(policies):
+        raise UserInputError(f"--policies names a policy twice: {','.join(policies)}")
+    for p in policies:
+        resolve_policy(p)
+    if any(resolve_policy(p).needs_agent for p in policies) and not args.agent:
+        raise UserInputError("policy 'agent' needs --agent runs/NAME (a run folder of genesis-rl train)")
+    if args.search_budget < 2:
+        raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
+    agent = str(Path(args.agent)) if args.agent else None
+    env = env_settings_for(agent, args.config, args.system)
+    spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
+                        scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
+                        options={"search_budget": args.search_budget, "search_segments": args.search_segments})
+    out = Path(args.out) if args.out else (Path(args.agent) / "eval" if args.agent else None)
+    if out is None:
+        raise UserInputError("--out is required when no --agent is given")
+    summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
+                           progress=not args.quiet)
+    brief = {p: {"collision": round(s["collision"]["mean"], 3), "proximity": round(s["proximity"]["mean"], 3),
+                 "rss_deficit": round(s["rss_deficit"]["mean"], 3), "episodes_with_collision":
+                 s["episodes_with_collision"], "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
+             for p, s in summary["policies"].items()}
+    print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
+    if not args.no_report:
+        from genesis_rl.evaluation.report import build_report
+
+        print(f"report: {build_report(out, force=True)}")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from genesis_rl.evaluation.report import build_report
+
+    path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
+    print(f"report: {path}")
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from genesis_rl.drive import write_telemetry
+    from genesis_rl.evaluation.records import load_record, replay_record
+    from genesis_rl.io_utils import atomic_write_json, ensure_writable
+    from genesis_rl.viz.frames import annotate_frame, write_gif
+
+    rec = load_record(args.record)
+    out = Path(args.out)
+    for name in ("replay.json", "telemetry.parquet", "replay.gif"):
+        ensure_writable(out / name, args.force)
+    result = replay_record(rec, weights=args.weights, progress=not args.quiet, keep_frames=not args.no_gif)
+    write_telemetry(out / "telemetry.parquet", result["records"])
+    if not args.no_gif:
+        hit = next((i for i, r in enumerate(result["records"]) if r["collision"]), len(result["records"]) - 1)
+        lo = max(0, hit - args.gif_seconds * 20) if args.gif_seconds else 0
+        frames = [annotate_frame(result["frames"][i], result["records"][i])
+                  for i in range(lo, min(len(result["frames"]), hit + 20), 2)]
+        write_gif(out / "replay.gif", frames, fps=10)
+    report = {"record": str(args.record), "reproduced": result["reproduced"], "violations": result["violations"],
+              "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
+              "first_collision_step": next((r["step"] for r in result["records"] if r["collision"]), None)}
+    atomic_write_json(out / "replay.json", report, indent=2)
+    print(json.dumps(report, indent=2))
+    if not result["reproduced"]:
+        print("genesis-rl replay: the replayed violations differ from the recorded ones", flush=True)
+        return 1
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from genesis_rl.evaluation.export import export_dataset
+
+    policies = [p.strip() for p in args.policies.split(",")] if args.policies else None
+    print(json.dumps(export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies),
+                     indent=2))
+    return 0
+
+
+def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
+    ev = sub.add_parser("evaluate", help="evaluation campaign: weather policies on held-out scenes; summary, report")
+    ev.add_argument("--agent", default=None, help="trained run folder (runs/NAME) or agent .zip")
+    ev.add_argument("--policies", default="sunny,random,agent",
+                    help="comma list: sunny, random, agent, cmaes (search baseline) or package.module:Class")
+    ev.add_argument("--map", default="highway", help="test map (the agent trains on urban)")
+    ev.add_argument("--catalog", default=None, help="test catalog file (default: the map's generated catalog)")
+    ev.add_argument("--catalog-seed", type=int, default=0, help="seed of the generated test catalog")
+    ev.add_argument("--scenes", type=int, default=50, help="scenes picked from the catalog by --seed")
+    ev.add_argument("--seed", type=int, default=0, help="campaign seed: scene choice and episode seeds")
+    ev.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
+    ev.add_argument("--system", default=None, help="system under test (default: the agent's)")
+    ev.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
+    ev.add_argument("--search-budget", type=int, default=8, help="episodes per scene a search baseline may spend")
+    ev.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
+    ev.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    ev.add_argument("--out", default=None, help="campaign folder (default: AGENT/eval)")
+    ev.add_argument("--resume", action="store_true", help="continue an interrupted campaign in --out")
+    ev.add_argument("--force", action="store_true", help="replace an existing campaign folder")
+    ev.add_argument("--no-report", action="store_true", help="skip report.html")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_cmd_evaluate)
+
+    rp = sub.add_parser("report", help="write report.html for a campaign folder")
+    rp.add_argument("campaign", help="campaign folder (genesis-rl evaluate --out)")
+    rp.add_argument("--out", default=None, help="report file (default: CAMPAIGN/report.html)")
+    rp.add_argument("--force", action="store_true", help="overwrite an existing report")
+    rp.set_defaults(func=_cmd_report)
+
+    rl = sub.add_parser("replay", help="re-run an edge-case record; check its violations; write a GIF")
+    rl.add_argument("record", help="edge-case record (CAMPAIGN/records/*.json)")
+    rl.add_argument("--out", required=True, help="output directory")
+    rl.add_argument("--weights", default=None, help="detector weights, when the recorded file has moved")
+    rl.add_argument("--gif-seconds", type=int, default=6, help="seconds before the collision in the GIF (0: all)")
+    rl.add_argument("--no-gif", action="store_true", help="skip the animation")
+    rl.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    rl.add_argument("--quiet", action="store_true", help="no progress bar")
+    rl.set_defaults(func=_cmd_replay)
+
+    ex = sub.add_parser("export", help="export failure frames with ground-truth labels (YOLO or COCO)")
+    ex.add_argument("campaign", help="campaign folder")
+    ex.add_argument("--format", default="yolo", help="yolo or coco")
+    ex.add_argument("--policies", default=None, help="comma list of policies to export (default: all)")
+    ex.add_argument("--out", required=True, help="output directory")
+    ex.add_argument("--force", action="store_true", help="replace an existing output")
+    ex.set_defaults(func=_cmd_export)

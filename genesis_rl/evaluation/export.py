@@ -1,0 +1,120 @@
+"""Export the failure windows of a campaign as a detector training set (YOLO or COCO).
+
+Frames are the camera images a campaign kept around each first collision (``frames/``); labels are the
+simulator's ground-truth boxes at those steps (``steps/*.parquet``), clipped to the image. A vehicle counts
+as a label when at least ``MIN_VISIBLE`` of it is unoccluded and its box is ``MIN_HEIGHT`` px tall (the
+detector's own training rule); smaller or hidden ones are listed as ignore regions (COCO ``iscrowd = 1``;
+YOLO has no ignore syntax, so they go to ``metadata.jsonl`` only). Every image carries its weather knobs,
+scene, policy, step and the failure mode of its episode, so a perception team can slice by condition.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import atomic_write_json, atomic_write_text
+
+FORMATS = ("yolo", "coco")
+CLASSES = ("vehicle",)
+MIN_VISIBLE = 0.3
+MIN_HEIGHT = 5.0  # [px]
+
+
+def _frames(folder: Path) -> list[tuple[str, int, int, Path]]:
+    """(policy, scene, step, path) of every kept frame."""
+    out = []
+    for path in sorted((folder / "frames").glob("*/scene_*/step_*.jpg")):
+        policy = path.parent.parent.name
+        scene = int(path.parent.name.split("_")[1])
+        step = int(path.stem.split("_")[1])
+        out.append((policy, scene, step, path))
+    return out
+
+
+def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
+                   policies: list[str] | None = None) -> dict[str, Any]:
+    import pyarrow.parquet as pq
+    from PIL import Image
+
+    from genesis_rl.evaluation.summary import load_campaign
+    from genesis_rl.knobs import KNOBS
+
+    if fmt not in FORMATS:
+        raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
+    meta, rows = load_campaign(folder)
+    frames = [f for f in _frames(folder) if policies is None or f[0] in policies]
+    if not frames:
+        raise UserInputError(f"campaign '{folder}' kept no failure frames (no collisions"
+                             f"{' for ' + ','.join(policies) if policies else ''}); nothing to export")
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise UserInputError(f"output '{out}' exists; pass --force to replace it")
+        shutil.rmtree(out)
+    tmp = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "images").mkdir(parents=True)
+    if fmt == "yolo":
+        (tmp / "labels").mkdir()
+    modes = {(p, e["scene"]): e["failure_mode"] for p, eps in rows.items() for e in eps}
+    steps_cache: dict[tuple[str, int], dict[int, dict[str, Any]]] = {}
+    images, annotations, metadata = [], [], []
+    n_labels = n_ignored = 0
+    for image_id, (policy, scene, step, path) in enumerate(frames, start=1):
+        key = (policy, scene)
+        if key not in steps_cache:
+            table = pq.read_table(folder / "steps" / policy / f"scene_{scene:04d}.parquet",
+                                  columns=["step", "gt_boxes", *KNOBS])
+            steps_cache[key] = {r["step"]: r for r in table.to_pylist()}
+        rec = steps_cache[key][step]
+        name = f"{policy}_scene{scene:04d}_step{step:04d}"
+        with Image.open(path) as im:
+            w, h = im.size
+        shutil.copyfile(path, tmp / "images" / f"{name}.jpg")
+        labels, ignore = [], []
+        for b in rec["gt_boxes"]:
+            x0, y0, x1, y1 = (float(v) for v in b["box_xyxy"])
+            x0, x1 = max(0.0, x0), min(float(w), x1)
+            y0, y1 = max(0.0, y0), min(float(h), y1)
+            if x1 - x0 < 1 or y1 - y0 < 1:
+                continue
+            box = {"vehicle_id": b["vehicle_id"], "xyxy": [x0, y0, x1, y1], "distance_m": b["distance_m"],
+                   "visible_fraction": b["visible_fraction"]}
+            (labels if b["visible_fraction"] >= MIN_VISIBLE and y1 - y0 >= MIN_HEIGHT else ignore).append(box)
+        n_labels += len(labels)
+        n_ignored += len(ignore)
+        weather = {k: round(float(rec[k]), 3) for k in KNOBS}
+        metadata.append({"image": f"images/{name}.jpg", "policy": policy, "scene": scene, "step": step,
+                         "failure_mode": modes.get(key), "weather": weather, "labels": labels, "ignore": ignore})
+        if fmt == "yolo":
+            lines = [f"0 {(b['xyxy'][0] + b['xyxy'][2]) / 2 / w:.6f} {(b['xyxy'][1] + b['xyxy'][3]) / 2 / h:.6f} "
+                     f"{(b['xyxy'][2] - b['xyxy'][0]) / w:.6f} {(b['xyxy'][3] - b['xyxy'][1]) / h:.6f}" for b in labels]
+            (tmp / "labels" / f"{name}.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
+        else:
+            images.append({"id": image_id, "file_name": f"images/{name}.jpg", "width": w, "height": h,
+                           "genesis_rl": {k: v for k, v in metadata[-1].items() if k not in ("labels", "ignore")}})
+            for b, crowd in [(b, 0) for b in labels] + [(b, 1) for b in ignore]:
+                x0, y0, x1, y1 = b["xyxy"]
+                annotations.append({"id": len(annotations) + 1, "image_id": image_id, "category_id": 1,
+                                    "bbox": [round(x0, 2), round(y0, 2), round(x1 - x0, 2), round(y1 - y0, 2)],
+                                    "area": round((x1 - x0) * (y1 - y0), 2), "iscrowd": crowd})
+    if fmt == "yolo":
+        atomic_write_text(tmp / "data.yaml", "# GENESIS-RL failure frames (genesis-rl export)\n"
+                          f"path: .\ntrain: images\nval: images\nnames:\n  0: {CLASSES[0]}\n")
+    else:
+        atomic_write_json(tmp / "annotations.json", {
+            "info": {"description": f"GENESIS-RL failure frames from {folder}",
+                     "campaign": meta["spec"], "version": meta.get("package_version")},
+            "categories": [{"id": 1, "name": CLASSES[0], "supercategory": "vehicle"}],
+            "images": images, "annotations": annotations}, indent=None)
+    atomic_write_text(tmp / "metadata.jsonl", "".join(json.dumps(m) + "\n" for m in metadata))
+    result = {"out": str(out), "format": fmt, "images": len(frames), "labels": n_labels, "ignored_boxes": n_ignored,
+              "episodes": len({(f[0], f[1]) for f in frames})}
+    atomic_write_json(tmp / "export.json", result, indent=2)
+    if out.exists():
+        out.rmdir()
+    tmp.rename(out)
+    return result

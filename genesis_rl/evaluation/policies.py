@@ -1,0 +1,224 @@
+"""Weather policies a campaign compares: who turns the knobs while the system under test drives.
+
+A policy plays one episode on a scene through an ``EpisodeRunner`` (see ``campaign``). Step policies
+(``sunny``, ``random``, ``agent``) choose an action in [-1, 1]^K from each observation, under the same
+naturalness limit as the trained agent. Search baselines (``cmaes``) spend several episodes of simulator
+budget on each scene and keep the worst weather schedule they find, which is what a black-box falsifier
+would report; their ``sim_steps`` count every episode they spent.
+
+Register your own with ``@register_policy`` or name it by import path (``package.module:Class``)::
+
+    @register_policy
+    class AlwaysFoggier(StepPolicy):
+        name = "foggier"
+        def act(self, obs):
+            return np.ones(self.context.action_dim, np.float32)
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+
+POLICIES: dict[str, type[WeatherPolicy]] = {}
+
+
+def register_policy(cls: type[WeatherPolicy]) -> type[WeatherPolicy]:
+    POLICIES[cls.name] = cls
+    return cls
+
+
+@dataclass
+class EpisodeOutcome:
+    """What a policy's episode left: the step records, frames around the first collision (step -> RGB),
+    the simulator steps spent (a search counts all its candidates) and policy-specific extras."""
+
+    records: list[dict[str, Any]]
+    frames: dict[int, np.ndarray] = field(default_factory=dict)
+    sim_steps: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def total_reward(self) -> float:
+        return float(sum(r["reward"] for r in self.records))
+
+
+class EpisodeRunner(Protocol):
+    def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int) -> EpisodeOutcome: ...
+
+
+@dataclass(frozen=True)
+class PolicyContext:
+    """What a policy is built from: the action size, the campaign seed, the trained agent (if any) and
+    policy options (``--search-budget`` and the like)."""
+
+    action_dim: int
+    seed: int
+    agent_path: Path | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+class WeatherPolicy:
+    name: ClassVar[str] = ""
+    needs_agent: ClassVar[bool] = False
+    description: ClassVar[str] = ""
+
+    def __init__(self, context: PolicyContext) -> None:
+        self.context = context
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        raise NotImplementedError
+
+
+class StepPolicy(WeatherPolicy):
+    """A policy that acts step by step; ``reset`` is called before each episode."""
+
+    def reset(self, scene: int, episode_seed: int) -> None:
+        pass
+
+    def act(self, obs: Any) -> np.ndarray:
+        raise NotImplementedError
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        self.reset(scene, episode_seed)
+        return runner.run(self.act, scene, episode_seed)
+
+
+@register_policy
+class SunnyPolicy(StepPolicy):
+    name = "sunny"
+    description = "the start weather (clear noon), held constant"
+
+    def act(self, obs: Any) -> np.ndarray:
+        return np.zeros(self.context.action_dim, np.float32)
+
+
+@register_policy
+class RandomPolicy(StepPolicy):
+    name = "random"
+    description = "uniform random actions in [-1, 1] under the same 5% per-step limit"
+
+    def reset(self, scene: int, episode_seed: int) -> None:
+        self.rng = np.random.default_rng([self.context.seed, scene, episode_seed, 1])
+
+    def act(self, obs: Any) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, self.context.action_dim).astype(np.float32)
+
+
+@register_policy
+class AgentPolicy(StepPolicy):
+    name = "agent"
+    needs_agent = True
+    description = "the trained PPO policy, deterministic"
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        self.model = load_agent(context.agent_path)
+
+    def act(self, obs: Any) -> np.ndarray:
+        action, _ = self.model.predict(obs, deterministic=True)
+        return np.asarray(action, np.float32)
+
+
+def load_agent(path: Path | None) -> Any:
+    """A trained PPO agent from a run folder (its ``agent.zip``, else its last checkpoint) or a .zip file."""
+    from stable_baselines3 import PPO
+
+    if path is None:
+        raise UserInputError("policy 'agent' needs a trained agent: pass --agent runs/NAME")
+    path = Path(path)
+    candidates = [path] if path.suffix == ".zip" else [path / "agent.zip", path / "checkpoints" / "last.zip"]
+    found = next((p for p in candidates if p.is_file()), None)
+    if found is None:
+        raise UserInputError(f"--agent '{path}' holds no trained agent (looked for "
+                             f"{', '.join(str(c) for c in candidates)}); train one with genesis-rl train")
+    try:
+        return PPO.load(found, device="cpu")
+    except Exception as err:  # noqa: BLE001 - a corrupt zip raises many kinds
+        raise UserInputError(f"--agent: '{found}' cannot be loaded as a PPO agent: {err}") from None
+
+
+@register_policy
+class CMAESSearch(WeatherPolicy):
+    """Black-box falsification by CMA-ES (the ``cma`` package) over piecewise-constant knob schedules.
+
+    The episode is split into ``search_segments`` equal segments; in each, every knob is pushed by a
+    constant action in [-1, 1] (so the same 5% limit holds). Each candidate schedule costs one episode;
+    the search spends ``search_budget`` episodes per scene, maximises the episode's total reward (the
+    agent's own objective) and reports its best episode.
+    """
+
+    name = "cmaes"
+    description = "CMA-ES search over piecewise-constant knob schedules, search_budget episodes per scene"
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        opts = context.options
+        self.budget = int(opts.get("search_budget", 8))
+        self.segments = int(opts.get("search_segments", 4))
+        self.sigma0 = float(opts.get("search_sigma", 0.5))
+        if self.budget < 2 or self.segments < 1:
+            raise UserInputError(f"search_budget = {self.budget} must be >= 2 and search_segments = "
+                                 f"{self.segments} >= 1")
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        import cma
+
+        dim = self.segments * self.context.action_dim
+        default_pop = 4 + int(3 * np.log(dim))
+        popsize = max(2, min(default_pop, self.budget // 2))
+        seed = int(np.random.default_rng([self.context.seed, scene, episode_seed, 2]).integers(1, 2**31 - 1))
+        es = cma.CMAEvolutionStrategy(np.zeros(dim), self.sigma0,
+                                      {"seed": seed, "popsize": popsize, "bounds": [-1.0, 1.0], "verbose": -9})
+        best: EpisodeOutcome | None = None
+        spent, history = 0, []
+        for _ in range(self.budget // popsize):
+            xs = es.ask()
+            fitness = []
+            for x in xs:
+                outcome = runner.run(self._schedule(np.asarray(x)), scene, episode_seed)
+                spent += outcome.sim_steps
+                fitness.append(-outcome.total_reward)
+                history.append(round(outcome.total_reward, 3))
+                if best is None or outcome.total_reward > best.total_reward:
+                    best = outcome
+            es.tell(xs, fitness)
+        assert best is not None
+        best.sim_steps = spent
+        best.extra = {"search_returns": history, "popsize": popsize}
+        return best
+
+    def _schedule(self, x: np.ndarray) -> Callable[[Any], np.ndarray]:
+        table = np.clip(x.reshape(self.segments, self.context.action_dim), -1.0, 1.0).astype(np.float32)
+        steps = int(self.context.options.get("steps", 512))
+        state = {"t": 0}
+
+        def act(obs: Any) -> np.ndarray:
+            seg = min(self.segments - 1, state["t"] * self.segments // max(steps, 1))
+            state["t"] += 1
+            return table[seg]
+
+        return act
+
+
+def resolve_policy(name: str) -> type[WeatherPolicy]:
+    """A registered policy name, or ``package.module:Class`` of a WeatherPolicy subclass."""
+    if name in POLICIES:
+        return POLICIES[name]
+    if ":" in name:
+        module_name, _, cls_name = name.partition(":")
+        try:
+            cls = getattr(importlib.import_module(module_name), cls_name)
+        except (ImportError, AttributeError) as err:
+            raise UserInputError(f"policy '{name}' cannot be imported: {err}") from None
+        if not (isinstance(cls, type) and issubclass(cls, WeatherPolicy)):
+            raise UserInputError(f"policy '{name}' is not a genesis_rl.evaluation.policies.WeatherPolicy subclass")
+        return cls
+    raise UserInputError(f"unknown policy '{name}'; allowed: {', '.join(POLICIES)} or package.module:Class")

@@ -1,0 +1,302 @@
+"""``report.html``: one self-contained page (figures embedded) that tells a campaign's story.
+
+1. The paper's Fig. 2: mean collision and proximity violation and summed RSS deficit per policy, with
+   bootstrap 95% CIs, and the paired agent-vs-baseline comparison.
+2. Fig. 3-style telemetry for one collision per failure mode: speeds, throttle and brake, true and
+   perceived distance to the lead, and whether the hit vehicle was detected.
+3. Camera frames before each of those collisions, with true (green) and detected (orange) boxes.
+4. The knobs each policy turned, step by step (mean over scenes, 10-90% band).
+5. A per-scene table.
+A campaign that is not finished is reported as far as it got, with what is missing said at the top.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
+from genesis_rl.evaluation.summary import load_campaign, summarize_campaign
+from genesis_rl.io_utils import atomic_write_text
+
+POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8"}
+MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Intermittent detection",
+               "delayed_detection": "Delayed detection", "detected": "Detected in time (control failure)",
+               "out_of_view": "Hit vehicle out of view"}
+
+
+def _color(policy: str, k: int) -> str:
+    return POLICY_COLORS.get(policy, ["#8e44ad", "#16a085", "#d35400", "#2d3436"][k % 4])
+
+
+def _png(fig: Any) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def _jpeg(rgb: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=88)
+    return "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def fig_comparison(summary: dict[str, Any]) -> str:
+    import matplotlib.pyplot as plt
+
+    pols = list(summary["policies"])
+    metrics = [("collision", "Collision violation\n(ego speed at impact, m/s)"),
+               ("proximity", "Proximity violation\n(sum of ego speed under 5 m, m/s)"),
+               ("rss_deficit", "RSS deficit\n(summed over steps, m)")]
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    for ax, (m, title) in zip(axes, metrics, strict=True):
+        means = [summary["policies"][p][m]["mean"] for p in pols]
+        lo = [summary["policies"][p][m]["mean"] - summary["policies"][p][m]["ci_low"] for p in pols]
+        hi = [summary["policies"][p][m]["ci_high"] - summary["policies"][p][m]["mean"] for p in pols]
+        ax.bar(pols, means, yerr=[lo, hi], capsize=5, color=[_color(p, k) for k, p in enumerate(pols)],
+               edgecolor="black", linewidth=0.6)
+        ax.set_title(title, fontsize=10)
+        ax.set_ylabel("mean per episode")
+        ax.grid(axis="y", alpha=0.3)
+        ax.set_axisbelow(True)
+    fig.suptitle(f"Violations on {summary['scenes']} {summary['map']} scenes (bars: mean, whiskers: bootstrap 95% CI)",
+                 fontsize=11)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[str]) -> str | None:
+    import matplotlib.pyplot as plt
+    import pyarrow.parquet as pq
+
+    series: dict[str, np.ndarray] = {}
+    for policy, eps in rows.items():
+        runs = []
+        for e in eps:
+            path = folder / "steps" / policy / f"scene_{e['scene']:04d}.parquet"
+            if path.is_file():
+                t = pq.read_table(path, columns=knobs)
+                runs.append(np.stack([t[k].to_numpy() for k in knobs], axis=1))
+        if runs:
+            n = min(len(r) for r in runs)
+            series[policy] = np.stack([r[:n] for r in runs])  # (episodes, steps, knobs)
+    if not series:
+        return None
+    fig, axes = plt.subplots(1, len(knobs), figsize=(3.1 * len(knobs), 2.9), squeeze=False)
+    for j, knob in enumerate(knobs):
+        ax = axes[0, j]
+        for k, (policy, arr) in enumerate(series.items()):
+            t = np.arange(arr.shape[1]) * 0.05
+            ax.plot(t, arr[:, :, j].mean(axis=0), color=_color(policy, k), label=policy, lw=1.6)
+            ax.fill_between(t, np.quantile(arr[:, :, j], 0.1, axis=0), np.quantile(arr[:, :, j], 0.9, axis=0),
+                            color=_color(policy, k), alpha=0.15, lw=0)
+        ax.set_title(knob.replace("_", " "), fontsize=9)
+        ax.set_xlabel("time [s]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("Knob trajectories: mean over scenes, 10-90% band", fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def fig_telemetry(records: list[dict[str, Any]], failure: dict[str, Any], title: str) -> str:
+    import matplotlib.pyplot as plt
+
+    hit = next(i for i, r in enumerate(records) if r["collision"])
+    lo, hi = max(0, hit - 160), min(len(records), hit + 20)
+    win = records[lo:hi]
+    t = np.array([r["time_s"] for r in win])
+    timeline = detection_timeline(win, failure["vehicle_id"])
+    fig, axes = plt.subplots(4, 1, figsize=(7.5, 6.2), sharex=True,
+                             gridspec_kw={"height_ratios": [2, 1.4, 2, 0.8]})
+    axes[0].plot(t, [r["ego_speed"] for r in win], color="#c0392b", label="ego speed")
+    axes[0].plot(t, [r["lead_speed"] for r in win], color="#2c3e50", ls="--", label="lead speed")
+    axes[0].set_ylabel("m/s")
+    axes[1].plot(t, [r["throttle"] for r in win], color="#27ae60", label="throttle")
+    axes[1].plot(t, [r["brake"] for r in win], color="#8e44ad", label="brake")
+    axes[1].set_ylim(-0.05, 1.05)
+    axes[2].plot(t, [r["true_lead_distance"] for r in win], color="#2c3e50", label="true distance to lead")
+    axes[2].plot(t, [r["perceived_lead_distance"] for r in win], ".", ms=3, color="#e67e22",
+                 label="perceived distance")
+    axes[2].axhline(5.0, color="grey", ls=":", lw=1, label="proximity threshold 5 m")
+    axes[2].set_ylabel("m")
+    on = np.array([np.nan if v is None else float(v) for v in timeline])
+    axes[3].fill_between(t, 0, np.where(on == 1, 1, 0), step="mid", color="#27ae60", alpha=0.8, lw=0,
+                         label="detected")
+    axes[3].fill_between(t, 0, np.where(on == 0, 1, 0), step="mid", color="#c0392b", alpha=0.5, lw=0,
+                         label="in view, missed")
+    axes[3].set_yticks([])
+    axes[3].set_xlabel("time [s]")
+    for ax in axes:
+        ax.axvline(records[hit]["time_s"], color="red", lw=1.2)
+        ax.legend(fontsize=7, loc="upper left", ncol=3)
+        ax.grid(alpha=0.3)
+    axes[0].set_title(title, fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def frame_strip(folder: Path, policy: str, scene: int, records: list[dict[str, Any]], n: int = 6) -> str | None:
+    from PIL import Image
+
+    from genesis_rl.viz.frames import annotate_frame
+
+    paths = sorted((folder / "frames" / policy / f"scene_{scene:04d}").glob("step_*.jpg"))
+    if not paths:
+        return None
+    by_step = {r["step"]: r for r in records}
+    picks = [paths[int(i)] for i in np.linspace(0, len(paths) - 1, min(n, len(paths)))]
+    tiles = []
+    for p in picks:
+        step = int(p.stem.split("_")[1])
+        with Image.open(p) as im:
+            rgb = np.asarray(im.convert("RGB"))
+        tiles.append(annotate_frame(rgb, by_step[step]) if step in by_step else rgb)
+    hgt = max(t.shape[0] for t in tiles)
+    tiles = [np.pad(t, ((0, hgt - t.shape[0]), (0, 4), (0, 0)), constant_values=255) for t in tiles]
+    return _jpeg(np.hstack(tiles))
+
+
+def _steps(folder: Path, policy: str, scene: int) -> list[dict[str, Any]]:
+    import pyarrow.parquet as pq
+
+    return pq.read_table(folder / "steps" / policy / f"scene_{scene:04d}.parquet").to_pylist()
+
+
+CSS = """
+body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;margin:24px auto;color:#222;
+padding:0 16px;line-height:1.45}
+h1{font-size:26px;margin-bottom:4px}h2{border-bottom:2px solid #eee;padding-bottom:4px;margin-top:36px}
+.meta{color:#666;font-size:13px}.warn{background:#fff3cd;border:1px solid #f0c36d;padding:8px 12px;border-radius:6px}
+table{border-collapse:collapse;font-size:13px;margin:8px 0}th,td{border:1px solid #ddd;padding:4px 8px;text-align:right}
+th{background:#f6f6f6}td.l,th.l{text-align:left}img{max-width:100%}.card{margin:18px 0 30px}
+.good{color:#1e8449;font-weight:600}.bad{color:#c0392b;font-weight:600}.hit{background:#fdecea}
+"""
+
+
+def _fmt_ci(s: dict[str, float]) -> str:
+    if s["n"] == 0 or not np.isfinite(s["mean"]):
+        return "–"
+    return f"{s['mean']:.2f} <span class=meta>[{s['ci_low']:.2f}, {s['ci_high']:.2f}]</span>"
+
+
+def build_report(folder: Path, out: Path | None = None, force: bool = False, max_examples: int = 5) -> Path:
+    """Write ``report.html`` in the campaign folder (or ``out``); returns its path."""
+    folder = Path(folder)
+    meta, rows = load_campaign(folder)
+    out = Path(out) if out else folder / "report.html"
+    if out.exists() and not force:
+        raise UserInputError(f"report '{out}' exists; pass --force to rebuild it")
+    if not any(rows.values()):
+        raise UserInputError(f"campaign '{folder}' has no finished episodes yet; nothing to report")
+    summary = summarize_campaign(folder)
+    spec = meta["spec"]
+    knobs = list(spec.get("env", {}).get("knobs") or ["fog_density", "precipitation", "precipitation_deposits",
+                                                       "sun_altitude_angle", "sun_azimuth_angle"])
+    h: list[str] = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL report</title>"
+                    f"<style>{CSS}</style></head><body>"]
+    h.append("<h1>GENESIS-RL evaluation report</h1>")
+    h.append(f"<p class=meta>campaign <code>{html.escape(str(folder))}</code> · map <b>{spec['map']}</b> · "
+             f"{summary['scenes']} scenes (seed {spec['seed']}) · {spec['steps']} steps each · agent "
+             f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {meta.get('package_version')} "
+             f"({str(meta.get('git_commit'))[:10]})</p>")
+    if not summary["complete"]:
+        missing = {p: v["missing"] for p, v in summary["policies"].items() if v["missing"]}
+        h.append(f"<p class=warn>This campaign is not finished: missing episodes {missing}. Figures use the "
+                 "finished episodes only; <code>genesis-rl evaluate ... --resume</code> completes it.</p>")
+
+    # 1. comparison
+    h.append("<h2>1. Violations by policy (paper Fig. 2)</h2>")
+    h.append(f"<img src='{fig_comparison(summary)}'>")
+    h.append("<table><tr><th class=l>policy</th><th>episodes</th><th>collision</th><th>proximity</th>"
+             "<th>total</th><th>RSS deficit</th><th>RSS deficit summed</th><th>episodes with collision</th>"
+             "<th>mean IoU</th><th>sim steps</th></tr>")
+    for p, s in summary["policies"].items():
+        h.append(f"<tr><td class=l>{html.escape(p)}</td><td>{s['episodes']}</td><td>{_fmt_ci(s['collision'])}</td>"
+                 f"<td>{_fmt_ci(s['proximity'])}</td><td>{_fmt_ci(s['total'])}</td>"
+                 f"<td>{_fmt_ci(s['rss_deficit'])}</td><td>{s['rss_deficit_sum']:.1f}</td>"
+                 f"<td>{s['episodes_with_collision']}</td><td>{_fmt_ci(s['mean_iou'])}</td><td>{s['sim_steps']}</td></tr>")
+    h.append("</table>")
+    if summary["comparisons"]:
+        h.append("<p>Paired comparisons (same scenes, same seeds): mean difference agent − baseline with "
+                 "bootstrap 95% CI, scenes where the agent is worse for the ego (wins) / equal / better, and a "
+                 "sign-flip permutation p-value.</p><table><tr><th class=l>comparison</th><th class=l>metric</th>"
+                 "<th>difference</th><th>wins/ties/losses</th><th>p</th></tr>")
+        for name, comp in summary["comparisons"].items():
+            for m in ("collision", "proximity", "total", "rss_deficit"):
+                c = comp[m]
+                d = c["difference"]
+                cls = "good" if d["ci_low"] > 0 else ("bad" if d["ci_high"] < 0 else "")
+                h.append(f"<tr><td class=l>{name}</td><td class=l>{m}</td><td class={cls}>{_fmt_ci(d)}</td>"
+                         f"<td>{c['wins']}/{c['ties']}/{c['losses']}</td><td>{c['p_value']:.3f}</td></tr>")
+        h.append("</table>")
+
+    # 2-3. failure modes
+    h.append("<h2>2. Failure modes (paper Fig. 3)</h2>")
+    counts = "".join(f"<tr><td class=l>{p}</td>" + "".join(f"<td>{s['failure_modes'][m]}</td>" for m in FAILURE_MODES)
+                     + "</tr>" for p, s in summary["policies"].items())
+    h.append("<table><tr><th class=l>policy</th>" + "".join(f"<th>{MODE_TITLES[m]}</th>" for m in FAILURE_MODES)
+             + f"</tr>{counts}</table>")
+    h.append("<p class=meta>Labels come from the detection timeline of the hit vehicle in the 4 s before the "
+             "impact (thresholds in summary.json and docs/evaluation.md).</p>")
+    order = [p for p in ("agent", "cmaes", "random", "sunny") if p in rows] + [p for p in rows if p not in
+                                                                              ("agent", "cmaes", "random", "sunny")]
+    shown = 0
+    for mode in FAILURE_MODES:
+        example = next(((p, e) for p in order for e in rows[p] if e["failure_mode"] == mode), None)
+        if example is None or shown >= max_examples:
+            continue
+        shown += 1
+        p, e = example
+        recs = _steps(folder, p, e["scene"])
+        title = (f"{MODE_TITLES[mode]}: {p}, scene {e['scene']}, impact at {e['failure']['speed']:.1f} m/s, "
+                 f"step {e['first_collision_step']}")
+        h.append(f"<div class=card><h3>{html.escape(title)}</h3><img src='{fig_telemetry(recs, e['failure'], title)}'>")
+        strip = frame_strip(folder, p, e["scene"], recs)
+        if strip:
+            h.append(f"<p class=meta>Camera before the impact (green: true boxes, orange: detections):</p>"
+                     f"<img src='{strip}'>")
+        if e.get("record"):
+            h.append(f"<p class=meta>Replay: <code>genesis-rl replay {html.escape(str(folder / e['record']))} "
+                     f"--out replay_{p}_{e['scene']}</code></p>")
+        h.append("</div>")
+    if shown == 0:
+        h.append("<p>No collisions in this campaign.</p>")
+
+    # 4. knobs
+    h.append("<h2>3. Knob trajectories</h2>")
+    knob_fig = fig_knobs(folder, rows, knobs)
+    if knob_fig:
+        h.append(f"<img src='{knob_fig}'>")
+
+    # 5. per-scene table
+    h.append("<h2>4. Per scene</h2><p class=meta>collision / proximity violation; red: a collision, with its "
+             "failure mode.</p><table><tr><th class=l>scene</th>" + "".join(f"<th>{p}</th>" for p in rows) + "</tr>")
+    by_scene = {p: {e["scene"]: e for e in eps} for p, eps in rows.items()}
+    for scene, _ in meta["scenes"]:
+        cells = []
+        for p in rows:
+            e = by_scene[p].get(scene)
+            if e is None:
+                cells.append("<td class=meta>missing</td>")
+                continue
+            mode = f"<br><span class=meta>{e['failure_mode']}</span>" if e["failure_mode"] else ""
+            cells.append(f"<td class={'hit' if e['collision_events'] else ''}>{e['collision']:.1f} / "
+                         f"{e['proximity']:.1f}{mode}</td>")
+        h.append(f"<tr><td class=l>{scene}</td>{''.join(cells)}</tr>")
+    h.append("</table>")
+    h.append(f"<h2>Campaign settings</h2><pre>{html.escape(json.dumps(spec, indent=1))}</pre></body></html>")
+    atomic_write_text(out, "\n".join(h))
+    return out
