@@ -1,0 +1,265 @@
+"""Evaluation campaigns: determinism, resume, failure modes, records and replay, report and export."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from genesis_rl.cli import main
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign import CampaignSpec, pick_scenes, run_campaign
+from genesis_rl.evaluation.failure_modes import FailureModeThresholds, classify_timeline
+from genesis_rl.evaluation.stats import bootstrap_mean_ci, paired_comparison
+
+DT = 0.05
+
+
+# -- failure modes on synthetic timelines ------------------------------------------------------------
+def _mode(timeline) -> str:
+    return classify_timeline(timeline, DT)["mode"]
+
+
+def test_never_detected_is_non_detection() -> None:
+    assert _mode([False] * 60) == "non_detection"
+    assert _mode([False] * 57 + [True] * 3) == "non_detection"  # 5% < 10%
+
+
+def test_flicker_is_intermittent_detection() -> None:
+    assert _mode(([True] * 5 + [False] * 5) * 6) == "intermittent_detection"
+
+
+def test_seen_only_at_the_end_is_delayed_detection() -> None:
+    # 2 s in view and missed, then detected for the last 1 s
+    assert _mode([False] * 40 + [True] * 20) == "delayed_detection"
+    # the same, but detected 2.5 s before impact: in time
+    assert _mode([False] * 40 + [True] * 50) == "detected"
+
+
+def test_out_of_view_and_detected() -> None:
+    assert _mode([None] * 30) == "out_of_view"
+    assert _mode([None] * 10 + [True] * 50) == "detected"
+    # thresholds are honoured: with min_flips 20 the flicker is no longer intermittent
+    th = FailureModeThresholds(min_flips=20)
+    assert classify_timeline(([True] * 5 + [False] * 5) * 6, DT, th)["mode"] != "intermittent_detection"
+
+
+# -- statistics ---------------------------------------------------------------------------------------
+def test_bootstrap_ci_brackets_the_mean_and_is_seeded() -> None:
+    x = np.random.default_rng(0).normal(3.0, 1.0, 50)
+    a, b = bootstrap_mean_ci(x, 1), bootstrap_mean_ci(x, 1)
+    assert a == b
+    assert a["ci_low"] < a["mean"] < a["ci_high"]
+    assert 2.4 < a["ci_low"] and a["ci_high"] < 3.6
+
+
+def test_paired_comparison_detects_a_shift() -> None:
+    base = np.random.default_rng(1).normal(0, 1, 40)
+    c = paired_comparison(base + 1.0, base, 0)
+    assert c["wins"] == 40 and c["p_value"] < 0.01 and c["difference"]["ci_low"] > 0.9
+    same = paired_comparison(base, base, 0)
+    assert same["ties"] == 40 and same["p_value"] > 0.5
+
+
+def test_pick_scenes_is_seeded_and_distinct() -> None:
+    a = pick_scenes(100, 10, 3)
+    assert a == pick_scenes(100, 10, 3) and a != pick_scenes(100, 10, 4)
+    assert len({s for s, _ in a}) == 10
+    with pytest.raises(UserInputError, match="--scenes = 101 must be in 1..100"):
+        pick_scenes(100, 101, 0)
+
+
+# -- a tiny campaign ---------------------------------------------------------------------------------
+STEPS = 70
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory) -> str:
+    from genesis_rl.scenes.lite_generator import generate_catalog
+
+    path = tmp_path_factory.mktemp("cat") / "highway.json"
+    generate_catalog("highway", 12, 0).save(path)
+    return str(path)
+
+
+def _spec(catalog: str, **kw) -> CampaignSpec:
+    # the blind system never sees a vehicle, so scene 5 (seed 1) ends in a collision at step 49
+    base = dict(policies=("sunny", "random"), catalog=catalog, scenes=3, seed=1, steps=STEPS,
+                env={"system": "blind"})
+    return CampaignSpec(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory, catalog) -> Path:
+    folder = tmp_path_factory.mktemp("camp") / "eval"
+    run_campaign(_spec(catalog), folder, progress=False)
+    return folder
+
+
+def _stable(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k not in ("campaign", "run_seconds", "workers")}
+
+
+def test_campaign_records_every_episode_and_labels_the_collision(campaign: Path) -> None:
+    summary = json.loads((campaign / "summary.json").read_text())
+    assert summary["complete"] and summary["scenes"] == 3
+    for policy in ("sunny", "random"):
+        s = summary["policies"][policy]
+        assert s["episodes"] == 3 and s["sim_steps"] == 3 * STEPS
+        assert s["episodes_with_collision"] == 1 and s["failure_modes"]["non_detection"] == 1
+        assert s["collision"]["mean"] > 0 and s["collision"]["ci_low"] <= s["collision"]["mean"]
+    row = json.loads((campaign / "episodes" / "random" / "scene_0005.json").read_text())
+    assert row["first_collision_step"] == 49 and row["failure_mode"] == "non_detection"
+    assert row["collision"] >= row["collision_speed"] > 3.0  # a_c summed over the steps in contact
+    import pyarrow.parquet as pq
+
+    steps = pq.read_table(campaign / "steps" / "random" / "scene_0005.parquet").to_pylist()
+    assert len(steps) == STEPS
+    knobs = np.array([[r["fog_density"], r["precipitation"]] for r in steps])
+    assert np.abs(np.diff(knobs, axis=0)).max() <= 5.0 + 1e-9  # the 5% limit (range 0..100)
+    assert {"rule_collision", "rule_proximity", "rule_rss_deficit", "reward", "detections", "gt_boxes"} <= set(steps[0])
+    frames = sorted((campaign / "frames" / "random" / "scene_0005").glob("*.jpg"))
+    assert frames and int(frames[-1].stem.split("_")[1]) >= 49
+
+
+def test_same_seed_gives_identical_summary(tmp_path, campaign: Path, catalog: str) -> None:
+    again = tmp_path / "again"
+    run_campaign(_spec(catalog), again, workers=2, progress=False)
+    a = json.loads((campaign / "summary.json").read_text())
+    b = json.loads((again / "summary.json").read_text())
+    assert _stable(a) == _stable(b)
+
+
+def test_interrupted_campaign_resumes_without_duplicates(tmp_path, campaign: Path, catalog: str) -> None:
+    folder = tmp_path / "resumed"
+    shutil.copytree(campaign, folder)
+    (folder / "episodes" / "random" / "scene_0005.json").unlink()  # as if killed during that episode
+    kept = folder / "episodes" / "sunny" / "scene_0005.json"
+    before = kept.stat().st_mtime_ns
+    summary = run_campaign(_spec(catalog), folder, resume=True, progress=False)
+    assert kept.stat().st_mtime_ns == before  # finished episodes are not redone
+    assert json.loads((folder / "run_time.json").read_text())["episodes_run"] == 1
+    original = json.loads((campaign / "summary.json").read_text())
+    assert summary["policies"] == original["policies"]
+    with pytest.raises(UserInputError, match="other settings \\(steps\\)"):
+        run_campaign(_spec(catalog, steps=50), folder, resume=True, progress=False)
+    with pytest.raises(UserInputError, match="exists; pass --resume"):
+        run_campaign(_spec(catalog), folder, progress=False)
+
+
+def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path) -> None:
+    record = campaign / "records" / "random_scene_0005.json"
+    rc = main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"])
+    assert rc == 0
+    rep = json.loads((tmp_path / "r" / "replay.json").read_text())
+    assert rep["reproduced"] and rep["first_collision_step"] == 49
+    assert rep["violations"] == json.loads(record.read_text())["violations"]
+    assert (tmp_path / "r" / "replay.gif").stat().st_size > 10_000
+    assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"]) == 2  # no overwrite
+
+
+def test_record_of_another_schema_version_is_refused(tmp_path, campaign: Path, capsys) -> None:
+    rec = json.loads((campaign / "records" / "random_scene_0005.json").read_text())
+    rec["version"] = 99
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(rec))
+    assert main(["replay", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "schema version 99" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fmt", ["yolo", "coco"])
+def test_export_writes_valid_labels(tmp_path, campaign: Path, fmt: str) -> None:
+    out = tmp_path / fmt
+    assert main(["export", str(campaign), "--format", fmt, "--out", str(out)]) == 0
+    meta = [json.loads(line) for line in (out / "metadata.jsonl").read_text().splitlines()]
+    assert len(meta) == len(list((out / "images").glob("*.jpg"))) > 0
+    assert all(m["failure_mode"] == "non_detection" and 0 <= m["weather"]["fog_density"] <= 100 for m in meta)
+    w, h = 320, 240
+    if fmt == "yolo":
+        rows = [line.split() for p in (out / "labels").glob("*.txt") for line in p.read_text().splitlines()]
+        assert rows
+        for cls, cx, cy, bw, bh in rows:
+            cx, cy, bw, bh = map(float, (cx, cy, bw, bh))
+            assert cls == "0" and 0 <= cx - bw / 2 + 1e-6 and cx + bw / 2 <= 1 + 1e-6
+            assert 0 <= cy - bh / 2 + 1e-6 and cy + bh / 2 <= 1 + 1e-6 and bw > 0 and bh > 0
+    else:
+        coco = json.loads((out / "annotations.json").read_text())
+        assert [c["name"] for c in coco["categories"]] == ["vehicle"]
+        ids = {im["id"] for im in coco["images"]}
+        for a in coco["annotations"]:
+            x, y, bw, bh = a["bbox"]
+            assert a["image_id"] in ids and a["category_id"] == 1
+            assert x >= 0 and y >= 0 and x + bw <= w + 0.01 and y + bh <= h + 0.01 and bw > 0 and bh > 0
+    assert main(["export", str(campaign), "--format", fmt, "--out", str(out)]) == 2  # no overwrite
+
+
+def test_report_builds_and_refuses_to_overwrite(tmp_path, campaign: Path) -> None:
+    out = tmp_path / "report.html"
+    assert main(["report", str(campaign), "--out", str(out)]) == 0
+    text = out.read_text()
+    for section in ("Violations by policy", "Failure modes", "Non-detection", "Knob trajectories", "Per scene"):
+        assert section in text
+    assert text.count("data:image/png;base64") >= 3 and "data:image/jpeg;base64" in text
+    assert main(["report", str(campaign), "--out", str(out)]) == 2
+    assert main(["report", str(campaign), "--out", str(out), "--force"]) == 0
+
+
+def test_report_of_a_half_finished_campaign_says_what_is_missing(tmp_path, campaign: Path) -> None:
+    folder = tmp_path / "half"
+    shutil.copytree(campaign, folder)
+    (folder / "episodes" / "sunny" / "scene_0004.json").unlink()
+    (folder / "report.html").unlink(missing_ok=True)
+    assert main(["report", str(folder)]) == 0
+    assert "not finished: missing episodes {'sunny': 1}" in (folder / "report.html").read_text()
+    empty = tmp_path / "empty"
+    shutil.copytree(campaign, empty)
+    shutil.rmtree(empty / "episodes")
+    assert main(["report", str(empty), "--out", str(tmp_path / "x.html")]) == 2
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--policies", "sunny,bogus"], "unknown policy 'bogus'; allowed: sunny, random, agent, cmaes"),
+        (["--policies", "agent"], "policy 'agent' needs --agent"),
+        (["--policies", "sunny", "--agent", "nowhere"], "--agent 'nowhere' does not exist"),
+        (["--policies", "sunny", "--scenes", "0"], "--scenes = 0 must be in 1..12"),
+        (["--policies", "cmaes", "--search-budget", "1"], "--search-budget = 1 must be >= 2"),
+    ],
+)
+def test_evaluate_bad_input_exits_2(tmp_path, catalog: str, capsys, argv: list[str], message: str) -> None:
+    rc = main(["evaluate", "--catalog", catalog, "--out", str(tmp_path / "e"), "--quiet", *argv])
+    assert rc == 2
+    assert message in capsys.readouterr().err
+
+
+def test_agent_and_search_policies(tmp_path, catalog: str) -> None:
+    """A (freshly initialised) PPO agent plays from its run folder; CMA-ES spends its budget and keeps its
+    best episode."""
+    from stable_baselines3 import PPO
+
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.training.config import RunConfig
+
+    run = tmp_path / "run"
+    run.mkdir()
+    cfg = RunConfig(env=EnvConfig(catalog=catalog, episode_steps=20, system="blind"))
+    (run / "config.toml").write_text(cfg.to_toml())
+    env = GenesisEnv(cfg.env)
+    PPO("CnnPolicy", env, n_steps=16, batch_size=8, seed=0, device="cpu").save(run / "agent.zip")
+    env.close()
+    out = tmp_path / "eval"
+    rc = main(["evaluate", "--agent", str(run), "--policies", "agent,cmaes", "--catalog", catalog, "--scenes", "1",
+               "--steps", "20", "--search-budget", "4", "--out", str(out), "--quiet", "--no-report"])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["policies"]["agent"]["sim_steps"] == 20
+    assert summary["policies"]["cmaes"]["sim_steps"] == 4 * 20
+    row = json.loads(next((out / "episodes" / "cmaes").glob("*.json")).read_text())
+    assert row["return"] == pytest.approx(max(row["extra"]["search_returns"]), abs=1e-3)
+    assert "agent_vs_cmaes" in summary["comparisons"]
+    assert os.path.isfile(out / "campaign.json")
