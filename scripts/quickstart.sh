@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The main job on the embedded simulator: set up, generate both scene catalogs (the paper's counts),
-# render the showcase pictures, drive the system under test in clear weather and in fog, and train a
-# small weather agent. Outputs go to out/quickstart/.
+# render the showcase pictures, drive the system under test in clear weather and in fog, train a small
+# weather agent, evaluate it against the sunny and random baselines on held-out highway scenes and write
+# the report. Outputs go to out/quickstart/ (about 10 minutes on 2 CPU cores).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -18,4 +19,7 @@ mkdir -p "$OUT"
     --out "$OUT/drive_fog" --force --quiet
 # a small adversarial weather agent (configs/paper.toml is the paper's full schedule)
 .venv/bin/genesis-rl train --config configs/quickstart.toml --out "$OUT/run" --force
-echo "[quickstart] done: $OUT"
+# evaluate it on held-out scenes of the test town against the baselines; writes report.html
+.venv/bin/genesis-rl evaluate --agent "$OUT/run" --catalog "$OUT/highway_scenes.json" --scenes 10 --steps 256 \
+    --policies sunny,random,agent --workers 2 --out "$OUT/run/eval" --force
+echo "[quickstart] done. Report: $OUT/run/eval/report.html"
