@@ -281,6 +281,15 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
     if knob_fig:
         h.append(f"<img src='{knob_fig}'>")
 
+    # training curve of the agent, when its run folder is at hand
+    if spec.get("agent"):
+        from genesis_rl.training.curves import plot_learning_curve
+
+        agent = Path(spec["agent"])
+        fig = plot_learning_curve(agent.parent if agent.suffix == ".zip" else agent)
+        if fig is not None:
+            h.append(f"<h2>Training of the agent</h2><img src='{_png(fig)}'>")
+
     # 5. per-scene table
     h.append("<h2>4. Per scene</h2><p class=meta>collision / proximity violation; red: a collision, with its "
              "failure mode.</p><table><tr><th class=l>scene</th>" + "".join(f"<th>{p}</th>" for p in rows) + "</tr>")
