@@ -40,6 +40,11 @@ def test_seen_only_at_the_end_is_delayed_detection() -> None:
     assert _mode([False] * 40 + [True] * 50) == "detected"
 
 
+def test_detected_then_lost_before_impact_is_lost_detection() -> None:
+    assert _mode([True] * 60 + [False] * 20) == "lost_detection"
+    assert _mode([True] * 60 + [False] * 10) == "detected"  # 0.5 s dropout: under min_blind_s
+
+
 def test_out_of_view_and_detected() -> None:
     assert _mode([None] * 30) == "out_of_view"
     assert _mode([None] * 10 + [True] * 50) == "detected"
@@ -149,6 +154,12 @@ def test_interrupted_campaign_resumes_without_duplicates(tmp_path, campaign: Pat
         run_campaign(_spec(catalog, steps=50), folder, resume=True, progress=False)
     with pytest.raises(UserInputError, match="exists; pass --resume"):
         run_campaign(_spec(catalog), folder, progress=False)
+    not_a_campaign = tmp_path / "run"
+    not_a_campaign.mkdir()
+    (not_a_campaign / "agent.zip").write_text("x")
+    with pytest.raises(UserInputError, match="not a campaign folder .* refusing to delete it"):
+        run_campaign(_spec(catalog), not_a_campaign, force=True, progress=False)
+    assert (not_a_campaign / "agent.zip").is_file()
 
 
 def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path) -> None:
@@ -160,6 +171,18 @@ def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path) -> 
     assert rep["violations"] == json.loads(record.read_text())["violations"]
     assert (tmp_path / "r" / "replay.gif").stat().st_size > 10_000
     assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"]) == 2  # no overwrite
+
+
+def test_replay_of_the_builtin_system_is_bit_identical(tmp_path, catalog: str) -> None:
+    """The builtin system reads the camera, so this catches renderer or detector state leaking from one
+    episode into the next: the second scene's episode is replayed alone in a fresh backend."""
+    folder = tmp_path / "builtin"
+    spec = _spec(catalog, policies=("random",), scenes=2, steps=40, env={"system": "builtin"}, records="all")
+    run_campaign(spec, folder, progress=False)
+    second = sorted((folder / "records").glob("*.json"))[-1]
+    assert main(["replay", str(second), "--out", str(tmp_path / "r"), "--quiet", "--no-gif"]) == 0
+    rep = json.loads((tmp_path / "r" / "replay.json").read_text())
+    assert rep["reproduced"] and rep["steps_identical"]
 
 
 def test_record_of_another_schema_version_is_refused(tmp_path, campaign: Path, capsys) -> None:
@@ -229,6 +252,7 @@ def test_report_of_a_half_finished_campaign_says_what_is_missing(tmp_path, campa
         (["--policies", "sunny", "--agent", "nowhere"], "--agent 'nowhere' does not exist"),
         (["--policies", "sunny", "--scenes", "0"], "--scenes = 0 must be in 1..12"),
         (["--policies", "cmaes", "--search-budget", "1"], "--search-budget = 1 must be >= 2"),
+        (["--policies", "sunny", "--seed", "-1"], "--seed = -1 must be >= 0"),
     ],
 )
 def test_evaluate_bad_input_exits_2(tmp_path, catalog: str, capsys, argv: list[str], message: str) -> None:

@@ -54,6 +54,7 @@ class CampaignSpec:
     agent: str | None = None  # run folder or .zip of the trained agent
     env: dict[str, Any] = field(default_factory=dict)  # EnvConfig fields (from the agent's run)
     options: dict[str, Any] = field(default_factory=dict)  # policy options (search_budget, ...)
+    records: str = "failures"  # edge-case records for: failures (collision or proximity violation), all
     frames_before: int = 40  # steps of camera frames kept before the first collision
     frames_after: int = 6
     frame_stride: int = 2
@@ -167,7 +168,7 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     row["seconds"] = round(seconds, 2)
     for step, rgb in sorted(outcome.frames.items()):
         _write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
-    if row["collision"] > 0 or row["proximity"] > 0:
+    if spec.records == "all" or row["collision_events"] > 0 or row["collision"] > 0 or row["proximity"] > 0:
         record = make_record(spec, runner, policy, scene, episode_seed, records, row)
         save_record(folder / "records" / f"{policy}_{name}.json", record)
         row["record"] = f"records/{policy}_{name}.json"
@@ -213,6 +214,13 @@ def episode_row(policy: str, scene: int, episode_seed: int, outcome: EpisodeOutc
 
 
 # -- the campaign ---------------------------------------------------------------------------------------
+def run_folder_of(agent: Path) -> Path:
+    """The training run folder of ``--agent``: a folder, its agent.zip, or a checkpoint inside it."""
+    if agent.suffix != ".zip":
+        return agent
+    return agent.parent.parent if agent.parent.name == "checkpoints" else agent.parent
+
+
 def env_settings_for(agent: str | None, config: str | None, system: str | None) -> dict[str, Any]:
     """The env settings policies play under: the trained agent's own (so its observation matches), else a
     config file's [env], else the defaults; ``system`` overrides the system under test."""
@@ -221,8 +229,7 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None) 
     env: dict[str, Any] = {}
     if agent:
         run = Path(agent)
-        run_dir = run.parent.parent if run.suffix == ".zip" and run.parent.name == "checkpoints" else (
-            run.parent if run.suffix == ".zip" else run)
+        run_dir = run_folder_of(run)
         cfg_path = run_dir / "config.toml"
         if not run.exists():
             raise UserInputError(f"--agent '{agent}' does not exist")
@@ -235,7 +242,44 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None) 
         env["system"] = system
     for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps"):
         env.pop(key, None)  # the campaign decides these
+    env["terminate_on_collision"] = False  # the protocol drives every episode for its full length
     return env
+
+
+def check_spec(spec: CampaignSpec) -> None:
+    """Everything that can be checked before a folder is touched: policies, their options, the agent."""
+    from genesis_rl.evaluation.policies import load_agent
+
+    if spec.steps < 1:
+        raise UserInputError(f"--steps = {spec.steps} must be >= 1")
+    if spec.records not in ("failures", "all"):
+        raise UserInputError(f"records = '{spec.records}' is unknown; allowed: failures, all")
+    for name in spec.policies:
+        cls = resolve_policy(name)
+        if cls.needs_agent and not spec.agent:
+            raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
+        if not cls.needs_agent:
+            cls(PolicyContext(action_dim=1, seed=spec.seed, options={**spec.options, "steps": spec.steps}))
+    if any(resolve_policy(p).needs_agent for p in spec.policies):
+        load_agent(Path(spec.agent) if spec.agent else None)
+
+
+def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
+    """What must not change between a campaign and its resumption besides the spec: the package version,
+    the agent's file and the system under test (class, weights hash)."""
+    from genesis_rl.perception.detector import file_sha256
+    from genesis_rl.system.protocol import load_system
+
+    agent_sha = None
+    if spec.agent:
+        path = Path(spec.agent)
+        found = next((p for p in ([path] if path.suffix == ".zip" else [path / "agent.zip",
+                                                                          path / "checkpoints" / "last.zip"])
+                      if p.is_file()), None)
+        agent_sha = file_sha256(found) if found else None
+    system = load_system(spec.env.get("system", "builtin"), **spec.env.get("system_kwargs", {}))
+    return {"package_version": __version__, "agent_sha256": agent_sha,
+            "system": json.loads(json.dumps(system.identity(), default=str))}
 
 
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
@@ -243,17 +287,17 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
     """Create (or reopen) the campaign folder; return the tasks still to run."""
     from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, catalog_or_generate
 
-    for name in spec.policies:
-        cls = resolve_policy(name)
-        if cls.needs_agent and not spec.agent:
-            raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
-    if spec.steps < 1:
-        raise UserInputError(f"--steps = {spec.steps} must be >= 1")
+    check_spec(spec)
     meta = folder / "campaign.json"
+    identity = campaign_identity(spec)
     if resume:
         if not meta.is_file():
             raise UserInputError(f"--resume: '{folder}' is not a campaign folder (no campaign.json)")
         saved = json.loads(meta.read_text())
+        changed = sorted(k for k in identity if saved.get("identity", {}).get(k) != identity[k])
+        if changed:
+            raise UserInputError(f"--resume: {', '.join(changed)} changed since the campaign in '{folder}' began "
+                                 "(results would mix); pass --force to start over")
         now = json.loads(json.dumps(spec.to_json()))
         if saved.get("spec") != now:
             diff = sorted(k for k in now if saved.get("spec", {}).get(k) != now[k])
@@ -261,9 +305,13 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
                                  f"({', '.join(diff)}); pass the same arguments, or --force to start over")
         pairs = [tuple(p) for p in saved["scenes"]]
     else:
-        if folder.exists() and any(folder.iterdir()) and not force:
-            raise UserInputError(f"campaign folder '{folder}' exists; pass --resume to continue it or --force "
-                                 "to replace it")
+        if folder.exists() and any(folder.iterdir()):
+            if not force:
+                raise UserInputError(f"campaign folder '{folder}' exists; pass --resume to continue it or --force "
+                                     "to replace it")
+            if not (folder / "campaign.json").is_file():
+                raise UserInputError(f"--force: '{folder}' is not a campaign folder (no campaign.json); refusing to "
+                                     "delete it (is it a training run? campaigns go to RUN/eval)")
         count = DEFAULT_COUNTS.get(spec.map, 1)
         catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)
         pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
@@ -275,6 +323,7 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
 
         atomic_write_json(meta, {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION, "package_version": __version__,
                                  "git_commit": git_commit(), "spec": spec.to_json(), "scenes": pairs,
+                                 "identity": identity,
                                  "catalog": {"map": catalog.map, "seed": catalog.seed,
                                              "scenes": len(catalog.scenes)},
                                  "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
@@ -291,13 +340,7 @@ def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool
 
     if workers < 1:
         raise UserInputError(f"--workers = {workers} must be >= 1")
-    tasks = prepare_campaign(spec, folder, force, resume, progress)
-    # policies are built before any episode runs, so a bad agent fails at once, not in a worker
-    probe = [resolve_policy(p) for p in spec.policies]
-    if any(c.needs_agent for c in probe):
-        from genesis_rl.evaluation.policies import load_agent
-
-        load_agent(Path(spec.agent) if spec.agent else None)
+    tasks = prepare_campaign(spec, folder, force, resume, progress)  # checks policies and agent first
     t0 = time.perf_counter()
     init_args = (spec.to_json(), str(folder), 1)
     bar = tqdm(total=len(tasks), desc="evaluate", unit="episode", disable=not progress)

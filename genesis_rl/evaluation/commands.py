@@ -22,15 +22,26 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         resolve_policy(p)
     if any(resolve_policy(p).needs_agent for p in policies) and not args.agent:
         raise UserInputError("policy 'agent' needs --agent runs/NAME (a run folder of genesis-rl train)")
+    for flag in ("seed", "catalog_seed"):
+        if getattr(args, flag) < 0:
+            raise UserInputError(f"--{flag.replace('_', '-')} = {getattr(args, flag)} must be >= 0")
+    if args.search_segments < 1:
+        raise UserInputError(f"--search-segments = {args.search_segments} must be >= 1")
     if args.search_budget < 2:
         raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
     agent = str(Path(args.agent)) if args.agent else None
     env = env_settings_for(agent, args.config, args.system)
     spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
+                        records=args.records,
                         options={"search_budget": args.search_budget, "search_segments": args.search_segments})
-    out = Path(args.out) if args.out else (Path(args.agent) / "eval" if args.agent else None)
-    if out is None:
+    if args.out:
+        out = Path(args.out)
+    elif args.agent:
+        from genesis_rl.evaluation.campaign import run_folder_of
+
+        out = run_folder_of(Path(args.agent)) / "eval"
+    else:
         raise UserInputError("--out is required when no --agent is given")
     summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
                            progress=not args.quiet)
@@ -72,7 +83,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         frames = [annotate_frame(result["frames"][i], result["records"][i])
                   for i in range(lo, min(len(result["frames"]), hit + 20), 2)]
         write_gif(out / "replay.gif", frames, fps=10)
-    report = {"record": str(args.record), "reproduced": result["reproduced"], "violations": result["violations"],
+    report = {"record": str(args.record), "reproduced": result["reproduced"],
+              "steps_identical": result["steps_identical"], "violations": result["violations"],
               "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
               "first_collision_step": next((r["step"] for r in result["records"] if r["collision"]), None)}
     atomic_write_json(out / "replay.json", report, indent=2)
@@ -107,6 +119,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
     ev.add_argument("--search-budget", type=int, default=8, help="episodes per scene a search baseline may spend")
     ev.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
+    ev.add_argument("--records", default="failures", choices=["failures", "all"],
+                    help="write replayable edge-case records for failing episodes only, or for all")
     ev.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     ev.add_argument("--out", default=None, help="campaign folder (default: AGENT/eval)")
     ev.add_argument("--resume", action="store_true", help="continue an interrupted campaign in --out")

@@ -46,20 +46,22 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     if fmt not in FORMATS:
         raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
     meta, rows = load_campaign(folder)
-    frames = [f for f in _frames(folder) if policies is None or f[0] in policies]
+    unknown = sorted(set(policies or []) - set(rows))
+    if unknown:
+        raise UserInputError(f"--policies: {unknown} not in this campaign; allowed: {', '.join(rows)}")
+    modes = {(p, e["scene"]): e["failure_mode"] for p, eps in rows.items() for e in eps}
+    # only finished episodes (a summary row exists): an interrupted one may have left frames behind
+    frames = [f for f in _frames(folder) if (policies is None or f[0] in policies) and (f[0], f[1]) in modes]
     if not frames:
         raise UserInputError(f"campaign '{folder}' kept no failure frames (no collisions"
                              f"{' for ' + ','.join(policies) if policies else ''}); nothing to export")
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise UserInputError(f"output '{out}' exists; pass --force to replace it")
-        shutil.rmtree(out)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise UserInputError(f"output '{out}' exists; pass --force to replace it")
     tmp = out.with_name(f".{out.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
     if fmt == "yolo":
         (tmp / "labels").mkdir()
-    modes = {(p, e["scene"]): e["failure_mode"] for p, eps in rows.items() for e in eps}
     steps_cache: dict[tuple[str, int], dict[int, dict[str, Any]]] = {}
     images, annotations, metadata = [], [], []
     n_labels = n_ignored = 0
@@ -114,7 +116,7 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     result = {"out": str(out), "format": fmt, "images": len(frames), "labels": n_labels, "ignored_boxes": n_ignored,
               "episodes": len({(f[0], f[1]) for f in frames})}
     atomic_write_json(tmp / "export.json", result, indent=2)
-    if out.exists():
-        out.rmdir()
+    if out.exists():  # replaced only now that the new export is complete
+        shutil.rmtree(out)
     tmp.rename(out)
     return result

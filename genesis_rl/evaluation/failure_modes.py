@@ -10,6 +10,8 @@ IoU's criteria: within range, visible enough, tall enough) and whether a detecti
   keeps losing it, so the controller's gap estimate jumps.
 * ``delayed_detection``: it was in view but unmatched for at least ``min_blind_s`` seconds, and the final
   unbroken detection run began under ``late_s`` seconds before the impact: seen, but too late to stop.
+* ``lost_detection``: it was detected earlier but then missed, while in view, for at least
+  ``min_blind_s`` seconds right before the impact: the system lost it.
 * ``detected``: it was seen in time; the failure lies in control (or the scene), not perception.
 * ``out_of_view``: it was never in view in the window (a side or rear impact the camera cannot see).
 
@@ -26,7 +28,8 @@ import numpy as np
 
 from genesis_rl.system.matching import IN_VIEW_RANGE, MIN_BOX_HEIGHT, MIN_VISIBLE_FRACTION, iou_matrix
 
-FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "detected", "out_of_view")
+FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "lost_detection", "detected",
+                 "out_of_view")
 MATCH_IOU = 0.3
 
 
@@ -80,6 +83,9 @@ def classify_timeline(timeline: Sequence[bool | None], dt: float,
         return {"mode": "intermittent_detection", **info}
     # the last unbroken run of detections (over all steps: an out-of-view step breaks it)
     last_on = max(i for i, t in enumerate(timeline) if t)
+    missed_after = sum(1 for t in timeline[last_on + 1:] if t is False)
+    if missed_after * dt >= th.min_blind_s:
+        return {"mode": "lost_detection", **info, "missed_before_impact_s": round(missed_after * dt, 3)}
     onset = last_on
     while onset > 0 and timeline[onset - 1]:
         onset -= 1

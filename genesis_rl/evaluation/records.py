@@ -24,6 +24,23 @@ RECORD_SCHEMA = "genesis-rl/edge-case"
 RECORD_VERSION = 1
 
 
+DIGEST_FIELDS = ("step", "ego_speed", "throttle", "brake", "steer", "true_lead_distance", "perceived_lead_distance",
+                 "iou", "collision", "collision_speed", "detections")
+
+
+def step_digest(records: list[dict[str, Any]]) -> str:
+    """SHA-256 over every step's state, controls, detections and rule terms: replay must match it bit for
+    bit, not only in the summed violations."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for r in records:
+        row = {k: r[k] for k in DIGEST_FIELDS}
+        row.update({k: v for k, v in r.items() if k.startswith("rule_")})
+        h.update(json.dumps(row, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
 def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: int,
                 records: list[dict[str, Any]], row: dict[str, Any]) -> dict[str, Any]:
     """The record of one episode played by a ``CampaignRunner``."""
@@ -48,6 +65,7 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
         "knobs": list(KNOBS),
         "schedule": [[r[k] for k in KNOBS] for r in records],
         "violations": env.rulebook.violations(records),
+        "step_digest": step_digest(records),
         "failure": row["failure"],
         "summary": {k: row[k] for k in ("collision", "proximity", "rss_deficit", "collision_events",
                                         "first_collision_step", "failure_mode", "mean_iou")},
@@ -133,7 +151,9 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
         backend.close()
     violations = rulebook.violations(records)
     recorded = rec["violations"]
-    reproduced = set(violations) == set(recorded) and all(
+    digest = step_digest(records)
+    same_steps = rec.get("step_digest") in (None, digest)
+    reproduced = same_steps and set(violations) == set(recorded) and all(
         math.isclose(violations[k], recorded[k], rel_tol=1e-9, abs_tol=1e-9) for k in recorded)
     return {"records": records, "frames": frames, "violations": violations, "recorded_violations": recorded,
-            "reproduced": reproduced, "identity": now_id}
+            "reproduced": reproduced, "steps_identical": same_steps, "step_digest": digest, "identity": now_id}

@@ -28,7 +28,8 @@ from genesis_rl.io_utils import atomic_write_text
 
 POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8"}
 MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Intermittent detection",
-               "delayed_detection": "Delayed detection", "detected": "Detected in time (control failure)",
+               "delayed_detection": "Delayed detection", "lost_detection": "Lost before impact",
+               "detected": "Detected in time (control failure)",
                "out_of_view": "Hit vehicle out of view"}
 
 
@@ -62,9 +63,10 @@ def fig_comparison(summary: dict[str, Any]) -> str:
                ("rss_deficit", "RSS deficit\n(summed over steps, m)")]
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     for ax, (m, title) in zip(axes, metrics, strict=True):
-        means = [summary["policies"][p][m]["mean"] for p in pols]
-        lo = [summary["policies"][p][m]["mean"] - summary["policies"][p][m]["ci_low"] for p in pols]
-        hi = [summary["policies"][p][m]["ci_high"] - summary["policies"][p][m]["mean"] for p in pols]
+        st = [summary["policies"][p][m] for p in pols]
+        means = [s["mean"] or 0.0 for s in st]
+        lo = [(s["mean"] - s["ci_low"]) if s["n"] else 0.0 for s in st]
+        hi = [(s["ci_high"] - s["mean"]) if s["n"] else 0.0 for s in st]
         ax.bar(pols, means, yerr=[lo, hi], capsize=5, color=[_color(p, k) for k, p in enumerate(pols)],
                edgecolor="black", linewidth=0.6)
         ax.set_title(title, fontsize=10)
@@ -186,8 +188,8 @@ th{background:#f6f6f6}td.l,th.l{text-align:left}img{max-width:100%}.card{margin:
 """
 
 
-def _fmt_ci(s: dict[str, float]) -> str:
-    if s["n"] == 0 or not np.isfinite(s["mean"]):
+def _fmt_ci(s: dict[str, Any]) -> str:
+    if not s["n"] or s["mean"] is None:
         return "–"
     return f"{s['mean']:.2f} <span class=meta>[{s['ci_low']:.2f}, {s['ci_high']:.2f}]</span>"
 
@@ -208,7 +210,7 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
     h: list[str] = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL report</title>"
                     f"<style>{CSS}</style></head><body>"]
     h.append("<h1>GENESIS-RL evaluation report</h1>")
-    h.append(f"<p class=meta>campaign <code>{html.escape(str(folder))}</code> · map <b>{spec['map']}</b> · "
+    h.append(f"<p class=meta>campaign <code>{html.escape(str(folder))}</code> · map <b>{summary['map']}</b> · "
              f"{summary['scenes']} scenes (seed {spec['seed']}) · {spec['steps']} steps each · agent "
              f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {meta.get('package_version')} "
              f"({str(meta.get('git_commit'))[:10]})</p>")
@@ -238,9 +240,10 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
             for m in ("collision", "proximity", "total", "rss_deficit"):
                 c = comp[m]
                 d = c["difference"]
-                cls = "good" if d["ci_low"] > 0 else ("bad" if d["ci_high"] < 0 else "")
+                cls = "" if not d["n"] else ("good" if d["ci_low"] > 0 else ("bad" if d["ci_high"] < 0 else ""))
+                pv = "–" if c["p_value"] is None else f"{c['p_value']:.3f}"
                 h.append(f"<tr><td class=l>{name}</td><td class=l>{m}</td><td class={cls}>{_fmt_ci(d)}</td>"
-                         f"<td>{c['wins']}/{c['ties']}/{c['losses']}</td><td>{c['p_value']:.3f}</td></tr>")
+                         f"<td>{c['wins']}/{c['ties']}/{c['losses']}</td><td>{pv}</td></tr>")
         h.append("</table>")
 
     # 2-3. failure modes
@@ -283,10 +286,10 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
 
     # training curve of the agent, when its run folder is at hand
     if spec.get("agent"):
+        from genesis_rl.evaluation.campaign import run_folder_of
         from genesis_rl.training.curves import plot_learning_curve
 
-        agent = Path(spec["agent"])
-        fig = plot_learning_curve(agent.parent if agent.suffix == ".zip" else agent)
+        fig = plot_learning_curve(run_folder_of(Path(spec["agent"])))
         if fig is not None:
             h.append(f"<h2>Training of the agent</h2><img src='{_png(fig)}'>")
 

@@ -16,11 +16,11 @@ N_BOOT = 10_000
 
 
 def bootstrap_mean_ci(values: Sequence[float], seed: int, n_boot: int = N_BOOT,
-                      level: float = 0.95) -> dict[str, float | int]:
-    """Mean and percentile bootstrap CI of the mean."""
+                      level: float = 0.95) -> dict[str, float | int | None]:
+    """Mean and percentile bootstrap CI of the mean (None when there are no values: JSON has no NaN)."""
     x = np.asarray(values, np.float64)
     if len(x) == 0:
-        return {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan"), "n": 0}
+        return {"mean": None, "ci_low": None, "ci_high": None, "n": 0}
     rng = np.random.default_rng(seed)
     means = x[rng.integers(0, len(x), (n_boot, len(x)))].mean(axis=1)
     lo, hi = np.quantile(means, [(1 - level) / 2, 1 - (1 - level) / 2])
@@ -34,7 +34,7 @@ def paired_comparison(a: Sequence[float], b: Sequence[float], seed: int, n_boot:
     out: dict[str, Any] = {"difference": bootstrap_mean_ci(d, seed, n_boot)}
     out.update(wins=int((d > 1e-9).sum()), ties=int((np.abs(d) <= 1e-9).sum()), losses=int((d < -1e-9).sum()))
     if len(d) == 0:
-        out["p_value"] = float("nan")
+        out["p_value"] = None
         return out
     rng = np.random.default_rng(seed + 1)
     signs = rng.choice([-1.0, 1.0], size=(n_boot, len(d)))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -45,10 +46,12 @@ def summarize_campaign(folder: Path, write: bool = True) -> dict[str, Any]:
     seed = int(meta["spec"]["seed"])
     expected = len(meta["scenes"])
     policies: dict[str, Any] = {}
-    for k, (policy, eps) in enumerate(rows.items()):
+    for policy, eps in rows.items():
         stats: dict[str, Any] = {"episodes": len(eps), "missing": expected - len(eps)}
         for j, m in enumerate(METRICS):
-            stats[m] = bootstrap_mean_ci([e[m] for e in eps if e[m] is not None], seed + 101 * k + j)
+            # seeded by the policy's name, so its interval does not depend on the order of --policies
+            stats[m] = bootstrap_mean_ci([e[m] for e in eps if e[m] is not None],
+                                         seed + zlib.crc32(policy.encode()) % 100_003 + j)
         stats["rss_deficit_sum"] = round(sum(e["rss_deficit"] for e in eps), 3)
         stats["episodes_with_collision"] = sum(1 for e in eps if e["collision_events"] > 0)
         stats["collision_events"] = sum(e["collision_events"] for e in eps)
@@ -70,7 +73,8 @@ def summarize_campaign(folder: Path, write: bool = True) -> dict[str, Any]:
     complete = all(p["missing"] == 0 for p in policies.values())
     summary = {
         "campaign": str(folder), "complete": complete, "scenes": expected, "steps": meta["spec"]["steps"],
-        "map": meta["spec"]["map"], "seed": seed, "agent": meta["spec"].get("agent"),
+        "map": meta.get("catalog", {}).get("map", meta["spec"]["map"]), "seed": seed,
+        "agent": meta["spec"].get("agent"),
         "bootstrap": {"resamples": 10_000, "level": 0.95, "method": "percentile"},
         "failure_mode_thresholds": FailureModeThresholds().as_dict(),
         "policies": policies, "comparisons": comparisons,

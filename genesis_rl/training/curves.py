@@ -13,8 +13,14 @@ def read_episodes(run: Path) -> list[dict[str, float]]:
     path = Path(run) / "episodes.csv"
     if not path.is_file():
         return []
+    rows = []
     with path.open() as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        for row in csv.DictReader(f):
+            try:  # a run killed mid-write may leave a truncated last line
+                rows.append({k: float(v) for k, v in row.items() if k is not None})
+            except (TypeError, ValueError):
+                continue
+    return rows
 
 
 def plot_learning_curve(run: Path, window: int = 8) -> Any | None:
@@ -39,8 +45,10 @@ def plot_learning_curve(run: Path, window: int = 8) -> Any | None:
         k = min(window, len(y))
         return np.convolve(y, np.ones(k) / k, mode="valid")
 
-    panels = [("episode_reward", "episode reward"), ("violation_collision", "collision violation [m/s]"),
-              ("violation_proximity", "proximity violation [m/s]"), ("mean_iou", "mean IoU")]
+    panels = [(k, title) for k, title in (("episode_reward", "episode reward"),
+                                          ("violation_collision", "collision violation [m/s]"),
+                                          ("violation_proximity", "proximity violation [m/s]"),
+                                          ("mean_iou", "mean IoU")) if k in rows[0]]
     knobs = [k for k in rows[0] if k.startswith("mean_") and k != "mean_iou"]
     fig, axes = plt.subplots(1, len(panels) + 1, figsize=(4.0 * (len(panels) + 1), 3.2))
     for ax, (name, title) in zip(axes, panels, strict=False):
