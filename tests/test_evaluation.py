@@ -287,3 +287,18 @@ def test_agent_and_search_policies(tmp_path, catalog: str) -> None:
     assert row["return"] == pytest.approx(max(row["extra"]["search_returns"]), abs=1e-3)
     assert "agent_vs_cmaes" in summary["comparisons"]
     assert os.path.isfile(out / "campaign.json")
+
+
+def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path) -> None:
+    from genesis_rl.evaluation.summary import summarize_campaign
+
+    folder = tmp_path / "old"
+    shutil.copytree(campaign, folder)
+    path = folder / "episodes" / "random" / "scene_0005.json"
+    row = json.loads(path.read_text())
+    row.pop("labeller_version")
+    row["failure_mode"] = "detected"
+    path.write_text(json.dumps(row))
+    summary = summarize_campaign(folder)
+    assert json.loads(path.read_text())["failure_mode"] == "non_detection"
+    assert summary["policies"]["random"]["failure_modes"]["non_detection"] == 1

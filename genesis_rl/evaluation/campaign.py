@@ -32,7 +32,12 @@ import numpy as np
 
 from genesis_rl import __version__
 from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds, label_collision
+from genesis_rl.evaluation.failure_modes import (
+    FAILURE_MODES,
+    LABELLER_VERSION,
+    FailureModeThresholds,
+    label_collision,
+)
 from genesis_rl.evaluation.policies import EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
 
@@ -202,6 +207,7 @@ def episode_row(policy: str, scene: int, episode_seed: int, outcome: EpisodeOutc
         "collision_speed": round(failure["speed"], 3) if failure else 0.0,
         "failure_mode": failure["mode"] if failure else None,
         "failure": failure,
+        "labeller_version": LABELLER_VERSION,
         "min_gap": round(float(np.nanmin(gap)), 3) if np.isfinite(gap).any() else None,
         "mean_iou": round(float(np.mean([r["iou"] for r in recs])), 4) if recs else None,
         "return": round(outcome.total_reward, 4),

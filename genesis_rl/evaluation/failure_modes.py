@@ -31,6 +31,7 @@ from genesis_rl.system.matching import IN_VIEW_RANGE, MIN_BOX_HEIGHT, MIN_VISIBL
 FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "lost_detection", "detected",
                  "out_of_view")
 MATCH_IOU = 0.3
+LABELLER_VERSION = 2  # bumped when the rules or thresholds change: summaries relabel older episode rows
 
 
 @dataclass(frozen=True)

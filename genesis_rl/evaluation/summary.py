@@ -34,8 +34,26 @@ def load_campaign(folder: Path) -> tuple[dict[str, Any], dict[str, list[dict[str
     rows: dict[str, list[dict[str, Any]]] = {}
     for policy in meta["spec"]["policies"]:
         files = sorted((folder / "episodes" / policy).glob("scene_*.json"))
-        rows[policy] = [json.loads(f.read_text()) for f in files]
+        rows[policy] = [_current_labels(folder, policy, f) for f in files]
     return meta, rows
+
+
+def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
+    """An episode row, its collision relabelled (from its step Parquet) if an older labeller wrote it."""
+    from genesis_rl.evaluation.failure_modes import LABELLER_VERSION, label_collision
+
+    row = json.loads(path.read_text())
+    if row.get("labeller_version") == LABELLER_VERSION:
+        return row
+    if row.get("first_collision_step") is not None:
+        import pyarrow.parquet as pq
+
+        steps = folder / "steps" / policy / f"scene_{row['scene']:04d}.parquet"
+        failure = label_collision(pq.read_table(steps).to_pylist())
+        row.update(failure=failure, failure_mode=failure["mode"] if failure else None)
+    row["labeller_version"] = LABELLER_VERSION
+    atomic_write_json(path, row, indent=1)
+    return row
 
 
 def summarize_campaign(folder: Path, write: bool = True) -> dict[str, Any]:
