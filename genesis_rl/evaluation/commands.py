@@ -60,6 +60,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.report import build_report
 
+    if args.markdown:
+        from genesis_rl.evaluation.summary import summarize_campaign, summary_markdown
+
+        print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
+        return 0
     path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
     print(f"report: {path}")
     return 0
@@ -133,6 +138,7 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("campaign", help="campaign folder (genesis-rl evaluate --out)")
     rp.add_argument("--out", default=None, help="report file (default: CAMPAIGN/report.html)")
     rp.add_argument("--force", action="store_true", help="overwrite an existing report")
+    rp.add_argument("--markdown", action="store_true", help="print the summary tables as Markdown instead")
     rp.set_defaults(func=_cmd_report)
 
     rl = sub.add_parser("replay", help="re-run an edge-case record; check its violations; write a GIF")

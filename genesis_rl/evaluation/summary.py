@@ -106,3 +106,31 @@ def summarize_campaign(folder: Path, write: bool = True) -> dict[str, Any]:
             w.writerows(eps)
         atomic_write_text(folder / "episodes.csv", buf.getvalue())
     return summary
+
+
+def summary_markdown(summary: dict[str, Any]) -> str:
+    """The policy table and the paired comparisons as Markdown (for docs and issue notes)."""
+
+    def ci(s: dict[str, Any], digits: int = 2) -> str:
+        if not s["n"] or s["mean"] is None:
+            return "–"
+        return f"{s['mean']:.{digits}f} [{s['ci_low']:.{digits}f}, {s['ci_high']:.{digits}f}]"
+
+    lines = ["| policy | episodes | collision | proximity | total | RSS deficit / episode | RSS deficit summed | "
+             "episodes with collision | failure modes | mean IoU | sim steps |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for p, s in summary["policies"].items():
+        modes = ", ".join(f"{k} {v}" for k, v in s["failure_modes"].items() if v) or "–"
+        lines.append(f"| {p} | {s['episodes']} | {ci(s['collision'])} | {ci(s['proximity'])} | {ci(s['total'])} | "
+                     f"{ci(s['rss_deficit'])} | {s['rss_deficit_sum']:.1f} | {s['episodes_with_collision']} | "
+                     f"{modes} | {ci(s['mean_iou'], 3)} | {s['sim_steps']} |")
+    if summary["comparisons"]:
+        lines += ["", "| comparison | metric | mean difference [95% CI] | wins / ties / losses | p (sign-flip) |",
+                  "| --- | --- | --- | --- | --- |"]
+        for name, comp in summary["comparisons"].items():
+            for m in ("collision", "proximity", "total", "rss_deficit"):
+                c = comp[m]
+                pv = "–" if c["p_value"] is None else f"{c['p_value']:.4f}"
+                lines.append(f"| {name} | {m} | {ci(c['difference'])} | {c['wins']} / {c['ties']} / {c['losses']} "
+                             f"| {pv} |")
+    return "\n".join(lines) + "\n"
