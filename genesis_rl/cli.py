@@ -17,8 +17,23 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     from genesis_rl.lite.maps import MAP_NAMES
     from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, generate_catalog
 
-    if args.backend != "lite":
-        raise UserInputError(f"--backend '{args.backend}' is not available yet; allowed: lite")
+    if args.backend == "carla":
+        from genesis_rl.carla_backend.scenes import DEFAULT_COUNTS as CARLA_COUNTS
+        from genesis_rl.carla_backend.scenes import generate_catalog_from_server
+
+        count = args.count if args.count is not None else CARLA_COUNTS.get(args.map, 50)
+        if count < 1:
+            raise UserInputError(f"--count must be >= 1, got {count}")
+        out = Path(args.out)
+        ensure_writable(out, args.force)
+        t0 = time.perf_counter()
+        catalog = generate_catalog_from_server(args.map, count, args.seed, host=args.carla_host,
+                                               port=args.carla_port, timeout=args.carla_timeout,
+                                               progress=not args.quiet)
+        catalog.save(out)
+        print(json.dumps({"out": str(out), "map": args.map, "backend": "carla", "scenes": count,
+                          "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2)}))
+        return 0
     if args.map not in MAP_NAMES:
         raise UserInputError(f"--map '{args.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
     count = args.count if args.count is not None else DEFAULT_COUNTS[args.map]
@@ -61,6 +76,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     from genesis_rl.drive_cmd import drive_scenes, parse_scene_range, print_summary
     from genesis_rl.knobs import parse_weather
     from genesis_rl.scenes.lite_generator import catalog_or_generate
+    from genesis_rl.sim.factory import backend_from_args
     from genesis_rl.weather_schedule import load_schedule
 
     if args.steps < 1:
@@ -68,6 +84,8 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     if args.gif_stride < 1:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
     indices = parse_scene_range(args.scene)
+    if args.backend == "carla" and not args.catalog:
+        raise UserInputError("--backend carla needs --catalog: make one with genesis-rl scenes --backend carla")
     catalog = catalog_or_generate(args.catalog, args.map, max(indices) + 1, args.seed)
     parse_scene_range(args.scene, len(catalog.scenes))
     base = parse_weather(args.weather)
@@ -80,7 +98,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     summary = drive_scenes(catalog, indices, args.system, kwargs, base, schedule, args.steps, args.episode_seed,
                            Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
                            gif_stride=args.gif_stride, gif_from=args.gif_from, camera_size=(args.width, args.height),
-                           progress=not args.quiet)
+                           progress=not args.quiet, backend_factory=lambda: backend_from_args(args))
     print_summary(summary)
     return 0
 
@@ -105,6 +123,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for flag in ("system", "scenes", "catalog", "map"):
         if getattr(args, flag) is not None:
             env[flag] = getattr(args, flag)
+    if args.backend is not None:  # --backend carla --carla-host H ... override the config's [env] keys
+        env.update(backend=args.backend, carla_host=args.carla_host, carla_port=args.carla_port,
+                   carla_tm_port=args.carla_tm_port, carla_timeout=args.carla_timeout)
     tr: dict = {}
     for flag, key in (("envs", "envs"), ("steps", "total_timesteps"), ("seed", "seed")):
         if getattr(args, flag) is not None:
@@ -141,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="genesis-rl",
         description="GENESIS-RL: find natural edge cases for autonomous driving by turning the weather.",
     )
+    from genesis_rl.sim.factory import add_backend_arguments
+
     p.add_argument("--version", action="version", version=f"genesis-rl {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -148,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--map", default="urban", help="map name: urban (train) or highway (test)")
     sc.add_argument("--count", type=int, default=None, help="number of scenes (default: 1202 urban, 1199 highway)")
     sc.add_argument("--seed", type=int, default=0, help="catalog seed: the same seed gives the same catalog")
-    sc.add_argument("--backend", default="lite", help="simulator backend (lite)")
+    add_backend_arguments(sc)
     sc.add_argument("--out", required=True, help="output catalog file (.json)")
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
     sc.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -190,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF")
     dr.add_argument("--gif-from", type=int, default=0, help="first step shown in the GIF")
     dr.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_backend_arguments(dr)
     dr.set_defaults(func=_cmd_drive)
 
     tr = sub.add_parser("train", help="train the weather agent (SB3 PPO) against the system under test")
@@ -209,6 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--scenes", type=int, default=None, help="number of generated scenes (env.scenes)")
     tr.add_argument("--catalog", default=None, help="scene catalog file (env.catalog)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_backend_arguments(tr, default=None)
     tr.set_defaults(func=_cmd_train)
 
     from genesis_rl.perception.commands import add_detector_commands

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, ensure_writable
 from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Catalog, Scene
+
+if TYPE_CHECKING:
+    from genesis_rl.sim.interface import Backend
 
 
 def parse_scene_range(text: str, catalog_size: int | None = None) -> list[int]:
@@ -45,7 +49,9 @@ def drive_scenes(
     gif_from: int = 0,
     camera_size: tuple[int, int] = (320, 240),
     progress: bool = True,
+    backend_factory: Callable[[], Backend] | None = None,
 ) -> dict[str, Any]:
+    """Drive each scene; ``backend_factory`` makes the simulator (default: lite)."""
     from tqdm import tqdm
 
     from genesis_rl.drive import run_episode, write_telemetry
@@ -76,7 +82,7 @@ def drive_scenes(
         return schedule[step] if schedule is not None else base_weather
 
     rows = []
-    with LiteBackend() as backend:
+    with (backend_factory() if backend_factory else LiteBackend()) as backend:
         bar = tqdm(scene_indices, desc="scenes", unit="scene", disable=not progress or single)
         for i in bar:
             scene: Scene = catalog.scene(i)

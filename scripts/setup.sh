@@ -2,7 +2,8 @@
 # Set up GENESIS-RL in ./.venv on a fresh machine: idempotent, safe to re-run.
 # - torch: installs the CPU build torch==2.13.0 only where no torch is importable
 #   (a bare `torch` requirement would pull a multi-GB CUDA build); an existing torch is kept.
-# - the package itself in editable mode with the dev extra (pytest, ruff).
+# - the package itself in editable mode with the extras in GENESIS_EXTRAS (default: dev = pytest, ruff;
+#   scripts/test.sh adds carla, the CARLA client, for the offline CARLA tests).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY="${PYTHON:-python3}"
@@ -17,7 +18,7 @@ if ! "$VPY" -c "import torch" >/dev/null 2>&1; then
     "$VPY" -c "import torch" || { echo "[setup] torch install failed" >&2; exit 1; }
 fi
 echo "[setup] installing genesis-rl and its dependencies"
-"$VPY" -m pip install -q -e ".[dev]" 2>&1 | grep -v "is ignored: it is neither" || true
+"$VPY" -m pip install -q -e ".[${GENESIS_EXTRAS:-dev}]" 2>&1 | grep -v "is ignored: it is neither" || true
 "$VPY" -c "import genesis_rl, panda3d" || { echo "[setup] package install failed" >&2; exit 1; }
 # The offscreen renderer needs Mesa's EGL/GL drivers (present on Debian images with libegl-mesa0).
 if ! ldconfig -p 2>/dev/null | grep -q "libEGL_mesa"; then

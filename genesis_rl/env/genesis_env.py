@@ -47,6 +47,11 @@ class EnvConfig:
     rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2)
     reward: RewardConfig = field(default_factory=RewardConfig)
     terminate_on_collision: bool = False  # the paper runs every episode for its full length
+    backend: str = "lite"  # simulator: lite (embedded) or carla (a CARLA 0.9.16 server; needs `catalog`)
+    carla_host: str = "localhost"
+    carla_port: int = 2000  # RPC port
+    carla_tm_port: int = 8000  # traffic manager port
+    carla_timeout: float = 10.0  # [s] per client call
 
     def __post_init__(self) -> None:
         if self.episode_steps < 1:
@@ -58,6 +63,11 @@ class EnvConfig:
             raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
         KnobActionMapper(self.knobs, self.max_step_fraction, self.disabled_knobs)  # names, limits checked
         parse_weather(self.start_weather)
+        if self.backend not in ("lite", "carla"):
+            raise UserInputError(f"env.backend = '{self.backend}' is unknown; allowed: lite, carla")
+        if self.backend == "carla" and not self.catalog:
+            raise UserInputError("env.backend = 'carla' needs env.catalog: a catalog made on the server with "
+                                 "genesis-rl scenes --backend carla (see docs/carla.md)")
 
     @classmethod
     def field_names(cls) -> list[str]:
@@ -90,12 +100,13 @@ class GenesisEnv(gym.Env):
 
         self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map")
 
-        from genesis_rl.lite.backend import LiteBackend
+        from genesis_rl.sim.factory import make_backend
         from genesis_rl.sim.interface import CameraConfig
         from genesis_rl.system.protocol import load_system
 
         self.camera = CameraConfig(width=c.camera_width, height=c.camera_height)
-        self.backend = LiteBackend()
+        self.backend = make_backend(c.backend, carla_host=c.carla_host, carla_port=c.carla_port,
+                                    carla_tm_port=c.carla_tm_port, carla_timeout=c.carla_timeout)
         self.system = load_system(c.system, **c.system_kwargs)
 
         image = spaces.Box(0, 255, (c.obs_height, c.obs_width, 3), np.uint8)

@@ -1,0 +1,398 @@
+"""The CARLA backend: the simulator interface on a CARLA 0.9.16 server.
+
+One :class:`CarlaBackend` is one client connection (and its traffic manager port); each episode is a
+:class:`CarlaSimulation` that loads the scene's map if needed, switches the server to synchronous mode with a
+0.05 s fixed step (so the server waits for our ticks and sensor frames match ticks), seeds the traffic manager
+and puts it in synchronous mode (deterministic NPCs), spawns the scene and the ego's sensors, and on
+``destroy`` removes everything it spawned and restores the server's previous settings. ``destroy`` runs on
+any error during setup and, through the context manager, on any error during the episode: a client that dies
+with the server in synchronous mode would otherwise leave it frozen, waiting for ticks.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import warnings
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+
+from genesis_rl.carla_backend._carla import require_carla
+from genesis_rl.carla_backend.connection import CarlaServerLost, connect, guarded
+from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
+from genesis_rl.carla_backend.lead import lane_path, lead_on_path
+from genesis_rl.carla_backend.projection import ground_truth_boxes
+from genesis_rl.carla_backend.sensors import FrameQueue, bgra_to_rgb, decode_depth
+from genesis_rl.carla_backend.spawn import SpawnSpec, initial_velocity, plan_scene, spawn_commands
+from genesis_rl.carla_backend.weather import to_carla
+from genesis_rl.errors import UserInputError
+from genesis_rl.knobs import Weather
+from genesis_rl.scenes.catalog import Scene
+from genesis_rl.sim.interface import (
+    ActorState,
+    Backend,
+    CameraConfig,
+    Collision,
+    LeadInfo,
+    SensorFrame,
+    Simulation,
+    TickResult,
+    VehicleControl,
+)
+
+T = TypeVar("T")
+
+DEFAULT_HOST = "localhost"
+DEFAULT_PORT = 2000
+DEFAULT_TM_PORT = 8000
+DEFAULT_TIMEOUT = 10.0  # [s] per client call (a tick with 30 vehicles and two cameras takes well under 1 s)
+LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold server
+
+
+def map_basename(path: str) -> str:
+    """'/Game/Carla/Maps/Town05' or 'Carla/Maps/Town05' -> 'Town05'."""
+    return path.rstrip("/").rsplit("/", 1)[-1]
+
+
+def episode_seed(scene: Scene, seed: int) -> int:
+    """The traffic manager's seed: both the scene's and the episode's seed matter, as in the lite backend."""
+    return int(np.random.SeedSequence([scene.seed, int(seed)]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+class CarlaBackend(Backend):
+    """A connection to a CARLA server at ``host:port``; a dead or slow server fails here, with a message
+    naming host:port and how to start one (:class:`~genesis_rl.carla_backend.connection.CarlaConnectionError`)."""
+
+    name = "carla"
+
+    def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, timeout: float = DEFAULT_TIMEOUT,
+                 tm_port: int = DEFAULT_TM_PORT, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
+        self.host, self.port, self.tm_port = str(host), int(port), int(tm_port)
+        self.timeout, self.load_timeout = float(timeout), float(load_timeout)
+        self.client = connect(self.host, self.port, self.timeout)
+        self._live: set[CarlaSimulation] = set()
+        self._map_cache: tuple[int, Any] | None = None
+        if map is not None:
+            self.load_map(map)
+
+    def call(self, what: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """Run a client call; a lost server becomes :class:`CarlaServerLost` naming ``what``."""
+        return guarded(self.host, self.port, what, fn, *args, **kwargs)
+
+    def map_names(self) -> list[str]:
+        return sorted({map_basename(m) for m in self.call("listing maps", self.client.get_available_maps)})
+
+    def load_map(self, name: str) -> Any:
+        """The world with map ``name`` (loaded only when the server runs another one)."""
+        names = self.map_names()
+        if name not in names:
+            raise UserInputError(f"CARLA map '{name}' is not on the server {self.host}:{self.port}; "
+                                 f"available: {', '.join(names)}")
+        world = self.call("reading the world", self.client.get_world)
+        if map_basename(world.get_map().name) != name:
+            self.client.set_timeout(self.load_timeout)
+            try:
+                self.call(f"loading map {name}", self.client.load_world, name)
+            finally:
+                self.client.set_timeout(self.timeout)
+            world = self.call("reading the world", self.client.get_world)
+        return world
+
+    def map_of(self, world: Any) -> Any:
+        """The world's ``carla.Map`` (fetching it transfers the OpenDRIVE file: cached per world)."""
+        if self._map_cache is None or self._map_cache[0] != world.id:
+            self._map_cache = (world.id, self.call("reading the map", world.get_map))
+        return self._map_cache[1]
+
+    def create_simulation(self, scene: Scene, *, seed: int, weather: Weather | None = None,
+                          camera: CameraConfig | None = None, render: bool = True) -> CarlaSimulation:
+        return CarlaSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
+
+    def close(self) -> None:
+        for sim in list(self._live):
+            sim.destroy()
+        self._live.clear()
+
+
+class CarlaSimulation(Simulation):
+    """One episode on a CARLA server. Vehicle ids are indices in ``scene.vehicles`` (the ego is 0); a
+    vehicle that could not be spawned (its place taken) is missing from :meth:`actors`."""
+
+    def __init__(self, backend: CarlaBackend, scene: Scene, seed: int, weather: Weather, camera: CameraConfig,
+                 render: bool) -> None:
+        self._backend = backend
+        self.scene, self.seed, self.camera, self.render = scene, int(seed), camera, bool(render)
+        self._weather, self._applied_weather = weather, None
+        self._control, self._applied_control = VehicleControl(), None
+        self._step = 0
+        self._actors: dict[int, Any] = {}  # scene index -> carla.Vehicle
+        self._index_of: dict[int, int] = {}  # carla actor id -> scene index
+        self._sensors: list[Any] = []
+        self._queues: dict[str, FrameQueue] = {}
+        self._images: dict[str, Any] = {}
+        self._hits: list[tuple[int, int]] = []  # (frame, other actor id) from the collision sensor
+        self._hits_lock = threading.Lock()
+        self._contact: set[int] = set()
+        self._original_settings: Any = None
+        self._tm: Any = None
+        self._destroyed = False
+        self.skipped: list[int] = []  # scene indices that could not be spawned
+        backend._live.add(self)
+        try:
+            self._setup()
+        except BaseException:
+            self.destroy()
+            raise
+
+    # -- setup -------------------------------------------------------------------------------------------
+    def _setup(self) -> None:
+        carla = require_carla()
+        b, scene = self._backend, self.scene
+        self.world = b.load_map(scene.map)
+        self.map = b.map_of(self.world)
+        specs = plan_scene(scene, self.map)  # fails on a foreign catalog before the server is touched
+        self._original_settings = b.call("reading settings", self.world.get_settings)
+        settings = b.call("reading settings", self.world.get_settings)
+        settings.synchronous_mode = True
+        settings.fixed_delta_seconds = self.dt
+        settings.no_rendering_mode = not self.render
+        b.call("switching to synchronous mode", self.world.apply_settings, settings)
+        tm_seed = episode_seed(scene, self.seed)
+        self._tm = b.call(f"starting the traffic manager on port {b.tm_port}", b.client.get_trafficmanager, b.tm_port)
+        self._tm.set_synchronous_mode(True)
+        self._tm.set_random_device_seed(tm_seed)
+        self._tm.set_hybrid_physics_mode(False)  # full physics for every NPC: the same dynamics near and far
+        self._tm.set_respawn_dormant_vehicles(False)
+        self._spawn(specs, tm_seed)
+        ego = self._actors[0]
+        if self.render:
+            self._add_camera("rgb", "sensor.camera.rgb", ego)
+            self._add_camera("depth", "sensor.camera.depth", ego)
+        library = self.world.get_blueprint_library()
+        hit = b.call("spawning the collision sensor", self.world.spawn_actor,
+                     library.find("sensor.other.collision"), carla.Transform(), attach_to=ego)
+        self._sensors.append(hit)
+        hit.listen(self._on_collision)
+        self._k = self.camera.intrinsics()
+        self._advance()  # first frame for observe() at step 0; the spawned cars settle onto the road
+        with self._hits_lock:
+            self._hits.clear()
+
+    def _spawn(self, specs: list[SpawnSpec], tm_seed: int) -> None:
+        carla = require_carla()
+        b = self._backend
+        cmds = spawn_commands(specs, self.world.get_blueprint_library(), b.tm_port, tm_seed)
+        responses = b.call("spawning the scene", b.client.apply_batch_sync, cmds, True)
+        errors = {}
+        for spec, resp in zip(specs, responses, strict=True):
+            if resp.error:
+                errors[spec.index] = resp.error
+                self.skipped.append(spec.index)
+            else:
+                self._index_of[resp.actor_id] = spec.index  # recorded first: destroy() removes them on failure
+        if 0 in errors:
+            loc = specs[0].transform.location
+            raise UserInputError(
+                f"CARLA refused to spawn the ego of scene {self.scene.index} at ({loc.x:.1f}, {loc.y:.1f}) "
+                f"on {self.scene.map}: {errors[0]}. Another actor is probably there (a crashed run leaves "
+                "actors behind: restart the server or destroy them)"
+            )
+        if self.skipped:
+            warnings.warn(f"scene {self.scene.index}: CARLA could not spawn vehicles {self.skipped} (place taken)",
+                          RuntimeWarning, stacklevel=3)
+        actors = self.world.get_actors(list(self._index_of))
+        self._actors = {self._index_of[a.id]: a for a in actors}
+        by_index = {s.index: s for s in specs}
+        batch = [carla.command.ApplyTargetVelocity(a.id, initial_velocity(by_index[i]))
+                 for i, a in self._actors.items() if by_index[i].speed > 0]
+        for i, actor in self._actors.items():
+            ap = by_index[i].autopilot
+            if ap:  # the traffic manager honours target speed and standstill gap; stops and noise are lite-only
+                if "target_speed" in ap:
+                    self._tm.set_desired_speed(actor, float(ap["target_speed"]) * 3.6)
+                if "min_gap" in ap:
+                    self._tm.distance_to_leading_vehicle(actor, float(ap["min_gap"]))
+        if batch:
+            b.call("setting initial speeds", b.client.apply_batch_sync, batch, False)
+
+    def _add_camera(self, name: str, blueprint: str, ego: Any) -> None:
+        cam = self.camera
+        bp = self.world.get_blueprint_library().find(blueprint)
+        bp.set_attribute("image_size_x", str(cam.width))
+        bp.set_attribute("image_size_y", str(cam.height))
+        bp.set_attribute("fov", f"{cam.fov_deg:g}")
+        bp.set_attribute("sensor_tick", "0.0")  # every tick
+        mount = camera_mount(cam.mount_x, cam.mount_y, cam.mount_z, cam.pitch_deg)
+        sensor = self._backend.call(f"spawning the {name} camera", self.world.spawn_actor, bp, mount, attach_to=ego)
+        self._sensors.append(sensor)
+        q = FrameQueue(name)
+        self._queues[name] = q
+        sensor.listen(q.put)
+
+    def _on_collision(self, event: Any) -> None:
+        with self._hits_lock:
+            self._hits.append((int(event.frame), int(event.other_actor.id) if event.other_actor else -1))
+
+    # -- stepping ----------------------------------------------------------------------------------------
+    @property
+    def step_count(self) -> int:
+        return self._step
+
+    @property
+    def weather(self) -> Weather:
+        return self._weather
+
+    def set_weather(self, weather: Weather) -> None:
+        self._weather = weather
+
+    def apply_ego_control(self, control: VehicleControl) -> None:
+        self._control = control
+
+    def _advance(self) -> int:
+        """Push weather and control, tick the server, and collect this frame's sensor data."""
+        carla = require_carla()
+        b = self._backend
+        if self._weather != self._applied_weather:
+            b.call("setting the weather", self.world.set_weather, to_carla(self._weather))
+            self._applied_weather = self._weather
+        if self._control != self._applied_control:
+            c = self._control
+            self._actors[0].apply_control(carla.VehicleControl(throttle=c.throttle, steer=c.steer, brake=c.brake))
+            self._applied_control = c
+        frame = b.call(f"ticking (step {self._step})", self.world.tick, b.timeout)
+        self._snapshot = self.world.get_snapshot()
+        for name, q in self._queues.items():
+            try:
+                self._images[name] = q.get(frame, b.timeout)
+            except TimeoutError as err:
+                raise CarlaServerLost(f"CARLA server {b.host}:{b.port}: {err}; the episode is lost") from err
+        return frame
+
+    def _velocities(self) -> dict[int, np.ndarray]:
+        out = {}
+        for i, a in self._actors.items():
+            s = self._snapshot.find(a.id)
+            if s is not None:
+                v = s.get_velocity()
+                out[i] = np.array([v.x, v.y, v.z])
+        return out
+
+    def tick(self) -> TickResult:
+        if self._destroyed:
+            raise RuntimeError("this simulation was destroyed")
+        before = self._velocities()
+        frame = self._advance()
+        self._step += 1
+        return TickResult(self._step, self._step * self.dt, self._collisions(frame, before))
+
+    def _collisions(self, frame: int, before: dict[int, np.ndarray]) -> list[Collision]:
+        """The ego's new contacts this tick (the sensor reports every frame of a contact; we report its
+        start, as the lite backend does). Static objects have vehicle id -1."""
+        with self._hits_lock:
+            now = [h for h in self._hits if h[0] <= frame]
+            self._hits = [h for h in self._hits if h[0] > frame]
+        others = {other for _, other in now}
+        new = sorted(others - self._contact)
+        self._contact = others
+        zero = np.zeros(3)
+        out = []
+        for other in new:
+            j = self._index_of.get(other, -1)
+            va, vb = before.get(0, zero), before.get(j, zero) if j >= 0 else zero
+            out.append(Collision(self._step, 0, j, float(np.linalg.norm(va[:2])), float(np.linalg.norm(vb[:2])),
+                                 float(np.linalg.norm((va - vb)[:2]))))
+        return out
+
+    # -- sensing -----------------------------------------------------------------------------------------
+    def observe(self) -> SensorFrame:
+        if not self.render:
+            raise RuntimeError("this simulation was created with render=False")
+        cam = self.camera
+        rgb_img, depth_img = self._images["rgb"], self._images["depth"]
+        rgb = bgra_to_rgb(rgb_img.raw_data, cam.width, cam.height)
+        depth = decode_depth(depth_img.raw_data, cam.width, cam.height)
+        vehicles = []
+        for i, a in self._actors.items():
+            s = self._snapshot.find(a.id)
+            if i != 0 and s is not None:
+                vehicles.append((i, a.bounding_box, s.get_transform()))
+        boxes = ground_truth_boxes(vehicles, depth_img.transform, self._k, depth, cam.max_range)
+        return SensorFrame(self._step, rgb, depth, boxes)
+
+    def actors(self) -> list[ActorState]:
+        out = []
+        for i in sorted(self._actors):
+            a = self._actors[i]
+            s = self._snapshot.find(a.id)
+            if s is None:
+                continue
+            v, ext, spec = s.get_velocity(), a.bounding_box.extent, self.scene.vehicles[i]
+            out.append(ActorState(i, spec.role, spec.make, *pose_from_carla(s.get_transform()), math.hypot(v.x, v.y),
+                                  2.0 * ext.x, 2.0 * ext.y, 2.0 * ext.z))
+        return out
+
+    def lead(self) -> LeadInfo | None:
+        carla = require_carla()
+        ego = self._actors[0]
+        tf = self._snapshot.find(ego.id).get_transform()
+        wp = self.map.get_waypoint(tf.location, project_to_road=True, lane_type=carla.LaneType.Driving)
+        if wp is None:
+            return None
+        ids, xy, half, speed = [], [], [], []
+        for i, a in self._actors.items():
+            s = self._snapshot.find(a.id)
+            if i == 0 or s is None:
+                continue
+            loc, v = s.get_transform().location, s.get_velocity()
+            ids.append(i)
+            xy.append((loc.x, loc.y))
+            half.append(a.bounding_box.extent.x)
+            speed.append(math.hypot(v.x, v.y))
+        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), ego.bounding_box.extent.x,
+                            np.array(xy).reshape(-1, 2), np.array(half), np.array(speed), np.array(ids),
+                            lane_half_width=wp.lane_width / 2.0)
+
+    def carla_actor_ids(self) -> list[int]:
+        """CARLA ids of everything this episode spawned (vehicles, then sensors), e.g. to check teardown."""
+        return list(self._index_of) + [s.id for s in self._sensors]
+
+    # -- teardown ----------------------------------------------------------------------------------------
+    def destroy(self) -> None:
+        """Stop and destroy sensors and vehicles, restore the server's settings. Every part runs even when
+        an earlier one fails (problems are warned about, never raised: this runs while another error may be
+        propagating)."""
+        if self._destroyed:
+            return
+        self._destroyed = True
+        self._backend._live.discard(self)
+        carla = require_carla()
+        b, problems = self._backend, []
+        for s in self._sensors:
+            try:
+                s.stop()
+            except RuntimeError as err:
+                problems.append(f"stopping sensor {s.id}: {err}")
+        ids = [s.id for s in self._sensors] + list(self._index_of)
+        if ids:
+            try:  # tick with it in synchronous mode, so the server processes the removal now
+                sync = self._original_settings is not None
+                b.client.apply_batch_sync([carla.command.DestroyActor(i) for i in ids], sync)
+            except RuntimeError as err:
+                problems.append(f"destroying actors {ids}: {err}")
+        if self._original_settings is not None:
+            try:
+                self.world.apply_settings(self._original_settings)
+            except RuntimeError as err:
+                problems.append(f"restoring world settings: {err}")
+        if self._tm is not None:
+            try:
+                was_sync = self._original_settings is not None and self._original_settings.synchronous_mode
+                self._tm.set_synchronous_mode(bool(was_sync))
+            except RuntimeError as err:
+                problems.append(f"restoring the traffic manager: {err}")
+        self._sensors, self._actors, self._queues, self._index_of = [], {}, {}, {}
+        if problems:
+            warnings.warn(f"CARLA teardown at {b.host}:{b.port} incomplete: {'; '.join(problems)}. If the server "
+                          "stays in synchronous mode, restart it", RuntimeWarning, stacklevel=2)

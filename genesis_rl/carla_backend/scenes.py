@@ -1,0 +1,191 @@
+"""Scene generation on CARLA maps, into the same catalog schema as the lite generator.
+
+As the paper's Scenic program: the ego on a spawn point of a lane that has a same-direction lane to its
+right, a lead ahead in the ego's lane, a neighbour ahead in the lane to the right, the rest on driving lanes
+within a radius of the ego, none overlapping. Makes and colours come from the lite classes, so the catalog
+loader validates CARLA catalogs as it does lite ones.
+
+The selection works on a ``carla.Map`` alone (so it is tested offline on a map built from an OpenDRIVE
+string); :func:`generate_catalog_from_server` takes the map and its spawn points from a running server.
+Catalog fields on CARLA: ``lane`` is :func:`lane_key` of (road id, lane id), ``s`` the OpenDRIVE s of the
+spawn waypoint, ``next_lane`` equals ``lane`` (the traffic manager routes NPCs at junctions), poses are in
+our right-handed frame (y and yaw are CARLA's negated), ``signal_offset`` is 0 (CARLA runs its own lights).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.carla_backend._carla import require_carla
+from genesis_rl.carla_backend.frames import pose_from_carla
+from genesis_rl.errors import UserInputError
+from genesis_rl.lite.collisions import box_corners, boxes_overlap
+from genesis_rl.lite.vehicles import MAKES, PALETTE
+from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+
+#: the paper's catalog sizes on CARLA: Town10 (train) 1202 scenes, Town05 (test) 1199
+DEFAULT_COUNTS = {"Town10HD_Opt": 1202, "Town10HD": 1202, "Town05": 1199, "Town05_Opt": 1199}
+N_VEHICLES = 30
+RADIUS = 90.0  # [m] others within this distance of the ego
+GRID = 5.0  # [m] spacing of the candidate waypoints for others
+SPEED_LIMIT = 30.0 / 3.6  # [m/s] CARLA's default urban limit; initial speeds and NPC targets scale with it
+_LANE_OFFSET = 50  # lane ids are small (|id| < 50): key = road_id * 100 + lane_id + 50
+
+
+def lane_key(road_id: int, lane_id: int) -> int:
+    """One int for an OpenDRIVE (road, lane) pair, as the catalog's ``lane`` field holds."""
+    if not -_LANE_OFFSET < lane_id < _LANE_OFFSET:
+        raise ValueError(f"lane id {lane_id} out of range")
+    return int(road_id) * 2 * _LANE_OFFSET + int(lane_id) + _LANE_OFFSET
+
+
+def lane_from_key(key: int) -> tuple[int, int]:
+    """(road id, lane id) of a catalog ``lane`` written by this generator."""
+    road, rest = divmod(int(key), 2 * _LANE_OFFSET)
+    return road, rest - _LANE_OFFSET
+
+
+def _driving(wp: Any) -> bool:
+    carla = require_carla()
+    return wp is not None and wp.lane_type == carla.LaneType.Driving
+
+
+def _right_neighbour(wp: Any) -> Any:
+    """The lane to the right going the same way (same sign of lane id), or None."""
+    r = wp.get_right_lane()
+    return r if _driving(r) and r.lane_id * wp.lane_id > 0 else None
+
+
+def ego_candidates(carla_map: Any, spawn_points: Sequence[Any] | None = None) -> list[Any]:
+    """Waypoints where an ego may start: the server's spawn points on driving lanes (an offline map has
+    none: then lane points every 10 m outside junctions)."""
+    carla = require_carla()
+    if spawn_points:
+        wps = [carla_map.get_waypoint(tf.location, project_to_road=True, lane_type=carla.LaneType.Driving)
+               for tf in spawn_points]
+    else:
+        wps = [w for w in carla_map.generate_waypoints(10.0) if not w.is_junction]
+    return [w for w in wps if _driving(w)]
+
+
+def _autopilot(rng: np.random.Generator, role: str) -> dict[str, float]:
+    """Lite's autopilot fields; the CARLA traffic manager reads target_speed and min_gap."""
+    return {
+        "target_speed": float(SPEED_LIMIT * rng.uniform(0.75, 1.05)),
+        "time_gap": float(rng.uniform(1.0, 2.0)),
+        "min_gap": float(rng.uniform(1.5, 3.0)),
+        "max_accel": float(rng.uniform(1.2, 2.5)),
+        "comfort_decel": float(rng.uniform(2.0, 3.5)),
+        "stop_rate": float(rng.uniform(1.5, 3.0) if role == "lead" else rng.uniform(0.0, 0.5)),
+        "speed_noise": float(rng.uniform(0.1, 0.4)),
+    }
+
+
+def _draw_make(rng: np.random.Generator) -> str:
+    names = list(MAKES)
+    w = np.array([MAKES[n].weight for n in names])
+    return str(names[int(rng.choice(len(names), p=w / w.sum()))])
+
+
+def _vehicle(rng: np.random.Generator, wp: Any, role: str, make: str, speed_frac: float) -> VehicleSpec:
+    x, y, _, yaw, _ = pose_from_carla(wp.transform)
+    key = lane_key(wp.road_id, wp.lane_id)
+    color_name = str(rng.choice(list(PALETTE)))
+    return VehicleSpec(role, make, color_name, PALETTE[color_name], key, float(wp.s), x, y, yaw,
+                       float(SPEED_LIMIT * speed_frac), key, None if role == "ego" else _autopilot(rng, role))
+
+
+def _fits(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
+    """No overlap with a 1 m margin front and back (as the lite generator)."""
+    m = MAKES[spec.make]
+    a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
+    for other in placed:
+        if (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2 > 20.0**2:
+            continue
+        mo = MAKES[other.make]
+        if boxes_overlap(a, box_corners(other.x, other.y, other.yaw, mo.length + 2.0, mo.width + 0.4)):
+            return False
+    return True
+
+
+def _ahead(rng: np.random.Generator, wp: Any, distance: float) -> Any:
+    nxt = wp.next(distance)
+    return nxt[int(rng.integers(len(nxt)))] if nxt else None
+
+
+def generate_scene(carla_map: Any, map_name: str, egos: Sequence[Any], pool: Sequence[Any], index: int, seed: int,
+                   n_vehicles: int = N_VEHICLES, radius: float = RADIUS) -> Scene:
+    """One scene: ``egos`` are the ego's candidate waypoints, ``pool`` the candidates for the others."""
+    rng = np.random.default_rng(seed)
+    with_right = [w for w in egos if _right_neighbour(w) is not None]
+    if not with_right:
+        raise UserInputError(f"CARLA map '{map_name}' has no spawn point with a same-direction lane to its right "
+                             "(the neighbour's place)")
+    for _ in range(1000):
+        w_ego = with_right[int(rng.integers(len(with_right)))]
+        w_lead = _ahead(rng, w_ego, float(rng.uniform(15.0, 40.0)))
+        w_nb = _ahead(rng, _right_neighbour(w_ego), float(rng.uniform(6.0, 20.0)))
+        if w_lead is None or w_nb is None or not _driving(w_lead) or not _driving(w_nb):
+            continue
+        speed = float(rng.uniform(0.5, 0.9))
+        ego = _vehicle(rng, w_ego, "ego", str(rng.choice(["sedan", "hatchback", "suv"])), speed)
+        lead = _vehicle(rng, w_lead, "lead", _draw_make(rng), speed)
+        neighbour = _vehicle(rng, w_nb, "neighbour", _draw_make(rng), speed)
+        if _fits(lead, [ego]) and _fits(neighbour, [ego, lead]):
+            placed = [ego, lead, neighbour]
+            break
+    else:
+        raise RuntimeError(f"scene {index}: found no ego position with room for the lead and the neighbour")
+    loc = w_ego.transform.location
+    near = [w for w in pool if (w.transform.location.x - loc.x) ** 2 + (w.transform.location.y - loc.y) ** 2
+            < radius**2]
+    order = rng.permutation(len(near))
+    for k in order:
+        if len(placed) >= n_vehicles:
+            break
+        spec = _vehicle(rng, near[int(k)], "other", _draw_make(rng), float(rng.uniform(0.0, 0.9)))
+        if _fits(spec, placed):
+            placed.append(spec)
+    if len(placed) < n_vehicles:
+        raise RuntimeError(f"scene {index}: could only place {len(placed)} of {n_vehicles} vehicles within "
+                           f"{radius:g} m of the ego on {map_name}")
+    return Scene(index, map_name, int(rng.integers(2**31)), 0.0, tuple(placed))
+
+
+def iter_scenes(carla_map: Any, map_name: str, count: int, seed: int, spawn_points: Sequence[Any] | None = None,
+                n_vehicles: int = N_VEHICLES, radius: float = RADIUS) -> Iterator[Scene]:
+    """Scenes 0..count-1; scene i depends only on (map, seed, i), as in the lite generator."""
+    egos = ego_candidates(carla_map, spawn_points)
+    pool = [w for w in carla_map.generate_waypoints(GRID) if _driving(w)]
+    for i, ss in enumerate(np.random.SeedSequence(seed).spawn(count)):
+        yield generate_scene(carla_map, map_name, egos, pool, i, int(ss.generate_state(1)[0]), n_vehicles, radius)
+
+
+def generate_catalog(carla_map: Any, map_name: str, count: int, seed: int, spawn_points: Sequence[Any] | None = None,
+                     n_vehicles: int = N_VEHICLES, progress: bool = False) -> Catalog:
+    """A catalog of ``count`` scenes on ``carla_map`` (offline or a server's)."""
+    scenes: Iterator[Scene] = iter_scenes(carla_map, map_name, count, seed, spawn_points, n_vehicles)
+    if progress:
+        from tqdm import tqdm
+
+        scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
+    return Catalog(map_name, seed, "carla", tuple(scenes))
+
+
+def generate_catalog_from_server(map_name: str, count: int, seed: int, *, host: str = "localhost", port: int = 2000,
+                                 timeout: float = 10.0, progress: bool = False) -> Catalog:
+    """Load ``map_name`` on the server at host:port and generate from its map and spawn points (the map
+    stays loaded: episodes on it start faster)."""
+    from genesis_rl.carla_backend.backend import CarlaBackend
+
+    backend = CarlaBackend(host, port, timeout)
+    try:
+        world = backend.load_map(map_name)
+        carla_map = backend.map_of(world)
+        spawn_points = backend.call("reading spawn points", carla_map.get_spawn_points)
+        return generate_catalog(carla_map, map_name, count, seed, spawn_points, progress=progress)
+    finally:
+        backend.close()

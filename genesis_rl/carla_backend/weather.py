@@ -1,0 +1,93 @@
+"""Knobs <-> ``carla.WeatherParameters``: every field by name, and CARLA's named presets.
+
+The knob names are CARLA's field names (see :mod:`genesis_rl.knobs`), so the mapping is the identity on
+names; what this module adds is the check that the two sets agree (a CARLA release that adds or renames a
+field fails loudly, not silently), the float32 round-off of the wire format, and CARLA's sentinels (-1 in
+``WeatherParameters.Default`` means "keep the map's value") which have no place in a knob range.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from genesis_rl.carla_backend._carla import require_carla
+from genesis_rl.errors import UserInputError
+from genesis_rl.knobs import KNOBS, Weather
+
+#: decimals kept when reading CARLA's float32 fields back (0.0331 comes back as 0.033100001)
+_DECIMALS = 4
+
+
+def carla_weather_fields() -> tuple[str, ...]:
+    """The data fields of ``carla.WeatherParameters`` in this client (lower-case properties; the
+    capitalised attributes are presets)."""
+    carla = require_carla()
+    cls = carla.WeatherParameters
+    return tuple(sorted(n for n in dir(cls) if not n.startswith("_") and n.islower()
+                        and isinstance(getattr(cls, n), property)))
+
+
+def carla_preset_names() -> tuple[str, ...]:
+    """CARLA's named weathers (ClearNoon, HardRainNight, ...), without ``Default`` (map-dependent)."""
+    carla = require_carla()
+    cls = carla.WeatherParameters
+    return tuple(sorted(n for n in dir(cls) if n[:1].isupper() and n != "Default"
+                        and isinstance(getattr(cls, n), cls)))
+
+
+def check_fields() -> None:
+    """Fail when the client's WeatherParameters and the knob specs disagree on names."""
+    fields = set(carla_weather_fields())
+    if fields != set(KNOBS):
+        raise RuntimeError(
+            "carla.WeatherParameters fields and genesis_rl knobs disagree: "
+            f"only in CARLA {sorted(fields - set(KNOBS))}, "
+            f"only in knobs {sorted(set(KNOBS) - fields)}; this backend is written for carla 0.9.16"
+        )
+
+
+def to_carla(weather: Weather) -> Any:
+    """A ``carla.WeatherParameters`` with every field set from the knob of the same name."""
+    carla = require_carla()
+    check_fields()
+    params = carla.WeatherParameters()
+    for name in KNOBS:
+        setattr(params, name, float(weather[name]))
+    return params
+
+
+def from_carla(params: Any) -> Weather:
+    """Knob values read from a ``carla.WeatherParameters`` (e.g. ``world.get_weather()``).
+
+    Values outside a knob's range (CARLA accepts them, and uses -1 as "unset") are clipped; angles that
+    wrap (sun azimuth) are wrapped, so a preset's azimuth of -1 reads as 359."""
+    check_fields()
+    values: dict[str, float] = {}
+    for name, spec in KNOBS.items():
+        v = float(getattr(params, name))
+        if not math.isfinite(v):
+            raise UserInputError(f"carla weather field '{name}' is not finite: {v}")
+        if spec.wraps:
+            v = spec.low + (v - spec.low) % spec.span
+        values[name] = round(min(max(v, spec.low), spec.high), _DECIMALS)
+    return Weather(values)
+
+
+def carla_preset(name: str) -> Weather:
+    """One of CARLA's presets (``HardRainNight`` ...) as knob values."""
+    carla = require_carla()
+    names = carla_preset_names()
+    if name not in names:
+        raise UserInputError(f"unknown CARLA weather preset '{name}'; allowed: {', '.join(names)}")
+    return from_carla(getattr(carla.WeatherParameters, name))
+
+
+def carla_presets() -> dict[str, Weather]:
+    """Every CARLA preset as knob values, keyed by CARLA's name."""
+    return {name: carla_preset(name) for name in carla_preset_names()}
+
+
+def same_weather(a: Any, b: Any, tol: float = 1e-3) -> bool:
+    """Two ``carla.WeatherParameters`` equal field by field within ``tol`` (float32 on the wire)."""
+    return all(abs(float(getattr(a, n)) - float(getattr(b, n))) <= tol for n in carla_weather_fields())
