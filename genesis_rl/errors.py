@@ -7,3 +7,8 @@ class UserInputError(ValueError):
     """Bad input from a user (a flag, a file, a config value). The message names the field and what is allowed."""
 
     exit_code = 2
+
+
+class SimulatorLost(RuntimeError):
+    """The simulator stopped answering during an episode (e.g. a CARLA server died). The episode is lost but
+    nothing recorded is: a campaign reconnects and retries it."""

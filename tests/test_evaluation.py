@@ -302,3 +302,42 @@ def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path) -> N
     summary = summarize_campaign(folder)
     assert json.loads(path.read_text())["failure_mode"] == "non_detection"
     assert summary["policies"]["random"]["failure_modes"]["non_detection"] == 1
+
+
+def test_an_episode_whose_simulator_dies_is_retried_after_reconnecting(tmp_path, catalog: str) -> None:
+    from genesis_rl.errors import SimulatorLost
+    from genesis_rl.evaluation.policies import POLICIES, SunnyPolicy, register_policy
+
+    class Flaky(SunnyPolicy):
+        """Loses the simulator on its first episode, as a CARLA server that dies mid-episode."""
+
+        name = "flaky_test"
+        calls = 0
+        failures_left = 1
+
+        def run_episode(self, runner, scene, episode_seed):  # noqa: ANN001, ANN201
+            type(self).calls += 1
+            if type(self).failures_left > 0:
+                type(self).failures_left -= 1
+                runner.run(self.act, scene, episode_seed)  # part of an episode, then the server is gone
+                raise SimulatorLost("server at localhost:2000 stopped answering")
+            return super().run_episode(runner, scene, episode_seed)
+
+    register_policy(Flaky)
+    try:
+        folder = tmp_path / "flaky"
+        with pytest.warns(UserWarning, match="simulator lost .* reconnecting, retry 1 of 2"):
+            summary = run_campaign(_spec(catalog, policies=("flaky_test",), scenes=1, steps=20), folder,
+                                   progress=False)
+        assert summary["policies"]["flaky_test"]["episodes"] == 1 and Flaky.calls == 2
+        import pyarrow.parquet as pq
+
+        assert pq.read_table(next((folder / "steps" / "flaky_test").glob("*.parquet"))).num_rows == 20
+        Flaky.failures_left = 5  # failing again: with no retries left the campaign stops, nothing half-written
+        with pytest.raises(SimulatorLost):
+            run_campaign(_spec(catalog, policies=("flaky_test",), scenes=1, steps=20, options={"retries": 0}),
+                         tmp_path / "dead", progress=False)
+        assert not list((tmp_path / "dead").glob("episodes/*/*.json"))
+        assert not list((tmp_path / "dead").glob("steps/*/*.parquet"))
+    finally:
+        POLICIES.pop("flaky_test", None)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from genesis_rl.carla_backend._carla import require_carla
-from genesis_rl.errors import UserInputError
+from genesis_rl.errors import SimulatorLost, UserInputError
 
 T = TypeVar("T")
 
@@ -26,7 +26,7 @@ class CarlaConnectionError(UserInputError):
     """No CARLA server answered at host:port (down, starting, wrong port or firewalled)."""
 
 
-class CarlaServerLost(RuntimeError):
+class CarlaServerLost(SimulatorLost):
     """The server stopped answering during an episode; the episode is lost, the backend must reconnect."""
 
 

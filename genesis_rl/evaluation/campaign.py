@@ -22,6 +22,7 @@ import json
 import os
 import shutil
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -31,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from genesis_rl import __version__
-from genesis_rl.errors import UserInputError
+from genesis_rl.errors import SimulatorLost, UserInputError
 from genesis_rl.evaluation.failure_modes import (
     FAILURE_MODES,
     LABELLER_VERSION,
@@ -154,8 +155,22 @@ def run_task(task: tuple[str, int, int]) -> dict[str, Any]:
     if _WORKER["runner"] is None:
         _WORKER["runner"] = CampaignRunner(spec, folder)
     runner: CampaignRunner = _WORKER["runner"]
+    retries = int(spec.options.get("retries", 2))
     t0 = time.perf_counter()
-    outcome = _policy(policy_name).run_episode(runner, scene, episode_seed)
+    for attempt in range(retries + 1):
+        try:
+            outcome = _policy(policy_name).run_episode(runner, scene, episode_seed)
+            break
+        except SimulatorLost as err:  # nothing of this episode was written yet: reconnect and run it again
+            if attempt == retries:
+                raise
+            warnings.warn(f"{policy_name} scene {scene}: simulator lost ({err}); reconnecting, retry "
+                          f"{attempt + 1} of {retries}", stacklevel=1)
+            try:
+                runner.close()
+            except Exception:  # noqa: BLE001 - the old connection is gone anyway
+                pass
+            runner = _WORKER["runner"] = CampaignRunner(spec, folder)
     seconds = time.perf_counter() - t0
     return write_episode(folder, spec, runner, policy_name, scene, episode_seed, outcome, seconds)
 

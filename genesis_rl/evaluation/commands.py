@@ -25,6 +25,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     for flag in ("seed", "catalog_seed"):
         if getattr(args, flag) < 0:
             raise UserInputError(f"--{flag.replace('_', '-')} = {getattr(args, flag)} must be >= 0")
+    if args.retries < 0:
+        raise UserInputError(f"--retries = {args.retries} must be >= 0")
     if args.search_segments < 1:
         raise UserInputError(f"--search-segments = {args.search_segments} must be >= 1")
     if args.search_budget < 2:
@@ -40,7 +42,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
                         records=args.records,
-                        options={"search_budget": args.search_budget, "search_segments": args.search_segments})
+                        options={"search_budget": args.search_budget, "search_segments": args.search_segments,
+                                 "retries": args.retries})
     if args.out:
         out = Path(args.out)
     elif args.agent:
@@ -132,6 +135,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
     ev.add_argument("--records", default="failures", choices=["failures", "all"],
                     help="write replayable edge-case records for failing episodes only, or for all")
+    ev.add_argument("--retries", type=int, default=2,
+                    help="times an episode is retried after reconnecting when the simulator dies mid-episode")
     ev.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     ev.add_argument("--out", default=None, help="campaign folder (default: AGENT/eval)")
     ev.add_argument("--resume", action="store_true", help="continue an interrupted campaign in --out")
