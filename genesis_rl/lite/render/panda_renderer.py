@@ -56,6 +56,10 @@ _RECORD = np.dtype([("pos", "<f4", 3), ("nrm", "<f4", 3), ("col", "u1", 4)])
 _PIPE: GraphicsPipe | None = None
 
 
+_CORNER_A = np.array([-1, -1, -1, -1, 1, 1, 1, 1], np.float64)[:, None]  # along the vehicle's length
+_CORNER_B = np.array([-1, -1, 1, 1, -1, -1, 1, 1], np.float64)[:, None]  # along its width
+
+
 def _pipe() -> GraphicsPipe:
     global _PIPE
     if _PIPE is None:
@@ -688,17 +692,11 @@ class LiteRenderer:
                 continue
             c, s = math.cos(yaw), math.sin(yaw)
             ex, ey = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
-            corners = (
-                np.array(
-                    [
-                        [x, y, z] + ex * a * ln / 2 + ey * b * wd / 2 + np.array([0, 0, zz])
-                        for a in (-1, 1)
-                        for b in (-1, 1)
-                        for zz in (0.0, ht)
-                    ]
-                )
-                - cpos
-            )
+            # the 8 corners at once, with the same IEEE operations in the same order as a per-corner
+            # loop (so the boxes are bit-identical to it), ordered a, b, z as (-1|1) x (-1|1) x (0|ht)
+            zz = np.zeros((8, 3))
+            zz[1::2, 2] = ht
+            corners = (np.array([x, y, z]) + ex * _CORNER_A * ln / 2 + ey * _CORNER_B * wd / 2 + zz) - cpos
             zc = corners @ fwd
             if zc.max() <= self.near:
                 continue
