@@ -22,9 +22,9 @@ import numpy as np
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.frames import pose_from_carla
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.collisions import box_corners, boxes_overlap
-from genesis_rl.lite.vehicles import MAKES, PALETTE
+from genesis_rl.lite.vehicles import PALETTE
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+from genesis_rl.scenes.lite_generator import draw_autopilot, draw_make, fits
 
 #: the paper's catalog sizes on CARLA: Town10 (train) 1202 scenes, Town05 (test) 1199
 DEFAULT_COUNTS = {"Town10HD_Opt": 1202, "Town10HD": 1202, "Town05": 1199, "Town05_Opt": 1199}
@@ -32,6 +32,7 @@ N_VEHICLES = 30
 RADIUS = 90.0  # [m] others within this distance of the ego
 GRID = 5.0  # [m] spacing of the candidate waypoints for others
 SPEED_LIMIT = 30.0 / 3.6  # [m/s] CARLA's default urban limit; initial speeds and NPC targets scale with it
+CARLA_FIT_RADIUS = 20.0  # [m] vehicles checked for overlap when placing one (wider lanes, junctions than lite)
 _LANE_OFFSET = 50  # lane ids are small (|id| < 50): key = road_id * 100 + lane_id + 50
 
 
@@ -71,44 +72,13 @@ def ego_candidates(carla_map: Any, spawn_points: Sequence[Any] | None = None) ->
     return [w for w in wps if _driving(w)]
 
 
-def _autopilot(rng: np.random.Generator, role: str) -> dict[str, float]:
-    """Lite's autopilot fields; the CARLA traffic manager reads target_speed and min_gap."""
-    return {
-        "target_speed": float(SPEED_LIMIT * rng.uniform(0.75, 1.05)),
-        "time_gap": float(rng.uniform(1.0, 2.0)),
-        "min_gap": float(rng.uniform(1.5, 3.0)),
-        "max_accel": float(rng.uniform(1.2, 2.5)),
-        "comfort_decel": float(rng.uniform(2.0, 3.5)),
-        "stop_rate": float(rng.uniform(1.5, 3.0) if role == "lead" else rng.uniform(0.0, 0.5)),
-        "speed_noise": float(rng.uniform(0.1, 0.4)),
-    }
-
-
-def _draw_make(rng: np.random.Generator) -> str:
-    names = list(MAKES)
-    w = np.array([MAKES[n].weight for n in names])
-    return str(names[int(rng.choice(len(names), p=w / w.sum()))])
-
-
 def _vehicle(rng: np.random.Generator, wp: Any, role: str, make: str, speed_frac: float) -> VehicleSpec:
     x, y, _, yaw, _ = pose_from_carla(wp.transform)
     key = lane_key(wp.road_id, wp.lane_id)
     color_name = str(rng.choice(list(PALETTE)))
+    autopilot = None if role == "ego" else draw_autopilot(rng, SPEED_LIMIT, role)
     return VehicleSpec(role, make, color_name, PALETTE[color_name], key, float(wp.s), x, y, yaw,
-                       float(SPEED_LIMIT * speed_frac), key, None if role == "ego" else _autopilot(rng, role))
-
-
-def _fits(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
-    """No overlap with a 1 m margin front and back (as the lite generator)."""
-    m = MAKES[spec.make]
-    a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
-    for other in placed:
-        if (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2 > 20.0**2:
-            continue
-        mo = MAKES[other.make]
-        if boxes_overlap(a, box_corners(other.x, other.y, other.yaw, mo.length + 2.0, mo.width + 0.4)):
-            return False
-    return True
+                       float(SPEED_LIMIT * speed_frac), key, autopilot)
 
 
 def _ahead(rng: np.random.Generator, wp: Any, distance: float) -> Any:
@@ -132,9 +102,9 @@ def generate_scene(carla_map: Any, map_name: str, egos: Sequence[Any], pool: Seq
             continue
         speed = float(rng.uniform(0.5, 0.9))
         ego = _vehicle(rng, w_ego, "ego", str(rng.choice(["sedan", "hatchback", "suv"])), speed)
-        lead = _vehicle(rng, w_lead, "lead", _draw_make(rng), speed)
-        neighbour = _vehicle(rng, w_nb, "neighbour", _draw_make(rng), speed)
-        if _fits(lead, [ego]) and _fits(neighbour, [ego, lead]):
+        lead = _vehicle(rng, w_lead, "lead", draw_make(rng), speed)
+        neighbour = _vehicle(rng, w_nb, "neighbour", draw_make(rng), speed)
+        if fits(lead, [ego], CARLA_FIT_RADIUS) and fits(neighbour, [ego, lead], CARLA_FIT_RADIUS):
             placed = [ego, lead, neighbour]
             break
     else:
@@ -146,8 +116,8 @@ def generate_scene(carla_map: Any, map_name: str, egos: Sequence[Any], pool: Seq
     for k in order:
         if len(placed) >= n_vehicles:
             break
-        spec = _vehicle(rng, near[int(k)], "other", _draw_make(rng), float(rng.uniform(0.0, 0.9)))
-        if _fits(spec, placed):
+        spec = _vehicle(rng, near[int(k)], "other", draw_make(rng), float(rng.uniform(0.0, 0.9)))
+        if fits(spec, placed, CARLA_FIT_RADIUS):
             placed.append(spec)
     if len(placed) < n_vehicles:
         raise RuntimeError(f"scene {index}: could only place {len(placed)} of {n_vehicles} vehicles within "

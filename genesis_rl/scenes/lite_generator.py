@@ -18,7 +18,9 @@ N_VEHICLES = 30
 RADIUS = 90.0  # others are placed within this distance of the ego [m]
 
 
-def _autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
+def draw_autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
+    """An NPC's seeded driving style (lite's AutopilotParams; CARLA's traffic manager reads target_speed
+    and min_gap), around the lane's speed ``limit`` [m/s]."""
     return {
         "target_speed": float(limit * rng.uniform(0.75, 1.05)),
         "time_gap": float(rng.uniform(1.0, 2.0)),
@@ -36,22 +38,25 @@ def _vehicle(rng, road_map, role, lane, s, make, speed_frac) -> VehicleSpec:
     succ = road_map.lanes[lane].successors
     color_name = str(rng.choice(list(PALETTE)))
     limit = road_map.speed_limit(lane)
-    ap = None if role == "ego" else _autopilot(rng, limit, role)
+    ap = None if role == "ego" else draw_autopilot(rng, limit, role)
     return VehicleSpec(role, make, color_name, PALETTE[color_name], int(lane), float(s), x, y, yaw,
                        float(limit * speed_frac), int(succ[int(rng.integers(len(succ)))]), ap)
 
 
-def _draw_make(rng: np.random.Generator) -> str:
+def draw_make(rng: np.random.Generator) -> str:
+    """A vehicle make, drawn by the makes' weights."""
     names = list(MAKES)
     w = np.array([MAKES[n].weight for n in names])
     return str(names[int(rng.choice(len(names), p=w / w.sum()))])
 
 
-def _fits(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
+def fits(spec: VehicleSpec, placed: list[VehicleSpec], search_radius: float = 15.0) -> bool:
+    """No overlap with the ``placed`` vehicles within ``search_radius`` metres, with a 1 m margin front and
+    back and 0.2 m at the sides."""
     m = MAKES[spec.make]
     a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
     for other in placed:
-        if (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2 > 15.0**2:
+        if (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2 > search_radius**2:
             continue
         mo = MAKES[other.make]
         if boxes_overlap(a, box_corners(other.x, other.y, other.yaw, mo.length + 2.0, mo.width + 0.4)):
@@ -85,12 +90,12 @@ def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
         gap_lead = float(rng.uniform(15.0, min(40.0, length - s_ego - 5.0)))
         speed = float(rng.uniform(0.5, 0.9))
         ego = _vehicle(rng, road_map, "ego", lane, s_ego, str(rng.choice(["sedan", "hatchback", "suv"])), speed)
-        lead = _vehicle(rng, road_map, "lead", lane, s_ego + gap_lead, _draw_make(rng), speed)
+        lead = _vehicle(rng, road_map, "lead", lane, s_ego + gap_lead, draw_make(rng), speed)
         right = road_map.lanes[lane].right
         s_nb = min(s_ego + float(rng.uniform(6.0, 20.0)), road_map.length[right] - 1.0)
-        neighbour = _vehicle(rng, road_map, "neighbour", right, s_nb, _draw_make(rng), speed)
+        neighbour = _vehicle(rng, road_map, "neighbour", right, s_nb, draw_make(rng), speed)
         placed = [ego]
-        if _fits(lead, placed) and _fits(neighbour, placed + [lead]):
+        if fits(lead, placed) and fits(neighbour, placed + [lead]):
             placed += [lead, neighbour]
             break
     # others: lane samples on roads within RADIUS of the ego
@@ -105,8 +110,8 @@ def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
         s = (k - int(road_map.offset[lane])) * DS
         if s < 3.0 or s > road_map.length[lane] - 3.0:
             continue
-        spec = _vehicle(rng, road_map, "other", lane, s, _draw_make(rng), float(rng.uniform(0.0, 0.9)))
-        if _fits(spec, placed) and _safe_headway(spec, placed):
+        spec = _vehicle(rng, road_map, "other", lane, s, draw_make(rng), float(rng.uniform(0.0, 0.9)))
+        if fits(spec, placed) and _safe_headway(spec, placed):
             placed.append(spec)
     if len(placed) < N_VEHICLES:
         raise RuntimeError(f"scene {index}: could only place {len(placed)} vehicles")
