@@ -288,16 +288,12 @@ def check_spec(spec: CampaignSpec) -> None:
 def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
     """What must not change between a campaign and its resumption besides the spec: the package version,
     the agent's file and the system under test (class, weights hash)."""
+    from genesis_rl.evaluation.policies import agent_file
     from genesis_rl.perception.detector import file_sha256
     from genesis_rl.system.protocol import load_system
 
-    agent_sha = None
-    if spec.agent:
-        path = Path(spec.agent)
-        found = next((p for p in ([path] if path.suffix == ".zip" else [path / "agent.zip",
-                                                                          path / "checkpoints" / "last.zip"])
-                      if p.is_file()), None)
-        agent_sha = file_sha256(found) if found else None
+    found = agent_file(Path(spec.agent)) if spec.agent else None
+    agent_sha = file_sha256(found) if found else None
     system = load_system(spec.env.get("system", "builtin"), **spec.env.get("system_kwargs", {}))
     return {"package_version": __version__, "agent_sha256": agent_sha,
             "system": json.loads(json.dumps(system.identity(), default=str))}
@@ -380,8 +376,8 @@ def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool
             import multiprocessing as mp
 
             ctx = mp.get_context("spawn")
-            # longest tasks first (search baselines) so workers finish together
-            tasks.sort(key=lambda t: 0 if resolve_policy(t[0]).name == "cmaes" else 1)
+            # longest tasks first (search baselines) so workers finish together; stable for equal costs
+            tasks.sort(key=lambda t: -resolve_policy(t[0]).episodes_per_scene(spec.options))
             with ctx.Pool(min(workers, len(tasks)), initializer=_worker_init, initargs=init_args) as pool:
                 for row in pool.imap_unordered(run_task, tasks):
                     bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")

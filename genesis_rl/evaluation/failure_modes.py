@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.system.matching import IN_VIEW_RANGE, MIN_BOX_HEIGHT, MIN_VISIBLE_FRACTION, iou_matrix
+from genesis_rl.system.matching import in_view_values, iou_matrix
 
 FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "lost_detection", "detected",
                  "out_of_view")
@@ -48,9 +48,8 @@ class FailureModeThresholds:
 
 def box_in_view(box: Mapping[str, Any]) -> bool:
     """``matching.in_view`` on a telemetry box dict."""
-    x0, y0, x1, y1 = box["box_xyxy"]
-    return (box["distance_m"] <= IN_VIEW_RANGE and box["visible_fraction"] >= MIN_VISIBLE_FRACTION
-            and (y1 - y0) >= MIN_BOX_HEIGHT)
+    _, y0, _, y1 = box["box_xyxy"]
+    return in_view_values(box["distance_m"], box["visible_fraction"], y1 - y0)
 
 
 def detection_timeline(records: Sequence[Mapping[str, Any]], vehicle_id: int) -> list[bool | None]:

@@ -73,6 +73,11 @@ class WeatherPolicy:
     def __init__(self, context: PolicyContext) -> None:
         self.context = context
 
+    @classmethod
+    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
+        """Simulator episodes one scene costs (a search spends its budget): campaigns start the longest first."""
+        return 1
+
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         raise NotImplementedError
 
@@ -127,6 +132,16 @@ class AgentPolicy(StepPolicy):
         return np.asarray(action, np.float32)
 
 
+def _agent_candidates(path: Path) -> list[Path]:
+    return [path] if path.suffix == ".zip" else [path / "agent.zip", path / "checkpoints" / "last.zip"]
+
+
+def agent_file(path: Path) -> Path | None:
+    """The agent's .zip behind ``--agent``: the file itself, a run folder's agent.zip, else its last
+    checkpoint; None when there is none."""
+    return next((p for p in _agent_candidates(Path(path)) if p.is_file()), None)
+
+
 def load_agent(path: Path | None) -> Any:
     """A trained PPO agent from a run folder (its ``agent.zip``, else its last checkpoint) or a .zip file."""
     from stable_baselines3 import PPO
@@ -134,9 +149,9 @@ def load_agent(path: Path | None) -> Any:
     if path is None:
         raise UserInputError("policy 'agent' needs a trained agent: pass --agent runs/NAME")
     path = Path(path)
-    candidates = [path] if path.suffix == ".zip" else [path / "agent.zip", path / "checkpoints" / "last.zip"]
-    found = next((p for p in candidates if p.is_file()), None)
+    found = agent_file(path)
     if found is None:
+        candidates = _agent_candidates(path)
         raise UserInputError(f"--agent '{path}' holds no trained agent (looked for "
                              f"{', '.join(str(c) for c in candidates)}); train one with genesis-rl train")
     try:
@@ -167,6 +182,10 @@ class CMAESSearch(WeatherPolicy):
         if self.budget < 2 or self.segments < 1:
             raise UserInputError(f"search_budget = {self.budget} must be >= 2 and search_segments = "
                                  f"{self.segments} >= 1")
+
+    @classmethod
+    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
+        return int(options.get("search_budget", 8))
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         import cma

@@ -203,7 +203,7 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
         raise UserInputError(f"report '{out}' exists; pass --force to rebuild it")
     if not any(rows.values()):
         raise UserInputError(f"campaign '{folder}' has no finished episodes yet; nothing to report")
-    summary = summarize_campaign(folder)
+    summary = summarize_campaign(folder, loaded=(meta, rows))
     spec = meta["spec"]
     knobs = list(spec.get("env", {}).get("knobs") or ["fog_density", "precipitation", "precipitation_deposits",
                                                        "sun_altitude_angle", "sun_azimuth_angle"])

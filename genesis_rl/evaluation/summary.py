@@ -56,11 +56,13 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     return row
 
 
-def summarize_campaign(folder: Path, write: bool = True) -> dict[str, Any]:
+def summarize_campaign(folder: Path, write: bool = True,
+                       loaded: tuple[dict[str, Any], dict[str, list[dict[str, Any]]]] | None = None) -> dict[str, Any]:
     """Aggregate the finished episodes (a half-finished campaign is summarised as far as it got, and says
-    what is missing); writes summary.json and episodes.csv."""
+    what is missing); writes summary.json and episodes.csv. ``loaded``: ``load_campaign``'s result, when
+    the caller has read the campaign already."""
     folder = Path(folder)
-    meta, rows = load_campaign(folder)
+    meta, rows = loaded or load_campaign(folder)
     seed = int(meta["spec"]["seed"])
     expected = len(meta["scenes"])
     policies: dict[str, Any] = {}

@@ -36,10 +36,14 @@ def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1e-9), 0.0)
 
 
+def in_view_values(distance: float, visible_fraction: float, height_px: float) -> bool:
+    """The in-view criteria on plain numbers (telemetry rows hold boxes as dicts)."""
+    return distance <= IN_VIEW_RANGE and visible_fraction >= MIN_VISIBLE_FRACTION and height_px >= MIN_BOX_HEIGHT
+
+
 def in_view(box: GroundTruthBox) -> bool:
     """Whether a ground-truth vehicle counts for the IoU and the detector's recall."""
-    return (box.distance <= IN_VIEW_RANGE and box.visible_fraction >= MIN_VISIBLE_FRACTION
-            and (box.y1 - box.y0) >= MIN_BOX_HEIGHT)
+    return in_view_values(box.distance, box.visible_fraction, box.y1 - box.y0)
 
 
 def frame_iou(gt: Sequence[GroundTruthBox], detections_xyxy: np.ndarray) -> tuple[float, dict[int, float]]:
