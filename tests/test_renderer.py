@@ -134,3 +134,48 @@ def test_deterministic(renderer, urban, lane) -> None:
     for x, y in zip(a[:3], b[:3], strict=True):
         np.testing.assert_array_equal(x, y)
     assert a[3] == b[3]
+
+
+def test_static_tiles_keep_every_triangle() -> None:
+    """Cutting the static scene into culling tiles neither drops nor duplicates a triangle or a vertex."""
+    from genesis_rl.lite.render.panda_renderer import _Mesh
+
+    rng = np.random.default_rng(0)
+    m = _Mesh()
+    for _ in range(50):
+        p = rng.uniform(-200, 200, (3, 3))
+        m.add(p, (0.0, 0.0, 1.0), rng.random(3), np.array([0, 1, 2]), 7)
+    tiles = m.tiles(64.0)
+    assert len(tiles) > 4
+    tri_in = np.concatenate(m.pos)[np.concatenate(m.idx).reshape(-1, 3)]
+    tri_out = np.concatenate([t.pos[0][t.idx[0].reshape(-1, 3)] for t in tiles.values()])
+    key = lambda a: sorted(map(tuple, a.reshape(len(a), -1).round(4)))  # noqa: E731
+    assert key(tri_in) == key(tri_out)
+    for (kx, ky), t in tiles.items():  # each triangle's centroid lies in its tile
+        c = t.pos[0][t.idx[0].reshape(-1, 3)].mean(axis=1)[:, :2]
+        assert np.all(np.floor(c / 64.0) == (kx, ky))
+
+
+def test_offscreen_vehicles_skipped_without_changing_the_frame(urban, lane) -> None:
+    """Vehicles behind the camera or beside its frustum are hidden before the draw (no pose, lamp or shadow
+    update); the frame is bit-identical to drawing them all and letting Panda3D cull."""
+    others = [("sedan", 15.0, 0.0), ("truck", -25.0, 0.0), ("van", 3.0, 20.0), ("bus", -8.0, -3.5),
+              ("suv", 40.0, -3.5)]
+    poses, dims, vehicles = _scene(urban, lane, others)
+    frames = []
+    for skip in (True, False):
+        r = LiteRenderer(urban, CameraConfig(320, 240), seed=3)
+        try:
+            if not skip:
+                r._outside_view = lambda poses, *a: np.zeros(len(poses), bool)  # type: ignore[method-assign]
+            r.set_vehicles(vehicles)
+            weather = Weather.from_partial({"sun_altitude_angle": 15.0, "sun_azimuth_angle": 200.0})
+            cpos, cyaw, _ = r._camera_pose(poses[0])
+            hidden = LiteRenderer._outside_view(r, poses, dims, cpos, cyaw, 4.0)
+            frames.append(r.render(poses, np.zeros(len(poses), bool), dims, weather, 0.0, 0))
+        finally:
+            r.close()
+    assert hidden.tolist() == [False, False, True, True, False, False]  # the truck behind, the van beside
+    a, b = frames
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
+    assert a[3] == b[3]

@@ -99,12 +99,20 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         write_gif(out / "replay.gif", frames, fps=10)
     report = {"record": str(args.record), "reproduced": result["reproduced"],
               "steps_identical": result["steps_identical"], "violations": result["violations"],
+              "render_version": result["render_version"],
+              "recorded_render_version": result["recorded_render_version"],
               "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
               "first_collision_step": next((r["step"] for r in result["records"] if r["collision"]), None)}
     atomic_write_json(out / "replay.json", report, indent=2)
     print(json.dumps(report, indent=2))
     if not result["reproduced"]:
         print("genesis-rl replay: the replayed violations differ from the recorded ones", flush=True)
+        if result["recorded_render_version"] != result["render_version"]:
+            print(f"genesis-rl replay: the record was made by lite renderer version "
+                  f"{result['recorded_render_version']} (genesis-rl {rec.get('package_version')}), this is "
+                  f"version {result['render_version']}: the frames differ slightly, so the detector may "
+                  f"see the scene differently; replay with the recorded genesis-rl version to reproduce it",
+                  flush=True)
         return 1
     return 0
 

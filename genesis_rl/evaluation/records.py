@@ -52,6 +52,7 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
     return {
         "schema": RECORD_SCHEMA, "version": RECORD_VERSION,
         "package_version": __version__, "backend": env.backend.name,
+        "render_version": getattr(env.backend, "render_version", None),
         "policy": policy, "campaign_seed": spec.seed,
         "scene": {"index": sc.index, "map": sc.map, "seed": sc.seed, "signal_offset": sc.signal_offset,
                   "vehicles": [asdict(v) for v in sc.vehicles]},
@@ -151,9 +152,11 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
         backend.close()
     violations = rulebook.violations(records)
     recorded = rec["violations"]
+    recorded_render = rec.get("render_version", 1)  # records before the field were made by version 1
     digest = step_digest(records)
     same_steps = rec.get("step_digest") in (None, digest)
     reproduced = same_steps and set(violations) == set(recorded) and all(
         math.isclose(violations[k], recorded[k], rel_tol=1e-9, abs_tol=1e-9) for k in recorded)
     return {"records": records, "frames": frames, "violations": violations, "recorded_violations": recorded,
-            "reproduced": reproduced, "steps_identical": same_steps, "step_digest": digest, "identity": now_id}
+            "reproduced": reproduced, "steps_identical": same_steps, "step_digest": digest, "identity": now_id,
+            "render_version": LiteBackend.render_version, "recorded_render_version": recorded_render}

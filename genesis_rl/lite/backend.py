@@ -111,6 +111,9 @@ class LiteBackend(Backend):
     renderer serves one live simulation at a time, so simulations open side by side never share one."""
 
     name = "lite"
+    #: Bumped whenever a change to the renderer changes pixels (records keep it: replay says when it
+    #: differs, since the detector then sees slightly different frames). 2: tiled, two-level static scene.
+    render_version = 2
 
     def __init__(self) -> None:
         self._renderers: dict[tuple, list] = {}

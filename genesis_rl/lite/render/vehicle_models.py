@@ -611,6 +611,15 @@ class VehicleModel:
         self.headlights = self.root.attach_new_node(_geom_node("headlights", parts["head"], palette, label))
         self.taillights = self.root.attach_new_node(_geom_node("taillights", parts["tail"], palette, label))
         self._rings, self._weights = _shadow_rings(*tpl.footprint)
+        k = self._rings.shape[1]
+        self._shadow_xy = self._rings.reshape(-1, 2).astype(np.float64)
+        self._shadow_w = np.repeat(self._weights, k)
+        self._shadow_rec = np.empty(len(self._shadow_xy), _RECORD)
+        self._shadow_rec["pos"][:, 2] = 0.0
+        self._shadow_rec["nrm"] = (0.0, 0.0, 1.0)
+        self._shadow_rec["col"][:, 3] = 255
+        self._shadow_args: tuple[float, float, float] | None = None
+        self._light_state: tuple[bool, bool] | None = None
         self._shadow_vdata, shadow_node = self._make_shadow()
         self.shadow = self.root.attach_new_node(shadow_node)
         self.shadow.set_pos(0.0, 0.0, 0.03)
@@ -647,32 +656,35 @@ class VehicleModel:
         that direction); darkness 0..1 gives a core colour multiplier of 1 - 0.75 * darkness, fading to 1
         at the rim. Darkness 0 hides the shadow.
         """
-        darkness = float(np.clip(darkness, 0.0, 1.0))
+        darkness = min(max(float(darkness), 0.0), 1.0)
         if darkness <= 0.0:
             self.shadow.hide()
             return
         self.shadow.show()
-        xy = self._rings.reshape(-1, 2).astype(np.float64)
+        args = (float(offset_x), float(offset_y), darkness)
+        if args == self._shadow_args:  # the same shadow as last frame (a vehicle on a straight lane)
+            return
+        self._shadow_args = args
+        xy = self._shadow_xy
         off = np.array([offset_x, offset_y], np.float64)
-        norm = float(np.linalg.norm(off))
+        norm = math.sqrt(offset_x * offset_x + offset_y * offset_y)  # as np.linalg.norm does
         if norm > 1e-6:
             d = off / norm
             # vertices on the sun side stay, those on the far side move with the full offset
             t = np.clip((xy @ d) / 0.3 + 0.5, 0.0, 1.0)
             xy = xy + t[:, None] * off[None, :]
-        k = self._rings.shape[1]
-        w = np.repeat(self._weights, k)
-        mult = 1.0 - 0.75 * darkness * w
-        rec = np.empty(len(xy), _RECORD)
+        mult = 1.0 - 0.75 * darkness * self._shadow_w
+        rec = self._shadow_rec
         rec["pos"][:, :2] = xy
-        rec["pos"][:, 2] = 0.0
-        rec["nrm"] = (0.0, 0.0, 1.0)
         rec["col"][:, :3] = np.clip(np.rint(mult * 255.0), 0, 255).astype(np.uint8)[:, None]
-        rec["col"][:, 3] = 255
         memoryview(self._shadow_vdata.modify_array(0)).cast("B")[:] = rec.tobytes()
 
     def set_lights(self, headlights_on: bool, braking: bool) -> None:
         """Lamps glow (unlit, so bright in darkness) when on; off, they are lit like any other part."""
+        state = (bool(headlights_on), bool(braking))
+        if state == self._light_state:
+            return
+        self._light_state = state
         a = self.label / 255.0
         if headlights_on:
             self.headlights.set_color(*HEADLIGHT_ON, a)
