@@ -101,6 +101,21 @@ def test_shipped_weights_load() -> None:
     assert det.detect(np.zeros((240, 320, 3), np.uint8)).shape[1] == 5
 
 
+def test_folded_batch_norm_computes_the_same_net() -> None:
+    """The inference net folds each BatchNorm into its conv; its outputs equal the trained net's."""
+    det = VehicleDetector()
+    ckpt = load_checkpoint(DEFAULT_WEIGHTS)
+    net = VehicleDetectorNet(DetectorModelConfig.from_dict(dict(ckpt["model_config"])))
+    net.load_state_dict(ckpt["state_dict"])
+    net.eval()
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in det._net.modules())
+    x = torch.rand(2, 3, 240, 320, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        a, b = net(x), det._net(x.contiguous(memory_format=torch.channels_last))
+    for key in ("heatmap", "size", "offset"):
+        assert torch.allclose(a[key], b[key], atol=1e-4), key
+
+
 def _gt(*rows) -> np.ndarray:
     """Ground-truth rows (frame, x0, y0, x1, y1, distance, visible_fraction, truncated, id)."""
     return np.array([[0, *r[:4], r[4], r[5], 0, i] for i, r in enumerate(rows)], np.float32).reshape(-1, 9)

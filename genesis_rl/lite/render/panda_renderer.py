@@ -52,6 +52,8 @@ MIN_BOX_PIXELS = 12
 STATIC_TILE_M = 64.0
 #: distance from the camera to a tile's centre beyond which the tile is drawn at its far level of detail
 STATIC_LOD_M = 180.0
+#: tiles per side of the blocks whose far level is drawn as one mesh
+STATIC_BLOCK_TILES = 4
 #: share of a vehicle's projected 3D-box rectangle that its silhouette covers (for visible_fraction)
 _SILHOUETTE_FILL = 0.72
 
@@ -445,29 +447,59 @@ class LiteRenderer:
         meshes.append(("poles", pm))
         # The static scene is cut into ground tiles so that Panda3D's cull skips those outside the frustum,
         # and each tile has two levels of detail: beyond STATIC_LOD_M the lane markings and poles (under
-        # a pixel wide there) are left out and trees are drawn as a few triangles. On the highway map the
-        # full-detail scene was 214k triangles, most of them far away, and llvmpipe spent 12 of 13 ms per
-        # frame transforming them.
+        # a pixel wide there) are left out and trees are drawn as a few triangles. Tiles are grouped in
+        # blocks of STATIC_BLOCK_TILES x STATIC_BLOCK_TILES; a block far enough for all its tiles to be at
+        # the far level is drawn as one mesh, because llvmpipe spends some 15 us on each draw call. On the
+        # highway map the full-detail scene was 214k triangles, most of them far away, in one mesh, and
+        # llvmpipe spent 12 of 13 ms per frame transforming them.
         far_kinds = {"ground", "roads", "sidewalks", "puddles", "buildings"}
         far_meshes = [(n, m_) for n, m_ in meshes if n in far_kinds] + [("trees", tm_far)]
+        block_m = STATIC_TILE_M * STATIC_BLOCK_TILES
         tiled: dict[tuple[int, int], list[list[tuple[str, _Mesh]]]] = {}
         for level, group in enumerate((meshes, far_meshes)):
             for name, mesh in group:
                 for key, part in mesh.tiles(STATIC_TILE_M).items():
                     tiled.setdefault(key, [[], []])[level].append((name, part))
+        merged: dict[tuple[int, int], list[tuple[str, _Mesh]]] = {}
+        for name, mesh in far_meshes:
+            for key, part in mesh.tiles(block_m).items():
+                merged.setdefault(key, []).append((name, part))
+
+        def lod_node(name: str, kx: int, ky: int, size: float) -> tuple[LODNode, Point3]:
+            cx, cy = (kx + 0.5) * size, (ky + 0.5) * size
+            centre = Point3(cx, cy, float(_elev(rm, np.array([[cx, cy]]))[0]))
+            node = LODNode(name)
+            node.set_center(centre)
+            return node, centre
+
+        def level(parent: NodePath, name: str, parts: list[tuple[str, _Mesh]]) -> NodePath:
+            child = parent.attach_new_node(name)
+            for kind, part in parts:
+                self._attach(child, part, kind)
+            child.flatten_strong()
+            return child
+
+        blocks: dict[tuple[int, int], tuple[NodePath, NodePath, Point3]] = {}
+        for bx, by in sorted(merged):
+            node, centre = lod_node(f"block_{bx}_{by}", bx, by, block_m)
+            block = static.attach_new_node(node)
+            blocks[(bx, by)] = (block, block.attach_new_node("tiles"), centre)
+            level(block, "merged", merged[(bx, by)])
+        reach = 0.0  # farthest tile centre from its block's centre, in 3D
         for (kx, ky), levels in sorted(tiled.items()):
-            lod = LODNode(f"tile_{kx}_{ky}")
-            cx, cy = (kx + 0.5) * STATIC_TILE_M, (ky + 0.5) * STATIC_TILE_M
-            cz = float(_elev(rm, np.array([[cx, cy]]))[0])
-            lod.set_center(Point3(cx, cy, cz))
-            tile = static.attach_new_node(lod)
-            for level, parts in enumerate(levels):
-                child = tile.attach_new_node("near" if level == 0 else "far")
-                for name, part in parts:
-                    self._attach(child, part, name)
-                child.flatten_strong()
-            lod.add_switch(STATIC_LOD_M, 0.0)
-            lod.add_switch(1.0e7, STATIC_LOD_M)
+            block, tiles, bcentre = blocks[(kx // STATIC_BLOCK_TILES, ky // STATIC_BLOCK_TILES)]
+            node, centre = lod_node(f"tile_{kx}_{ky}", kx, ky, STATIC_TILE_M)
+            reach = max(reach, (centre - bcentre).length())
+            tile = tiles.attach_new_node(node)
+            level(tile, "near", levels[0])
+            level(tile, "far", levels[1])
+            node.add_switch(STATIC_LOD_M, 0.0)
+            node.add_switch(1.0e7, STATIC_LOD_M)
+        # a block merges only where each of its tiles is at least STATIC_LOD_M away (triangle inequality)
+        block_lod = STATIC_LOD_M + reach + 1.0
+        for block, _, _ in blocks.values():
+            block.node().add_switch(block_lod, 0.0)
+            block.node().add_switch(1.0e7, block_lod)
         self._lamps = lamps
         self._lamp_vdata = None
         if lamps:
@@ -708,7 +740,7 @@ class LiteRenderer:
         depth = (self.near * self.far / (self.far - depth_raw * (self.far - self.near))).astype(np.float32)
         depth[labels == L.SKY] = np.float32(self.far)
         rgb = self._compositor.apply(rgb0, depth, labels, weather, lighting, cyaw, cpitch, int(step))
-        boxes = self._boxes(poses, dims, cpos, cyaw, cpitch, labels, depth)
+        boxes = self._boxes(poses, dims, cpos, cyaw, cpitch, labels, depth, hidden)
         return rgb, depth, labels, boxes
 
     def _outside_view(
@@ -753,6 +785,7 @@ class LiteRenderer:
         cpitch: float,
         labels: np.ndarray,
         depth: np.ndarray,
+        hidden: np.ndarray | None = None,
     ) -> list[GroundTruthBox]:
         h, w = self.height, self.width
         f = self.camera.focal_px
@@ -763,7 +796,7 @@ class LiteRenderer:
         fwd = np.array([cp * cy_, cp * sy_, sp])
         out: list[GroundTruthBox] = []
         for idx, vm in self._vehicles.items():
-            if idx >= len(poses):
+            if idx >= len(poses) or (hidden is not None and hidden[idx]):  # hidden: wholly out of view
                 continue
             x, y, z, yaw, pitch = (float(v) for v in poses[idx, :5])
             ln, wd, ht = (float(v) for v in dims[idx, :3])
