@@ -93,7 +93,7 @@ def test_env_passes_gymnasium_and_sb3_checkers(env) -> None:
 @pytest.mark.render
 def test_env_step_template_limits_knobs_and_reports_every_term(env) -> None:
     obs, info = env.reset(seed=3)
-    assert obs.shape == (96, 128, 3) and obs.dtype == np.uint8
+    assert obs.shape == (72, 96, 3) and obs.dtype == np.uint8
     before = np.array(list(info["knobs"].values()))
     obs, reward, terminated, truncated, info = env.step(np.ones(5, np.float32) * 7.0)  # clipped to +1
     after = np.array(list(info["knobs"].values()))

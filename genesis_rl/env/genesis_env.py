@@ -41,8 +41,8 @@ class EnvConfig:
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
     camera_height: int = 240
-    obs_width: int = 128  # the policy's image [px] (the paper's 640x480, downscaled)
-    obs_height: int = 96
+    obs_width: int = 96  # the policy's image [px] (the paper's 640x480, downscaled; 4:3 as the camera)
+    obs_height: int = 72
     obs_knobs: bool = False  # observe {"image", "knobs"} instead of the image alone
     rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2)
     reward: RewardConfig = field(default_factory=RewardConfig)
