@@ -170,8 +170,8 @@ def test_offscreen_vehicles_skipped_without_changing_the_frame(urban, lane) -> N
                 r._outside_view = lambda poses, *a: np.zeros(len(poses), bool)  # type: ignore[method-assign]
             r.set_vehicles(vehicles)
             weather = Weather.from_partial({"sun_altitude_angle": 15.0, "sun_azimuth_angle": 200.0})
-            cpos, cyaw, _ = r._camera_pose(poses[0])
-            hidden = LiteRenderer._outside_view(r, poses, dims, cpos, cyaw, 4.0)
+            cpos, cyaw, cpitch = r._camera_pose(poses[0])
+            hidden = LiteRenderer._outside_view(r, poses, dims, cpos, cyaw, cpitch, 4.0)
             frames.append(r.render(poses, np.zeros(len(poses), bool), dims, weather, 0.0, 0))
         finally:
             r.close()

@@ -713,7 +713,7 @@ class LiteRenderer:
         # vehicles
         sz = max(0.25, sd[2])
         sh_len = min(4.0, 1.4 / sz) if sd[2] > 0 else 0.0
-        hidden = self._outside_view(poses, dims, cpos, cyaw, sh_len)
+        hidden = self._outside_view(poses, dims, cpos, cyaw, cpitch, sh_len)
         for idx, vm in self._vehicles.items():
             if idx >= len(poses) or hidden[idx]:
                 vm.root.hide()
@@ -744,19 +744,24 @@ class LiteRenderer:
         return rgb, depth, labels, boxes
 
     def _outside_view(
-        self, poses: np.ndarray, dims: np.ndarray, cpos: np.ndarray, cyaw: float, shadow_len: float
+        self, poses: np.ndarray, dims: np.ndarray, cpos: np.ndarray, cyaw: float, cpitch: float, shadow_len: float
     ) -> np.ndarray:
         """Vehicles wholly behind the camera or beyond the side planes of its frustum (a sphere around
-        each, its shadow included, tested against the three vertical planes). They are hidden without
-        updating their pose, lamps and shadow: Panda3D would cull them anyway, but not before the Python
-        work of updating them, which took some 3 ms a frame for 29 vehicles."""
-        rel = poses[:, :2] - cpos[None, :2]
-        radius = 0.5 * np.hypot(dims[:, 0], dims[:, 1]) + shadow_len + 1.0
+        each, its shadow included, against the camera's near and two side planes in 3D). They are hidden
+        without updating their pose, lamps and shadow: Panda3D would cull them anyway, but not before the
+        Python work of updating them, which took some 3 ms a frame for 29 vehicles."""
+        cy_, sy_ = math.cos(cyaw), math.sin(cyaw)
+        cp, sp = math.cos(cpitch), math.sin(cpitch)
+        fwd = np.array([cp * cy_, cp * sy_, sp])
+        right = np.array([sy_, -cy_, 0.0])
+        centre = poses[:, :3] + np.column_stack([np.zeros((len(poses), 2)), dims[:, 2] / 2])
+        rel = centre - cpos[None, :]
+        radius = 0.5 * np.sqrt((dims[:, :3] ** 2).sum(axis=1)) + shadow_len + 1.0
         half = math.radians(self.camera.fov_deg) / 2.0
+        sh, ch = math.sin(half), math.cos(half)
         out = np.zeros(len(poses), bool)
-        for ang in (cyaw, cyaw + half - math.pi / 2, cyaw - half + math.pi / 2):  # inward plane normals
-            n = np.array([math.cos(ang), math.sin(ang)])
-            out |= rel @ n < -radius
+        for normal in (fwd, fwd * sh + right * ch, fwd * sh - right * ch):  # inward normals of the planes
+            out |= rel @ normal < -radius
         return out
 
     def _read_depth(self) -> np.ndarray:
