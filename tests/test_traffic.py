@@ -71,3 +71,39 @@ def test_vectorised_collision_check_matches_pairwise_sat():
         assert colliding_pairs(x, y, yaw, length, width) == ref
         found += len(ref)
     assert found > 100
+
+
+@pytest.mark.parametrize("name", ["urban", "highway"])
+def test_nearest_lane_point_equals_a_whole_map_scan(name):
+    """The ego's re-anchoring searches grid rings outward instead of scanning every lane sample; it must
+    return the very sample the scan returns (ties to the lowest index), near the road, off it and off
+    the map, with and without the heading filter."""
+    import math
+
+    from genesis_rl.lite.maps import load_map
+
+    m = load_map(name)
+    rng = np.random.default_rng(3)
+    xmin, ymin, xmax, ymax = m.bounds
+    for i in range(400):
+        if i % 2:
+            x, y = m.points[rng.integers(len(m.points)), :2] + rng.uniform(-60, 60, 2)
+        else:
+            x, y = rng.uniform(xmin - 500, xmax + 500), rng.uniform(ymin - 500, ymax + 500)
+        heading = float(rng.uniform(-math.pi, math.pi)) if i % 3 else None
+        got = m.nearest_lane_point(float(x), float(y), heading)
+        full = m._nearest_among(np.arange(len(m.points)), float(x), float(y), heading)
+        assert got == max(full, 0), (i, x, y, heading)
+
+
+def test_ego_on_autopilot_stays_on_the_road(scene):
+    """``Traffic.ego_autopilot`` (used by ``bench sim``) drives the ego like an NPC: it keeps its lane."""
+    with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
+        sim.traffic.ego_autopilot = True
+        for _ in range(400):
+            sim.tick()
+        t = sim.traffic
+        m = t.map
+        i = int(m.point_index(t.lane[0], t.s[0]))
+        assert (t.x[0] - m.points[i, 0]) ** 2 + (t.y[0] - m.points[i, 1]) ** 2 < 2.0**2
+        assert t.v[0] > 1.0 or t.stop_timer[0] > 0 or any(t.v < 0.5)

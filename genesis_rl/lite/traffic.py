@@ -91,6 +91,8 @@ class Traffic:
         self.is_npc = np.ones(n, bool)
         self.is_npc[0] = False
         self.ego_control = VehicleControl()
+        #: drive the ego with the NPC autopilot instead of ``ego_control`` (benchmarks of the traffic alone)
+        self.ego_autopilot = False
         self.time = 0.0
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
@@ -216,15 +218,16 @@ class Traffic:
     def step(self, step_index: int) -> list[Collision]:
         dt = self.dt
         acc, delta = self._autopilot()
-        c = self.ego_control
-        v_e = self.v[0]
-        acc[0] = (
-            c.throttle * self.ego_max_accel * max(0.0, 1.0 - v_e / self.ego_max_speed)
-            - c.brake * MAX_BRAKE
-            - 0.05
-            - 0.0004 * v_e * v_e
-        )
-        delta[0] = c.steer * MAX_STEER * -1.0  # CARLA: positive steer turns right (clockwise)
+        if not self.ego_autopilot:
+            c = self.ego_control
+            v_e = self.v[0]
+            acc[0] = (
+                c.throttle * self.ego_max_accel * max(0.0, 1.0 - v_e / self.ego_max_speed)
+                - c.brake * MAX_BRAKE
+                - 0.05
+                - 0.0004 * v_e * v_e
+            )
+            delta[0] = c.steer * MAX_STEER * -1.0  # CARLA: positive steer turns right (clockwise)
         self.braking = acc < -0.5
         self.accel = acc
         self.steer_angle = delta

