@@ -107,12 +107,18 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     print(json.dumps(report, indent=2))
     if not result["reproduced"]:
         print("genesis-rl replay: the replayed violations differ from the recorded ones", flush=True)
+        from genesis_rl import __version__
+
+        recorded_version = rec.get("package_version")
         if result["recorded_render_version"] != result["render_version"]:
             print(f"genesis-rl replay: the record was made by lite renderer version "
-                  f"{result['recorded_render_version']} (genesis-rl {rec.get('package_version')}), this is "
+                  f"{result['recorded_render_version']} (genesis-rl {recorded_version}), this is "
                   f"version {result['render_version']}: the frames differ slightly, so the detector may "
                   f"see the scene differently; replay with the recorded genesis-rl version to reproduce it",
                   flush=True)
+        elif recorded_version != __version__:
+            print(f"genesis-rl replay: the record was made by genesis-rl {recorded_version}, this is "
+                  f"{__version__}; replay it with the recorded version to reproduce it exactly", flush=True)
         return 1
     return 0
 
