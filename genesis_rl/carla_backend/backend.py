@@ -236,17 +236,6 @@ class CarlaSimulation(Simulation):
             self._hits.append((int(event.frame), int(event.other_actor.id) if event.other_actor else -1))
 
     # -- stepping ----------------------------------------------------------------------------------------
-    @property
-    def step_count(self) -> int:
-        return self._step
-
-    @property
-    def weather(self) -> Weather:
-        return self._weather
-
-    def set_weather(self, weather: Weather) -> None:
-        self._weather = weather
-
     def apply_ego_control(self, control: VehicleControl) -> None:
         self._control = control
 

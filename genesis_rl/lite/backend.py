@@ -53,17 +53,6 @@ class LiteSimulation(Simulation):
             self._renderer.set_vehicles([(i, v.make, v.color) for i, v in enumerate(vs)])
         self._destroyed = False
 
-    @property
-    def step_count(self) -> int:
-        return self._step
-
-    @property
-    def weather(self) -> Weather:
-        return self._weather
-
-    def set_weather(self, weather: Weather) -> None:
-        self._weather = weather
-
     def apply_ego_control(self, control: VehicleControl) -> None:
         self.traffic.ego_control = control
 

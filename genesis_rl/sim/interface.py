@@ -164,9 +164,14 @@ class TickResult:
 
 
 class Simulation(abc.ABC):
-    """One episode on a backend. Subclasses implement the abstract methods; use as a context manager."""
+    """One episode on a backend. Subclasses implement the abstract methods; use as a context manager.
+
+    Subclasses set ``_step`` (ticks so far, 0 at creation) and ``_weather`` (the knobs the next frame
+    uses) in ``__init__`` and advance ``_step`` in ``tick``; the accessors below read them."""
 
     dt: float = FIXED_DELTA_SECONDS
+    _step: int
+    _weather: Weather
 
     def __enter__(self) -> Simulation:
         return self
@@ -175,16 +180,16 @@ class Simulation(abc.ABC):
         self.destroy()
 
     @property
-    @abc.abstractmethod
-    def step_count(self) -> int: ...
+    def step_count(self) -> int:
+        return self._step
 
     @property
-    @abc.abstractmethod
-    def weather(self) -> Weather: ...
+    def weather(self) -> Weather:
+        return self._weather
 
-    @abc.abstractmethod
     def set_weather(self, weather: Weather) -> None:
         """Set every knob; takes effect for the next frame."""
+        self._weather = weather
 
     @abc.abstractmethod
     def apply_ego_control(self, control: VehicleControl) -> None:
