@@ -192,51 +192,52 @@ class RoadMap:
 
     def nearest_lane_point(self, x: float, y: float, heading: float | None = None) -> int:
         """Flat index of the lane sample nearest to (x, y), optionally among headings within 60 degrees:
-        exactly the sample a scan of the whole map finds, searched in a spatial hash (grid cells)."""
+        exactly the sample a scan of the whole map finds (ties to the lowest index), searched in square
+        rings of spatial-hash cells outward from the point's cell. A sample in ring r + 1 or farther is at
+        least r cells away, so the search stops once the best is nearer than that. (A whole-map scan cost
+        1 ms a step for an ego driven off the road.)"""
         if self._grid is None:
-            keys = np.floor(self.points[:, :2] / GRID_CELL).astype(np.int64)
-            order = np.lexsort((keys[:, 1], keys[:, 0]))
-            self._grid = {}
-            for k, idx in zip(map(tuple, keys[order]), order, strict=True):
-                self._grid.setdefault(k, []).append(int(idx))
-            self._grid = {k: np.array(v) for k, v in self._grid.items()}
+            self._build_grid()
+        assert self._grid is not None and self._grid_span is not None
         cx, cy = int(np.floor(x / GRID_CELL)), int(np.floor(y / GRID_CELL))
-        return max(self._nearest_anywhere(cx, cy, x, y, heading), 0)
-
-    def _nearest_anywhere(self, cx: int, cy: int, x: float, y: float, heading: float | None) -> int:
-        """The nearest sample on the whole map (the same index as scanning every sample: ties go to the
-        lowest index), searched in square rings of grid cells outward from (cx, cy). A point in a ring
-        r + 1 or farther is at least r cells away, so the search stops once the best is nearer than that.
-        (A whole-map scan cost 1 ms a step for an ego driven off the road.)"""
-        assert self._grid is not None
-        parts: list[np.ndarray] = []
-        best_d2 = np.inf
-        if self._grid_span is None:
-            keys = np.array(list(self._grid))
-            self._grid_span = (*keys.min(axis=0), *keys.max(axis=0))
         kx0, ky0, kx1, ky1 = self._grid_span
-        if not (kx0 - _MAX_RINGS <= cx <= kx1 + _MAX_RINGS and ky0 - _MAX_RINGS <= cy <= ky1 + _MAX_RINGS):
-            rings = 0  # far outside the map: no ring near enough can hold a lane
-        else:
-            rings = _MAX_RINGS
-        for r in range(rings):
+        near_map = kx0 - _MAX_RINGS <= cx <= kx1 + _MAX_RINGS and ky0 - _MAX_RINGS <= cy <= ky1 + _MAX_RINGS
+        cands: list[np.ndarray] = []
+        dists: list[np.ndarray] = []
+        best_d2 = np.inf
+        for r in range(_MAX_RINGS if near_map else 0):  # far outside the map no ring can hold a lane
             ring = [(cx + i, cy + j) for i in range(-r, r + 1) for j in range(-r, r + 1) if max(abs(i), abs(j)) == r]
             found = [self._grid[k] for k in ring if k in self._grid]
             if found:
-                cand = np.concatenate(found)
-                parts.append(cand)
-                d2 = (self.points[cand, 0] - x) ** 2 + (self.points[cand, 1] - y) ** 2
-                if heading is not None:
-                    d2 = np.where(np.cos(self.headings[cand] - heading) > 0.5, d2, np.inf)
-                best_d2 = min(best_d2, float(d2.min()))
+                cands.append(np.concatenate(found))
+                dists.append(self._distances2(cands[-1], x, y, heading))
+                best_d2 = min(best_d2, float(dists[-1].min()))
             if best_d2 < (r * GRID_CELL) ** 2:
-                return self._nearest_among(np.sort(np.concatenate(parts)), x, y, heading)
-        return self._nearest_among(np.arange(len(self.points)), x, y, heading)
+                cand, d2 = np.concatenate(cands), np.concatenate(dists)
+                return int(cand[d2 == best_d2].min())
+        best = self._nearest_among(np.arange(len(self.points)), x, y, heading)
+        return max(best, 0)
 
-    def _nearest_among(self, cand: np.ndarray, x: float, y: float, heading: float | None) -> int:
+    def _build_grid(self) -> None:
+        """The spatial hash: lane-sample indices per GRID_CELL cell, ascending within a cell, and the span
+        of occupied cells."""
+        keys = np.floor(self.points[:, :2] / GRID_CELL).astype(np.int64)
+        order = np.lexsort((keys[:, 1], keys[:, 0]))
+        grid: dict[tuple[int, int], list[int]] = {}
+        for k, idx in zip(map(tuple, keys[order]), order, strict=True):
+            grid.setdefault(k, []).append(int(idx))
+        self._grid = {k: np.array(v) for k, v in grid.items()}
+        self._grid_span = (*keys.min(axis=0).tolist(), *keys.max(axis=0).tolist())
+
+    def _distances2(self, cand: np.ndarray, x: float, y: float, heading: float | None) -> np.ndarray:
+        """Squared distances from (x, y) to the samples ``cand``; inf where the heading differs by >= 60 deg."""
         d2 = (self.points[cand, 0] - x) ** 2 + (self.points[cand, 1] - y) ** 2
         if heading is not None:
             d2 = np.where(np.cos(self.headings[cand] - heading) > 0.5, d2, np.inf)
+        return d2
+
+    def _nearest_among(self, cand: np.ndarray, x: float, y: float, heading: float | None) -> int:
+        d2 = self._distances2(cand, x, y, heading)
         k = int(np.argmin(d2))
         return int(cand[k]) if np.isfinite(d2[k]) else -1
 

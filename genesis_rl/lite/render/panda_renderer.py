@@ -68,6 +68,16 @@ _CORNER_A = np.array([-1, -1, -1, -1, 1, 1, 1, 1], np.float64)[:, None]  # along
 _CORNER_B = np.array([-1, -1, 1, 1, -1, -1, 1, 1], np.float64)[:, None]  # along its width
 
 
+def _camera_axes(cyaw: float, cpitch: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The camera's forward, right and up unit vectors in the world (yaw CCW from +x, pitch up)."""
+    cy_, sy_ = math.cos(cyaw), math.sin(cyaw)
+    cp, sp = math.cos(cpitch), math.sin(cpitch)
+    fwd = np.array([cp * cy_, cp * sy_, sp])
+    right = np.array([sy_, -cy_, 0.0])
+    up = np.array([-sp * cy_, -sp * sy_, cp])
+    return fwd, right, up
+
+
 def _pipe() -> GraphicsPipe:
     global _PIPE
     if _PIPE is None:
@@ -473,19 +483,19 @@ class LiteRenderer:
             node.set_center(centre)
             return node, centre
 
-        def level(parent: NodePath, name: str, parts: list[tuple[str, _Mesh]]) -> NodePath:
+        def level(parent: NodePath, name: str, parts: list[tuple[str, _Mesh]]) -> None:
             child = parent.attach_new_node(name)
             for kind, part in parts:
                 self._attach(child, part, kind)
             child.flatten_strong()
-            return child
 
         blocks: dict[tuple[int, int], tuple[NodePath, NodePath, Point3]] = {}
-        for bx, by in sorted(merged):
+        block_keys = set(merged) | {(kx // STATIC_BLOCK_TILES, ky // STATIC_BLOCK_TILES) for kx, ky in tiled}
+        for bx, by in sorted(block_keys):
             node, centre = lod_node(f"block_{bx}_{by}", bx, by, block_m)
             block = static.attach_new_node(node)
             blocks[(bx, by)] = (block, block.attach_new_node("tiles"), centre)
-            level(block, "merged", merged[(bx, by)])
+            level(block, "merged", merged.get((bx, by), []))
         reach = 0.0  # farthest tile centre from its block's centre, in 3D
         for (kx, ky), levels in sorted(tiled.items()):
             block, tiles, bcentre = blocks[(kx // STATIC_BLOCK_TILES, ky // STATIC_BLOCK_TILES)]
@@ -755,10 +765,7 @@ class LiteRenderer:
         each, its shadow included, against the camera's near and two side planes in 3D). They are hidden
         without updating their pose, lamps and shadow: Panda3D would cull them anyway, but not before the
         Python work of updating them, which took some 3 ms a frame for 29 vehicles."""
-        cy_, sy_ = math.cos(cyaw), math.sin(cyaw)
-        cp, sp = math.cos(cpitch), math.sin(cpitch)
-        fwd = np.array([cp * cy_, cp * sy_, sp])
-        right = np.array([sy_, -cy_, 0.0])
+        fwd, right, _ = _camera_axes(cyaw, cpitch)
         centre = poses[:, :3] + np.column_stack([np.zeros((len(poses), 2)), dims[:, 2] / 2])
         rel = centre - cpos[None, :]
         radius = 0.5 * np.sqrt((dims[:, :3] ** 2).sum(axis=1)) + shadow_len + 1.0
@@ -795,18 +802,15 @@ class LiteRenderer:
         cpitch: float,
         labels: np.ndarray,
         depth: np.ndarray,
-        hidden: np.ndarray | None = None,
+        hidden: np.ndarray,
     ) -> list[GroundTruthBox]:
+        """Ground-truth boxes of the drawn vehicles (``hidden``: those wholly out of view, skipped)."""
         h, w = self.height, self.width
         f = self.camera.focal_px
-        cy_, sy_ = math.cos(cyaw), math.sin(cyaw)
-        cp, sp = math.cos(cpitch), math.sin(cpitch)
-        right = np.array([sy_, -cy_, 0.0])
-        up = np.array([-sp * cy_, -sp * sy_, cp])
-        fwd = np.array([cp * cy_, cp * sy_, sp])
+        fwd, right, up = _camera_axes(cyaw, cpitch)
         out: list[GroundTruthBox] = []
         for idx, vm in self._vehicles.items():
-            if idx >= len(poses) or (hidden is not None and hidden[idx]):  # hidden: wholly out of view
+            if idx >= len(poses) or hidden[idx]:
                 continue
             x, y, z, yaw, pitch = (float(v) for v in poses[idx, :5])
             ln, wd, ht = (float(v) for v in dims[idx, :3])
