@@ -8,7 +8,14 @@ import time
 from genesis_rl.knobs import Weather
 from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.scenes.lite_generator import generate_catalog
-from genesis_rl.sim.interface import CameraConfig, VehicleControl
+from genesis_rl.sim.interface import CameraConfig, Simulation, VehicleControl
+
+
+def _ticks_per_s(sim: Simulation, steps: int) -> float:
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        sim.tick()
+    return round(steps / (time.perf_counter() - t0), 1)
 
 
 def bench_sim(physics_steps: int = 2000, frames: int = 100, render: bool = True) -> dict:
@@ -20,18 +27,12 @@ def bench_sim(physics_steps: int = 2000, frames: int = 100, render: bool = True)
         # the traffic alone: the ego on the NPC autopilot, so it stays on the road like the other 29
         with backend.create_simulation(scene, seed=0, render=False) as sim:
             sim.traffic.ego_autopilot = True
-            t0 = time.perf_counter()
-            for _ in range(physics_steps):
-                sim.tick()
-            out["physics_steps_per_s"] = round(physics_steps / (time.perf_counter() - t0), 1)
+            out["physics_steps_per_s"] = _ticks_per_s(sim, physics_steps)
         # the ego at constant throttle without steering, as in the first rows of docs/benchmarks.md: it
         # leaves the road, so each step also re-anchors it to the nearest lane
         with backend.create_simulation(scene, seed=0, render=False) as sim:
             sim.apply_ego_control(VehicleControl(throttle=0.3))
-            t0 = time.perf_counter()
-            for _ in range(physics_steps):
-                sim.tick()
-            out["physics_steps_per_s_ego_off_road"] = round(physics_steps / (time.perf_counter() - t0), 1)
+            out["physics_steps_per_s_ego_off_road"] = _ticks_per_s(sim, physics_steps)
         if render:
             weather = Weather.from_partial({"fog_density": 30, "precipitation": 40, "precipitation_deposits": 40})
             for w, h in ((320, 240), (640, 480)):
