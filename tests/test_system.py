@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import textwrap
 
 import numpy as np
@@ -66,6 +67,21 @@ def test_yolo_adapter_without_ultralytics_names_the_extra(tmp_path, monkeypatch)
     weights.write_bytes(b"x")
     with pytest.raises(UserInputError, match="pip install -e '.\\[yolo\\]'"):
         load_system("yolo", weights=str(weights))
+
+
+def test_yolo_adapter_switches_ultralytics_offline_before_importing_it(tmp_path, monkeypatch) -> None:
+    """ultralytics treats YOLO_OFFLINE as offline only when it reads "true" (utils.is_online); "1" made it
+    still probe the network before each model load."""
+    import sys
+
+    monkeypatch.setenv("YOLO_OFFLINE", "")  # so that monkeypatch restores the caller's value afterwards
+    monkeypatch.delenv("YOLO_OFFLINE")
+    monkeypatch.setitem(sys.modules, "ultralytics", None)
+    weights = tmp_path / "yolov5s.pt"
+    weights.write_bytes(b"x")
+    with pytest.raises(UserInputError):
+        load_system("yolo", weights=str(weights))
+    assert os.environ["YOLO_OFFLINE"].lower() == "true"
 
 
 TINY_SYSTEM = textwrap.dedent(

@@ -24,7 +24,8 @@ COCO_VEHICLE_CLASSES = (2, 3, 5, 7)
 
 
 def import_ultralytics():  # noqa: ANN201
-    os.environ.setdefault("YOLO_OFFLINE", "1")  # no update checks, no asset downloads
+    # ultralytics reads this as offline only when it is the string "true" (any case): "1" is not enough
+    os.environ.setdefault("YOLO_OFFLINE", "true")  # no update checks, no asset downloads
     try:
         import ultralytics
     except ImportError:
