@@ -8,7 +8,9 @@ switched off before it is imported.
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +20,13 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.sim.interface import SensorFrame
 from genesis_rl.system.builtin import PerceptionDrivenSystem
 from genesis_rl.system.controller import ControllerConfig
+
+
+def _gl_started() -> bool:
+    """Whether this process has created the lite renderer's OpenGL pipe (and so loaded Mesa)."""
+    render = sys.modules.get("genesis_rl.lite.render.panda_renderer")
+    return render is not None and getattr(render, "_PIPE", None) is not None
+
 
 #: COCO class ids of vehicles: car, motorcycle, bus, truck
 COCO_VEHICLE_CLASSES = (2, 3, 5, 7)
@@ -56,6 +65,23 @@ class YoloSystem(PerceptionDrivenSystem):
         self.weights_path = path
         self.score_threshold = float(score_threshold)
         self.image_size = int(image_size)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Predict once on a blank frame now, before any simulator renders.
+
+        ultralytics imports torchvision on its first prediction, and through it (with CUDA builds of torch)
+        triton, whose own LLVM crashes the process with a segmentation fault when Mesa's llvmpipe, which
+        the lite renderer runs on, was loaded first. Every genesis-rl command creates the system before
+        the simulator; a script that does it the other way round gets this error instead of the crash.
+        """
+        if _gl_started() and importlib.util.find_spec("triton") is not None and "triton" not in sys.modules:
+            raise UserInputError(
+                "create the yolo system before the first lite simulation in this process: its first prediction "
+                "imports triton, which crashes once the renderer's OpenGL (Mesa llvmpipe) is loaded"
+            )
+        self.model.predict(np.zeros((64, 64, 3), np.uint8), imgsz=self.image_size, conf=self.score_threshold,
+                           verbose=False)
 
     def _boxes(self, frame: SensorFrame) -> np.ndarray:
         result = self.model.predict(frame.rgb[..., ::-1], imgsz=self.image_size, conf=self.score_threshold,
