@@ -179,3 +179,20 @@ def test_offscreen_vehicles_skipped_without_changing_the_frame(urban, lane) -> N
     a, b = frames
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
     assert a[3] == b[3]
+
+
+def test_a_render_draws_only_its_own_buffer(renderer, urban, lane) -> None:
+    """Panda3D's render_frame() draws every active buffer of the process: a renderer must not redraw the
+    others (a pooled 640x480 renderer made every 320x240 frame of another cost a 640x480 draw too)."""
+    _render(renderer, urban, lane, [("sedan", 12.0, 0.0)])
+    before = bytes(renderer._color_tex.get_ram_image())
+    renderer.cam.set_h(renderer.cam.get_h() + 90.0)  # its camera turns, but it is not asked to render
+    small = LiteRenderer(urban, CameraConfig(96, 72), seed=3)
+    try:
+        for step in range(2):
+            _render(small, urban, lane, [("van", 20.0, 0.0)], step=step)
+    finally:
+        small.close()
+    assert bytes(renderer._color_tex.get_ram_image()) == before
+    rgb, _, _, _ = _render(renderer, urban, lane, [("sedan", 12.0, 0.0)])  # and it still renders itself
+    assert rgb.shape == (480, 640, 3)
