@@ -24,8 +24,8 @@ from genesis_rl.system.controller import ControllerConfig
 
 def _gl_started() -> bool:
     """Whether this process has created the lite renderer's OpenGL pipe (and so loaded Mesa)."""
-    render = sys.modules.get("genesis_rl.lite.render.panda_renderer")
-    return render is not None and getattr(render, "_PIPE", None) is not None
+    render = sys.modules.get("genesis_rl.lite.render.panda_renderer")  # not imported: no renderer yet
+    return render is not None and render.gl_pipe_created()
 
 
 #: COCO class ids of vehicles: car, motorcycle, bus, truck
@@ -80,8 +80,8 @@ class YoloSystem(PerceptionDrivenSystem):
                 "create the yolo system before the first lite simulation in this process: its first prediction "
                 "imports triton, which crashes once the renderer's OpenGL (Mesa llvmpipe) is loaded"
             )
-        self.model.predict(np.zeros((64, 64, 3), np.uint8), imgsz=self.image_size, conf=self.score_threshold,
-                           verbose=False)
+        self._boxes(SensorFrame(step=0, rgb=np.zeros((64, 64, 3), np.uint8),
+                                depth=np.zeros((64, 64), np.float32), boxes=[]))
 
     def _boxes(self, frame: SensorFrame) -> np.ndarray:
         result = self.model.predict(frame.rgb[..., ::-1], imgsz=self.image_size, conf=self.score_threshold,

@@ -78,6 +78,11 @@ def _camera_axes(cyaw: float, cpitch: float) -> tuple[np.ndarray, np.ndarray, np
     return fwd, right, up
 
 
+def gl_pipe_created() -> bool:
+    """Whether this process has created the renderer's OpenGL pipe, and so loaded the GL driver (Mesa)."""
+    return _PIPE is not None
+
+
 def _pipe() -> GraphicsPipe:
     global _PIPE
     if _PIPE is None:
