@@ -42,6 +42,7 @@ from genesis_rl.knobs import Weather
 from genesis_rl.lite.maps.lane_graph import LANE_WIDTH, RoadMap
 from genesis_rl.lite.render import labels as L
 from genesis_rl.lite.render.lighting import lighting_for
+from genesis_rl.lite.render.polyline import simplify_indices
 from genesis_rl.lite.render.vehicle_models import VehicleModel, build_vehicle_model
 from genesis_rl.lite.render.weather_effects import WeatherCompositor
 from genesis_rl.sim.interface import CameraConfig, GroundTruthBox
@@ -357,22 +358,31 @@ class LiteRenderer:
                 continue
             nv = _normals2(cl)
             hw = r.width / 2
+            # the vertices the drawn lines need (the centreline is sampled every 0.5 m for lane keeping);
+            # every line between the outermost two stays within tolerance when they and the centre do
+            reach = hw if highway else hw + 2.5
+            keep = simplify_indices(
+                np.stack([_offset_line(rm, cl, nv, o, 0.02) for o in (reach, 0.0, -reach)])
+            )
             road.strip(
-                _offset_line(rm, cl, nv, hw, 0.02), _offset_line(rm, cl, nv, -hw, 0.02), asphalt, L.ROAD
+                _offset_line(rm, cl, nv, hw, 0.02)[keep],
+                _offset_line(rm, cl, nv, -hw, 0.02)[keep],
+                asphalt,
+                L.ROAD,
             )
             s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cl, axis=0), axis=1))])
             for off in (0.12, -0.12):  # double yellow centre line
-                self._line(mark, rm, cl, nv, off, 0.12, yellow, None, s)
+                self._line(mark, rm, cl, nv, off, 0.12, yellow, None, s, keep)
             for k in range(1, r.lanes_each_way):  # dashed white between same-direction lanes
                 for sign in (1, -1):
-                    self._line(mark, rm, cl, nv, sign * k * LANE_WIDTH, 0.15, white, (3.0, 9.0), s)
+                    self._line(mark, rm, cl, nv, sign * k * LANE_WIDTH, 0.15, white, (3.0, 9.0), s, keep)
             for sign in (1, -1):  # solid edge lines
-                self._line(mark, rm, cl, nv, sign * (hw - 0.25), 0.15, white, None, s)
+                self._line(mark, rm, cl, nv, sign * (hw - 0.25), 0.15, white, None, s, keep)
             if not highway:
                 for sign in (1, -1):
-                    inner = _offset_line(rm, cl, nv, sign * hw, 0.15)
-                    outer = _offset_line(rm, cl, nv, sign * (hw + 2.5), 0.15)
-                    lo = _offset_line(rm, cl, nv, sign * hw, 0.0)
+                    inner = _offset_line(rm, cl, nv, sign * hw, 0.15)[keep]
+                    outer = _offset_line(rm, cl, nv, sign * (hw + 2.5), 0.15)[keep]
+                    lo = _offset_line(rm, cl, nv, sign * hw, 0.0)[keep]
                     if sign > 0:
                         side.strip(outer, inner, (0.56, 0.55, 0.53), L.SIDEWALK)
                         side.strip(inner, lo, (0.45, 0.45, 0.44), L.SIDEWALK)
@@ -562,22 +572,24 @@ class LiteRenderer:
         col,  # noqa: ANN001
         dash: tuple[float, float] | None,
         s: np.ndarray,
+        keep: np.ndarray,
     ) -> None:
+        """A painted line ``w`` wide at lateral offset ``off``: solid on the road's kept vertices, or dashes
+        (``dash`` = (on, period) metres of arc length), each dash simplified on its own so that it keeps
+        its exact ends."""
         left = _offset_line(rm, cl, nv, off + w / 2, 0.045)
         right = _offset_line(rm, cl, nv, off - w / 2, 0.045)
         if dash is None:
-            m.strip(left, right, col, L.LANE_MARKING)
+            m.strip(left[keep], right[keep], col, L.LANE_MARKING)
             return
         on_len, period = dash
         mid = 0.5 * (s[:-1] + s[1:])
-        on = (mid % period) < on_len
-        n = len(cl)
-        i = np.nonzero(on)[0]
-        if not len(i):
-            return
-        pos = np.concatenate([right, left])
-        tri = np.stack([i, i + 1, n + i + 1, i, n + i + 1, n + i], axis=1)
-        m.add(pos, (0.0, 0.0, 1.0), col, tri, L.LANE_MARKING)
+        on = np.concatenate([[False], (mid % period) < on_len, [False]])
+        starts = np.flatnonzero(on[1:] & ~on[:-1])  # first segment of each dash
+        ends = np.flatnonzero(on[:-1] & ~on[1:])  # one past its last segment = its last vertex
+        for a, b in zip(starts, ends, strict=True):
+            k = a + simplify_indices(np.stack([left[a : b + 1], right[a : b + 1]]))
+            m.strip(left[k], right[k], col, L.LANE_MARKING)
 
     @staticmethod
     def _tree(
