@@ -41,6 +41,7 @@ from panda3d.core import (
 from genesis_rl.knobs import Weather
 from genesis_rl.lite.maps.lane_graph import LANE_WIDTH, RoadMap
 from genesis_rl.lite.render import labels as L
+from genesis_rl.lite.render.ground import FAR_GROUND_STEP, cell_triangles, coarse_blocks, ground_grid
 from genesis_rl.lite.render.lighting import lighting_for
 from genesis_rl.lite.render.polyline import simplify_indices
 from genesis_rl.lite.render.vehicle_models import VehicleModel, build_vehicle_model
@@ -329,23 +330,10 @@ class LiteRenderer:
         rng = np.random.default_rng(zlib.crc32(rm.name.encode()))
 
         # ground
-        xmin, ymin, xmax, ymax = rm.bounds
-        cell = max(8.0, max(xmax - xmin, ymax - ymin) / 110.0)
-        nx = int(math.ceil((xmax - xmin) / cell)) + 1
-        ny = int(math.ceil((ymax - ymin) / cell)) + 1
-        gx, gy = np.meshgrid(np.linspace(xmin, xmax, nx), np.linspace(ymin, ymax, ny))
-        gz = np.asarray(rm.elevation(gx.ravel(), gy.ravel()), np.float64) * np.ones(gx.size)
-        gz = gz - (0.3 if highway else 0.05)
-        zz = gz.reshape(ny, nx)
-        dzdy, dzdx = np.gradient(zz, (ymax - ymin) / (ny - 1), (xmax - xmin) / (nx - 1))
-        nrm = np.stack([-dzdx.ravel(), -dzdy.ravel(), np.ones(gx.size)], axis=1)
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-        gcol = np.asarray(rm.ground_color) * (0.92 + 0.16 * rng.random((gx.size, 1)))
-        i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
-        a = (j * nx + i).ravel()
-        tri = np.stack([a, a + 1, a + nx + 1, a, a + nx + 1, a + nx], axis=1)
+        grid = ground_grid(rm, rng, 0.3 if highway else 0.05)
         m = _Mesh()
-        m.add(np.column_stack([gx.ravel(), gy.ravel(), gz]), nrm, gcol, tri, L.GROUND)
+        flat = (grid.pos.reshape(-1, 3), grid.nrm.reshape(-1, 3), grid.col.reshape(-1, 3))
+        m.add(*flat, cell_triangles(grid.shape[1], grid.shape[0]), L.GROUND)
         meshes: list[tuple[str, _Mesh]] = [("ground", m)]
 
         # roads, junctions, markings, sidewalks, puddles
@@ -489,8 +477,15 @@ class LiteRenderer:
             for name, mesh in group:
                 for key, part in mesh.tiles(STATIC_TILE_M).items():
                     tiled.setdefault(key, [[], []])[level].append((name, part))
+        # merged blocks draw the ground on a coarser grid (see ground.py)
         merged: dict[tuple[int, int], list[tuple[str, _Mesh]]] = {}
+        for key, (gpos, gnrm, gcol, gtri) in coarse_blocks(grid, FAR_GROUND_STEP, block_m).items():
+            part = _Mesh()
+            part.add(gpos, gnrm, gcol, gtri, L.GROUND)
+            merged.setdefault(key, []).append(("ground", part))
         for name, mesh in far_meshes:
+            if name == "ground":
+                continue
             for key, part in mesh.tiles(block_m).items():
                 merged.setdefault(key, []).append((name, part))
 
