@@ -319,6 +319,8 @@ class LiteRenderer:
 
         self._compositor = WeatherCompositor(self.width, self.height, hfov, self.seed)
         self._vehicles: dict[int, VehicleModel] = {}
+        self._depth_u32: np.ndarray | None = None  # reused buffers of _read_depth
+        self._depth_f64: np.ndarray | None = None
         self._build_static()
         self._closed = False
 
@@ -679,17 +681,24 @@ class LiteRenderer:
         cam = self.camera
         cy_, sy_ = math.cos(yaw), math.sin(yaw)
         cp = math.cos(pitch)
-        fwd = np.array([cp * cy_, cp * sy_, math.sin(pitch)])
-        left = np.array([-sy_, cy_, 0.0])
-        up = np.cross(fwd, -left)
-        up = -up if up[2] < 0 else up
-        pos = np.array([x, y, z]) + fwd * cam.mount_x + left * cam.mount_y + up * cam.mount_z
+        f0, f1, f2 = cp * cy_, cp * sy_, math.sin(pitch)  # forward
+        l0, l1, l2 = -sy_, cy_, 0.0  # left
+        b0, b1, b2 = -l0, -l1, -l2
+        # up = forward x (-left), as np.cross computes it, pointing up
+        u0, u1, u2 = f1 * b2 - f2 * b1, f2 * b0 - f0 * b2, f0 * b1 - f1 * b0
+        if u2 < 0:
+            u0, u1, u2 = -u0, -u1, -u2
+        mx, my, mz = cam.mount_x, cam.mount_y, cam.mount_z
+        pos = np.array(
+            [x + f0 * mx + l0 * my + u0 * mz, y + f1 * mx + l1 * my + u1 * mz, z + f2 * mx + l2 * my + u2 * mz]
+        )
         return pos, yaw, pitch + math.radians(cam.pitch_deg)
 
     def _update_lamps(self, time_s: float) -> None:
         if self._lamp_vdata is None:
             return
-        states = [self.map.signal_state(j, g, time_s) for j, g, _ in self._lamps]
+        by_group = {jg: self.map.signal_state(*jg, time_s) for jg in dict.fromkeys((j, g) for j, g, _ in self._lamps)}
+        states = [by_group[(j, g)] for j, g, _ in self._lamps]
         if states == self._lamp_state:
             return
         self._lamp_state = states
@@ -740,15 +749,15 @@ class LiteRenderer:
         sz = max(0.25, sd[2])
         sh_len = min(4.0, 1.4 / sz) if sd[2] > 0 else 0.0
         hidden = self._outside_view(poses, dims, cpos, cyaw, cpitch, sh_len)
+        pose_rows, brake_flags, hidden_flags = poses[:, :5].tolist(), braking.tolist(), hidden.tolist()
         for idx, vm in self._vehicles.items():
-            if idx >= len(poses) or hidden[idx]:
+            if idx >= len(pose_rows) or hidden_flags[idx]:
                 vm.root.hide()
                 continue
-            x, y, z, yaw, pitch = (float(v) for v in poses[idx, :5])
+            x, y, z, yaw, pitch = pose_rows[idx]
             vm.root.show()
-            vm.root.set_pos(x, y, z)
-            vm.root.set_hpr(math.degrees(yaw) - 90.0, math.degrees(pitch), 0.0)
-            vm.set_lights(hs > 0.3, bool(braking[idx]) if idx < len(braking) else False)
+            vm.root.set_pos_hpr(x, y, z, math.degrees(yaw) - 90.0, math.degrees(pitch), 0.0)
+            vm.set_lights(hs > 0.3, bool(brake_flags[idx]) if idx < len(brake_flags) else False)
             # shadow offset in the model frame (x right, y forward), away from the sun
             ox, oy = -sd[0] * sh_len, -sd[1] * sh_len
             c, s = math.cos(yaw), math.sin(yaw)
@@ -772,10 +781,12 @@ class LiteRenderer:
         bgra = cv2.flip(np.frombuffer(self._color_tex.get_ram_image(), np.uint8).reshape(h, w, 4), 0)
         labels = cv2.extractChannel(bgra, 3)
         rgb0 = cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGB)
-        depth_raw = self._read_depth()
-        depth = cv2.flip(
-            (self.near * self.far / (self.far - depth_raw * (self.far - self.near))).astype(np.float32), 0
-        )
+        # metric depth near * far / (far - d (far - near)), in place (same operations as one expression)
+        d = self._read_depth()  # float64, ours to overwrite
+        np.multiply(d, self.far - self.near, out=d)
+        np.subtract(self.far, d, out=d)
+        np.divide(self.near * self.far, d, out=d)
+        depth = cv2.flip(d.astype(np.float32), 0)
         depth[labels == L.SKY] = np.float32(self.far)
         rgb = self._compositor.apply(rgb0, depth, labels, weather, lighting, cyaw, cpitch, int(step))
         boxes = self._boxes(poses, dims, cpos, cyaw, cpitch, labels, depth, hidden)
@@ -800,6 +811,8 @@ class LiteRenderer:
         return out
 
     def _read_depth(self) -> np.ndarray:
+        """The depth buffer in 0..1 as float64, bottom row first; the usual 24-bit format goes through a
+        reused buffer (fresh 600 kB arrays per step cost page faults)."""
         tex = self._depth_tex
         h, w = self.height, self.width
         data = memoryview(tex.get_ram_image())
@@ -807,7 +820,11 @@ class LiteRenderer:
         if ct == Texture.T_float:
             d = np.frombuffer(data, np.float32).reshape(h, w)
         elif ct == Texture.T_unsigned_int_24_8:
-            d = (np.frombuffer(data, np.uint32).reshape(h, w) >> 8).astype(np.float64) / float(2**24 - 1)
+            if self._depth_u32 is None:
+                self._depth_u32, self._depth_f64 = np.empty((h, w), np.uint32), np.empty((h, w), np.float64)
+            np.right_shift(np.frombuffer(data, np.uint32).reshape(h, w), 8, out=self._depth_u32)
+            np.copyto(self._depth_f64, self._depth_u32)
+            return np.divide(self._depth_f64, float(2**24 - 1), out=self._depth_f64)
         elif ct == Texture.T_unsigned_int:
             d = np.frombuffer(data, np.uint32).reshape(h, w).astype(np.float64) / float(2**32 - 1)
         elif ct == Texture.T_unsigned_short:
