@@ -350,10 +350,8 @@ class LiteRenderer:
             hw = r.width / 2
             # the vertices the drawn lines need (the centreline is sampled every 0.5 m for lane keeping);
             # every line between the outermost two stays within tolerance when they and the centre do
-            reach = hw if highway else hw + 2.5
-            keep = simplify_indices(
-                np.stack([_offset_line(rm, cl, nv, o, 0.02) for o in (reach, 0.0, -reach)])
-            )
+            span = hw if highway else hw + 2.5  # to the road's edge, or the sidewalk's
+            keep = simplify_indices(np.stack([_offset_line(rm, cl, nv, o, 0.02) for o in (span, 0.0, -span)]))
             road.strip(
                 _offset_line(rm, cl, nv, hw, 0.02)[keep],
                 _offset_line(rm, cl, nv, -hw, 0.02)[keep],
