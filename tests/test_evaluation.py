@@ -173,6 +173,22 @@ def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path) -> 
     assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"]) == 2  # no overwrite
 
 
+def test_replay_says_whether_violations_or_only_the_steps_differ(tmp_path, campaign: Path, capsys) -> None:
+    """A record whose step telemetry no longer matches (another renderer, say) but whose violations do is
+    not called a different outcome."""
+    rec = json.loads((campaign / "records" / "random_scene_0005.json").read_text())
+    rec["step_digest"] = "0" * len(rec["step_digest"])
+    other = tmp_path / "other_steps.json"
+    other.write_text(json.dumps(rec))
+    assert main(["replay", str(other), "--out", str(tmp_path / "a"), "--quiet", "--no-gif"]) == 1
+    out = capsys.readouterr().out
+    assert "violations are the recorded ones, but the per-step telemetry is not" in out
+    rec["violations"]["collision"] += 1.0
+    other.write_text(json.dumps(rec))
+    assert main(["replay", str(other), "--out", str(tmp_path / "b"), "--quiet", "--no-gif"]) == 1
+    assert "replayed violations differ from the recorded ones" in capsys.readouterr().out
+
+
 def test_replay_of_the_builtin_system_is_bit_identical(tmp_path, catalog: str) -> None:
     """The builtin system reads the camera, so this catches renderer or detector state leaking from one
     episode into the next: the second scene's episode is replayed alone in a fresh backend."""

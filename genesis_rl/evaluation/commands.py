@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from genesis_rl.errors import UserInputError
@@ -106,7 +107,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     atomic_write_json(out / "replay.json", report, indent=2)
     print(json.dumps(report, indent=2))
     if not result["reproduced"]:
-        print("genesis-rl replay: the replayed violations differ from the recorded ones", flush=True)
+        same_violations = set(result["violations"]) == set(result["recorded_violations"]) and all(
+            math.isclose(result["violations"][k], v, rel_tol=1e-9, abs_tol=1e-9)
+            for k, v in result["recorded_violations"].items())
+        if same_violations:
+            print("genesis-rl replay: the violations are the recorded ones, but the per-step telemetry is not "
+                  "(its digest differs: a detection score or distance changed somewhere)", flush=True)
+        else:
+            print("genesis-rl replay: the replayed violations differ from the recorded ones", flush=True)
         from genesis_rl import __version__
 
         recorded_version = rec.get("package_version")
