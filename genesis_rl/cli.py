@@ -83,6 +83,8 @@ def _cmd_drive(args: argparse.Namespace) -> int:
         raise UserInputError(f"--steps must be >= 1, got {args.steps}")
     if args.gif_stride < 1:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
+    if args.threads < 1:
+        raise UserInputError(f"--threads must be >= 1, got {args.threads}")
     indices = parse_scene_range(args.scene)
     if args.backend == "carla" and not args.catalog:
         raise UserInputError("--backend carla needs --catalog: make one with genesis-rl scenes --backend carla")
@@ -95,10 +97,18 @@ def _cmd_drive(args: argparse.Namespace) -> int:
         if args.system not in ("builtin", "yolo"):
             raise UserInputError("--weights applies to --system builtin or yolo only")
         kwargs["weights"] = args.weights
-    summary = drive_scenes(catalog, indices, args.system, kwargs, base, schedule, args.steps, args.episode_seed,
-                           Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
-                           gif_stride=args.gif_stride, gif_from=args.gif_from, camera_size=(args.width, args.height),
-                           progress=not args.quiet, backend_factory=lambda: backend_from_args(args))
+    import torch
+
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(args.threads)  # for this run only: main() is also called from tests and notebooks
+    try:
+        summary = drive_scenes(catalog, indices, args.system, kwargs, base, schedule, args.steps, args.episode_seed,
+                               Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
+                               gif_stride=args.gif_stride, gif_from=args.gif_from,
+                               camera_size=(args.width, args.height),
+                               progress=not args.quiet, backend_factory=lambda: backend_from_args(args))
+    finally:
+        torch.set_num_threads(threads_before)
     print_summary(summary)
     return 0
 
@@ -213,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF")
     dr.add_argument("--gif-from", type=int, default=0, help="first step shown in the GIF")
     dr.add_argument("--quiet", action="store_true", help="no progress bar")
+    dr.add_argument("--threads", type=int, default=1,
+                    help="torch CPU threads for the system under test (default 1: the arithmetic of evaluate and "
+                         "replay, and no slowdown when several processes share the cores)")
     add_backend_arguments(dr)
     dr.set_defaults(func=_cmd_drive)
 

@@ -233,3 +233,16 @@ def test_drive_never_overwrites_a_result_without_force(tmp_path, capsys) -> None
     assert "telemetry.parquet' already exists; pass --force" in capsys.readouterr().err
     assert (tmp_path / "telemetry.parquet").read_bytes() == before
     assert main([*args, "--force"]) == 0
+
+
+def test_drive_threads_are_checked_and_only_set_for_the_run(tmp_path, capsys) -> None:
+    import torch
+
+    from genesis_rl.cli import main
+
+    before = torch.get_num_threads()
+    assert main(["drive", "--threads", "0", "--out", str(tmp_path / "x")]) == 2
+    assert "--threads must be >= 1, got 0" in capsys.readouterr().err
+    assert main(["drive", "--map", "highway", "--scene", "0", "--system", "blind", "--steps", "2", "--no-gif",
+                 "--threads", "1", "--quiet", "--out", str(tmp_path / "y")]) == 0
+    assert torch.get_num_threads() == before  # a notebook's or test's own setting survives the command
