@@ -51,6 +51,7 @@ def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> 
     common = ["--quiet"]
     assert main(["train", "--out", str(run), "--system", "oracle", "--scenes", "3", "--steps", "32",
                  "--n-steps", "16", "--episode-steps", "8", *common]) == 0
+    assert "scenes urban" not in capsys.readouterr().err  # --quiet silences the catalog's bar as well
     first = json.loads((run / "checkpoints" / "last.json").read_text())
     assert first["timesteps"] == 32
     for name in ("agent.zip", "config.toml", "run.json", "catalog.json", "episodes.csv"):

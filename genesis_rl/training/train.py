@@ -152,7 +152,7 @@ def load_checkpoint(run: Path, env: Any, device: str) -> tuple[Any, int]:
 
 
 def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
-                total_timesteps: int | None = None) -> RunConfig:
+                total_timesteps: int | None = None, progress: bool = True) -> RunConfig:
     """Create (or reopen with ``resume``) the run folder; returns the config the run uses. On resume,
     ``total_timesteps`` may raise the run's target (it is written back to its config.toml)."""
     import shutil
@@ -171,7 +171,7 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
         raise UserInputError(f"run folder '{out}' exists; pass --resume to continue it or --force to replace it")
     # the catalog is resolved before an old run is removed, so a bad catalog setting loses nothing
     catalog = catalog_or_generate(cfg.env.catalog, cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed,
-                                  map_field="env.map", progress=True)
+                                  map_field="env.map", progress=progress)
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -192,7 +192,7 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
     from stable_baselines3 import PPO
     from stable_baselines3.common.logger import configure
 
-    cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps)
+    cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     p = cfg.ppo
