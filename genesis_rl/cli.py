@@ -12,6 +12,25 @@ from genesis_rl import __version__
 from genesis_rl.errors import UserInputError
 
 
+def seed_int(text: str) -> int:
+    """argparse type of every seed: an integer >= 0 (numpy's generators refuse negative seeds)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got '{text}'") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    return value
+
+
+def _weather_help() -> str:
+    from genesis_rl.knobs import KNOBS, PRESETS
+
+    return (f"preset and/or KNOB=VALUE list, e.g. fog_density=60,sun_altitude_angle=10 or heavy_rain_night,"
+            f"fog_density=30 (default: clear_noon). Presets: {', '.join(PRESETS)}. Knobs [range]: "
+            + ", ".join(f"{k} [{v.low:g}..{v.high:g}]" for k, v in KNOBS.items()))
+
+
 def _cmd_scenes(args: argparse.Namespace) -> int:
     from genesis_rl.io_utils import ensure_writable
     from genesis_rl.lite.maps import MAP_NAMES
@@ -55,9 +74,19 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from genesis_rl.scenes.lite_generator import catalog_or_generate
     from genesis_rl.sim.interface import CameraConfig
 
-    if not args.catalog and args.scene < 0:
+    if args.scene < 0:
         raise UserInputError(f"--scene must be >= 0, got {args.scene}")
+    if args.warmup < 0:
+        raise UserInputError(f"--warmup must be >= 0, got {args.warmup}")
+    if args.sweep and args.weather is not None:
+        raise UserInputError("--weather does not apply with --sweep: the sheet sweeps each knob from clear noon")
     catalog = catalog_or_generate(args.catalog, args.map, args.scene + 1, args.seed)
+    if catalog.backend != "lite":
+        raise UserInputError(f"--catalog '{args.catalog}' holds {catalog.backend} scenes; render draws lite scenes "
+                             "(allowed: a catalog with backend 'lite')")
+    if args.scene >= len(catalog.scenes):
+        raise UserInputError(f"--scene {args.scene} is out of range; "
+                             f"the catalog has scenes 0..{len(catalog.scenes) - 1}")
     scene = catalog.scene(args.scene)
     try:
         camera = CameraConfig(width=args.width, height=args.height)
@@ -67,7 +96,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
     if args.sweep:
         result = render_sweep(scene, camera, out, args.force, args.warmup)
     else:
-        result = render_one(scene, parse_weather(args.weather), camera, out, args.force, args.warmup)
+        weather = parse_weather(args.weather or "clear_noon")
+        result = render_one(scene, weather, camera, out, args.force, args.warmup)
     print(json.dumps(result))
     return 0
 
@@ -85,10 +115,18 @@ def _cmd_drive(args: argparse.Namespace) -> int:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
     if args.threads < 1:
         raise UserInputError(f"--threads must be >= 1, got {args.threads}")
+    if args.gif_from < 0 or args.gif_from >= args.steps:
+        raise UserInputError(f"--gif-from must be a step in 0..{args.steps - 1} (--steps {args.steps}), "
+                             f"got {args.gif_from}")
+    if args.gif and args.no_gif:
+        raise UserInputError("--gif and --no-gif contradict each other; pass one")
     indices = parse_scene_range(args.scene)
     if args.backend == "carla" and not args.catalog:
         raise UserInputError("--backend carla needs --catalog: make one with genesis-rl scenes --backend carla")
     catalog = catalog_or_generate(args.catalog, args.map, max(indices) + 1, args.seed)
+    if catalog.backend != args.backend:
+        raise UserInputError(f"--catalog '{args.catalog}' holds {catalog.backend} scenes; pass --backend "
+                             f"{catalog.backend} or a catalog made for --backend {args.backend}")
     parse_scene_range(args.scene, len(catalog.scenes))
     base = parse_weather(args.weather)
     schedule = load_schedule(args.schedule, base, args.steps) if args.schedule else None
@@ -178,9 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     sc = sub.add_parser("scenes", help="generate a scene catalog (JSON) for a map")
-    sc.add_argument("--map", default="urban", help="map name: urban (train) or highway (test)")
+    sc.add_argument("--map", default="urban", help="map name: urban (train) or highway (test); default: urban")
     sc.add_argument("--count", type=int, default=None, help="number of scenes (default: 1202 urban, 1199 highway)")
-    sc.add_argument("--seed", type=int, default=0, help="catalog seed: the same seed gives the same catalog")
+    sc.add_argument("--seed", type=seed_int, default=0, help="catalog seed: the same seed gives the same catalog")
     add_backend_arguments(sc)
     sc.add_argument("--out", required=True, help="output catalog file (.json)")
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -188,40 +226,43 @@ def build_parser() -> argparse.ArgumentParser:
     sc.set_defaults(func=_cmd_scenes)
 
     rd = sub.add_parser("render", help="render a scene's camera frame (rgb, depth, boxes) or a knob sweep sheet")
-    rd.add_argument("--map", default="urban", help="map name: urban or highway (scene generated with --seed)")
+    rd.add_argument("--map", default="urban", help="map name: urban or highway (default: urban; scene generated "
+                    "with --seed)")
     rd.add_argument("--catalog", default=None, help="take the scene from this catalog file instead")
-    rd.add_argument("--scene", type=int, default=0, help="scene index")
-    rd.add_argument("--seed", type=int, default=0, help="catalog seed when no --catalog is given")
-    rd.add_argument("--weather", default="clear_noon",
-                    help="preset and/or KNOB=VALUE list, e.g. fog_density=60,sun_altitude_angle=10")
+    rd.add_argument("--scene", type=int, default=0, help="scene index (default: 0)")
+    rd.add_argument("--seed", type=seed_int, default=0, help="catalog seed when no --catalog is given")
+    rd.add_argument("--weather", default=None, help=_weather_help())
     rd.add_argument("--sweep", action="store_true", help="write a contact sheet sweeping each knob")
-    rd.add_argument("--width", type=int, default=320, help="image width [px]")
-    rd.add_argument("--height", type=int, default=240, help="image height [px]")
+    rd.add_argument("--width", type=int, default=320, help="image width [px] (default: 320)")
+    rd.add_argument("--height", type=int, default=240, help="image height [px] (default: 240)")
     rd.add_argument("--warmup", type=int, default=0, help="simulation steps before the frame")
     rd.add_argument("--out", required=True, help="output directory")
     rd.add_argument("--force", action="store_true", help="overwrite existing outputs")
     rd.set_defaults(func=_cmd_render)
 
     dr = sub.add_parser("drive", help="drive the system under test closed-loop; telemetry, GIF, summary")
-    dr.add_argument("--map", default="highway", help="map name: urban or highway (scenes generated with --seed)")
+    dr.add_argument("--map", default="highway",
+                    help="map name: urban or highway (default: highway; scenes generated with --seed)")
     dr.add_argument("--catalog", default=None, help="take scenes from this catalog file instead")
-    dr.add_argument("--scene", default="0", help="scene index (3) or range START:STOP (0:50)")
-    dr.add_argument("--seed", type=int, default=0, help="catalog seed when no --catalog is given")
-    dr.add_argument("--episode-seed", type=int, default=0, help="seed of NPC behaviour and sensor noise")
-    dr.add_argument("--weather", default="clear_noon", help="preset and/or KNOB=VALUE list (base of --schedule)")
+    dr.add_argument("--scene", default="0", help="scene index (3) or range START:STOP (0:50); default: 0")
+    dr.add_argument("--seed", type=seed_int, default=0, help="catalog seed when no --catalog is given")
+    dr.add_argument("--episode-seed", type=seed_int, default=0, help="seed of NPC behaviour and sensor noise")
+    dr.add_argument("--weather", default="clear_noon", help=_weather_help() + ". The base of --schedule.")
     dr.add_argument("--schedule", default=None, help="CSV of per-step knob values: one row a step, one column a knob")
     dr.add_argument("--system", default="builtin",
-                    help="system under test: builtin, blind, oracle, yolo, or package.module:Class")
-    dr.add_argument("--weights", default=None, help="detector weights for --system builtin (default: shipped)")
-    dr.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
-    dr.add_argument("--width", type=int, default=320, help="camera width [px]")
-    dr.add_argument("--height", type=int, default=240, help="camera height [px]")
+                    help="system under test: builtin, blind, oracle, yolo, or package.module:Class "
+                         "(default: builtin)")
+    dr.add_argument("--weights", default=None,
+                    help="detector weights for --system builtin or yolo (default: the shipped ones)")
+    dr.add_argument("--steps", type=int, default=512, help="steps per episode, 0.05 s each (default: 512)")
+    dr.add_argument("--width", type=int, default=320, help="camera width [px] (default: 320)")
+    dr.add_argument("--height", type=int, default=240, help="camera height [px] (default: 240)")
     dr.add_argument("--out", required=True, help="output directory")
     dr.add_argument("--force", action="store_true", help="overwrite existing outputs")
     dr.add_argument("--no-gif", action="store_true", help="skip the animation")
     dr.add_argument("--gif", action="store_true", help="also write a GIF per scene when driving a range")
-    dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF")
-    dr.add_argument("--gif-from", type=int, default=0, help="first step shown in the GIF")
+    dr.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF (default: 2)")
+    dr.add_argument("--gif-from", type=int, default=0, help="first step shown in the GIF (default: 0)")
     dr.add_argument("--quiet", action="store_true", help="no progress bar")
     dr.add_argument("--threads", type=int, default=1,
                     help="torch CPU threads for the system under test (default 1: the arithmetic of evaluate and "
@@ -238,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=int, default=None, help="total env steps (train.total_timesteps)")
     tr.add_argument("--n-steps", type=int, default=None, help="steps per PPO update (ppo.n_steps)")
     tr.add_argument("--episode-steps", type=int, default=None, help="steps per episode (env.episode_steps)")
-    tr.add_argument("--seed", type=int, default=None, help="training seed (train.seed)")
+    tr.add_argument("--seed", type=seed_int, default=None, help="training seed (train.seed)")
     tr.add_argument("--knobs", default=None, help="comma list of knobs the agent turns (env.knobs)")
     tr.add_argument("--disable-knobs", default=None, help="comma list of knobs held at their start (ablation)")
     tr.add_argument("--system", default=None, help="system under test (env.system)")
@@ -263,10 +304,15 @@ def build_parser() -> argparse.ArgumentParser:
                             "train: PPO rollout steps/s, seconds per update, projected paper-schedule time")
     bench.add_argument("--steps", type=int, default=None,
                        help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, 512)")
-    bench.add_argument("--system", default="builtin", help="system under test for 'bench system'")
-    bench.add_argument("--frames", type=int, default=100, help="frames to time per resolution")
+    bench.add_argument("--system", default="builtin",
+                       help="system under test for 'bench system' and 'bench train' (default: builtin)")
+    bench.add_argument("--frames", type=int, default=100,
+                       help="frames to time per resolution (sim) or detector frames (system); default: 100")
     bench.add_argument("--no-render", action="store_true", help="physics only")
     bench.set_defaults(func=_cmd_bench)
+    for choice in sub._choices_actions:  # each subcommand's own --help opens with its one-line summary
+        page = sub.choices[choice.dest]
+        page.description = page.description or choice.help
     return p
 
 

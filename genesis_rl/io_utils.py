@@ -13,7 +13,16 @@ from genesis_rl.errors import UserInputError
 
 
 def ensure_writable(path: Path, force: bool) -> None:
-    """Refuse to overwrite an existing output unless ``force`` is set."""
+    """Refuse to overwrite an existing output unless ``force`` is set, and refuse outright a path that
+    ``--force`` could not help: a folder where a file goes, or a file where a folder goes."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserInputError(f"output '{path}' is a directory; expected a file path")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise UserInputError(f"output '{path}': '{parent}' is a file, not a directory")
+            break
     if path.exists() and not force:
         raise UserInputError(f"output '{path}' already exists; pass --force to overwrite it")
 

@@ -176,7 +176,14 @@ def parse_weather(text: str, base: Weather | None = None) -> Weather:
             raise UserInputError(f"--weather: malformed item '{part}'; expected KNOB=VALUE, e.g. fog_density=60")
         name, _, raw = part.partition("=")
         name = name.strip()
-        knob_spec(name)
+        if not name:
+            raise UserInputError(f"--weather: missing knob name in '{part}'; expected KNOB=VALUE, e.g. fog_density=60")
+        if name in overrides:
+            raise UserInputError(f"--weather: knob '{name}' is given twice")
+        try:
+            knob_spec(name)
+        except UserInputError as err:
+            raise UserInputError(f"--weather: {err}") from None
         try:
             overrides[name] = float(raw)
         except ValueError:

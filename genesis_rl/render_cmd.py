@@ -55,8 +55,12 @@ def _frame(backend: LiteBackend, scene: Scene, weather: Weather, camera: CameraC
         return sim.observe()
 
 
+RENDER_OUTPUTS = ("rgb.png", "depth.png", "boxes.png", "boxes.json")
+
+
 def render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, force: bool, warmup: int = 0) -> dict:
-    ensure_writable(out / "boxes.json", force)
+    for name in RENDER_OUTPUTS:
+        ensure_writable(out / name, force)
     backend = LiteBackend()
     try:
         frame = _frame(backend, scene, weather, camera, warmup)

@@ -18,21 +18,38 @@ def load_schedule(path: str | Path, base: Weather, steps: int) -> list[Weather]:
     path = Path(path)
     if not path.is_file():
         raise UserInputError(f"schedule file '{path}' does not exist")
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        columns = [c.strip() for c in (reader.fieldnames or [])]
-        knobs = [c for c in columns if c != "step"]
-        unknown = [c for c in knobs if c not in KNOBS]
-        if not knobs or unknown:
-            raise UserInputError(
-                f"schedule '{path}': unknown knob column(s) {unknown or '(none given)'}; allowed: "
-                f"step, {', '.join(KNOBS)}"
-            )
-        rows = list(reader)
+    try:
+        # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            table = [cells for cells in csv.reader(fh) if cells]  # blank lines are not rows
+    except UnicodeDecodeError as err:
+        raise UserInputError(f"schedule '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
+    if not table:
+        raise UserInputError(f"schedule '{path}' is empty; expected a header row: step, {', '.join(KNOBS)}")
+    columns = [c.strip() for c in table[0]]
+    knobs = [c for c in columns if c != "step"]
+    unknown = [c for c in knobs if c not in KNOBS]
+    if not knobs or unknown:
+        raise UserInputError(
+            f"schedule '{path}': unknown knob column(s) {unknown or '(none given)'}; allowed: "
+            f"step, {', '.join(KNOBS)}"
+        )
+    repeated = sorted({c for c in columns if columns.count(c) > 1})
+    if repeated:
+        raise UserInputError(f"schedule '{path}': column(s) {repeated} appear more than once")
+    rows = []
+    for i, cells in enumerate(table[1:]):
+        if len(cells) != len(columns):
+            raise UserInputError(f"schedule '{path}' row {i + 1} has {len(cells)} cells; the header has "
+                                 f"{len(columns)}")
+        rows.append(dict(zip(columns, cells, strict=True)))
     if len(rows) != steps:
         raise UserInputError(f"schedule '{path}' has {len(rows)} rows; it needs one per step ({steps})")
     out = []
     for i, row in enumerate(rows):
+        if "step" in row and row["step"].strip() != str(i):
+            raise UserInputError(f"schedule '{path}' row {i + 1}: step = '{row['step'].strip()}'; expected {i} "
+                                 "(rows are steps 0, 1, 2, ... in order)")
         values = {}
         for k in knobs:
             raw = (row.get(k) or "").strip()

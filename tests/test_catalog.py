@@ -64,3 +64,50 @@ def test_cli_scenes_refuses_overwrite_and_bad_map(tmp_path):
     assert r.returncode == 2 and "--force" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run(cmd[:5] + ["mars"] + cmd[6:] + ["--force"], capture_output=True, text=True)
     assert r.returncode == 2 and "allowed: urban, highway" in r.stderr
+
+
+def _tampered(path_data: dict, edit) -> dict:  # noqa: ANN001
+    data = json.loads(json.dumps(path_data))
+    edit(data)
+    return data
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda d: d["scenes"][0]["vehicles"][1]["autopilot"].update(target_speed="fast"),
+     r"vehicles\[1\]\.autopilot\.target_speed' is str 'fast', expected a number"),
+    (lambda d: d["scenes"][0]["vehicles"][1]["autopilot"].update(warp=9.0),
+     r"unknown field\(s\) 'warp' in 'scenes\[0\]\.vehicles\[1\]\.autopilot'; allowed: target_speed"),
+    (lambda d: d["scenes"][0]["vehicles"][1]["autopilot"].pop("min_gap"),
+     r"missing field 'scenes\[0\]\.vehicles\[1\]\.autopilot\.min_gap'"),
+    (lambda d: d["scenes"][0]["vehicles"][1]["autopilot"].update(max_accel=-5.0), r"max_accel' = -5\.0; expected >="),
+    (lambda d: d["scenes"][0]["vehicles"][2].update(autopilot=None), r"vehicles\[2\]\.autopilot' must be an object"),
+    (lambda d: d["scenes"][0]["vehicles"][0].update(x=9999.0), r"vehicles\[0\]\.x'/'y'.*m from lane"),
+    (lambda d: d["scenes"][0]["vehicles"][0].update(s=1e6), r"vehicles\[0\]\.s' = 1000000\.0; lane \d+ is"),
+    (lambda d: d["scenes"][0]["vehicles"][0].update(x=float("nan")), r"vehicles\[0\]\.x' = nan; expected a finite"),
+    (lambda d: d["scenes"][0].update(signal_offset=float("inf")), r"signal_offset' = inf; expected a finite"),
+    (lambda d: d["scenes"][0].update(map="highway"), r"scenes\[0\]\.map' = 'highway'; allowed: 'urban'"),
+    (lambda d: d["scenes"][0].update(seed=-1), r"scenes\[0\]\.seed' = -1; expected an integer >= 0"),
+    (lambda d: d.update(backend="unreal"), r"'backend' = 'unreal'; allowed: lite, carla"),
+    (lambda d: d.update(scenes=[]), r"the catalog has no scenes"),
+    (lambda d: d["scenes"].__setitem__(0, 5), r"'scenes\[0\]' must be an object, got int"),
+])
+def test_bad_catalog_fields_are_named(edit, message):
+    good = generate_catalog("urban", 1, 0).to_json()
+    with pytest.raises(UserInputError, match=message):
+        catalog_from_json(_tampered(good, edit))
+
+
+def test_next_lane_must_follow_the_lane():
+    good = generate_catalog("urban", 1, 0).to_json()
+    ego = good["scenes"][0]["vehicles"][0]
+    successors = load_map("urban").lanes[ego["lane"]].successors
+    wrong = next(k for k in range(len(load_map("urban").lanes)) if k not in successors)
+    data = _tampered(good, lambda d: d["scenes"][0]["vehicles"][0].update(next_lane=wrong))
+    with pytest.raises(UserInputError, match=rf"next_lane' = {wrong} does not follow lane {ego['lane']}; allowed: "):
+        catalog_from_json(data)
+
+
+def test_a_generated_catalog_passes_its_own_validation():
+    for map_name in ("urban", "highway"):
+        cat = generate_catalog(map_name, 40, 3)
+        assert catalog_from_json(json.loads(json.dumps(cat.to_json()))) == cat

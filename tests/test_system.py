@@ -246,3 +246,24 @@ def test_drive_threads_are_checked_and_only_set_for_the_run(tmp_path, capsys) ->
     assert main(["drive", "--map", "highway", "--scene", "0", "--system", "blind", "--steps", "2", "--no-gif",
                  "--threads", "1", "--quiet", "--out", str(tmp_path / "y")]) == 0
     assert torch.get_num_threads() == before  # a notebook's or test's own setting survives the command
+
+
+def test_schedule_files_as_spreadsheets_write_them(tmp_path) -> None:
+    base = Weather.default()
+    bom = tmp_path / "bom.csv"  # Excel's "CSV UTF-8" starts with a byte-order mark; a header may carry spaces
+    bom.write_bytes("\ufeffstep, fog_density\r\n0,10\r\n1,20\r\n\r\n".encode())
+    assert [w["fog_density"] for w in load_schedule(bom, base, 2)] == [10.0, 20.0]
+    cases = {
+        "step,fog_density,fog_density\n0,1,2\n": r"column\(s\) \['fog_density'\] appear more than once",
+        "step,fog_density\n0,1,9\n": r"row 1 has 3 cells; the header has 2",
+        "step,fog_density\n7,1\n": r"row 1: step = '7'; expected 0",
+    }
+    for i, (text, message) in enumerate(cases.items()):
+        f = tmp_path / f"bad{i}.csv"
+        f.write_text(text)
+        with pytest.raises(UserInputError, match=message):
+            load_schedule(f, base, 1)
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes("step,fog_density\n0,1\xe9\n".encode("latin-1"))
+    with pytest.raises(UserInputError, match="is not UTF-8 text"):
+        load_schedule(latin, base, 1)

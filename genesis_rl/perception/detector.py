@@ -77,8 +77,9 @@ def load_checkpoint(path: Path) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001  (torch raises many types for a bad file)
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise UserInputError(f"weights file {path} is not a genesis-rl detector checkpoint: {msg}") from None
+        # torch's own text suggests weights_only=False, which would run code from the file: not repeated here
+        raise UserInputError(f"weights file {path} is not a genesis-rl detector checkpoint (torch could not read "
+                             f"it safely: {type(e).__name__}); make one with 'genesis-rl detector train'") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserInputError(f"weights file {path} is not a genesis-rl detector checkpoint: "
                              f"no '{CHECKPOINT_FORMAT}' format tag")

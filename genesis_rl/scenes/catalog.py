@@ -8,6 +8,7 @@ parameters, plus the seed that drives the episode's randomness.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -80,22 +81,59 @@ class Catalog:
 
     def scene(self, index: int) -> Scene:
         if not 0 <= index < len(self.scenes):
-            raise UserInputError(f"scene index {index} out of range; the catalog has scenes 0..{len(self.scenes) - 1}")
+            raise UserInputError(f"scene index {index} is out of range; "
+                                 f"the catalog has scenes 0..{len(self.scenes) - 1}")
         return self.scenes[index]
 
 
-def _req(obj: dict, key: str, typ: type | tuple[type, ...], where: str) -> Any:
-    if not isinstance(obj, dict) or key not in obj:
+_TYPE_NAMES = {str: "a string", int: "an integer", list: "a list", dict: "an object", float: "a number"}
+BACKENDS = ("lite", "carla")
+#: autopilot fields (lite's AutopilotParams) and the least value each may take
+AUTOPILOT_MIN = {"target_speed": 0.0, "time_gap": 0.0, "min_gap": 0.0, "max_accel": 1e-3, "comfort_decel": 1e-3,
+                 "stop_rate": 0.0, "speed_noise": 0.0}
+POSE_TOLERANCE_M = 1.0  # a vehicle's x, y may differ this much from its lane's point at s (lite maps)
+
+
+def _req(obj: Any, key: str, typ: type, where: str) -> Any:
+    if not isinstance(obj, dict):
+        raise UserInputError(f"catalog: '{where}' must be an object, got {type(obj).__name__}")
+    if key not in obj:
         raise UserInputError(f"catalog: missing field '{where}.{key}'")
     value = obj[key]
-    if typ is float:
-        typ = (int, float)
-    if not isinstance(value, typ) or isinstance(value, bool) and typ is not bool:
-        raise UserInputError(f"catalog: field '{where}.{key}' has type {type(value).__name__}, expected {typ}")
+    ok = isinstance(value, (int, float)) if typ is float else isinstance(value, typ)
+    if not ok or (isinstance(value, bool) and typ is not bool):
+        raise UserInputError(f"catalog: field '{where}.{key}' is {type(value).__name__} {value!r}, "
+                             f"expected {_TYPE_NAMES.get(typ, typ.__name__)}")
     return value
 
 
-def _vehicle(d: dict, where: str, map_lanes: int | None) -> VehicleSpec:
+def _number(obj: Any, key: str, where: str, minimum: float | None = None) -> float:
+    """A finite number (JSON's NaN and Infinity are refused), at least ``minimum`` when given."""
+    value = float(_req(obj, key, float, where))
+    if not math.isfinite(value):
+        raise UserInputError(f"catalog: field '{where}.{key}' = {value}; expected a finite number")
+    if minimum is not None and value < minimum:
+        raise UserInputError(f"catalog: field '{where}.{key}' = {value}; expected >= {minimum}")
+    return value
+
+
+def _autopilot(d: dict, role: str, where: str) -> dict[str, float] | None:
+    ap = d.get("autopilot")
+    if role == "ego":
+        if ap is not None:
+            raise UserInputError(f"catalog: '{where}.autopilot' must be null for the ego (the system drives it)")
+        return None
+    if not isinstance(ap, dict):
+        raise UserInputError(f"catalog: '{where}.autopilot' must be an object with the fields "
+                             f"{', '.join(AUTOPILOT_MIN)}, got {type(ap).__name__}")
+    unknown = sorted(set(ap) - set(AUTOPILOT_MIN))
+    if unknown:
+        raise UserInputError(f"catalog: unknown field(s) {', '.join(repr(k) for k in unknown)} in "
+                             f"'{where}.autopilot'; allowed: {', '.join(AUTOPILOT_MIN)}")
+    return {k: _number(ap, k, f"{where}.autopilot", lo) for k, lo in AUTOPILOT_MIN.items()}
+
+
+def _vehicle(d: Any, where: str, road_map: Any | None) -> VehicleSpec:
     from genesis_rl.lite.vehicles import MAKES
 
     role = _req(d, "role", str, where)
@@ -105,21 +143,38 @@ def _vehicle(d: dict, where: str, map_lanes: int | None) -> VehicleSpec:
     if make not in MAKES:
         raise UserInputError(f"catalog: '{where}.make' = '{make}'; allowed: {', '.join(MAKES)}")
     color = _req(d, "color", list, where)
-    if len(color) != 3 or not all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in color):
+    if len(color) != 3 or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and 0 <= c <= 1
+                                  for c in color):
         raise UserInputError(f"catalog: '{where}.color' must be 3 numbers in 0..1, got {color}")
     lane = _req(d, "lane", int, where)
     next_lane = _req(d, "next_lane", int, where)
-    if map_lanes is not None and not (0 <= lane < map_lanes and 0 <= next_lane < map_lanes):
-        raise UserInputError(f"catalog: '{where}.lane'/'next_lane' out of the map's lanes 0..{map_lanes - 1}")
-    ap = d.get("autopilot")
-    if ap is not None and not isinstance(ap, dict):
-        raise UserInputError(f"catalog: '{where}.autopilot' must be an object or null")
-    return VehicleSpec(
-        role, make, _req(d, "color_name", str, where), tuple(float(c) for c in color), lane,
-        float(_req(d, "s", float, where)), float(_req(d, "x", float, where)), float(_req(d, "y", float, where)),
-        float(_req(d, "yaw", float, where)), float(_req(d, "speed", float, where)), next_lane,
-        {k: float(v) for k, v in ap.items()} if ap else None,
-    )
+    s, x, y = _number(d, "s", where), _number(d, "x", where), _number(d, "y", where)
+    yaw, speed = _number(d, "yaw", where), _number(d, "speed", where, 0.0)
+    if road_map is not None:
+        _check_on_lane(road_map, where, lane, next_lane, s, x, y)
+    return VehicleSpec(role, make, _req(d, "color_name", str, where), tuple(float(c) for c in color), lane,
+                       s, x, y, yaw, speed, next_lane, _autopilot(d, role, where))
+
+
+def _check_on_lane(road_map: Any, where: str, lane: int, next_lane: int, s: float, x: float, y: float) -> None:
+    """A lite vehicle is placed from its lane and s; its x, y must agree with them, so that what the catalog
+    says and what the simulator does are the same scene."""
+    n = len(road_map.lanes)
+    if not (0 <= lane < n and 0 <= next_lane < n):
+        raise UserInputError(f"catalog: '{where}.lane'/'next_lane' out of the map's lanes 0..{n - 1}")
+    length = float(road_map.length[lane])
+    if not 0.0 <= s <= length:
+        raise UserInputError(f"catalog: '{where}.s' = {s}; lane {lane} is {length:.1f} m long "
+                             f"(allowed 0..{length:.1f})")
+    successors = road_map.lanes[lane].successors
+    if next_lane not in successors:
+        raise UserInputError(f"catalog: '{where}.next_lane' = {next_lane} does not follow lane {lane}; "
+                             f"allowed: {', '.join(map(str, successors))}")
+    px, py, _, _ = road_map.pose(lane, s)
+    off = math.hypot(px - x, py - y)
+    if off > POSE_TOLERANCE_M:
+        raise UserInputError(f"catalog: '{where}.x'/'y' = ({x:.2f}, {y:.2f}) lie {off:.1f} m from lane {lane} at "
+                             f"s = {s:.1f} ({px:.2f}, {py:.2f}); allowed: within {POSE_TOLERANCE_M} m")
 
 
 def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
@@ -129,22 +184,40 @@ def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
     if version != SCHEMA_VERSION:
         raise UserInputError(f"catalog field 'version' = {version!r}; this genesis-rl reads version {SCHEMA_VERSION}")
     backend = _req(data, "backend", str, "catalog")
+    if backend not in BACKENDS:
+        raise UserInputError(f"catalog field 'backend' = '{backend}'; allowed: {', '.join(BACKENDS)}")
     map_name = _req(data, "map", str, "catalog")
-    map_lanes = None
+    road_map = None
     if backend == "lite" and check_map:
-        from genesis_rl.lite.maps import load_map
+        from genesis_rl.lite.maps import MAP_NAMES, load_map
 
-        map_lanes = len(load_map(map_name).lanes)
+        if map_name not in MAP_NAMES:
+            raise UserInputError(f"catalog field 'map' = '{map_name}'; allowed: {', '.join(MAP_NAMES)}")
+        road_map = load_map(map_name)
+    seed = _req(data, "seed", int, "catalog")
+    scene_list = _req(data, "scenes", list, "catalog")
+    if not scene_list:
+        raise UserInputError("catalog field 'scenes' is empty: the catalog has no scenes")
     scenes = []
-    for i, sd in enumerate(_req(data, "scenes", list, "catalog")):
+    for i, sd in enumerate(scene_list):
         where = f"scenes[{i}]"
-        vehicles = tuple(_vehicle(v, f"{where}.vehicles[{j}]", map_lanes)
+        index = _req(sd, "index", int, where)  # a subset (e.g. replay's one scene) keeps its scenes' indices
+        scene_map = _req(sd, "map", str, where)
+        if scene_map != map_name:
+            raise UserInputError(f"catalog: '{where}.map' = '{scene_map}'; allowed: '{map_name}' (the catalog's map)")
+        scene_seed = _req(sd, "seed", int, where)
+        if scene_seed < 0:
+            raise UserInputError(f"catalog: '{where}.seed' = {scene_seed}; expected an integer >= 0")
+        vehicles = tuple(_vehicle(v, f"{where}.vehicles[{j}]", road_map)
                          for j, v in enumerate(_req(sd, "vehicles", list, where)))
         if not vehicles or vehicles[0].role != "ego":
             raise UserInputError(f"catalog: '{where}.vehicles[0].role' must be 'ego'")
-        scenes.append(Scene(_req(sd, "index", int, where), _req(sd, "map", str, where), _req(sd, "seed", int, where),
-                            float(_req(sd, "signal_offset", float, where)), vehicles))
-    return Catalog(map_name, _req(data, "seed", int, "catalog"), backend, tuple(scenes))
+        egos = [j for j, v in enumerate(vehicles) if v.role == "ego"]
+        if len(egos) > 1:
+            raise UserInputError(f"catalog: '{where}.vehicles[{egos[1]}].role' = 'ego'; a scene has one ego, "
+                                 f"vehicles[0]; allowed for the others: {', '.join(ROLES[1:])}")
+        scenes.append(Scene(index, scene_map, scene_seed, _number(sd, "signal_offset", where), vehicles))
+    return Catalog(map_name, seed, backend, tuple(scenes))
 
 
 def load_catalog(path: Path | str) -> Catalog:

@@ -16,6 +16,8 @@ from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
 DEFAULT_COUNTS = {"urban": 1202, "highway": 1199}
 N_VEHICLES = 30
 RADIUS = 90.0  # others are placed within this distance of the ego [m]
+#: scenes a command generates itself when given no catalog (~5 ms each; beyond this, make a catalog once)
+MAX_GENERATED_ON_THE_FLY = 5000
 
 
 def draw_autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
@@ -139,6 +141,11 @@ def catalog_or_generate(path: str | None, map_name: str, count: int, seed: int, 
         return load_catalog(path)
     if map_name not in MAP_NAMES:
         raise UserInputError(f"{map_field} '{map_name}' is unknown; allowed: {', '.join(MAP_NAMES)}")
+    if count > MAX_GENERATED_ON_THE_FLY:
+        raise UserInputError(f"{count} scenes (indices up to {count - 1}) would be generated on the fly; without a "
+                             f"catalog at most {MAX_GENERATED_ON_THE_FLY} are. Make a catalog once with "
+                             f"'genesis-rl scenes --map {map_name} --count {count} --out FILE' and pass it as "
+                             "--catalog FILE")
     return generate_catalog(map_name, count, seed, progress=progress)
 
 
