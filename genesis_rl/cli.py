@@ -9,18 +9,8 @@ import time
 from pathlib import Path
 
 from genesis_rl import __version__
+from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
-
-
-def seed_int(text: str) -> int:
-    """argparse type of every seed: an integer >= 0 (numpy's generators refuse negative seeds)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got '{text}'") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
-    return value
 
 
 def _weather_help() -> str:

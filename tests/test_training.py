@@ -80,3 +80,12 @@ def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> 
     (run / "checkpoints" / "last.zip").write_bytes(b"not a zip")
     assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
     assert "cannot be loaded" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("table", "key"), [("train", "seed"), ("env", "catalog_seed")])
+def test_a_negative_seed_in_a_config_is_named(tmp_path, table, key) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text(f"[{table}]\n{key} = -1\n")
+    with pytest.raises(UserInputError, match=rf"{table}\.{key} = -1; allowed: an integer >= 0"):
+        load_run_config(path)
+    assert getattr(getattr(load_run_config(path, {table: {key: 3}}), table), key) == 3

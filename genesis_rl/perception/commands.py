@@ -9,6 +9,7 @@ import math
 import time
 from pathlib import Path
 
+from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
 
 
@@ -81,7 +82,7 @@ def add_detector_commands(subparsers: argparse._SubParsersAction) -> argparse.Ar
     tr.add_argument("--frames", type=int, default=None,
                     help="training frames (default: the shipped recipe's 3600; 4 frames per scene)")
     tr.add_argument("--epochs", type=int, default=None, help="training epochs (default: the shipped recipe's)")
-    tr.add_argument("--seed", type=int, default=0, help="seed of weather draws, init, shuffling, augmentation")
+    tr.add_argument("--seed", type=seed_int, default=0, help="seed of weather draws, init, shuffling, augmentation")
     tr.add_argument("--force", action="store_true", help="overwrite existing outputs")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch log")
     tr.set_defaults(func=_cmd_train)
@@ -93,7 +94,7 @@ def add_detector_commands(subparsers: argparse._SubParsersAction) -> argparse.Ar
     ev.add_argument("--conditions", default=None,
                     help="comma-separated conditions (default: all: typical, clear, fog30, fog60, fog90, rain, "
                          "night, wet_road, low_sun_glare)")
-    ev.add_argument("--seed", type=int, default=7, help="seed of traffic steps and weather draws")
+    ev.add_argument("--seed", type=seed_int, default=7, help="seed of traffic steps and weather draws")
     ev.add_argument("--out", default="out/detector_eval",
                     help="output directory (detector_eval.md, detector_eval.png, detector_eval.json)")
     ev.add_argument("--force", action="store_true", help="overwrite existing outputs")

@@ -72,8 +72,12 @@ def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]
         raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, train")
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
-    return RunConfig(
+    cfg = RunConfig(
         env=from_mapping(EnvConfig, data.get("env"), "env"),
         ppo=from_mapping(PPOConfig, data.get("ppo"), "ppo"),
         train=from_mapping(TrainConfig, data.get("train"), "train"),
     )
+    for name, value in (("env.catalog_seed", cfg.env.catalog_seed), ("train.seed", cfg.train.seed)):
+        if value < 0:  # numpy and gymnasium refuse negative seeds, with a traceback
+            raise UserInputError(f"{name} = {value}; allowed: an integer >= 0")
+    return cfg
