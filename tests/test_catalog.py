@@ -111,3 +111,14 @@ def test_a_generated_catalog_passes_its_own_validation():
     for map_name in ("urban", "highway"):
         cat = generate_catalog(map_name, 40, 3)
         assert catalog_from_json(json.loads(json.dumps(cat.to_json()))) == cat
+
+
+def test_vehicles_that_start_inside_each_other_are_refused():
+    good = generate_catalog("urban", 1, 0).to_json()
+
+    def stack(d: dict) -> None:
+        ego, other = d["scenes"][0]["vehicles"][0], d["scenes"][0]["vehicles"][5]
+        other.update({k: ego[k] for k in ("lane", "s", "x", "y", "yaw", "next_lane")})
+
+    with pytest.raises(UserInputError, match=r"'scenes\[0\]\.vehicles\[0\]' and 'scenes\[0\]\.vehicles\[5\]' overlap"):
+        catalog_from_json(_tampered(good, stack))

@@ -177,6 +177,21 @@ def _check_on_lane(road_map: Any, where: str, lane: int, next_lane: int, s: floa
                              f"s = {s:.1f} ({px:.2f}, {py:.2f}); allowed: within {POSE_TOLERANCE_M} m")
 
 
+def _check_apart(vehicles: tuple[VehicleSpec, ...], where: str) -> None:
+    """No two lite vehicles may start inside each other (the simulator would report a collision at step 0)."""
+    import numpy as np
+
+    from genesis_rl.lite.collisions import colliding_pairs
+    from genesis_rl.lite.vehicles import MAKES
+
+    pairs = colliding_pairs(*(np.array(col, float) for col in zip(
+        *((v.x, v.y, v.yaw, MAKES[v.make].length, MAKES[v.make].width) for v in vehicles), strict=True)))
+    if pairs:
+        i, j = pairs[0]
+        raise UserInputError(f"catalog: '{where}.vehicles[{i}]' and '{where}.vehicles[{j}]' overlap at the start; "
+                             "allowed: vehicles whose boxes do not intersect")
+
+
 def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
     if not isinstance(data, dict) or data.get("schema") != SCHEMA_NAME:
         raise UserInputError(f"not a scene catalog: field 'schema' must be '{SCHEMA_NAME}'")
@@ -216,6 +231,8 @@ def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
         if len(egos) > 1:
             raise UserInputError(f"catalog: '{where}.vehicles[{egos[1]}].role' = 'ego'; a scene has one ego, "
                                  f"vehicles[0]; allowed for the others: {', '.join(ROLES[1:])}")
+        if road_map is not None:
+            _check_apart(vehicles, where)
         scenes.append(Scene(index, scene_map, scene_seed, _number(sd, "signal_offset", where), vehicles))
     return Catalog(map_name, seed, backend, tuple(scenes))
 
