@@ -7,7 +7,6 @@ import json
 import math
 from pathlib import Path
 
-from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
 
 
@@ -148,9 +147,9 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
                     help="comma list: sunny, random, agent, cmaes (search baseline) or package.module:Class")
     ev.add_argument("--map", default="highway", help="test map (the agent trains on urban)")
     ev.add_argument("--catalog", default=None, help="test catalog file (default: the map's generated catalog)")
-    ev.add_argument("--catalog-seed", type=seed_int, default=0, help="seed of the generated test catalog")
+    ev.add_argument("--catalog-seed", type=int, default=0, help="seed of the generated test catalog")
     ev.add_argument("--scenes", type=int, default=50, help="scenes picked from the catalog by --seed")
-    ev.add_argument("--seed", type=seed_int, default=0, help="campaign seed: scene choice and episode seeds")
+    ev.add_argument("--seed", type=int, default=0, help="campaign seed: scene choice and episode seeds")
     ev.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
     ev.add_argument("--system", default=None, help="system under test (default: the agent's)")
     ev.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
