@@ -61,9 +61,9 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def from_mapping(cls: type[T], data: Mapping[str, Any] | None, section: str) -> T:
     """Build dataclass ``cls`` from a TOML table; errors name ``section.key``."""
+    if data is not None and not isinstance(data, Mapping):
+        raise UserInputError(f"[{section}] must be a table, got {data!r}")
     data = dict(data or {})
-    if not isinstance(data, dict):
-        raise UserInputError(f"[{section}] must be a table")
     hints = typing.get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(names))
@@ -93,10 +93,14 @@ def to_mapping(obj: Any) -> dict[str, Any]:
 
 def read_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
+    if path.is_dir():
+        raise UserInputError(f"config '{path}' is a folder; expected a TOML file")
     if not path.is_file():
         raise UserInputError(f"config file '{path}' does not exist")
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise UserInputError(f"config '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
     except tomllib.TOMLDecodeError as err:
         raise UserInputError(f"config '{path}' is not valid TOML: {err}") from None
 

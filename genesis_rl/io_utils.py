@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,16 @@ def ensure_writable(path: Path, force: bool) -> None:
             break
     if path.exists() and not force:
         raise UserInputError(f"output '{path}' already exists; pass --force to overwrite it")
+
+
+def ensure_folder_path(path: Path, flag: str = "--out") -> None:
+    """An output folder may not be, or lie inside, an existing file (which --force would not help with)."""
+    path = Path(path)
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            if not candidate.is_dir():
+                raise UserInputError(f"{flag} '{path}': '{candidate}' is a file; expected a folder")
+            return
 
 
 def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
@@ -50,3 +61,26 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def atomic_write_json(path: Path, data: Any, indent: int | None = None) -> None:
     atomic_write_text(path, json.dumps(data, indent=indent, separators=None if indent else (",", ":")))
+
+
+def read_json(path: Path, what: str = "file") -> Any:
+    """A JSON file's content; a damaged file is a user error that names it, not a traceback."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise UserInputError(f"{what} '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except json.JSONDecodeError as err:
+        raise UserInputError(f"{what} '{path}' is not valid JSON: {err}") from None
+
+
+@contextmanager
+def damaged_files(folder: Path, remedy: str) -> Iterator[None]:
+    """Report a campaign folder whose files were edited or truncated by hand (a missing key, a wrong type, a
+    cut Parquet file) as exit-2 input error naming the folder, instead of a traceback. Only around code that
+    reads files the package wrote; OS errors (permissions, a full disk) pass through as themselves."""
+    try:
+        yield
+    except (KeyError, TypeError, ValueError, IndexError) as err:  # pyarrow's ArrowInvalid is a ValueError
+        raise UserInputError(f"'{folder}' holds a damaged or foreign file ({type(err).__name__}: {err}); "
+                             f"{remedy}") from None

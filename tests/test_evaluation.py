@@ -357,3 +357,38 @@ def test_an_episode_whose_simulator_dies_is_retried_after_reconnecting(tmp_path,
         assert not list((tmp_path / "dead").glob("steps/*/*.parquet"))
     finally:
         POLICIES.pop("flaky_test", None)
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda r: r["camera"].update(width="x"), "field 'camera.width' = 'x'; allowed: an integer in 16..4096"),
+    (lambda r: r.update(knobs=["nope"]), "field 'knobs' = \"['nope']\"; allowed: a list of knob names"),
+    (lambda r: r["schedule"].__setitem__(0, [0.0]), "field 'schedule[0]'"),
+    (lambda r: r["schedule"][1].__setitem__(0, 500.0), "schedule[1] fog_density = 500.0; allowed 0..100"),
+    (lambda r: r.update(episode_seed="x"), "field 'episode_seed' = 'x'; allowed: an integer >= 0"),
+    (lambda r: r.update(system="blind"), "field 'system' = 'blind'; allowed: an object"),
+    (lambda r: r.update(step_digest=5), "field 'step_digest' = '5'; allowed: a hex string or null"),
+    (lambda r: r["violations"].update(collision="x"), "field 'violations.collision' = 'x'; allowed: a number"),
+])
+def test_a_hand_edited_record_is_refused_naming_the_field(tmp_path, campaign: Path, capsys, edit, message) -> None:
+    rec = json.loads((campaign / "records" / "random_scene_0005.json").read_text())
+    edit(rec)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(rec))
+    assert main(["replay", str(bad), "--out", str(tmp_path / "o"), "--quiet", "--no-gif"]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Path, capsys) -> None:
+    copy = tmp_path / "camp"
+    shutil.copytree(campaign, copy)
+    episode = sorted((copy / "episodes").glob("*/*.json"))[0]
+    episode.write_text('{"x": 1}')
+    assert main(["report", str(copy), "--force"]) == 2
+    assert f"'{copy}' holds a damaged or foreign file (KeyError" in capsys.readouterr().err
+    episode.write_text("{")
+    assert main(["report", str(copy), "--force"]) == 2
+    assert f"episode file '{episode}' is not valid JSON" in capsys.readouterr().err
+    assert main(["replay", str(campaign / "records" / "random_scene_0005.json"), "--out", str(tmp_path / "r"),
+                 "--gif-seconds", "-1"]) == 2
+    assert "--gif-seconds must be >= 0, got -1" in capsys.readouterr().err

@@ -86,6 +86,42 @@ def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> 
 def test_a_negative_seed_in_a_config_is_named(tmp_path, table, key) -> None:
     path = tmp_path / "c.toml"
     path.write_text(f"[{table}]\n{key} = -1\n")
-    with pytest.raises(UserInputError, match=rf"{table}\.{key} = -1; allowed: an integer >= 0"):
+    with pytest.raises(UserInputError, match=rf"{table}\.{key} = -1; allowed: an integer"):
         load_run_config(path)
     assert getattr(getattr(load_run_config(path, {table: {key: 3}}), table), key) == 3
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("env = 3\n", "[env] must be a table, got 3"),
+    ("[env]\nreward = 5\n", "[env.reward] must be a table, got 5"),
+    ("[env]\ncamera_width = 0\n", "env.camera_width = 0 must be in 16..4096"),
+    ("[env]\ndisabled_knobs = ['fog_density', 'precipitation', 'precipitation_deposits', 'sun_altitude_angle', "
+     "'sun_azimuth_angle']\n", "disable every knob the agent turns"),
+    ("[ppo]\nn_epochs = 0\n", "ppo.n_epochs = 0 must be >= 1"),
+    ("[ppo]\ndevice = 'tpu'\n", "ppo.device = 'tpu'; allowed: auto, cpu, cuda, cuda:N, mps"),
+    ("[ppo]\nclip_range = -0.2\n", "ppo.clip_range = -0.2 must be > 0"),
+    ("[train]\nseed = 99999999999\n", "train.seed = 99999999999; allowed: an integer in 0..4294967295"),
+    ("[train]\ntorch_threads = -1\n", "train.torch_threads = -1 must be >= 0"),
+])
+def test_bad_config_values_are_named(tmp_path, text, message) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text(text)
+    with pytest.raises(UserInputError) as err:
+        load_run_config(path)
+    assert message in str(err.value)
+
+
+def test_a_non_utf8_config_and_a_failed_start_leave_nothing_behind(tmp_path, capsys) -> None:
+    path = tmp_path / "c.toml"
+    path.write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(UserInputError, match="is not UTF-8 text"):
+        load_run_config(path)
+    run = tmp_path / "run"
+    assert main(["train", "--out", str(run), "--system", "nosuch", "--scenes", "2", "--steps", "16",
+                 "--n-steps", "16", "--episode-steps", "8", "--quiet"]) == 2
+    assert "nosuch" in capsys.readouterr().err
+    assert not run.exists()  # so the corrected command runs without --force
+    a_file = tmp_path / "afile"
+    a_file.write_text("x")
+    assert main(["train", "--out", str(a_file), "--system", "blind", "--scenes", "2", "--quiet"]) == 2
+    assert f"'{a_file}' is a file; expected a folder" in capsys.readouterr().err

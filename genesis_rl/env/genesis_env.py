@@ -61,6 +61,17 @@ class EnvConfig:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 36..1024 (CNN policies need >= 36)")
         if self.scenes < 1:
             raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
+        for k in ("camera_width", "camera_height"):
+            if not 16 <= getattr(self, k) <= 4096:
+                raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 16..4096")
+        if set(self.disabled_knobs) >= set(self.knobs):
+            raise UserInputError(f"env.disabled_knobs {list(self.disabled_knobs)} disable every knob the agent "
+                                 f"turns ({', '.join(self.knobs)}); leave at least one")
+        for k in ("carla_port", "carla_tm_port"):
+            if not 1 <= getattr(self, k) <= 65535:
+                raise UserInputError(f"env.{k} = {getattr(self, k)} must be a port in 1..65535")
+        if not self.carla_timeout > 0:
+            raise UserInputError(f"env.carla_timeout = {self.carla_timeout} must be > 0 [s]")
         KnobActionMapper(self.knobs, self.max_step_fraction, self.disabled_knobs)  # names, limits checked
         parse_weather(self.start_weather)
         if self.backend not in ("lite", "carla"):

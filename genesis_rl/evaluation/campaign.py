@@ -40,7 +40,7 @@ from genesis_rl.evaluation.failure_modes import (
     label_collision,
 )
 from genesis_rl.evaluation.policies import EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
-from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
+from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text, read_json
 
 CAMPAIGN_SCHEMA = "genesis-rl/campaign"
 CAMPAIGN_VERSION = 1
@@ -302,15 +302,17 @@ def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
                      progress: bool = True) -> list[tuple[str, int, int]]:
     """Create (or reopen) the campaign folder; return the tasks still to run."""
+    from genesis_rl.io_utils import ensure_folder_path
     from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, catalog_or_generate
 
     check_spec(spec)
+    ensure_folder_path(folder)
     meta = folder / "campaign.json"
     identity = campaign_identity(spec)
     if resume:
         if not meta.is_file():
             raise UserInputError(f"--resume: '{folder}' is not a campaign folder (no campaign.json)")
-        saved = json.loads(meta.read_text())
+        saved = read_json(meta, "campaign file")
         changed = sorted(k for k in identity if saved.get("identity", {}).get(k) != identity[k])
         if changed:
             raise UserInputError(f"--resume: {', '.join(changed)} changed since the campaign in '{folder}' began "
@@ -382,6 +384,12 @@ def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool
                 for row in pool.imap_unordered(run_task, tasks):
                     bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")
                     bar.update()
+    except BaseException:
+        if not resume and not any((folder / "episodes").glob("*/*.json")):
+            # no episode finished (e.g. the agent's env settings are invalid): leave no folder behind that a
+            # corrected re-run would need --force to replace
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
     finally:
         bar.close()
     summary = summarize_campaign(folder)

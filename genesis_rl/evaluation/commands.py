@@ -72,10 +72,15 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
     if args.markdown:
         from genesis_rl.evaluation.summary import summarize_campaign, summary_markdown
+        from genesis_rl.io_utils import damaged_files
 
-        print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
+        with damaged_files(Path(args.campaign), "re-run genesis-rl evaluate --resume into a fresh copy, or --force"):
+            print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
         return 0
-    path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
+    from genesis_rl.io_utils import damaged_files
+
+    with damaged_files(Path(args.campaign), "re-run genesis-rl evaluate --resume into a fresh copy, or --force"):
+        path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
     print(f"report: {path}")
     return 0
 
@@ -86,6 +91,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from genesis_rl.io_utils import atomic_write_json, ensure_writable
     from genesis_rl.viz.frames import annotate_frame, write_gif
 
+    if args.gif_seconds is not None and args.gif_seconds < 0:
+        raise UserInputError(f"--gif-seconds must be >= 0, got {args.gif_seconds}")
     rec = load_record(args.record)
     out = Path(args.out)
     for name in ("replay.json", "telemetry.parquet", "replay.gif"):
@@ -135,8 +142,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.export import export_dataset
 
     policies = [p.strip() for p in args.policies.split(",")] if args.policies else None
-    print(json.dumps(export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies),
-                     indent=2))
+    if policies is not None and not all(policies):
+        raise UserInputError(f"--policies '{args.policies}' has an empty name; give a comma list such as agent,random")
+    from genesis_rl.io_utils import damaged_files
+
+    with damaged_files(Path(args.campaign), "re-run genesis-rl evaluate --resume into a fresh copy, or --force"):
+        result = export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies)
+    print(json.dumps(result, indent=2))
     return 0
 
 

@@ -42,6 +42,7 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     from PIL import Image
 
     from genesis_rl.evaluation.summary import load_campaign
+    from genesis_rl.io_utils import ensure_folder_path
     from genesis_rl.knobs import KNOBS
 
     if fmt not in FORMATS:
@@ -56,6 +57,7 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     if not frames:
         raise UserInputError(f"campaign '{folder}' kept no failure frames (no collisions"
                              f"{' for ' + ','.join(policies) if policies else ''}); nothing to export")
+    ensure_folder_path(out)
     if out.exists() and any(out.iterdir()) and not force:
         raise UserInputError(f"output '{out}' exists; pass --force to replace it")
     tmp = out.with_name(f".{out.name}.partial")

@@ -18,7 +18,7 @@ import numpy as np
 
 from genesis_rl import __version__
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json
+from genesis_rl.io_utils import atomic_write_json, read_json
 
 RECORD_SCHEMA = "genesis-rl/edge-case"
 RECORD_VERSION = 1
@@ -81,10 +81,7 @@ def load_record(path: Path | str) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise UserInputError(f"record '{path}' does not exist")
-    try:
-        rec = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise UserInputError(f"record '{path}' is not valid JSON: {err}") from None
+    rec = read_json(path, "record")
     if not isinstance(rec, dict) or rec.get("schema") != RECORD_SCHEMA:
         raise UserInputError(f"'{path}' is not a GENESIS-RL edge-case record (schema {RECORD_SCHEMA})")
     if rec.get("version") != RECORD_VERSION:
@@ -94,7 +91,58 @@ def load_record(path: Path | str) -> dict[str, Any]:
                            "camera", "violations") if k not in rec]
     if missing:
         raise UserInputError(f"record '{path}' lacks field(s) {missing}")
+    _check_record(rec, path)
     return rec
+
+
+def _check_record(rec: dict[str, Any], path: Path) -> None:
+    """The fields replay builds a simulation from, with their types and ranges: a hand-edited record fails
+    here, naming the field, not deep inside the simulator."""
+    from genesis_rl.knobs import KNOBS
+
+    def bad(field: str, allowed: str) -> UserInputError:
+        return UserInputError(f"record '{path}': field '{field}' = {str(rec_get(field))[:60]!r}; allowed: {allowed}")
+
+    def rec_get(field: str) -> Any:
+        value: Any = rec
+        for part in field.split("."):
+            value = value.get(part) if isinstance(value, dict) else None
+        return value
+
+    for field in ("scene", "system", "camera", "violations", "start_weather"):
+        if not isinstance(rec.get(field), dict):
+            raise bad(field, "an object")
+    if not isinstance(rec.get("rulebook"), list | dict):
+        raise bad("rulebook", "the recorded list of rules")
+    for field in ("camera.width", "camera.height"):
+        v = rec_get(field)
+        if isinstance(v, bool) or not isinstance(v, int) or not 16 <= v <= 4096:
+            raise bad(field, "an integer in 16..4096")
+    seed = rec.get("episode_seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise bad("episode_seed", "an integer >= 0")
+    knobs = rec.get("knobs")
+    if not isinstance(knobs, list) or not knobs or not all(k in KNOBS for k in knobs):
+        raise bad("knobs", f"a list of knob names from {', '.join(KNOBS)}")
+    schedule = rec.get("schedule")
+    if not isinstance(schedule, list) or not schedule:
+        raise bad("schedule", f"a list of rows, one per step, each {len(knobs)} numbers")
+    for i, row in enumerate(schedule):
+        if (not isinstance(row, list) or len(row) != len(knobs)
+                or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in row)):
+            raise bad(f"schedule[{i}]", f"{len(knobs)} numbers ({', '.join(knobs)})")
+        for k, v in zip(knobs, row, strict=True):
+            spec = KNOBS[k]
+            if not spec.low <= v <= spec.high:
+                raise UserInputError(f"record '{path}': schedule[{i}] {k} = {v}; allowed {spec.low:g}..{spec.high:g}")
+    steps = rec.get("steps", len(schedule))
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps != len(schedule):
+        raise bad("steps", f"the schedule's length, {len(schedule)}")
+    if rec.get("step_digest") is not None and not isinstance(rec["step_digest"], str):
+        raise bad("step_digest", "a hex string or null")
+    for k, v in rec["violations"].items():
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise bad(f"violations.{k}", "a number")
 
 
 def replay_record(rec: dict[str, Any], weights: str | None = None, progress: bool = False,

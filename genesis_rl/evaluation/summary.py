@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import zlib
 from pathlib import Path
 from typing import Any
@@ -13,7 +12,7 @@ from typing import Any
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds
 from genesis_rl.evaluation.stats import bootstrap_mean_ci, paired_comparison
-from genesis_rl.io_utils import atomic_write_json, atomic_write_text
+from genesis_rl.io_utils import atomic_write_json, atomic_write_text, read_json
 
 METRICS = ("collision", "proximity", "total", "rss_deficit", "mean_iou", "return")
 CSV_COLUMNS = ("policy", "scene", "episode_seed", "steps", "collision", "proximity", "total", "rss_deficit",
@@ -27,7 +26,7 @@ def load_campaign(folder: Path) -> tuple[dict[str, Any], dict[str, list[dict[str
     meta_path = folder / "campaign.json"
     if not meta_path.is_file():
         raise UserInputError(f"'{folder}' is not a campaign folder (no campaign.json); run genesis-rl evaluate first")
-    meta = json.loads(meta_path.read_text())
+    meta = read_json(meta_path, "campaign file")
     if meta.get("schema") != "genesis-rl/campaign" or meta.get("version") != 1:
         raise UserInputError(f"'{meta_path}' has schema {meta.get('schema')} version {meta.get('version')}; "
                              "this genesis-rl reads genesis-rl/campaign version 1")
@@ -42,7 +41,7 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     """An episode row, its collision relabelled (from its step Parquet) if an older labeller wrote it."""
     from genesis_rl.evaluation.failure_modes import LABELLER_VERSION, label_collision
 
-    row = json.loads(path.read_text())
+    row = read_json(path, "episode file")
     if row.get("labeller_version") == LABELLER_VERSION:
         return row
     if row.get("first_collision_step") is not None:

@@ -35,6 +35,17 @@ class PPOConfig:
             raise UserInputError(f"ppo.learning_rate = {self.learning_rate} must be in (0, 1)")
         if not (0 < self.gamma <= 1 and 0 < self.gae_lambda <= 1):
             raise UserInputError("ppo.gamma and ppo.gae_lambda must be in (0, 1]")
+        if self.n_epochs < 1:
+            raise UserInputError(f"ppo.n_epochs = {self.n_epochs} must be >= 1")
+        for k in ("clip_range", "max_grad_norm"):
+            if not getattr(self, k) > 0:
+                raise UserInputError(f"ppo.{k} = {getattr(self, k)} must be > 0")
+        for k in ("vf_coef", "ent_coef"):
+            if not getattr(self, k) >= 0:
+                raise UserInputError(f"ppo.{k} = {getattr(self, k)} must be >= 0")
+        kind, _, index = self.device.partition(":")
+        if kind not in ("auto", "cpu", "cuda", "mps") or (index and not (kind == "cuda" and index.isdigit())):
+            raise UserInputError(f"ppo.device = '{self.device}'; allowed: auto, cpu, cuda, cuda:N, mps")
 
 
 @dataclass(frozen=True)
@@ -52,6 +63,10 @@ class TrainConfig:
             raise UserInputError(f"train.envs = {self.envs} must be in 1..64")
         if self.checkpoint_every < 1:
             raise UserInputError(f"train.checkpoint_every = {self.checkpoint_every} must be >= 1")
+        if not 0 <= self.seed < 2**32:  # gymnasium's and SB3's seeding limit
+            raise UserInputError(f"train.seed = {self.seed}; allowed: an integer in 0..{2**32 - 1}")
+        if self.torch_threads < 0:
+            raise UserInputError(f"train.torch_threads = {self.torch_threads} must be >= 0 (0: torch's default)")
 
 
 @dataclass(frozen=True)

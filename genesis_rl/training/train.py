@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -157,6 +158,9 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
     ``total_timesteps`` may raise the run's target (it is written back to its config.toml)."""
     import shutil
 
+    from genesis_rl.io_utils import ensure_folder_path
+
+    ensure_folder_path(out)
     if resume:
         if not (out / "config.toml").is_file():
             raise UserInputError(f"--resume: '{out}' is not a run folder (no config.toml)")
@@ -188,11 +192,25 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
 
 def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, progress: bool = True,
           argv: list[str] | None = None, total_timesteps: int | None = None) -> dict[str, Any]:
+    """Train (or ``resume``) the run in ``out``; a new run that fails before its first checkpoint is removed."""
+    if not resume and cfg.ppo.n_steps % cfg.train.envs:
+        raise UserInputError(f"ppo.n_steps = {cfg.ppo.n_steps} must be a multiple of train.envs = {cfg.train.envs}")
+    cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
+    try:
+        return _train_prepared(cfg, out, resume, progress)
+    except BaseException:
+        if not resume and not (out / "checkpoints" / "last.json").exists():
+            # nothing was trained (e.g. the system under test failed to load): leave no folder behind that a
+            # corrected re-run would need --force to replace
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> dict[str, Any]:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.logger import configure
 
-    cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     p = cfg.ppo
