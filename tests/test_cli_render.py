@@ -86,6 +86,9 @@ def test_bad_command_lines_exit_2_with_a_message_and_touch_nothing(tmp_path, cap
         (("drive", "--steps", "5", "--gif-from", "100", "--out", str(tmp_path / "d")),
          "--gif-from must be a step in 0..4 (--steps 5), got 100"),
         (("drive", "--gif", "--no-gif", "--out", str(tmp_path / "d")), "--gif and --no-gif contradict"),
+        (("render", "--catalog", str(a_dir), "--out", str(tmp_path / "r")), f"catalog '{a_dir}' is a folder"),
+        (("drive", "--weights", str(a_dir), "--steps", "2", "--out", str(tmp_path / "d")),
+         f"weights '{a_dir}' is a folder"),
     ]
     for args, message in cases:
         rc, err = _main_err(capsys, *args)

@@ -392,3 +392,8 @@ def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Pat
     assert main(["replay", str(campaign / "records" / "random_scene_0005.json"), "--out", str(tmp_path / "r"),
                  "--gif-seconds", "-1"]) == 2
     assert "--gif-seconds must be >= 0, got -1" in capsys.readouterr().err
+    assert main(["replay", str(copy), "--out", str(tmp_path / "r")]) == 2
+    assert f"record '{copy}' is a folder" in capsys.readouterr().err
+    assert main(["replay", str(campaign / "records" / "random_scene_0005.json"), "--weights", "w.pt",
+                 "--out", str(tmp_path / "r")]) == 2
+    assert "--weights applies to records of --system builtin, yolo or a plug-in" in capsys.readouterr().err

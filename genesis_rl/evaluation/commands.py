@@ -94,6 +94,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.gif_seconds is not None and args.gif_seconds < 0:
         raise UserInputError(f"--gif-seconds must be >= 0, got {args.gif_seconds}")
     rec = load_record(args.record)
+    spec = str(rec["system"].get("spec", ""))
+    if args.weights and spec in ("blind", "oracle"):  # they read no weights; a plug-in may
+        raise UserInputError(f"--weights applies to records of --system builtin, yolo or a plug-in that takes "
+                             f"weights; this record's system is '{spec}'")
     out = Path(args.out)
     for name in ("replay.json", "telemetry.parquet", "replay.gif"):
         ensure_writable(out / name, args.force)

@@ -79,6 +79,8 @@ def save_record(path: Path, record: dict[str, Any]) -> None:
 
 def load_record(path: Path | str) -> dict[str, Any]:
     path = Path(path)
+    if path.is_dir():
+        raise UserInputError(f"record '{path}' is a folder; expected a record file (CAMPAIGN/records/*.json)")
     if not path.is_file():
         raise UserInputError(f"record '{path}' does not exist")
     rec = read_json(path, "record")

@@ -71,6 +71,8 @@ def load_checkpoint(path: Path) -> dict:
     import torch
 
     path = Path(path)
+    if path.is_dir():
+        raise UserInputError(f"weights '{path}' is a folder; expected a detector checkpoint file (.pt)")
     if not path.is_file():
         raise UserInputError(f"weights file {path} does not exist (expected a genesis-rl detector checkpoint, "
                              f"e.g. {DEFAULT_WEIGHTS.name} from 'genesis-rl detector train')")

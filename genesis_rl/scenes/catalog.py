@@ -239,6 +239,8 @@ def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
 
 def load_catalog(path: Path | str) -> Catalog:
     path = Path(path)
+    if path.is_dir():
+        raise UserInputError(f"catalog '{path}' is a folder; expected a catalog file (.json)")
     if not path.is_file():
         raise UserInputError(f"catalog file '{path}' does not exist")
     try:
