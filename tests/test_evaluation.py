@@ -303,6 +303,11 @@ def test_agent_and_search_policies(tmp_path, catalog: str) -> None:
     assert row["return"] == pytest.approx(max(row["extra"]["search_returns"]), abs=1e-3)
     assert "agent_vs_cmaes" in summary["comparisons"]
     assert os.path.isfile(out / "campaign.json")
+    # the same agent, its path spelled another way (its agent.zip): resuming is allowed, nothing is left to run
+    rc = main(["evaluate", "--agent", str(run / "agent.zip"), "--policies", "agent,cmaes", "--catalog", catalog,
+               "--scenes", "1", "--steps", "20", "--search-budget", "4", "--out", str(out), "--quiet",
+               "--no-report", "--resume"])
+    assert rc == 0
 
 
 def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path) -> None:

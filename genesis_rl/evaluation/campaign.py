@@ -318,8 +318,9 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
             raise UserInputError(f"--resume: {', '.join(changed)} changed since the campaign in '{folder}' began "
                                  "(results would mix); pass --force to start over")
         now = json.loads(json.dumps(spec.to_json()))
-        if saved.get("spec") != now:
-            diff = sorted(k for k in now if saved.get("spec", {}).get(k) != now[k])
+        # the agent is compared by its file's hash (in the identity above), not by how its path was spelled
+        diff = sorted(k for k in now if k != "agent" and saved.get("spec", {}).get(k) != now[k])
+        if diff:
             raise UserInputError(f"--resume: the campaign in '{folder}' was run with other settings "
                                  f"({', '.join(diff)}); pass the same arguments, or --force to start over")
         pairs = [tuple(p) for p in saved["scenes"]]
