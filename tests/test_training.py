@@ -80,6 +80,12 @@ def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> 
     (run / "checkpoints" / "last.zip").write_bytes(b"not a zip")
     assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
     assert "cannot be loaded" in capsys.readouterr().err
+    (run / "checkpoints" / "last.json").write_text("{")
+    assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
+    assert "last.json' is damaged (expected JSON with an integer 'timesteps')" in capsys.readouterr().err
+    (run / "checkpoints" / "last.zip").unlink()
+    assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
+    assert "last.zip missing); start it again with --force" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("table", "key"), [("train", "seed"), ("env", "catalog_seed")])

@@ -141,10 +141,16 @@ def load_checkpoint(run: Path, env: Any, device: str) -> tuple[Any, int]:
 
     ck = run / CHECKPOINTS
     meta_path = ck / "last.json"
-    if not meta_path.is_file() or not (ck / "last.zip").is_file():
-        raise UserInputError(f"--resume: run '{run}' has no checkpoint ({meta_path} is missing)")
+    missing = [p for p in (meta_path, ck / "last.zip") if not p.is_file()]
+    if missing:
+        raise UserInputError(f"--resume: run '{run}' has no complete checkpoint ({', '.join(map(str, missing))} "
+                             "missing); start it again with --force")
     try:
-        steps = int(json.loads(meta_path.read_text())["timesteps"])
+        steps = int(json.loads(meta_path.read_text(encoding="utf-8"))["timesteps"])
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+        raise UserInputError(f"--resume: checkpoint file '{meta_path}' is damaged (expected JSON with an integer "
+                             "'timesteps'); start the run again with --force") from None
+    try:
         model = PPO.load(ck / "last.zip", env=env, device=device)
     except Exception as err:  # noqa: BLE001 - a corrupt checkpoint is the user's to see, clearly
         raise UserInputError(f"--resume: checkpoint '{ck / 'last.zip'}' cannot be loaded: {err}") from None
