@@ -402,3 +402,11 @@ def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Pat
     assert main(["replay", str(campaign / "records" / "random_scene_0005.json"), "--weights", "w.pt",
                  "--out", str(tmp_path / "r")]) == 2
     assert "--weights applies to records of --system builtin, yolo or a plug-in" in capsys.readouterr().err
+
+
+def test_export_says_when_the_frames_of_collisions_were_deleted(tmp_path, campaign: Path, capsys) -> None:
+    copy = tmp_path / "camp"
+    shutil.copytree(campaign, copy)
+    shutil.rmtree(copy / "frames")
+    assert main(["export", str(copy), "--format", "yolo", "--out", str(tmp_path / "x")]) == 2
+    assert "episode(s) with a collision but no kept frames" in capsys.readouterr().err

@@ -55,6 +55,11 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     # only finished episodes (a summary row exists): an interrupted one may have left frames behind
     frames = [f for f in _frames(folder) if (policies is None or f[0] in policies) and (f[0], f[1]) in modes]
     if not frames:
+        hits = sum(1 for p, eps in rows.items() if policies is None or p in policies
+                   for e in eps if e.get("first_collision_step") is not None)
+        if hits:
+            raise UserInputError(f"campaign '{folder}' has {hits} episode(s) with a collision but no kept frames in "
+                                 f"'{folder / 'frames'}' (deleted?); re-run those episodes to export them")
         raise UserInputError(f"campaign '{folder}' kept no failure frames (no collisions"
                              f"{' for ' + ','.join(policies) if policies else ''}); nothing to export")
     ensure_folder_path(out)
