@@ -125,7 +125,7 @@ def test_a_non_utf8_config_and_a_failed_start_leave_nothing_behind(tmp_path, cap
     run = tmp_path / "run"
     assert main(["train", "--out", str(run), "--system", "nosuch", "--scenes", "2", "--steps", "16",
                  "--n-steps", "16", "--episode-steps", "8", "--quiet"]) == 2
-    assert "nosuch" in capsys.readouterr().err
+    assert "env.system: system 'nosuch' is not an import path" in capsys.readouterr().err
     assert not run.exists()  # so the corrected command runs without --force
     a_file = tmp_path / "afile"
     a_file.write_text("x")

@@ -8,6 +8,8 @@ The observation is the ego camera's RGB frame (downscaled for the policy), optio
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -85,6 +87,17 @@ class EnvConfig:
         return [f.name for f in fields(cls)]
 
 
+@contextmanager
+def _setting(name: str) -> Iterator[None]:
+    """Prefix a user error with the env setting it came from (``env.system: ...``), as config errors are."""
+    try:
+        yield
+    except UserInputError as err:
+        if str(err).startswith(name):
+            raise
+        raise UserInputError(f"{name}: {err}") from None
+
+
 class GenesisEnv(gym.Env):
     """Gymnasium env over a lite backend; see the module docstring for the step template."""
 
@@ -105,20 +118,23 @@ class GenesisEnv(gym.Env):
         self.render_mode = render_mode
         self.mapper = KnobActionMapper(c.knobs, c.max_step_fraction, c.disabled_knobs)
         self.start_weather: Weather = parse_weather(c.start_weather)
-        self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
+        with _setting("env.rulebook"):
+            self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
         self.reward_fn = PaperReward(c.reward)
         from genesis_rl.scenes.lite_generator import catalog_or_generate
 
-        self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map")
+        with _setting("env.catalog" if c.catalog else "env.scenes"):
+            self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map")
 
         from genesis_rl.sim.factory import make_backend
         from genesis_rl.sim.interface import CameraConfig
         from genesis_rl.system.protocol import load_system
 
         self.camera = CameraConfig(width=c.camera_width, height=c.camera_height)
+        with _setting("env.system"):  # before the backend, so a bad system leaves no simulator open
+            self.system = load_system(c.system, **c.system_kwargs)
         self.backend = make_backend(c.backend, carla_host=c.carla_host, carla_port=c.carla_port,
                                     carla_tm_port=c.carla_tm_port, carla_timeout=c.carla_timeout)
-        self.system = load_system(c.system, **c.system_kwargs)
 
         image = spaces.Box(0, 255, (c.obs_height, c.obs_width, 3), np.uint8)
         if c.obs_knobs:
