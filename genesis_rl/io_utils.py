@@ -19,11 +19,7 @@ def ensure_writable(path: Path, force: bool) -> None:
     path = Path(path)
     if path.is_dir():
         raise UserInputError(f"output '{path}' is a directory; expected a file path")
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise UserInputError(f"output '{path}': '{parent}' is a file, not a directory")
-            break
+    ensure_folder_path(path.parent, flag="output folder")
     if path.exists() and not force:
         raise UserInputError(f"output '{path}' already exists; pass --force to overwrite it")
 

@@ -63,6 +63,8 @@ class EnvConfig:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 36..1024 (CNN policies need >= 36)")
         if self.scenes < 1:
             raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
+        if self.catalog_seed < 0:  # numpy refuses negative seeds, with a traceback
+            raise UserInputError(f"env.catalog_seed = {self.catalog_seed}; allowed: an integer >= 0")
         for k in ("camera_width", "camera_height"):
             if not 16 <= getattr(self, k) <= 4096:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 16..4096")

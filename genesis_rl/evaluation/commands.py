@@ -9,6 +9,9 @@ from pathlib import Path
 
 from genesis_rl.errors import UserInputError
 
+#: what to do about a campaign folder whose files were damaged by hand (report, export)
+_DAMAGED_REMEDY = "re-run genesis-rl evaluate --resume into a fresh copy, or --force"
+
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
@@ -69,17 +72,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_report(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.report import build_report
-
-    if args.markdown:
-        from genesis_rl.evaluation.summary import summarize_campaign, summary_markdown
-        from genesis_rl.io_utils import damaged_files
-
-        with damaged_files(Path(args.campaign), "re-run genesis-rl evaluate --resume into a fresh copy, or --force"):
-            print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
-        return 0
+    from genesis_rl.evaluation.summary import summarize_campaign, summary_markdown
     from genesis_rl.io_utils import damaged_files
 
-    with damaged_files(Path(args.campaign), "re-run genesis-rl evaluate --resume into a fresh copy, or --force"):
+    with damaged_files(Path(args.campaign), _DAMAGED_REMEDY):
+        if args.markdown:
+            print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
+            return 0
         path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
     print(f"report: {path}")
     return 0
@@ -150,7 +149,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         raise UserInputError(f"--policies '{args.policies}' has an empty name; give a comma list such as agent,random")
     from genesis_rl.io_utils import damaged_files
 
-    with damaged_files(Path(args.campaign), "re-run genesis-rl evaluate --resume into a fresh copy, or --force"):
+    with damaged_files(Path(args.campaign), _DAMAGED_REMEDY):
         result = export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies)
     print(json.dumps(result, indent=2))
     return 0

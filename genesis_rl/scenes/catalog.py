@@ -7,14 +7,13 @@ parameters, plus the seed that drives the episode's randomness.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json
+from genesis_rl.io_utils import atomic_write_json, read_json
 
 SCHEMA_NAME = "genesis-rl/scene-catalog"
 SCHEMA_VERSION = 1
@@ -243,8 +242,4 @@ def load_catalog(path: Path | str) -> Catalog:
         raise UserInputError(f"catalog '{path}' is a folder; expected a catalog file (.json)")
     if not path.is_file():
         raise UserInputError(f"catalog file '{path}' does not exist")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise UserInputError(f"catalog file '{path}' is not valid JSON: {err}") from None
-    return catalog_from_json(data)
+    return catalog_from_json(read_json(path, "catalog file"))

@@ -75,6 +75,11 @@ class RunConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
+    def __post_init__(self) -> None:
+        if self.ppo.n_steps % self.train.envs:  # each env collects the same share of an update's rollout
+            raise UserInputError(f"ppo.n_steps = {self.ppo.n_steps} must be a multiple of train.envs = "
+                                 f"{self.train.envs}")
+
     def to_toml(self) -> str:
         return dump_toml({"env": to_mapping(self.env), "ppo": to_mapping(self.ppo), "train": to_mapping(self.train)})
 
@@ -87,12 +92,8 @@ def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]
         raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, train")
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
-    cfg = RunConfig(
+    return RunConfig(
         env=from_mapping(EnvConfig, data.get("env"), "env"),
         ppo=from_mapping(PPOConfig, data.get("ppo"), "ppo"),
         train=from_mapping(TrainConfig, data.get("train"), "train"),
     )
-    for name, value in (("env.catalog_seed", cfg.env.catalog_seed), ("train.seed", cfg.train.seed)):
-        if value < 0:  # numpy and gymnasium refuse negative seeds, with a traceback
-            raise UserInputError(f"{name} = {value}; allowed: an integer >= 0")
-    return cfg

@@ -199,8 +199,6 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
 def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, progress: bool = True,
           argv: list[str] | None = None, total_timesteps: int | None = None) -> dict[str, Any]:
     """Train (or ``resume``) the run in ``out``; a new run that fails before its first checkpoint is removed."""
-    if not resume and cfg.ppo.n_steps % cfg.train.envs:
-        raise UserInputError(f"ppo.n_steps = {cfg.ppo.n_steps} must be a multiple of train.envs = {cfg.train.envs}")
     cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
     try:
         return _train_prepared(cfg, out, resume, progress)
@@ -220,8 +218,6 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> 
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     p = cfg.ppo
-    if p.n_steps % cfg.train.envs:
-        raise UserInputError(f"ppo.n_steps = {p.n_steps} must be a multiple of train.envs = {cfg.train.envs}")
     env = build_vec_env(cfg, out / "catalog.json")
     try:
         policy = "MultiInputPolicy" if cfg.env.obs_knobs else "CnnPolicy"
