@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import read_utf8
 
 T = TypeVar("T")
 
@@ -97,10 +98,9 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise UserInputError(f"config '{path}' is a folder; expected a TOML file")
     if not path.is_file():
         raise UserInputError(f"config file '{path}' does not exist")
+    text = read_utf8(path, "config")
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as err:
-        raise UserInputError(f"config '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise UserInputError(f"config '{path}' is not valid TOML: {err}") from None
 

@@ -59,13 +59,20 @@ def atomic_write_json(path: Path, data: Any, indent: int | None = None) -> None:
     atomic_write_text(path, json.dumps(data, indent=indent, separators=None if indent else (",", ":")))
 
 
-def read_json(path: Path, what: str = "file") -> Any:
-    """A JSON file's content; a damaged file is a user error that names it, not a traceback."""
+def read_utf8(path: Path, what: str = "file") -> str:
+    """A text file's content; bytes that are not UTF-8 are a user error that names the file."""
     path = Path(path)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return path.read_text(encoding="utf-8")
     except UnicodeDecodeError as err:
         raise UserInputError(f"{what} '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
+
+
+def read_json(path: Path, what: str = "file") -> Any:
+    """A JSON file's content; a damaged file is a user error that names it, not a traceback."""
+    text = read_utf8(path, what)
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as err:
         raise UserInputError(f"{what} '{path}' is not valid JSON: {err}") from None
 
