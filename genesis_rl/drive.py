@@ -1,8 +1,8 @@
 """Closed-loop driving: the system under test drives one scene under a weather schedule.
 
 Per step: observe (camera) -> system (detect, localise, control) -> apply control -> tick -> record. The
-step record (one dict, flat columns plus lists of detections and ground-truth boxes) is what the telemetry
-Parquet holds; later stages (rulebook, env, campaigns) read the same fields.
+step record (``step_record.StepRecord``) is what later stages (rulebook, env, campaigns) read; its flat
+columns are what the telemetry Parquet holds.
 """
 
 from __future__ import annotations
@@ -14,9 +14,21 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.knobs import Weather
+from genesis_rl.io_utils import atomic_write
+from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.rules.rulebook import ProximityRule
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import Backend, CameraConfig, SensorFrame, Simulation
+from genesis_rl.step_record import (
+    CollisionStep,
+    EgoStep,
+    LeadStep,
+    PerceptionStep,
+    RecordedBox,
+    RecordedDetection,
+    StepRecord,
+    to_rows,
+)
 from genesis_rl.system.matching import frame_iou, in_view, iou_matrix
 from genesis_rl.system.protocol import EpisodeContext, SystemOutput, SystemUnderTest
 
@@ -40,40 +52,41 @@ def episode_context(sim: Simulation, backend_name: str, seed: int) -> EpisodeCon
 
 
 def step_record(step: int, sim: Simulation, frame: SensorFrame, out: SystemOutput, collisions: list,
-                weather: Weather, ego_speed: float, knob_names: Sequence[str]) -> dict[str, Any]:
-    """The telemetry row of one step: the state after the step's tick, the frame observed then and the
-    system's answer to it; collisions are those of that tick."""
+                weather: Weather, ego_speed: float, knob_names: Sequence[str]) -> StepRecord:
+    """The record of one step: the state after the step's tick, the frame observed then and the system's
+    answer to it; collisions are those of that tick."""
     lead = sim.lead()
     dets = np.array([d.xyxy for d in out.detections], np.float64).reshape(-1, 4)
     iou, _ = frame_iou(frame.boxes, dets)
     ego_hits = [c for c in collisions if 0 in (c.vehicle_a, c.vehicle_b)]
     c = out.control
-    rec: dict[str, Any] = {
-        "step": step,
-        "time_s": round(step * sim.dt, 3),
-        "ego_speed": ego_speed,
-        "throttle": c.throttle,
-        "brake": c.brake,
-        "steer": c.steer,
-        "status": out.status,
-        "lead_id": -1 if lead is None else lead.vehicle_id,
-        "true_lead_distance": float("nan") if lead is None else lead.gap,
-        "lead_speed": float("nan") if lead is None else lead.speed,
-        "perceived_lead_distance": float("nan") if out.lead_distance is None else out.lead_distance,
-        "n_detections": len(out.detections),
-        "n_in_view": sum(1 for b in frame.boxes if in_view(b)),
-        "iou": iou,
-        "lead_detected": _lead_detected(lead, frame, dets),
-        "collision": bool(ego_hits),
-        "collision_speed": max((c.speed_a if c.vehicle_a == 0 else c.speed_b for c in ego_hits), default=0.0),
-        "collision_with": -1 if not ego_hits else (ego_hits[0].vehicle_b if ego_hits[0].vehicle_a == 0
-                                                   else ego_hits[0].vehicle_a),
-        "detections": [d.as_dict() for d in out.detections],
-        "gt_boxes": [b.as_dict() for b in frame.boxes],
-    }
-    for k in knob_names:
-        rec[k] = float(weather[k])
-    return rec
+    nan = float("nan")
+    return StepRecord(
+        step=step,
+        time_s=round(step * sim.dt, 3),
+        ego=EgoStep(ego_speed, c.throttle, c.brake, c.steer, out.status),
+        lead=LeadStep(
+            vehicle_id=-1 if lead is None else lead.vehicle_id,
+            true_distance=nan if lead is None else lead.gap,
+            speed=nan if lead is None else lead.speed,
+            perceived_distance=nan if out.lead_distance is None else out.lead_distance,
+            detected=_lead_detected(lead, frame, dets),
+        ),
+        perception=PerceptionStep(
+            n_detections=len(out.detections),
+            n_in_view=sum(1 for b in frame.boxes if in_view(b)),
+            iou=iou,
+            detections=tuple(RecordedDetection.from_row(d.as_dict()) for d in out.detections),
+            gt_boxes=tuple(RecordedBox.from_row(b.as_dict()) for b in frame.boxes),
+        ),
+        collision=CollisionStep(
+            collided=bool(ego_hits),
+            speed=max((c.speed_a if c.vehicle_a == 0 else c.speed_b for c in ego_hits), default=0.0),
+            other_id=-1 if not ego_hits else (ego_hits[0].vehicle_b if ego_hits[0].vehicle_a == 0
+                                              else ego_hits[0].vehicle_a),
+        ),
+        knobs={k: float(weather[k]) for k in knob_names},
+    )
 
 
 def _lead_detected(lead: Any, frame: SensorFrame, dets: np.ndarray) -> bool | None:
@@ -91,7 +104,7 @@ def _lead_detected(lead: Any, frame: SensorFrame, dets: np.ndarray) -> bool | No
 
 @dataclass
 class EpisodeResult:
-    records: list[dict[str, Any]]
+    records: list[StepRecord]
     frames: list[np.ndarray] = field(default_factory=list)
     identity: dict[str, Any] = field(default_factory=dict)
 
@@ -99,29 +112,27 @@ class EpisodeResult:
         return summarize(self.records)
 
 
-def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Episode figures: collisions, proximity (the rulebook's proximity rule), gaps, IoU, distance driven."""
-    from genesis_rl.rules.rulebook import ProximityRule
-
+def summarize(records: Sequence[StepRecord]) -> dict[str, Any]:
+    """Episode figures: collisions, proximity (the paper's 5 m proximity rule), gaps, IoU, distance driven."""
     proximity = ProximityRule()
     if not records:
         return {"steps": 0}
-    speed = np.array([r["ego_speed"] for r in records])
-    gap = np.array([r["true_lead_distance"] for r in records], float)
-    hits = [r for r in records if r["collision"]]
-    dt = records[1]["time_s"] - records[0]["time_s"] if len(records) > 1 else 0.05
+    speed = np.array([r.ego.speed for r in records])
+    gap = np.array([r.lead.true_distance for r in records], float)
+    hits = [r for r in records if r.collision.collided]
+    dt = records[1].time_s - records[0].time_s if len(records) > 1 else 0.05
     near = np.nan_to_num(gap, nan=np.inf) < proximity.distance
     return {
         "steps": len(records),
         "collisions": len(hits),
-        "first_collision_step": hits[0]["step"] if hits else None,
-        "collision_speed": round(float(hits[0]["collision_speed"]), 3) if hits else 0.0,
+        "first_collision_step": hits[0].step if hits else None,
+        "collision_speed": round(float(hits[0].collision.speed), 3) if hits else 0.0,
         "proximity_steps": int(near.sum()),
         "proximity_violation": round(proximity.violation(records), 3),
         "min_true_gap": round(float(np.nanmin(gap)), 3) if np.isfinite(gap).any() else None,
         "mean_speed": round(float(speed.mean()), 3),
         "distance_m": round(float(speed.sum() * dt), 2),
-        "mean_iou": round(float(np.mean([r["iou"] for r in records])), 4),
+        "mean_iou": round(float(np.mean([r.iou for r in records])), 4),
     }
 
 
@@ -134,8 +145,6 @@ class ClosedLoop:
     """
 
     def __init__(self, sim: Simulation, system: SystemUnderTest, backend_name: str, seed: int) -> None:
-        from genesis_rl.knobs import KNOBS
-
         self.sim = sim
         self.system = system
         self.knob_names = list(KNOBS)
@@ -154,7 +163,7 @@ class ClosedLoop:
         self.sim.set_weather(weather)
         self._perceive()
 
-    def advance(self, weather: Weather) -> dict[str, Any]:
+    def advance(self, weather: Weather) -> StepRecord:
         sim = self.sim
         sim.set_weather(weather)
         tick = sim.tick()
@@ -172,7 +181,7 @@ def run_episode(
     steps: int,
     seed: int,
     camera: CameraConfig | None = None,
-    frame_hook: Callable[[int, SensorFrame, SystemOutput, dict[str, Any]], None] | None = None,
+    frame_hook: Callable[[int, SensorFrame, SystemOutput, StepRecord], None] | None = None,
     progress: bool = False,
     stop_on_collision: bool = False,
 ) -> EpisodeResult:
@@ -180,7 +189,7 @@ def run_episode(
     before the tick that step k makes."""
     from tqdm import tqdm
 
-    records: list[dict[str, Any]] = []
+    records: list[StepRecord] = []
     with backend.create_simulation(scene, seed=seed, weather=weather_at(0), camera=camera) as sim:
         loop = ClosedLoop(sim, system, backend.name, seed)
         loop.start(weather_at(0))
@@ -190,17 +199,15 @@ def run_episode(
             if frame_hook is not None:
                 assert loop.frame is not None and loop.output is not None
                 frame_hook(k, loop.frame, loop.output, rec)
-            if stop_on_collision and rec["collision"]:
+            if stop_on_collision and rec.collision.collided:
                 break
     return EpisodeResult(records, identity=system.identity())
 
 
-def write_telemetry(path: Path, records: list[dict[str, Any]]) -> None:
-    """Step records as Parquet, written atomically."""
-    import pyarrow as pa
+def write_telemetry(path: Path, records: Sequence[StepRecord]) -> None:
+    """Step records as Parquet (their flat columns, ``StepRecord.to_row``), written atomically."""
+    import pyarrow as pa  # local: start-up cost of pyarrow for commands that never write telemetry
     import pyarrow.parquet as pq
 
-    from genesis_rl.io_utils import atomic_write
-
-    table = pa.Table.from_pylist(records)
+    table = pa.Table.from_pylist(to_rows(records))
     atomic_write(Path(path), lambda p: pq.write_table(table, p, compression="zstd"))

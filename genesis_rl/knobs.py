@@ -131,6 +131,16 @@ class Weather:
         return cls(values)
 
     @classmethod
+    def from_recorded(cls, values: Mapping[str, float]) -> Weather:
+        """A weather read back from a record or telemetry: knobs it does not name (a knob added after it was
+        written) take their defaults; unknown names are errors."""
+        unknown = set(values) - set(KNOBS)
+        if unknown:
+            raise UserInputError(f"recorded weather names unknown knob(s) {sorted(unknown)}; "
+                                 f"allowed: {', '.join(KNOBS)}")
+        return cls({k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()})
+
+    @classmethod
     def preset(cls, name: str) -> Weather:
         if name not in PRESETS:
             raise UserInputError(f"unknown weather preset '{name}'; allowed: {', '.join(PRESETS)}")

@@ -22,6 +22,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
+from genesis_rl.step_record import StepRecord
 
 ENV_ID = "genesis_rl/Weather-v0"
 
@@ -89,6 +90,24 @@ class EnvConfig:
         return [f.name for f in fields(cls)]
 
 
+def step_info(rec: StepRecord, knobs: dict[str, float]) -> dict[str, Any]:
+    """``info`` of one step, a plain dict for Gymnasium users: the step's state, every rule term by rule name
+    (``rules``) and every reward term."""
+    return {
+        "step": rec.step,
+        "knobs": knobs,
+        "ego_speed": rec.ego.speed,
+        "lead_distance": rec.lead.true_distance,
+        "lead_speed": rec.lead.speed,
+        "perceived_lead_distance": rec.lead.perceived_distance,
+        "n_detections": rec.perception.n_detections,
+        "iou": rec.iou,
+        "collision": rec.collision.collided,
+        "rules": dict(rec.rules),
+        **rec.reward,
+    }
+
+
 @contextmanager
 def _setting(name: str) -> Iterator[None]:
     """Prefix a user error with the env setting it came from (``env.system: ...``), as config errors are."""
@@ -122,7 +141,8 @@ class GenesisEnv(gym.Env):
         self.start_weather: Weather = parse_weather(c.start_weather)
         with _setting("env.rulebook"):
             self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
-        self.reward_fn = PaperReward(c.reward)
+        with _setting("env.reward"):
+            self.reward_fn = PaperReward(c.reward, self.rulebook)
         from genesis_rl.scenes.lite_generator import catalog_or_generate
 
         with _setting("env.catalog" if c.catalog else "env.scenes"):
@@ -149,7 +169,7 @@ class GenesisEnv(gym.Env):
         self._sim = None
         self._loop = None
         self.weather = self.start_weather
-        self.records: list[dict[str, Any]] = []
+        self.records: list[StepRecord] = []
         self.scene_index = -1
         self.episode_seed = -1
 
@@ -194,29 +214,14 @@ class GenesisEnv(gym.Env):
         self.weather = self.mapper.apply(self.weather, action)
         rec = self._loop.advance(self.weather)
         rule_terms = self.rulebook.step_terms(rec)
-        reward_terms = self.reward_fn.terms(rec["iou"], rule_terms)
-        rec.update({f"rule_{k}": v for k, v in rule_terms.items()})
-        rec.update(reward_terms)
+        rec = rec.scored(rule_terms, self.reward_fn.terms(rec.iou, rule_terms))
         self.records.append(rec)
-        terminated = bool(self.config.terminate_on_collision and rec["collision"])
+        terminated = bool(self.config.terminate_on_collision and rec.collision.collided)
         truncated = len(self.records) >= self.config.episode_steps
-        info = {
-            "step": rec["step"],
-            "knobs": self._knob_info(),
-            "ego_speed": rec["ego_speed"],
-            "lead_distance": rec["true_lead_distance"],
-            "lead_speed": rec["lead_speed"],
-            "perceived_lead_distance": rec["perceived_lead_distance"],
-            "n_detections": rec["n_detections"],
-            "iou": rec["iou"],
-            "collision": rec["collision"],
-            "rules": rule_terms,
-            "rss_deficit": rule_terms.get("rss_deficit", 0.0),
-            **reward_terms,
-        }
+        info = step_info(rec, self._knob_info())
         if terminated or truncated:
             info["episode_violations"] = self.rulebook.violations(self.records)
-        return self._observation(), float(reward_terms["reward"]), terminated, truncated, info
+        return self._observation(), float(rec.reward["reward"]), terminated, truncated, info
 
     def camera_frame(self) -> np.ndarray:
         """The system's current camera image (RGB, full resolution), e.g. to keep frames of a failure."""

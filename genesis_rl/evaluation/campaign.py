@@ -41,6 +41,7 @@ from genesis_rl.evaluation.failure_modes import (
 )
 from genesis_rl.evaluation.policies import EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text, read_json
+from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
 
 CAMPAIGN_SCHEMA = "genesis-rl/campaign"
 CAMPAIGN_VERSION = 1
@@ -108,12 +109,12 @@ class CampaignRunner:
             rec = env.records[-1]
             rgb = env.camera_frame()
             if hit_step is None:
-                ring.append((rec["step"], rgb))
-                if rec["collision"]:
-                    hit_step = rec["step"]
+                ring.append((rec.step, rgb))
+                if rec.collision.collided:
+                    hit_step = rec.step
                     frames.update((s, f) for s, f in ring if (hit_step - s) % spec.frame_stride == 0)
-            elif rec["step"] <= hit_step + spec.frames_after and (rec["step"] - hit_step) % spec.frame_stride == 0:
-                frames[rec["step"]] = rgb
+            elif rec.step <= hit_step + spec.frames_after and (rec.step - hit_step) % spec.frame_stride == 0:
+                frames[rec.step] = rgb
             if terminated or truncated:
                 break
         return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records))
@@ -184,11 +185,12 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     name = episode_name(scene)
     records = outcome.records
     write_telemetry(folder / "steps" / policy / f"{name}.parquet", records)
-    row = episode_row(policy, scene, episode_seed, outcome, env.rulebook.violations(records), env.config.knobs)
+    row = episode_row(policy, scene, episode_seed, outcome, env.rulebook, env.config.knobs)
     row["seconds"] = round(seconds, 2)
     for step, rgb in sorted(outcome.frames.items()):
         _write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
-    if spec.records == "all" or row["collision_events"] > 0 or row["collision"] > 0 or row["proximity"] > 0:
+    failed = row["collision_events"] > 0 or any(row["violations"][r.name] > 0 for r in env.rulebook.rules if r.in_total)
+    if spec.records == "all" or failed:
         record = make_record(spec, runner, policy, scene, episode_seed, records, row)
         save_record(folder / "records" / f"{policy}_{name}.json", record)
         row["record"] = f"records/{policy}_{name}.json"
@@ -202,20 +204,20 @@ def _write_jpeg(path: Path, rgb: np.ndarray) -> None:
     atomic_write(path, lambda p: Image.fromarray(rgb).save(p, format="JPEG", quality=92))
 
 
-def episode_row(policy: str, scene: int, episode_seed: int, outcome: EpisodeOutcome,
-                violations: dict[str, float], knobs: Sequence[str]) -> dict[str, Any]:
-    """One episode's summary: rule violations, collisions and their failure mode, IoU, return, knobs."""
+def episode_row(policy: str, scene: int, episode_seed: int, outcome: EpisodeOutcome, rulebook: Rulebook,
+                knobs: Sequence[str]) -> dict[str, Any]:
+    """One episode's summary: every rule's violation (a column each, by priority, then ``total``), collisions and their
+    failure mode, IoU, return, knobs."""
     recs = outcome.records
-    hits = np.array([r["collision"] for r in recs], bool)
+    violations = rulebook.violations(recs)
+    hits = np.array([r.collision.collided for r in recs], bool)
     events = int(hits[0]) + int((hits[1:] & ~hits[:-1]).sum()) if len(hits) else 0
     failure = label_collision(recs)
-    gap = np.array([r["true_lead_distance"] for r in recs], float)
+    gap = np.array([r.lead.true_distance for r in recs], float)
+    scores = {**violations, "total": rulebook.total(violations)}
     row: dict[str, Any] = {
         "policy": policy, "scene": scene, "episode_seed": episode_seed, "steps": len(recs),
-        "collision": round(violations.get("collision", 0.0), 6),
-        "proximity": round(violations.get("proximity", 0.0), 6),
-        "rss_deficit": round(violations.get("rss_deficit", 0.0), 6),
-        "total": round(violations.get("collision", 0.0) + violations.get("proximity", 0.0), 6),
+        **{k: round(v, 6) for k, v in scores.items()},
         "violations": {k: round(v, 6) for k, v in violations.items()},
         "collision_events": events,
         "first_collision_step": failure["step"] if failure else None,
@@ -224,11 +226,11 @@ def episode_row(policy: str, scene: int, episode_seed: int, outcome: EpisodeOutc
         "failure": failure,
         "labeller_version": LABELLER_VERSION,
         "min_gap": round(float(np.nanmin(gap)), 3) if np.isfinite(gap).any() else None,
-        "mean_iou": round(float(np.mean([r["iou"] for r in recs])), 4) if recs else None,
+        "mean_iou": round(float(np.mean([r.iou for r in recs])), 4) if recs else None,
         "return": round(outcome.total_reward, 4),
         "sim_steps": outcome.sim_steps,
-        "knobs_mean": {k: round(float(np.mean([r[k] for r in recs])), 3) for k in knobs} if recs else {},
-        "knobs_final": {k: round(float(recs[-1][k]), 3) for k in knobs} if recs else {},
+        "knobs_mean": {k: round(float(np.mean([r.knobs[k] for r in recs])), 3) for k in knobs} if recs else {},
+        "knobs_final": {k: round(float(recs[-1].knobs[k]), 3) for k in knobs} if recs else {},
         "extra": outcome.extra,
     }
     return row
@@ -287,7 +289,8 @@ def check_spec(spec: CampaignSpec) -> None:
 
 def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
     """What must not change between a campaign and its resumption besides the spec: the package version,
-    the agent's file and the system under test (class, weights hash)."""
+    the agent's file, the system under test (class, weights hash) and the rulebook's content (its rules
+    and parameters, not its file's path). Summaries and reports read the rulebook from here."""
     from genesis_rl.evaluation.policies import agent_file
     from genesis_rl.perception.detector import file_sha256
     from genesis_rl.system.protocol import load_system
@@ -295,8 +298,14 @@ def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
     found = agent_file(Path(spec.agent)) if spec.agent else None
     agent_sha = file_sha256(found) if found else None
     system = load_system(spec.env.get("system", "builtin"), **spec.env.get("system_kwargs", {}))
+    rulebook_path = spec.env.get("rulebook")
+    try:
+        rulebook = load_rulebook(rulebook_path) if rulebook_path else default_rulebook()
+    except UserInputError as err:
+        raise UserInputError(f"env.rulebook: {err}") from None
     return {"package_version": __version__, "agent_sha256": agent_sha,
-            "system": json.loads(json.dumps(system.identity(), default=str))}
+            "system": json.loads(json.dumps(system.identity(), default=str)),
+            "rulebook": rulebook.describe()}
 
 
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
@@ -313,7 +322,9 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         if not meta.is_file():
             raise UserInputError(f"--resume: '{folder}' is not a campaign folder (no campaign.json)")
         saved = read_json(meta, "campaign file")
-        changed = sorted(k for k in identity if saved.get("identity", {}).get(k) != identity[k])
+        saved_identity = saved.get("identity", {})
+        # a key the campaign's version did not store (the rulebook before 0.5.0) cannot be compared
+        changed = sorted(k for k in identity if k in saved_identity and saved_identity[k] != identity[k])
         if changed:
             raise UserInputError(f"--resume: {', '.join(changed)} changed since the campaign in '{folder}' began "
                                  "(results would mix); pass --force to start over")

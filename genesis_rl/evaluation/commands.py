@@ -103,7 +103,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     result = replay_record(rec, weights=args.weights, progress=not args.quiet, keep_frames=not args.no_gif)
     write_telemetry(out / "telemetry.parquet", result["records"])
     if not args.no_gif:
-        hit = next((i for i, r in enumerate(result["records"]) if r["collision"]), len(result["records"]) - 1)
+        hit = next((i for i, r in enumerate(result["records"]) if r.collision.collided), len(result["records"]) - 1)
         lo = max(0, hit - args.gif_seconds * 20) if args.gif_seconds else 0
         frames = [annotate_frame(result["frames"][i], result["records"][i])
                   for i in range(lo, min(len(result["frames"]), hit + 20), 2)]
@@ -113,7 +113,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
               "render_version": result["render_version"],
               "recorded_render_version": result["recorded_render_version"],
               "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
-              "first_collision_step": next((r["step"] for r in result["records"] if r["collision"]), None)}
+              "first_collision_step": next((r.step for r in result["records"] if r.collision.collided), None)}
     atomic_write_json(out / "replay.json", report, indent=2)
     print(json.dumps(report, indent=2))
     if not result["reproduced"]:

@@ -43,7 +43,8 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
 
     from genesis_rl.evaluation.summary import load_campaign
     from genesis_rl.io_utils import ensure_folder_path
-    from genesis_rl.knobs import KNOBS
+    from genesis_rl.knobs import KNOBS, Weather
+    from genesis_rl.step_record import RecordedBox
 
     if fmt not in FORMATS:
         raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
@@ -76,8 +77,10 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     for image_id, (policy, scene, step, path) in enumerate(frames, start=1):
         key = (policy, scene)
         if key not in steps_cache:
-            table = pq.read_table(folder / "steps" / policy / f"scene_{scene:04d}.parquet",
-                                  columns=["step", "gt_boxes", *KNOBS])
+            steps_path = folder / "steps" / policy / f"scene_{scene:04d}.parquet"
+            # a campaign written before a knob existed lacks its column: it reads as the knob's default
+            present = set(pq.read_schema(steps_path).names)
+            table = pq.read_table(steps_path, columns=["step", "gt_boxes", *(k for k in KNOBS if k in present)])
             steps_cache[key] = {r["step"]: r for r in table.to_pylist()}
         rec = steps_cache[key][step]
         name = f"{policy}_scene{scene:04d}_step{step:04d}"
@@ -85,18 +88,19 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
             w, h = im.size
         shutil.copyfile(path, tmp / "images" / f"{name}.jpg")
         labels, ignore = [], []
-        for b in rec["gt_boxes"]:
-            x0, y0, x1, y1 = (float(v) for v in b["box_xyxy"])
+        for b in (RecordedBox.from_row(row) for row in rec["gt_boxes"]):
+            x0, y0, x1, y1 = (float(v) for v in b.box_xyxy)
             x0, x1 = max(0.0, x0), min(float(w), x1)
             y0, y1 = max(0.0, y0), min(float(h), y1)
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            box = {"vehicle_id": b["vehicle_id"], "xyxy": [x0, y0, x1, y1], "distance_m": b["distance_m"],
-                   "visible_fraction": b["visible_fraction"]}
-            (labels if b["visible_fraction"] >= MIN_VISIBLE and y1 - y0 >= MIN_HEIGHT else ignore).append(box)
+            box = {"vehicle_id": b.vehicle_id, "xyxy": [x0, y0, x1, y1], "distance_m": b.distance_m,
+                   "visible_fraction": b.visible_fraction}
+            (labels if b.visible_fraction >= MIN_VISIBLE and y1 - y0 >= MIN_HEIGHT else ignore).append(box)
         n_labels += len(labels)
         n_ignored += len(ignore)
-        weather = {k: round(float(rec[k]), 3) for k in KNOBS}
+        weather = {k: round(float(v), 3) for k, v in Weather.from_recorded({k: rec[k] for k in KNOBS if k in rec})
+                   .values.items()}
         metadata.append({"image": f"images/{name}.jpg", "policy": policy, "scene": scene, "step": step,
                          "failure_mode": modes.get(key), "weather": weather, "labels": labels, "ignore": ignore})
         if fmt == "yolo":

@@ -20,12 +20,13 @@ The thresholds live in ``FailureModeThresholds`` and docs/evaluation.md.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
+from genesis_rl.step_record import RecordedBox, StepRecord
 from genesis_rl.system.matching import in_view_values, iou_matrix
 
 FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "lost_detection", "detected",
@@ -46,22 +47,22 @@ class FailureModeThresholds:
         return asdict(self)
 
 
-def box_in_view(box: Mapping[str, Any]) -> bool:
-    """``matching.in_view`` on a telemetry box dict."""
-    _, y0, _, y1 = box["box_xyxy"]
-    return in_view_values(box["distance_m"], box["visible_fraction"], y1 - y0)
+def box_in_view(box: RecordedBox) -> bool:
+    """``matching.in_view`` on a recorded box."""
+    _, y0, _, y1 = box.box_xyxy
+    return in_view_values(box.distance_m, box.visible_fraction, y1 - y0)
 
 
-def detection_timeline(records: Sequence[Mapping[str, Any]], vehicle_id: int) -> list[bool | None]:
+def detection_timeline(records: Sequence[StepRecord], vehicle_id: int) -> list[bool | None]:
     """Per record: None when ``vehicle_id`` is not in view, else whether a detection matched it."""
     out: list[bool | None] = []
     for r in records:
-        box = next((b for b in r["gt_boxes"] if b["vehicle_id"] == vehicle_id), None)
+        box = next((b for b in r.perception.gt_boxes if b.vehicle_id == vehicle_id), None)
         if box is None or not box_in_view(box):
             out.append(None)
             continue
-        dets = np.array([d["box_xyxy"] for d in r["detections"]], np.float64).reshape(-1, 4)
-        out.append(bool(len(dets) and iou_matrix(np.array([box["box_xyxy"]], np.float64), dets).max() >= MATCH_IOU))
+        dets = np.array([d.box_xyxy for d in r.perception.detections], np.float64).reshape(-1, 4)
+        out.append(bool(len(dets) and iou_matrix(np.array([box.box_xyxy], np.float64), dets).max() >= MATCH_IOU))
     return out
 
 
@@ -97,16 +98,16 @@ def classify_timeline(timeline: Sequence[bool | None], dt: float,
     return {"mode": "detected", **info}
 
 
-def label_collision(records: Sequence[Mapping[str, Any]], thresholds: FailureModeThresholds | None = None,
+def label_collision(records: Sequence[StepRecord], thresholds: FailureModeThresholds | None = None,
                     dt: float = 0.05) -> dict[str, Any] | None:
     """The failure mode of the episode's first ego collision, or None when it has none."""
     th = thresholds or FailureModeThresholds()
-    hit_at = next((i for i, r in enumerate(records) if r["collision"]), None)
+    hit_at = next((i for i, r in enumerate(records) if r.collision.collided), None)
     if hit_at is None:
         return None
-    vehicle = int(records[hit_at]["collision_with"])
+    vehicle = records[hit_at].collision.other_id
     start = max(0, hit_at - int(round(th.window_s / dt)))
     # the window ends at the step before the impact: the frame of the impact step comes after the tick
     result = classify_timeline(detection_timeline(records[start:hit_at], vehicle), dt, th)
-    return {"step": int(records[hit_at]["step"]), "vehicle_id": vehicle,
-            "speed": float(records[hit_at]["collision_speed"]), **result}
+    return {"step": records[hit_at].step, "vehicle_id": vehicle,
+            "speed": float(records[hit_at].collision.speed), **result}

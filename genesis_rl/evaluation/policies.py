@@ -26,6 +26,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.step_record import StepRecord
 
 POLICIES: dict[str, type[WeatherPolicy]] = {}
 
@@ -40,14 +41,14 @@ class EpisodeOutcome:
     """What a policy's episode left: the step records, frames around the first collision (step -> RGB),
     the simulator steps spent (a search counts all its candidates) and policy-specific extras."""
 
-    records: list[dict[str, Any]]
+    records: list[StepRecord]
     frames: dict[int, np.ndarray] = field(default_factory=dict)
     sim_steps: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def total_reward(self) -> float:
-        return float(sum(r["reward"] for r in self.records))
+        return float(sum(r.reward["reward"] for r in self.records))
 
 
 class EpisodeRunner(Protocol):

@@ -8,17 +8,28 @@ checks that every rule's violation comes out the same.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from genesis_rl import __version__
+from genesis_rl.drive import ClosedLoop
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.lite.backend import LiteBackend
+from genesis_rl.rules.rulebook import build_rulebook
+from genesis_rl.scenes.catalog import catalog_from_json
+from genesis_rl.sim.interface import CameraConfig
+from genesis_rl.step_record import RULE_PREFIX, StepRecord
+from genesis_rl.system.protocol import load_system
 
 RECORD_SCHEMA = "genesis-rl/edge-case"
 RECORD_VERSION = 1
@@ -28,24 +39,22 @@ DIGEST_FIELDS = ("step", "ego_speed", "throttle", "brake", "steer", "true_lead_d
                  "iou", "collision", "collision_speed", "detections")
 
 
-def step_digest(records: list[dict[str, Any]]) -> str:
+def step_digest(records: Sequence[StepRecord]) -> str:
     """SHA-256 over every step's state, controls, detections and rule terms: replay must match it bit for
     bit, not only in the summed violations."""
-    import hashlib
-
     h = hashlib.sha256()
-    for r in records:
+    for rec in records:
+        r = rec.to_row()
         row = {k: r[k] for k in DIGEST_FIELDS}
-        row.update({k: v for k, v in r.items() if k.startswith("rule_")})
+        row.update({k: v for k, v in r.items() if k.startswith(RULE_PREFIX)})
         h.update(json.dumps(row, sort_keys=True, default=str).encode())
     return h.hexdigest()
 
 
 def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: int,
-                records: list[dict[str, Any]], row: dict[str, Any]) -> dict[str, Any]:
-    """The record of one episode played by a ``CampaignRunner``."""
-    from genesis_rl.knobs import KNOBS
-
+                records: Sequence[StepRecord], row: dict[str, Any]) -> dict[str, Any]:
+    """The record of one episode played by a ``CampaignRunner``. It carries its knob set (``knobs``): a
+    record written before a knob existed replays with that knob at its default."""
     env = runner.env
     cfg = env.config
     sc = env.catalog.scene(scene)
@@ -64,12 +73,12 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
         "rulebook": env.rulebook.describe(),
         "start_weather": env.start_weather.as_dict(),
         "knobs": list(KNOBS),
-        "schedule": [[r[k] for k in KNOBS] for r in records],
+        "schedule": [[r.knobs[k] for k in KNOBS] for r in records],
         "violations": env.rulebook.violations(records),
         "step_digest": step_digest(records),
         "failure": row["failure"],
-        "summary": {k: row[k] for k in ("collision", "proximity", "rss_deficit", "collision_events",
-                                        "first_collision_step", "failure_mode", "mean_iou")},
+        "summary": {**{k: row[k] for k in env.rulebook.names},
+                    **{k: row[k] for k in ("collision_events", "first_collision_step", "failure_mode", "mean_iou")}},
     }
 
 
@@ -100,8 +109,6 @@ def load_record(path: Path | str) -> dict[str, Any]:
 def _check_record(rec: dict[str, Any], path: Path) -> None:
     """The fields replay builds a simulation from, with their types and ranges: a hand-edited record fails
     here, naming the field, not deep inside the simulator."""
-    from genesis_rl.knobs import KNOBS
-
     def bad(field: str, allowed: str) -> UserInputError:
         return UserInputError(f"record '{path}': field '{field}' = {str(rec_get(field))[:60]!r}; allowed: {allowed}")
 
@@ -151,16 +158,7 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
                   keep_frames: bool = True) -> dict[str, Any]:
     """Drive the record's episode again; returns the step records, frames, violations and whether they
     equal the recorded ones (to 1e-9)."""
-    import torch
-    from tqdm import tqdm
-
-    from genesis_rl.drive import ClosedLoop
-    from genesis_rl.knobs import Weather
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.rules.rulebook import build_rulebook
-    from genesis_rl.scenes.catalog import catalog_from_json
-    from genesis_rl.sim.interface import CameraConfig
-    from genesis_rl.system.protocol import load_system
+    import torch  # local: start-up cost
 
     if rec.get("backend", "lite") != "lite":
         raise UserInputError(f"record backend '{rec['backend']}': replay runs on lite only for now")
@@ -179,22 +177,20 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
         raise UserInputError(f"the record's system used weights sha256 {recorded_id['weights_sha256'][:12]}…, "
                              f"these are {str(now_id.get('weights_sha256'))[:12]}…; pass --weights with the "
                              "recorded file to replay it")
-    rulebook = build_rulebook([{"name": r["name"], "priority": r["priority"], "params": r["params"]}
-                               for r in rec["rulebook"]], "record rulebook")
+    rulebook = build_rulebook(rec["rulebook"], "record rulebook")
     names = rec["knobs"]
-    start = Weather(dict(rec["start_weather"]))
+    start = Weather.from_recorded(rec["start_weather"])
     camera = CameraConfig(width=rec["camera"]["width"], height=rec["camera"]["height"])
     backend = LiteBackend()
-    records: list[dict[str, Any]] = []
+    records: list[StepRecord] = []
     frames: list[np.ndarray] = []
     try:
         with backend.create_simulation(scene, seed=rec["episode_seed"], weather=start, camera=camera) as sim:
             loop = ClosedLoop(sim, system, backend.name, rec["episode_seed"])
             loop.start(start)
             for row in tqdm(rec["schedule"], desc="replay", unit="step", disable=not progress):
-                r = loop.advance(Weather(dict(zip(names, row, strict=True))))
-                r.update({f"rule_{k}": v for k, v in rulebook.step_terms(r).items()})
-                records.append(r)
+                r = loop.advance(Weather.from_recorded(dict(zip(names, row, strict=True))))
+                records.append(r.scored(rulebook.step_terms(r)))
                 if keep_frames:
                     assert loop.frame is not None
                     frames.append(loop.frame.rgb)

@@ -1,7 +1,7 @@
 """``report.html``: one self-contained page (figures embedded) that tells a campaign's story.
 
-1. The paper's Fig. 2: mean collision and proximity violation and summed RSS deficit per policy, with
-   bootstrap 95% CIs, and the paired agent-vs-baseline comparison.
+1. The paper's Fig. 2: the mean violation of every rule of the campaign's rulebook per policy (the paper's:
+   collision, proximity, RSS deficit), with bootstrap 95% CIs, and the paired agent-vs-baseline comparison.
 2. Fig. 3-style telemetry for one collision per failure mode: speeds, throttle and brake, true and
    perceived distance to the lead, and whether the hit vehicle was detected.
 3. Camera frames before each of those collisions, with true (green) and detected (orange) boxes.
@@ -20,11 +20,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
-from genesis_rl.evaluation.summary import load_campaign, summarize_campaign
+from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign
 from genesis_rl.io_utils import atomic_write_text
+from genesis_rl.knobs import PAPER_KNOBS
+from genesis_rl.rules.rulebook import Rulebook
+from genesis_rl.step_record import StepRecord, from_rows
+from genesis_rl.viz.frames import annotate_frame
 
 POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8"}
 MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Intermittent detection",
@@ -47,22 +52,18 @@ def _png(fig: Any) -> str:
 
 
 def _jpeg(rgb: np.ndarray) -> str:
-    from PIL import Image
-
     buf = io.BytesIO()
     Image.fromarray(rgb).save(buf, format="JPEG", quality=88)
     return "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode()
 
 
-def fig_comparison(summary: dict[str, Any]) -> str:
+def fig_comparison(summary: dict[str, Any], rulebook: Rulebook) -> str:
     import matplotlib.pyplot as plt
 
     pols = list(summary["policies"])
-    metrics = [("collision", "Collision violation\n(ego speed at impact, m/s)"),
-               ("proximity", "Proximity violation\n(sum of ego speed under 5 m, m/s)"),
-               ("rss_deficit", "RSS deficit\n(summed over steps, m)")]
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
-    for ax, (m, title) in zip(axes, metrics, strict=True):
+    metrics = [(r.name, f"{r.name.replace('_', ' ')} violation\n({r.description or r.unit})") for r in rulebook.rules]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4 * len(metrics), 3.6), squeeze=False)
+    for ax, (m, title) in zip(axes[0], metrics, strict=True):
         st = [summary["policies"][p][m] for p in pols]
         means = [s["mean"] or 0.0 for s in st]
         lo = [(s["mean"] - s["ci_low"]) if s["n"] else 0.0 for s in st]
@@ -113,26 +114,30 @@ def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[s
     return _png(fig)
 
 
-def fig_telemetry(records: list[dict[str, Any]], failure: dict[str, Any], title: str) -> str:
+def fig_telemetry(records: list[StepRecord], failure: dict[str, Any], title: str,
+                  proximity_m: float | None = None) -> str:
+    """Speeds, controls, true and perceived gap, and the hit vehicle's detection timeline around the first
+    impact; ``proximity_m``: the proximity rule's threshold to draw, when the rulebook has one."""
     import matplotlib.pyplot as plt
 
-    hit = next(i for i, r in enumerate(records) if r["collision"])
+    hit = next(i for i, r in enumerate(records) if r.collision.collided)
     lo, hi = max(0, hit - 160), min(len(records), hit + 20)
     win = records[lo:hi]
-    t = np.array([r["time_s"] for r in win])
+    t = np.array([r.time_s for r in win])
     timeline = detection_timeline(win, failure["vehicle_id"])
     fig, axes = plt.subplots(4, 1, figsize=(7.5, 6.2), sharex=True,
                              gridspec_kw={"height_ratios": [2, 1.4, 2, 0.8]})
-    axes[0].plot(t, [r["ego_speed"] for r in win], color="#c0392b", label="ego speed")
-    axes[0].plot(t, [r["lead_speed"] for r in win], color="#2c3e50", ls="--", label="lead speed")
+    axes[0].plot(t, [r.ego.speed for r in win], color="#c0392b", label="ego speed")
+    axes[0].plot(t, [r.lead.speed for r in win], color="#2c3e50", ls="--", label="lead speed")
     axes[0].set_ylabel("m/s")
-    axes[1].plot(t, [r["throttle"] for r in win], color="#27ae60", label="throttle")
-    axes[1].plot(t, [r["brake"] for r in win], color="#8e44ad", label="brake")
+    axes[1].plot(t, [r.ego.throttle for r in win], color="#27ae60", label="throttle")
+    axes[1].plot(t, [r.ego.brake for r in win], color="#8e44ad", label="brake")
     axes[1].set_ylim(-0.05, 1.05)
-    axes[2].plot(t, [r["true_lead_distance"] for r in win], color="#2c3e50", label="true distance to lead")
-    axes[2].plot(t, [r["perceived_lead_distance"] for r in win], ".", ms=3, color="#e67e22",
+    axes[2].plot(t, [r.lead.true_distance for r in win], color="#2c3e50", label="true distance to lead")
+    axes[2].plot(t, [r.lead.perceived_distance for r in win], ".", ms=3, color="#e67e22",
                  label="perceived distance")
-    axes[2].axhline(5.0, color="grey", ls=":", lw=1, label="proximity threshold 5 m")
+    if proximity_m is not None:
+        axes[2].axhline(proximity_m, color="grey", ls=":", lw=1, label=f"proximity threshold {proximity_m:g} m")
     axes[2].set_ylabel("m")
     on = np.array([np.nan if v is None else float(v) for v in timeline])
     axes[3].fill_between(t, 0, np.where(on == 1, 1, 0), step="mid", color="#27ae60", alpha=0.8, lw=0,
@@ -142,7 +147,7 @@ def fig_telemetry(records: list[dict[str, Any]], failure: dict[str, Any], title:
     axes[3].set_yticks([])
     axes[3].set_xlabel("time [s]")
     for ax in axes:
-        ax.axvline(records[hit]["time_s"], color="red", lw=1.2)
+        ax.axvline(records[hit].time_s, color="red", lw=1.2)
         ax.legend(fontsize=7, loc="upper left", ncol=3)
         ax.grid(alpha=0.3)
     axes[0].set_title(title, fontsize=10)
@@ -150,15 +155,11 @@ def fig_telemetry(records: list[dict[str, Any]], failure: dict[str, Any], title:
     return _png(fig)
 
 
-def frame_strip(folder: Path, policy: str, scene: int, records: list[dict[str, Any]], n: int = 6) -> str | None:
-    from PIL import Image
-
-    from genesis_rl.viz.frames import annotate_frame
-
+def frame_strip(folder: Path, policy: str, scene: int, records: list[StepRecord], n: int = 6) -> str | None:
     paths = sorted((folder / "frames" / policy / f"scene_{scene:04d}").glob("step_*.jpg"))
     if not paths:
         return None
-    by_step = {r["step"]: r for r in records}
+    by_step = {r.step: r for r in records}
     picks = [paths[int(i)] for i in np.linspace(0, len(paths) - 1, min(n, len(paths)))]
     tiles = []
     for p in picks:
@@ -171,10 +172,10 @@ def frame_strip(folder: Path, policy: str, scene: int, records: list[dict[str, A
     return _jpeg(np.hstack(tiles))
 
 
-def _steps(folder: Path, policy: str, scene: int) -> list[dict[str, Any]]:
-    import pyarrow.parquet as pq
+def _steps(folder: Path, policy: str, scene: int) -> list[StepRecord]:
+    import pyarrow.parquet as pq  # local: start-up cost
 
-    return pq.read_table(folder / "steps" / policy / f"scene_{scene:04d}.parquet").to_pylist()
+    return from_rows(pq.read_table(folder / "steps" / policy / f"scene_{scene:04d}.parquet").to_pylist())
 
 
 CSS = """
@@ -204,9 +205,11 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
     if not any(rows.values()):
         raise UserInputError(f"campaign '{folder}' has no finished episodes yet; nothing to report")
     summary = summarize_campaign(folder, loaded=(meta, rows))
+    rulebook = campaign_rulebook(meta, rows)
+    rule_metrics = rulebook.metric_columns()
+    sums = [f"{r.name}_sum" for r in rulebook.rules if not r.in_total]
     spec = meta["spec"]
-    knobs = list(spec.get("env", {}).get("knobs") or ["fog_density", "precipitation", "precipitation_deposits",
-                                                       "sun_altitude_angle", "sun_azimuth_angle"])
+    knobs = list(spec.get("env", {}).get("knobs") or PAPER_KNOBS)
     h: list[str] = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL report</title>"
                     f"<style>{CSS}</style></head><body>"]
     h.append("<h1>GENESIS-RL evaluation report</h1>")
@@ -221,15 +224,17 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
 
     # 1. comparison
     h.append("<h2>1. Violations by policy (paper Fig. 2)</h2>")
-    h.append(f"<img src='{fig_comparison(summary)}'>")
-    h.append("<table><tr><th class=l>policy</th><th>episodes</th><th>collision</th><th>proximity</th>"
-             "<th>total</th><th>RSS deficit</th><th>RSS deficit summed</th><th>episodes with collision</th>"
-             "<th>mean IoU</th><th>sim steps</th></tr>")
+    h.append(f"<img src='{fig_comparison(summary, rulebook)}'>")
+    units = {r.name: r.unit for r in rulebook.rules}
+    head = [*(f"{m.replace('_', ' ')}" + (f" [{units[m]}]" if units.get(m) else "") for m in rule_metrics),
+            *(f"{k[:-4].replace('_', ' ')} summed" for k in sums), "episodes with collision", "mean IoU", "sim steps"]
+    h.append("<table><tr><th class=l>policy</th><th>episodes</th>" + "".join(f"<th>{html.escape(c)}</th>" for c in head)
+             + "</tr>")
     for p, s in summary["policies"].items():
-        h.append(f"<tr><td class=l>{html.escape(p)}</td><td>{s['episodes']}</td><td>{_fmt_ci(s['collision'])}</td>"
-                 f"<td>{_fmt_ci(s['proximity'])}</td><td>{_fmt_ci(s['total'])}</td>"
-                 f"<td>{_fmt_ci(s['rss_deficit'])}</td><td>{s['rss_deficit_sum']:.1f}</td>"
-                 f"<td>{s['episodes_with_collision']}</td><td>{_fmt_ci(s['mean_iou'])}</td><td>{s['sim_steps']}</td></tr>")
+        cells = [*(_fmt_ci(s[m]) for m in rule_metrics), *(f"{s[k]:.1f}" for k in sums),
+                 str(s["episodes_with_collision"]), _fmt_ci(s["mean_iou"]), str(s["sim_steps"])]
+        h.append(f"<tr><td class=l>{html.escape(p)}</td><td>{s['episodes']}</td>"
+                 + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     h.append("</table>")
     if summary["comparisons"]:
         h.append("<p>Paired comparisons (same scenes, same seeds): mean difference agent − baseline with "
@@ -237,7 +242,7 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
                  "sign-flip permutation p-value.</p><table><tr><th class=l>comparison</th><th class=l>metric</th>"
                  "<th>difference</th><th>wins/ties/losses</th><th>p</th></tr>")
         for name, comp in summary["comparisons"].items():
-            for m in ("collision", "proximity", "total", "rss_deficit"):
+            for m in rule_metrics:
                 c = comp[m]
                 d = c["difference"]
                 cls = "" if not d["n"] else ("good" if d["ci_low"] > 0 else ("bad" if d["ci_high"] < 0 else ""))
@@ -266,7 +271,9 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
         recs = _steps(folder, p, e["scene"])
         title = (f"{MODE_TITLES[mode]}: {p}, scene {e['scene']}, impact at {e['failure']['speed']:.1f} m/s, "
                  f"step {e['first_collision_step']}")
-        h.append(f"<div class=card><h3>{html.escape(title)}</h3><img src='{fig_telemetry(recs, e['failure'], title)}'>")
+        proximity = rulebook.rule("proximity")
+        fig = fig_telemetry(recs, e["failure"], title, getattr(proximity, "distance", None))
+        h.append(f"<div class=card><h3>{html.escape(title)}</h3><img src='{fig}'>")
         strip = frame_strip(folder, p, e["scene"], recs)
         if strip:
             h.append(f"<p class=meta>Camera before the impact (green: true boxes, orange: detections):</p>"
@@ -294,7 +301,8 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
             h.append(f"<h2>Training of the agent</h2><img src='{_png(fig)}'>")
 
     # 5. per-scene table
-    h.append("<h2>4. Per scene</h2><p class=meta>collision / proximity violation; red: a collision, with its "
+    counted = [r.name for r in rulebook.rules if r.in_total]
+    h.append(f"<h2>4. Per scene</h2><p class=meta>{' / '.join(counted)} violation; red: a collision, with its "
              "failure mode.</p><table><tr><th class=l>scene</th>" + "".join(f"<th>{p}</th>" for p in rows) + "</tr>")
     by_scene = {p: {e["scene"]: e for e in eps} for p, eps in rows.items()}
     for scene, _ in meta["scenes"]:
@@ -305,8 +313,8 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
                 cells.append("<td class=meta>missing</td>")
                 continue
             mode = f"<br><span class=meta>{e['failure_mode']}</span>" if e["failure_mode"] else ""
-            cells.append(f"<td class={'hit' if e['collision_events'] else ''}>{e['collision']:.1f} / "
-                         f"{e['proximity']:.1f}{mode}</td>")
+            scores = " / ".join(f"{e[m]:.1f}" for m in counted)
+            cells.append(f"<td class={'hit' if e['collision_events'] else ''}>{scores}{mode}</td>")
         h.append(f"<tr><td class=l>{scene}</td>{''.join(cells)}</tr>")
     h.append("</table>")
     h.append(f"<h2>Campaign settings</h2><pre>{html.escape(json.dumps(spec, indent=1))}</pre></body></html>")

@@ -13,11 +13,34 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds
 from genesis_rl.evaluation.stats import bootstrap_mean_ci, paired_comparison
 from genesis_rl.io_utils import atomic_write_json, atomic_write_text, read_json
+from genesis_rl.rules.rulebook import Rulebook, build_rulebook
+from genesis_rl.step_record import from_rows
 
-METRICS = ("collision", "proximity", "total", "rss_deficit", "mean_iou", "return")
-CSV_COLUMNS = ("policy", "scene", "episode_seed", "steps", "collision", "proximity", "total", "rss_deficit",
-               "collision_events", "first_collision_step", "collision_speed", "failure_mode", "min_gap",
-               "mean_iou", "return", "sim_steps", "seconds", "record")
+#: Episode-row metrics summarised besides the rules' violations.
+OTHER_METRICS = ("mean_iou", "return")
+CSV_LEAD = ("policy", "scene", "episode_seed", "steps")
+CSV_TAIL = ("collision_events", "first_collision_step", "collision_speed", "failure_mode", "min_gap", "mean_iou",
+            "return", "sim_steps", "seconds", "record")
+
+
+def campaign_rulebook(meta: dict[str, Any], rows: dict[str, list[dict[str, Any]]]) -> Rulebook:
+    """The rulebook a campaign was scored with: stored in its identity since 0.5.0; for older campaigns (whose
+    rules were all built in) rebuilt from the rule names of its episode rows."""
+    stored = meta.get("identity", {}).get("rulebook")
+    if stored:
+        return build_rulebook(stored, f"campaign '{meta.get('spec', {}).get('agent') or 'file'}' rulebook")
+    first = next((eps[0] for eps in rows.values() if eps), None)
+    names = list(first["violations"]) if first else ["collision", "proximity", "rss_deficit"]
+    return build_rulebook([{"name": n} for n in names], "campaign rulebook")
+
+
+def metric_names(rulebook: Rulebook) -> list[str]:
+    """The summarised metrics in order: the rule columns (``Rulebook.metric_columns``), IoU, return."""
+    return [*rulebook.metric_columns(), *OTHER_METRICS]
+
+
+def csv_columns(rulebook: Rulebook) -> list[str]:
+    return [*CSV_LEAD, *rulebook.metric_columns(), *CSV_TAIL]
 
 
 def load_campaign(folder: Path) -> tuple[dict[str, Any], dict[str, list[dict[str, Any]]]]:
@@ -48,7 +71,7 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
         import pyarrow.parquet as pq
 
         steps = folder / "steps" / policy / f"scene_{row['scene']:04d}.parquet"
-        failure = label_collision(pq.read_table(steps).to_pylist())
+        failure = label_collision(from_rows(pq.read_table(steps).to_pylist()))
         row.update(failure=failure, failure_mode=failure["mode"] if failure else None)
     row["labeller_version"] = LABELLER_VERSION
     atomic_write_json(path, row, indent=1)
@@ -62,16 +85,20 @@ def summarize_campaign(folder: Path, write: bool = True,
     the caller has read the campaign already."""
     folder = Path(folder)
     meta, rows = loaded or load_campaign(folder)
+    rulebook = campaign_rulebook(meta, rows)
+    rule_metrics = rulebook.metric_columns()
     seed = int(meta["spec"]["seed"])
     expected = len(meta["scenes"])
     policies: dict[str, Any] = {}
     for policy, eps in rows.items():
         stats: dict[str, Any] = {"episodes": len(eps), "missing": expected - len(eps)}
-        for j, m in enumerate(METRICS):
+        for j, m in enumerate(metric_names(rulebook)):
             # seeded by the policy's name, so its interval does not depend on the order of --policies
             stats[m] = bootstrap_mean_ci([e[m] for e in eps if e[m] is not None],
                                          seed + zlib.crc32(policy.encode()) % 100_003 + j)
-        stats["rss_deficit_sum"] = round(sum(e["rss_deficit"] for e in eps), 3)
+        for rule in rulebook.rules:
+            if not rule.in_total:  # reported-only rules (the RSS deficit) are also summed over the episodes
+                stats[f"{rule.name}_sum"] = round(sum(e[rule.name] for e in eps), 3)
         stats["episodes_with_collision"] = sum(1 for e in eps if e["collision_events"] > 0)
         stats["collision_events"] = sum(e["collision_events"] for e in eps)
         stats["failure_modes"] = {m: sum(1 for e in eps if e["failure_mode"] == m) for m in FAILURE_MODES}
@@ -87,7 +114,7 @@ def summarize_campaign(folder: Path, write: bool = True,
             comparisons[f"agent_vs_{other}"] = {
                 m: paired_comparison([by_scene["agent"][s][m] for s in common],
                                      [by_scene[other][s][m] for s in common], seed + 7)
-                for m in ("collision", "proximity", "total", "rss_deficit")
+                for m in rule_metrics
             } | {"scenes": len(common)}
     complete = all(p["missing"] == 0 for p in policies.values())
     summary = {
@@ -101,12 +128,18 @@ def summarize_campaign(folder: Path, write: bool = True,
     if write:
         atomic_write_json(folder / "summary.json", summary, indent=2)
         buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore")
+        w = csv.DictWriter(buf, fieldnames=csv_columns(rulebook), extrasaction="ignore")
         w.writeheader()
         for eps in rows.values():
             w.writerows(eps)
         atomic_write_text(folder / "episodes.csv", buf.getvalue())
     return summary
+
+
+def summary_rule_metrics(summary: dict[str, Any]) -> list[str]:
+    """The rule columns of a summary (violations and ``total``), in its order, read from the summary itself."""
+    stats = next(iter(summary["policies"].values()), {})
+    return [k for k, v in stats.items() if isinstance(v, dict) and "mean" in v and k not in OTHER_METRICS]
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:
@@ -117,19 +150,21 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             return "–"
         return f"{s['mean']:.{digits}f} [{s['ci_low']:.{digits}f}, {s['ci_high']:.{digits}f}]"
 
-    lines = ["| policy | episodes | collision | proximity | total | RSS deficit / episode | RSS deficit summed | "
-             "episodes with collision | failure modes | mean IoU | sim steps |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    rules = summary_rule_metrics(summary)
+    sums = [k for k in next(iter(summary["policies"].values()), {}) if k.endswith("_sum")]
+    head = ["policy", "episodes", *rules, *(f"{k[:-4]} summed" for k in sums), "episodes with collision",
+            "failure modes", "mean IoU", "sim steps"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for p, s in summary["policies"].items():
         modes = ", ".join(f"{k} {v}" for k, v in s["failure_modes"].items() if v) or "–"
-        lines.append(f"| {p} | {s['episodes']} | {ci(s['collision'])} | {ci(s['proximity'])} | {ci(s['total'])} | "
-                     f"{ci(s['rss_deficit'])} | {s['rss_deficit_sum']:.1f} | {s['episodes_with_collision']} | "
-                     f"{modes} | {ci(s['mean_iou'], 3)} | {s['sim_steps']} |")
+        cells = [p, str(s["episodes"]), *(ci(s[m]) for m in rules), *(f"{s[k]:.1f}" for k in sums),
+                 str(s["episodes_with_collision"]), modes, ci(s["mean_iou"], 3), str(s["sim_steps"])]
+        lines.append("| " + " | ".join(cells) + " |")
     if summary["comparisons"]:
         lines += ["", "| comparison | metric | mean difference [95% CI] | wins / ties / losses | p (sign-flip) |",
                   "| --- | --- | --- | --- | --- |"]
         for name, comp in summary["comparisons"].items():
-            for m in ("collision", "proximity", "total", "rss_deficit"):
+            for m in rules:
                 c = comp[m]
                 pv = "–" if c["p_value"] is None else f"{c['p_value']:.4f}"
                 lines.append(f"| {name} | {m} | {ci(c['difference'])} | {c['wins']} / {c['ties']} / {c['losses']} "

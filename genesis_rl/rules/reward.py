@@ -3,38 +3,60 @@
 Default (the paper): r_t = exp(-IoU_t) + ln(1 + w_c a_c + w_p a_p), with (w_c, w_p) = (500, 100), a_c the
 collision term and a_p the proximity term of the step (see ``rulebook``), and IoU_t the frame IoU of
 ``genesis_rl.system.matching`` (1 when no vehicle is in view). The first term rewards hiding vehicles from
-the detector, the second (log-damped) rewards the behaviour violations that follow.
+the detector, the second (log-damped) rewards the behaviour violations that follow. Other rules join the
+log term by name through ``rule_weights``; a weighted rule the rulebook lacks is an error when the reward
+is built, not a silent zero.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.rules.rulebook import Rulebook
 
 
 @dataclass(frozen=True)
 class RewardConfig:
-    collision_weight: float = 500.0  # w_c [1 / (m/s)]
-    proximity_weight: float = 100.0  # w_p [1 / (m/s)]
+    collision_weight: float = 500.0  # w_c [1 / (m/s)]: weight of the rule named "collision"
+    proximity_weight: float = 100.0  # w_p [1 / (m/s)]: weight of the rule named "proximity"
     iou_weight: float = 1.0  # scales exp(-IoU)
+    rule_weights: dict[str, float] = field(default_factory=dict)  # more rules by name [1 / rule unit]
 
     def __post_init__(self) -> None:
         for k in ("collision_weight", "proximity_weight", "iou_weight"):
             if not (math.isfinite(getattr(self, k)) and getattr(self, k) >= 0):
                 raise ValueError(f"reward.{k} = {getattr(self, k)} must be a finite number >= 0")
+        for name, w in self.rule_weights.items():
+            if name in ("collision", "proximity"):
+                raise ValueError(f"reward.rule_weights.{name}: set it with reward.{name}_weight")
+            if isinstance(w, bool) or not isinstance(w, int | float) or not (math.isfinite(w) and w >= 0):
+                raise ValueError(f"reward.rule_weights.{name} = {w!r} must be a finite number >= 0")
+
+    def weights(self) -> dict[str, float]:
+        """Every rule weight by rule name, the paper's two first."""
+        return {"collision": self.collision_weight, "proximity": self.proximity_weight,
+                **{k: float(v) for k, v in self.rule_weights.items()}}
 
 
 class PaperReward:
-    """r = iou_weight * exp(-IoU) + ln(1 + w_c a_c + w_p a_p); ``terms`` returns every part for ``info``."""
+    """r = iou_weight * exp(-IoU) + ln(1 + sum_rule w_rule * term_rule); ``terms`` returns every part for
+    ``info``. With a ``rulebook``, every rule with a weight > 0 must be in it."""
 
-    def __init__(self, config: RewardConfig | None = None) -> None:
+    def __init__(self, config: RewardConfig | None = None, rulebook: Rulebook | None = None) -> None:
         self.config = config or RewardConfig()
+        self.weights = {k: w for k, w in self.config.weights().items() if w > 0}
+        if rulebook is not None:
+            missing = [k for k in self.weights if k not in rulebook.names]
+            if missing:
+                raise UserInputError(
+                    f"the reward weights rule(s) {missing} that the rulebook lacks (it has "
+                    f"{', '.join(rulebook.names)}); add them to the rulebook or set their weight to 0 "
+                    "(reward.collision_weight, reward.proximity_weight, reward.rule_weights)")
 
     def terms(self, iou: float, rule_terms: Mapping[str, float]) -> dict[str, float]:
-        c = self.config
-        a_c = float(rule_terms.get("collision", 0.0))
-        a_p = float(rule_terms.get("proximity", 0.0))
-        perception = c.iou_weight * math.exp(-iou)
-        behaviour = math.log1p(c.collision_weight * a_c + c.proximity_weight * a_p)
+        perception = self.config.iou_weight * math.exp(-iou)
+        behaviour = math.log1p(sum(w * float(rule_terms.get(k, 0.0)) for k, w in self.weights.items()))
         return {"reward_perception": perception, "reward_behaviour": behaviour, "reward": perception + behaviour}

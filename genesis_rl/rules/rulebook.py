@@ -1,28 +1,31 @@
 """Rules and rulebooks in the formalism of Censi et al. (2019), "Liability, ethics and culture-aware
 behavior specification using rulebooks".
 
-A rule maps a trajectory (the step records so far) to a violation >= 0 (0 = compliant), as a sum of
-per-step terms, so that the violation can be read step by step (for the reward) and as a whole (for
-evaluation). A rulebook is a set of rules with a priority order: two trajectories compare rule by rule,
-highest priority first, and the first rule on which they differ decides.
+A rule maps a trajectory (the step records so far, ``genesis_rl.step_record.StepRecord``) to a violation
+>= 0 (0 = compliant), as a sum of per-step terms, so that the violation can be read step by step (for the
+reward) and as a whole (for evaluation). A rulebook is a set of rules with a priority order: two
+trajectories compare rule by rule, highest priority first, and the first rule on which they differ decides.
 
-Adding a rule is one small class::
+Adding a rule is one small class, in any module::
 
-    @register_rule
     class Speeding(Rule):
         name = "speeding"
+        unit = "m/s"
         limit: float = 13.9  # parameters are dataclass fields with defaults
 
         def term(self, record):
-            return max(0.0, record["ego_speed"] - self.limit)
+            return max(0.0, record.ego.speed - self.limit)
 
-Rulebooks are declared in TOML (see ``configs/rulebook.toml``); an unknown rule or parameter fails when
-the file is loaded.
+and one line in a rulebook TOML: ``name = "my_package.my_rules:Speeding"`` (or ``@register_rule`` it and
+use ``name = "speeding"``). Summaries, reports, records and replays list every rule of the rulebook; an
+unknown rule or parameter fails when the file is loaded.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import inspect
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -30,35 +33,91 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import read_utf8
+from genesis_rl.step_record import StepRecord
 
 RULES: dict[str, type[Rule]] = {}
 
+#: Names a rule may not take: they are columns of an episode's summary row beside the rules' violations.
+RESERVED_NAMES = frozenset({
+    "policy", "scene", "episode_seed", "steps", "total", "violations", "collision_events", "first_collision_step",
+    "collision_speed", "failure_mode", "failure", "labeller_version", "min_gap", "mean_iou", "return", "sim_steps",
+    "knobs_mean", "knobs_final", "extra", "seconds", "record", "rss_deficit_sum",
+})
+
 
 def register_rule(cls: type[Rule]) -> type[Rule]:
-    """Class decorator: make a rule available to rulebooks by its ``name``."""
-    dataclasses.dataclass(frozen=True)(cls)
+    """Class decorator: make a rule available to rulebooks by its short ``name``."""
+    _as_rule_class(cls, cls.__qualname__)
     RULES[cls.name] = cls
     return cls
 
 
+def _as_rule_class(cls: type, where: str) -> type[Rule]:
+    """Check a rule class and make it a frozen dataclass (its parameters are its fields)."""
+    if not (inspect.isclass(cls) and issubclass(cls, Rule)):
+        raise UserInputError(f"{where}: {getattr(cls, '__name__', cls)!r} is not a subclass of "
+                             "genesis_rl.rules.rulebook.Rule")
+    if not isinstance(cls.name, str) or not cls.name.isidentifier():
+        raise UserInputError(f"{where}: rule class {cls.__name__} needs a class attribute `name`, an identifier "
+                             f"such as 'speeding' (got {cls.name!r})")
+    if cls.name in RESERVED_NAMES:
+        raise UserInputError(f"{where}: rule name '{cls.name}' is reserved (a column of episode rows); reserved: "
+                             f"{', '.join(sorted(RESERVED_NAMES))}")
+    if "__dataclass_fields__" not in cls.__dict__:
+        dataclasses.dataclass(frozen=True)(cls)
+    return cls
+
+
+def rule_class(spec: str, where: str = "rulebook") -> type[Rule]:
+    """A rule class from a registered name (``collision``) or an import path (``package.module:Class``)."""
+    if spec in RULES:
+        return RULES[spec]
+    if not isinstance(spec, str) or ":" not in spec:
+        raise UserInputError(f"{where}: unknown rule {spec!r}; allowed: {', '.join(sorted(RULES))} or "
+                             "package.module:Class")
+    module_name, _, class_name = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
+        raise UserInputError(f"{where}: rule '{spec}': cannot import module '{module_name}': {err}") from None
+    cls = getattr(module, class_name, None)
+    if cls is None:
+        raise UserInputError(f"{where}: rule '{spec}': module '{module_name}' has no class '{class_name}'")
+    return _as_rule_class(cls, f"{where}: rule '{spec}'")
+
+
 class Rule:
-    """A rule: ``term(record)`` is one step's contribution (>= 0); the violation is their sum."""
+    """A rule: ``term(record)`` is one step's contribution (>= 0); the violation is their sum.
+
+    ``unit`` names the violation's unit for tables and plots; ``in_total`` says whether the violation adds
+    into an episode's ``total`` score (the paper's collision + proximity, both in m/s; the RSS deficit, in
+    metres, is reported beside it)."""
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
+    unit: ClassVar[str] = ""
+    in_total: ClassVar[bool] = True
 
-    def term(self, record: Mapping[str, Any]) -> float:
+    def term(self, record: StepRecord) -> float:
         raise NotImplementedError
 
-    def violation(self, records: Sequence[Mapping[str, Any]]) -> float:
+    def violation(self, records: Sequence[StepRecord]) -> float:
         return float(sum(self.term(r) for r in records))
 
     def params(self) -> dict[str, Any]:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
 
+    @classmethod
+    def import_path(cls) -> str | None:
+        """``module:Class`` when the rule is not registered under its name (a plug-in), else None."""
+        return None if RULES.get(cls.name) is cls else f"{cls.__module__}:{cls.__qualname__}"
 
-def _finite(v: Any) -> float | None:
-    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+def _positive(rule: Rule) -> None:
+    for k, v in rule.params().items():
+        if not v > 0:
+            raise ValueError(f"{rule.name}.{k} = {v!r} must be a positive number")
 
 
 @register_rule
@@ -67,9 +126,11 @@ class CollisionRule(Rule):
 
     name = "collision"
     description = "ego speed at each step with a collision [m/s]"
+    unit = "m/s"
 
-    def term(self, record: Mapping[str, Any]) -> float:
-        return float(record["collision_speed"]) if record["collision"] else 0.0
+    def term(self, record: StepRecord) -> float:
+        c = record.collision
+        return float(c.speed) if c.collided else 0.0
 
 
 @register_rule
@@ -78,11 +139,15 @@ class ProximityRule(Rule):
 
     name = "proximity"
     description = "ego speed while the gap to the lead vehicle is under the threshold [m/s]"
-    distance: float = 5.0
+    unit = "m/s"
+    distance: float = 5.0  # [m]
 
-    def term(self, record: Mapping[str, Any]) -> float:
-        gap = _finite(record["true_lead_distance"])
-        return float(record["ego_speed"]) if gap is not None and gap < self.distance else 0.0
+    def __post_init__(self) -> None:
+        _positive(self)
+
+    def term(self, record: StepRecord) -> float:
+        gap = record.lead.true_distance
+        return float(record.ego.speed) if math.isfinite(gap) and gap < self.distance else 0.0
 
 
 @register_rule
@@ -91,14 +156,18 @@ class RSSFollowingDistanceRule(Rule):
 
     name = "rss_deficit"
     description = "minimum following distance deficit (simplified RSS) [m]"
-    decel: float = 5.0
+    unit = "m"
+    in_total = False
+    decel: float = 5.0  # a [m/s^2]
 
-    def term(self, record: Mapping[str, Any]) -> float:
-        gap = _finite(record["true_lead_distance"])
-        v_l = _finite(record["lead_speed"])
-        if gap is None or v_l is None:
+    def __post_init__(self) -> None:
+        _positive(self)
+
+    def term(self, record: StepRecord) -> float:
+        gap, v_l = record.lead.true_distance, record.lead.speed
+        if not (math.isfinite(gap) and math.isfinite(v_l)):
             return 0.0
-        v_e = float(record["ego_speed"])
+        v_e = float(record.ego.speed)
         d_min = max(0.0, (v_e * v_e - v_l * v_l) / (2.0 * self.decel))
         return max(0.0, d_min - gap)
 
@@ -113,13 +182,27 @@ class Rulebook:
     def names(self) -> list[str]:
         return [r.name for r in self.rules]
 
-    def step_terms(self, record: Mapping[str, Any]) -> dict[str, float]:
+    def rule(self, name: str) -> Rule | None:
+        return next((r for r in self.rules if r.name == name), None)
+
+    def step_terms(self, record: StepRecord) -> dict[str, float]:
         return {r.name: r.term(record) for r in self.rules}
 
-    def violations(self, records: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    def violations(self, records: Sequence[StepRecord]) -> dict[str, float]:
         return {r.name: r.violation(records) for r in self.rules}
 
-    def compare(self, a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]], tol: float = 1e-9) -> int:
+    def total(self, violations: Mapping[str, float]) -> float:
+        """The episode's total score: the sum of the violations of the rules that count in it."""
+        return sum(violations.get(r.name, 0.0) for r in self.rules if r.in_total)
+
+    def metric_columns(self) -> list[str]:
+        """The rule columns of results tables, in a stable order: the rules that add into ``total`` (by
+        priority), ``total``, then the reported-only rules (the paper's: collision, proximity, total,
+        rss_deficit)."""
+        counted = [r.name for r in self.rules if r.in_total]
+        return [*counted, "total", *(r.name for r in self.rules if not r.in_total)]
+
+    def compare(self, a: Sequence[StepRecord], b: Sequence[StepRecord], tol: float = 1e-9) -> int:
         """-1 if trajectory ``a`` is better (violates less) than ``b``, 1 if worse, 0 if equal: rule by rule
         in priority order, the first difference decides (Censi et al.'s lexicographic order)."""
         for rule in self.rules:
@@ -129,38 +212,64 @@ class Rulebook:
         return 0
 
     def describe(self) -> list[dict[str, Any]]:
-        return [{"priority": i + 1, "name": r.name, "params": r.params()} for i, r in enumerate(self.rules)]
+        """The rulebook as data (records and campaigns store it; ``build_rulebook`` reads it back). A
+        plug-in rule also carries its import ``path``; every rule its ``unit`` and ``in_total``."""
+        out = []
+        for i, r in enumerate(self.rules):
+            d: dict[str, Any] = {"priority": i + 1, "name": r.name, "params": r.params()}
+            path = r.import_path()
+            if path:
+                d.update(path=path, unit=r.unit, in_total=r.in_total)
+            out.append(d)
+        return out
 
 
 def build_rulebook(entries: Sequence[Mapping[str, Any]], source: str = "rulebook") -> Rulebook:
-    """Rules from ``[{name, priority?, params?}]``; sorted by priority (1 = highest), else given order."""
-    rules: list[tuple[float, int, Rule]] = []
+    """Rules from ``[{name, priority?, params?, path?}]``; ``name`` is a registered rule or an import path
+    ``package.module:Class`` (``path``, as ``describe`` writes it, takes precedence). Sorted by priority
+    (1 = highest), else given order; priorities must be distinct."""
+    if not isinstance(entries, list | tuple):
+        raise UserInputError(f"{source}: `rules` must be a list of tables ([[rules]]), got {type(entries).__name__}")
+    rules: list[tuple[int, int, Rule]] = []
     for i, entry in enumerate(entries):
         where = f"{source}: rules[{i}]"
-        unknown_keys = set(entry) - {"name", "priority", "params"}
+        if not isinstance(entry, Mapping):
+            raise UserInputError(f"{where} must be a table with name, priority, params; got {entry!r}")
+        unknown_keys = set(entry) - {"name", "priority", "params", "path", "unit", "in_total"}
         if unknown_keys:
             raise UserInputError(f"{where}: unknown key(s) {sorted(unknown_keys)}; allowed: name, priority, params")
         name = entry.get("name")
-        if name not in RULES:
-            raise UserInputError(f"{where}: unknown rule '{name}'; allowed: {', '.join(sorted(RULES))}")
-        cls = RULES[name]
-        params = dict(entry.get("params", {}))
+        if not isinstance(name, str):
+            raise UserInputError(f"{where}: name = {name!r}; allowed: {', '.join(sorted(RULES))} or "
+                                 "package.module:Class")
+        cls = rule_class(entry.get("path") or name, where)
+        params = entry.get("params", {})
+        if not isinstance(params, Mapping):
+            raise UserInputError(f"{where}: params = {params!r} must be a table, e.g. params = {{ distance = 5.0 }}")
         fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
         for key, value in params.items():
             if key not in fields:
                 allowed = ", ".join(fields) or "(none)"
-                raise UserInputError(f"{where}: rule '{name}' has no parameter '{key}'; allowed: {allowed}")
-            if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
-                raise UserInputError(f"{where}: {name}.{key} = {value!r} must be a positive number")
+                raise UserInputError(f"{where}: rule '{cls.name}' has no parameter '{key}'; allowed: {allowed}")
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise UserInputError(f"{where}: {cls.name}.{key} = {value!r} must be a finite number")
         priority = entry.get("priority", i + 1)
-        if not isinstance(priority, int) or priority < 1:
+        if isinstance(priority, bool) or not isinstance(priority, int) or priority < 1:
             raise UserInputError(f"{where}: priority = {priority!r} must be an integer >= 1")
-        rules.append((priority, i, cls(**{k: float(v) for k, v in params.items()})))
+        try:
+            rule = cls(**{k: float(v) for k, v in params.items()})
+        except (ValueError, TypeError) as err:
+            raise UserInputError(f"{where}: {err}") from None
+        rules.append((priority, i, rule))
     if not rules:
         raise UserInputError(f"{source}: a rulebook needs at least one rule; allowed: {', '.join(sorted(RULES))}")
     names = [r.name for _, _, r in rules]
     if len(set(names)) != len(names):
         raise UserInputError(f"{source}: a rule appears twice: {names}")
+    priorities = [p for p, _, _ in rules]
+    if len(set(priorities)) != len(priorities):
+        raise UserInputError(f"{source}: two rules share a priority ({priorities}); a rulebook is a strict order: "
+                             "give each rule its own priority")
     return Rulebook(tuple(r for _, _, r in sorted(rules, key=lambda t: (t[0], t[1]))))
 
 
@@ -175,7 +284,7 @@ def load_rulebook(path: str | Path) -> Rulebook:
     if not path.is_file():
         raise UserInputError(f"rulebook file '{path}' does not exist")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(read_utf8(path, "rulebook"))
     except tomllib.TOMLDecodeError as err:
         raise UserInputError(f"rulebook '{path}' is not valid TOML: {err}") from None
     unknown = set(data) - {"rules"}
