@@ -5,8 +5,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -75,15 +74,3 @@ def read_json(path: Path, what: str = "file") -> Any:
         return json.loads(text)
     except json.JSONDecodeError as err:
         raise UserInputError(f"{what} '{path}' is not valid JSON: {err}") from None
-
-
-@contextmanager
-def damaged_files(folder: Path, remedy: str) -> Iterator[None]:
-    """Report a campaign folder whose files were edited or truncated by hand (a missing key, a wrong type, a
-    cut Parquet file) as exit-2 input error naming the folder, instead of a traceback. Only around code that
-    reads files the package wrote; OS errors (permissions, a full disk) pass through as themselves."""
-    try:
-        yield
-    except (KeyError, TypeError, ValueError, IndexError) as err:  # pyarrow's ArrowInvalid is a ValueError
-        raise UserInputError(f"'{folder}' holds a damaged or foreign file ({type(err).__name__}: {err}); "
-                             f"{remedy}") from None

@@ -8,17 +8,30 @@ of its range (the paper's naturalness limit, 5%), clips to the range and wraps a
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+import sys
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from genesis_rl.errors import UserInputError
 
+#: A lite render hook: ``hook(rgb, depth, value) -> rgb`` applied to the finished camera image (uint8, H x W x
+#: 3; depth in metres), after the built-in weather pass, when the knob is not at its default.
+FrameHook = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
+
 
 @dataclass(frozen=True)
 class KnobSpec:
-    """A weather parameter: its range, unit, and whether it wraps around (azimuth does)."""
+    """A weather parameter, declared once: its range, unit and default, whether it wraps around (azimuth
+    does), how each backend realises it, and the values the contact sheet sweeps.
+
+    ``carla_field``: the ``carla.WeatherParameters`` field it sets (None: CARLA has no such field).
+    ``lite``: how the embedded renderer shows it: ``lighting`` (sun, sky, clouds, fog extinction),
+    ``weather_pass`` (rain streaks, wet road, fog distance), ``hook`` (``frame_hook``, a user's own effect)
+    or ``none`` (a CARLA-only field that lite does not draw).
+    ``sweep``: the values of its row in ``genesis-rl render --sweep`` (empty: no row), each on top of clear
+    noon changed by ``sweep_base``."""
 
     name: str
     low: float
@@ -27,30 +40,63 @@ class KnobSpec:
     default: float
     wraps: bool = False
     description: str = ""
+    carla_field: str | None = None
+    lite: str = "none"
+    frame_hook: FrameHook | None = None
+    sweep: tuple[float, ...] = ()
+    sweep_base: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.name.isidentifier():
+            raise UserInputError(f"knob name {self.name!r} must be an identifier, e.g. lens_dirt")
+        if not (math.isfinite(self.low) and math.isfinite(self.high) and self.low < self.high):
+            raise UserInputError(f"knob '{self.name}': range {self.low}..{self.high} must be finite with low < high")
+        if not self.low <= self.default <= self.high:
+            raise UserInputError(f"knob '{self.name}': default {self.default} is outside {self.low:g}..{self.high:g}")
+        if self.lite not in LITE_EFFECTS:
+            raise UserInputError(f"knob '{self.name}': lite = '{self.lite}'; allowed: {', '.join(LITE_EFFECTS)}")
+        if (self.lite == "hook") != (self.frame_hook is not None):
+            raise UserInputError(f"knob '{self.name}': a frame_hook goes with lite = 'hook', and only with it")
+        bad = [v for v in self.sweep if not self.low <= v <= self.high]
+        if bad:
+            raise UserInputError(f"knob '{self.name}': sweep values {bad} are outside {self.low:g}..{self.high:g}")
 
     @property
     def span(self) -> float:
         return self.high - self.low
 
 
-def _k(name: str, low: float, high: float, unit: str, default: float, desc: str, wraps: bool = False) -> KnobSpec:
-    return KnobSpec(name, low, high, unit, default, wraps, desc)
+LITE_EFFECTS = ("lighting", "weather_pass", "hook", "none")
+_PCT = (0.0, 20.0, 40.0, 60.0, 80.0, 100.0)
+
+
+def _k(name: str, low: float, high: float, unit: str, default: float, desc: str, wraps: bool = False,
+       lite: str = "none", sweep: tuple[float, ...] = (), sweep_base: Mapping[str, float] | None = None) -> KnobSpec:
+    return KnobSpec(name, low, high, unit, default, wraps, desc, carla_field=name, lite=lite, sweep=sweep,
+                    sweep_base=dict(sweep_base or {}))
 
 
 #: Every field of carla.WeatherParameters (0.9.16), with CARLA's documented ranges. Unbounded CARLA
 #: ranges (fog_distance, fog_falloff, scattering) get a finite range, as a Box action space needs.
+#: ``register_knob`` adds a knob of one's own.
 KNOBS: dict[str, KnobSpec] = {
     k.name: k
     for k in (
-        _k("fog_density", 0, 100, "%", 0, "fog concentration; visibility falls with it (Koschmieder)"),
-        _k("precipitation", 0, 100, "%", 0, "rain intensity: streaks, lower contrast and visibility"),
-        _k("precipitation_deposits", 0, 100, "%", 0, "water on the road: dark, glossy, puddles"),
-        _k("sun_altitude_angle", -90, 90, "deg", 75, "sun elevation: noon at 90, sunset near 0, night below"),
-        _k("sun_azimuth_angle", 0, 360, "deg", 45, "sun heading: shadows and glare", wraps=True),
-        _k("cloudiness", 0, 100, "%", 5, "cloud cover: dims the sun and greys the sky"),
-        _k("wetness", 0, 100, "%", 0, "wetness of surfaces (darkens them)"),
-        _k("wind_intensity", 0, 100, "%", 10, "wind: slants the rain"),
-        _k("fog_distance", 0, 200, "m", 0, "distance at which fog starts"),
+        _k("fog_density", 0, 100, "%", 0, "fog concentration; visibility falls with it (Koschmieder)",
+           lite="lighting", sweep=_PCT),
+        _k("precipitation", 0, 100, "%", 0, "rain intensity: streaks, lower contrast and visibility",
+           lite="weather_pass", sweep=_PCT),
+        _k("precipitation_deposits", 0, 100, "%", 0, "water on the road: dark, glossy, puddles",
+           lite="weather_pass", sweep=_PCT),
+        _k("sun_altitude_angle", -90, 90, "deg", 75, "sun elevation: noon at 90, sunset near 0, night below",
+           lite="lighting", sweep=(75, 30, 10, 3, -5, -40)),
+        # azimuth only shows with a low sun: its row sweeps it at 12 degrees of altitude
+        _k("sun_azimuth_angle", 0, 360, "deg", 45, "sun heading: shadows and glare", wraps=True,
+           lite="lighting", sweep=(0, 60, 120, 180, 240, 300), sweep_base={"sun_altitude_angle": 12.0}),
+        _k("cloudiness", 0, 100, "%", 5, "cloud cover: dims the sun and greys the sky", lite="lighting"),
+        _k("wetness", 0, 100, "%", 0, "wetness of surfaces (darkens them)", lite="weather_pass"),
+        _k("wind_intensity", 0, 100, "%", 10, "wind: slants the rain", lite="weather_pass"),
+        _k("fog_distance", 0, 200, "m", 0, "distance at which fog starts", lite="weather_pass"),
         _k("fog_falloff", 0, 5, "", 0.2, "fog density falloff with height (CARLA only)"),
         _k("scattering_intensity", 0, 2, "", 1, "light contribution to volumetric fog (CARLA only)"),
         _k("mie_scattering_scale", 0, 5, "", 0.03, "Mie scattering (CARLA only)"),
@@ -58,6 +104,28 @@ KNOBS: dict[str, KnobSpec] = {
         _k("dust_storm", 0, 100, "%", 0, "dust storm strength (CARLA only)"),
     )
 }
+
+
+#: The module that declared each knob added with ``register_knob`` (workers import it again).
+KNOB_MODULES: dict[str, str] = {}
+
+
+def register_knob(spec: KnobSpec) -> KnobSpec:
+    """Declare a knob of one's own (in one's module, at import): every weather then carries it at its
+    default, the env can turn it (``env.knobs``), records and telemetry store it, ``render --sweep`` shows
+    it, and lite draws it through its ``frame_hook``. Records written before it existed replay with it at
+    its default. A worker process re-imports the declaring module (see ``evaluation.campaign``)."""
+    if spec.name in KNOBS and KNOBS[spec.name] != spec:
+        raise UserInputError(f"knob '{spec.name}' is already declared ({KNOBS[spec.name].description!r})")
+    KNOBS[spec.name] = spec
+    KNOB_MODULES[spec.name] = sys._getframe(1).f_globals.get("__name__", "")  # the declaring module
+    return spec
+
+
+def frame_hooks() -> list[KnobSpec]:
+    """The knobs with a lite frame hook, in declaration order."""
+    return [k for k in KNOBS.values() if k.frame_hook is not None]
+
 
 #: The paper's five knobs, in the order of the agent's action vector.
 PAPER_KNOBS: tuple[str, ...] = (

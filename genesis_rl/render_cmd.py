@@ -11,21 +11,11 @@ import numpy as np
 from PIL import Image
 
 from genesis_rl.io_utils import atomic_write, atomic_write_text, ensure_writable
-from genesis_rl.knobs import Weather
+from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import CameraConfig, SensorFrame
 
-#: knob sweeps of the contact sheet (values in the knob's unit), each row on top of clear noon
-SWEEPS: dict[str, list[float]] = {
-    "fog_density": [0, 20, 40, 60, 80, 100],
-    "precipitation": [0, 20, 40, 60, 80, 100],
-    "precipitation_deposits": [0, 20, 40, 60, 80, 100],
-    "sun_altitude_angle": [75, 30, 10, 3, -5, -40],
-    "sun_azimuth_angle": [0, 60, 120, 180, 240, 300],
-}
-#: azimuth only shows with a low sun: that row sweeps it at 12 degrees of altitude
-SWEEP_BASE: dict[str, dict[str, float]] = {"sun_azimuth_angle": {"sun_altitude_angle": 12.0}}
 SHOWCASE = ("clear_noon", "dense_fog", "heavy_rain_night", "wet_sunset_glare")
 
 
@@ -75,6 +65,15 @@ def render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, 
     return {"out": str(out), "boxes": len(frame.boxes)}
 
 
+def sweep_rows() -> list[tuple[str, list[tuple[str, Weather]]]]:
+    """The contact sheet's rows: one per knob that declares sweep values (``KnobSpec.sweep``), each on top of
+    clear noon, then the showcase presets."""
+    rows = [(k.name, [(f"{k.name}={v:g}", Weather.default().replace(**k.sweep_base, **{k.name: v}))
+                      for v in k.sweep]) for k in KNOBS.values() if k.sweep]
+    rows.append(("showcase", [(n, Weather.preset(n)) for n in SHOWCASE]))
+    return rows
+
+
 def render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, warmup: int = 0) -> dict:
     """A contact sheet: one row per knob sweep plus a row of showcase weathers."""
     import matplotlib
@@ -84,11 +83,7 @@ def render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, war
 
     sheet = out / f"contact_sheet_{scene.map}.png"
     ensure_writable(sheet, force)
-    rows: list[tuple[str, list[tuple[str, Weather]]]] = [
-        (k, [(f"{k}={v:g}", Weather.default().replace(**SWEEP_BASE.get(k, {}), **{k: v})) for v in vals])
-        for k, vals in SWEEPS.items()
-    ]
-    rows.append(("showcase", [(n, Weather.preset(n)) for n in SHOWCASE]))
+    rows = sweep_rows()
     backend = LiteBackend()
     cols = max(len(r[1]) for r in rows)
     fig, axes = plt.subplots(len(rows), cols, figsize=(cols * 2.6, len(rows) * 2.05))

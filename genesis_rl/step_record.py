@@ -197,3 +197,19 @@ def from_rows(rows: Iterable[Mapping[str, Any]]) -> list[StepRecord]:
 def rule_column(name: str) -> str:
     """The telemetry column of a rule's per-step term."""
     return RULE_PREFIX + name
+
+
+def synthetic_step(step: int = 0, *, ego_speed: float = 10.0, lead_gap: float = math.nan,
+                   lead_speed: float = math.nan, collision: bool = False, collision_speed: float = 0.0,
+                   iou: float = 1.0, knobs: Mapping[str, float] | None = None, dt: float = 0.05) -> StepRecord:
+    """A hand-made step record, for testing a rule or a reward without a simulator (as the package's own
+    tests do): the ego at ``ego_speed``, a lead ``lead_gap`` metres ahead (NaN: none), optionally colliding."""
+    has_lead = math.isfinite(lead_gap)
+    return StepRecord(
+        step=step, time_s=round(step * dt, 3),
+        ego=EgoStep(ego_speed, 0.0, 0.0, 0.0, "synthetic"),
+        lead=LeadStep(1 if has_lead else -1, lead_gap, lead_speed, math.nan, None),
+        perception=PerceptionStep(0, 0, iou, (), ()),
+        collision=CollisionStep(collision, collision_speed if collision else 0.0, 1 if collision else -1),
+        knobs=dict(knobs or {}),
+    )

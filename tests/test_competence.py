@@ -25,8 +25,8 @@ def test_builtin_system_drives_clear_noon_highway_scenes_without_collision() -> 
     with LiteBackend() as backend:
         for scene in catalog.scenes:
             result = run_episode(backend, scene, system, lambda _: Weather.preset("clear_noon"), 512, seed=0)
-            if any(r["collision"] for r in result.records):
+            if any(r.collision.collided for r in result.records):
                 collided.append(scene.index)
-            lead_stops += any(r["lead_id"] >= 0 and r["lead_speed"] < 0.5 for r in result.records)
+            lead_stops += any(r.lead.present and r.lead.speed < 0.5 for r in result.records)
     assert len(collided) <= 1, f"collisions in scenes {collided}"
     assert lead_stops >= 3  # the ego met a stopped vehicle ahead in several scenes and did not hit it

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -105,6 +106,16 @@ def campaign(tmp_path_factory, catalog) -> Path:
     return folder
 
 
+@pytest.fixture(scope="module")
+def hit(campaign: Path) -> dict:
+    """The random policy's episode with a collision, found from the campaign's rows: the tests that use it
+    check behaviour around a collision, whichever scene and step it is (one test pins the golden values)."""
+    rows = [json.loads(p.read_text()) for p in sorted((campaign / "episodes" / "random").glob("*.json"))]
+    row = next(r for r in rows if r["collision_events"] > 0)
+    return {"name": f"scene_{row['scene']:04d}", "step": row["first_collision_step"],
+            "record": campaign / row["record"]}
+
+
 def _stable(summary: dict) -> dict:
     return {k: v for k, v in summary.items() if k not in ("campaign", "run_seconds", "workers")}
 
@@ -139,11 +150,11 @@ def test_same_seed_gives_identical_summary(tmp_path, campaign: Path, catalog: st
     assert _stable(a) == _stable(b)
 
 
-def test_interrupted_campaign_resumes_without_duplicates(tmp_path, campaign: Path, catalog: str) -> None:
+def test_interrupted_campaign_resumes_without_duplicates(tmp_path, campaign: Path, catalog: str, hit: dict) -> None:
     folder = tmp_path / "resumed"
     shutil.copytree(campaign, folder)
-    (folder / "episodes" / "random" / "scene_0005.json").unlink()  # as if killed during that episode
-    kept = folder / "episodes" / "sunny" / "scene_0005.json"
+    (folder / "episodes" / "random" / f"{hit['name']}.json").unlink()  # as if killed during that episode
+    kept = folder / "episodes" / "sunny" / f"{hit['name']}.json"
     before = kept.stat().st_mtime_ns
     summary = run_campaign(_spec(catalog), folder, resume=True, progress=False)
     assert kept.stat().st_mtime_ns == before  # finished episodes are not redone
@@ -162,21 +173,21 @@ def test_interrupted_campaign_resumes_without_duplicates(tmp_path, campaign: Pat
     assert (not_a_campaign / "agent.zip").is_file()
 
 
-def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path) -> None:
-    record = campaign / "records" / "random_scene_0005.json"
+def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path, hit: dict) -> None:
+    record = hit["record"]
     rc = main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"])
     assert rc == 0
     rep = json.loads((tmp_path / "r" / "replay.json").read_text())
-    assert rep["reproduced"] and rep["first_collision_step"] == 49
+    assert rep["reproduced"] and rep["first_collision_step"] == hit["step"]
     assert rep["violations"] == json.loads(record.read_text())["violations"]
     assert (tmp_path / "r" / "replay.gif").stat().st_size > 10_000
     assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"]) == 2  # no overwrite
 
 
-def test_replay_says_whether_violations_or_only_the_steps_differ(tmp_path, campaign: Path, capsys) -> None:
+def test_replay_says_whether_violations_or_only_the_steps_differ(tmp_path, campaign: Path, hit: dict, capsys) -> None:
     """A record whose step telemetry no longer matches (another renderer, say) but whose violations do is
     not called a different outcome."""
-    rec = json.loads((campaign / "records" / "random_scene_0005.json").read_text())
+    rec = json.loads((hit["record"]).read_text())
     rec["step_digest"] = "0" * len(rec["step_digest"])
     other = tmp_path / "other_steps.json"
     other.write_text(json.dumps(rec))
@@ -201,8 +212,8 @@ def test_replay_of_the_builtin_system_is_bit_identical(tmp_path, catalog: str) -
     assert rep["reproduced"] and rep["steps_identical"]
 
 
-def test_record_of_another_schema_version_is_refused(tmp_path, campaign: Path, capsys) -> None:
-    rec = json.loads((campaign / "records" / "random_scene_0005.json").read_text())
+def test_record_of_another_schema_version_is_refused(tmp_path, campaign: Path, hit: dict, capsys) -> None:
+    rec = json.loads((hit["record"]).read_text())
     rec["version"] = 99
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(rec))
@@ -243,6 +254,21 @@ def test_report_builds_and_refuses_to_overwrite(tmp_path, campaign: Path) -> Non
     for section in ("Violations by policy", "Failure modes", "Non-detection", "Knob trajectories", "Per scene"):
         assert section in text
     assert text.count("data:image/png;base64") >= 3 and "data:image/jpeg;base64" in text
+    # the numbers on the page are the summary's: each policy's row, cell by cell
+    summary = json.loads((campaign / "summary.json").read_text())
+    for policy, s in summary["policies"].items():
+        row = re.search(rf"<tr><td class=l>{policy}</td><td>{s['episodes']}</td>(.*?)</tr>", text)
+        assert row, f"no table row for {policy}"
+        cells = re.findall(r"<td>(.*?)</td>", row.group(1))
+        for metric, cell in zip(("collision", "proximity", "total", "rss_deficit"), cells, strict=False):
+            m = s[metric]
+            assert cell == f"{m['mean']:.2f} <span class=meta>[{m['ci_low']:.2f}, {m['ci_high']:.2f}]</span>"
+        assert cells[4:6] == [f"{s['rss_deficit_sum']:.1f}", str(s["episodes_with_collision"])]
+        assert cells[7] == str(s["sim_steps"])
+    # the per-scene table shows each episode's collision / proximity violation
+    for row_file in (campaign / "episodes").glob("*/*.json"):
+        e = json.loads(row_file.read_text())
+        assert f"{e['collision']:.1f} / {e['proximity']:.1f}" in text
     assert main(["report", str(campaign), "--out", str(out)]) == 2
     assert main(["report", str(campaign), "--out", str(out), "--force"]) == 0
 
@@ -310,12 +336,12 @@ def test_agent_and_search_policies(tmp_path, catalog: str) -> None:
     assert rc == 0
 
 
-def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path) -> None:
+def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path, hit: dict) -> None:
     from genesis_rl.evaluation.summary import summarize_campaign
 
     folder = tmp_path / "old"
     shutil.copytree(campaign, folder)
-    path = folder / "episodes" / "random" / "scene_0005.json"
+    path = folder / "episodes" / "random" / f"{hit['name']}.json"
     row = json.loads(path.read_text())
     row.pop("labeller_version")
     row["failure_mode"] = "detected"
@@ -375,7 +401,7 @@ def test_an_episode_whose_simulator_dies_is_retried_after_reconnecting(tmp_path,
     (lambda r: r["violations"].update(collision="x"), "field 'violations.collision' = 'x'; allowed: a number"),
 ])
 def test_a_hand_edited_record_is_refused_naming_the_field(tmp_path, campaign: Path, capsys, edit, message) -> None:
-    rec = json.loads((campaign / "records" / "random_scene_0005.json").read_text())
+    rec = json.loads((hit["record"]).read_text())
     edit(rec)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(rec))
@@ -384,22 +410,37 @@ def test_a_hand_edited_record_is_refused_naming_the_field(tmp_path, campaign: Pa
     assert not (tmp_path / "o").exists()
 
 
-def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Path, capsys) -> None:
+def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Path, hit: dict, capsys) -> None:
     copy = tmp_path / "camp"
     shutil.copytree(campaign, copy)
     episode = sorted((copy / "episodes").glob("*/*.json"))[0]
     episode.write_text('{"x": 1}')
     assert main(["report", str(copy), "--force"]) == 2
-    assert f"'{copy}' holds a damaged or foreign file (KeyError" in capsys.readouterr().err
+    assert f"'{episode}' is damaged: field 'violations' is missing or empty" in capsys.readouterr().err
+    row = json.loads((campaign / episode.relative_to(copy)).read_text())
+    episode.write_text(json.dumps({**row, "collision_events": "two"}))
+    assert main(["report", str(copy), "--force"]) == 2
+    assert f"'{episode}' is damaged: field 'collision_events' = 'two'; expected an integer" in capsys.readouterr().err
+    episode.write_text(json.dumps(row))
+    # a user error is reported as itself, not as damage (it was "holds a damaged or foreign file" before)
+    assert main(["report", str(copy)]) == 2
+    err = capsys.readouterr().err
+    assert "exists; pass --force to rebuild it" in err and "damaged" not in err
+    # a truncated step file is named where it is read
+    hit_dir = sorted(p for p in (copy / "frames").glob("*/*") if p.is_dir())[0]
+    steps = copy / "steps" / hit_dir.parent.name / f"{hit_dir.name}.parquet"
+    steps.write_bytes(steps.read_bytes()[:200])
+    assert main(["export", str(copy), "--format", "coco", "--out", str(tmp_path / "x")]) == 2
+    assert f"'{steps}' is damaged: not a readable Parquet file" in capsys.readouterr().err
     episode.write_text("{")
     assert main(["report", str(copy), "--force"]) == 2
     assert f"episode file '{episode}' is not valid JSON" in capsys.readouterr().err
-    assert main(["replay", str(campaign / "records" / "random_scene_0005.json"), "--out", str(tmp_path / "r"),
+    assert main(["replay", str(hit["record"]), "--out", str(tmp_path / "r"),
                  "--gif-seconds", "-1"]) == 2
     assert "--gif-seconds must be >= 0, got -1" in capsys.readouterr().err
     assert main(["replay", str(copy), "--out", str(tmp_path / "r")]) == 2
     assert f"record '{copy}' is a folder" in capsys.readouterr().err
-    assert main(["replay", str(campaign / "records" / "random_scene_0005.json"), "--weights", "w.pt",
+    assert main(["replay", str(hit["record"]), "--weights", "w.pt",
                  "--out", str(tmp_path / "r")]) == 2
     assert "--weights applies to records of --system builtin, yolo or a plug-in" in capsys.readouterr().err
 

@@ -11,11 +11,12 @@ import pytest
 from genesis_rl.errors import UserInputError
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import build_rulebook, default_rulebook, load_rulebook
+from genesis_rl.step_record import synthetic_step
 
 
 def _rec(speed=10.0, gap=float("nan"), lead_speed=float("nan"), collision=False, collision_speed=0.0):
-    return {"ego_speed": speed, "true_lead_distance": gap, "lead_speed": lead_speed, "collision": collision,
-            "collision_speed": collision_speed}
+    return synthetic_step(ego_speed=speed, lead_gap=gap, lead_speed=lead_speed, collision=collision,
+                          collision_speed=collision_speed)
 
 
 # -- rules ---------------------------------------------------------------------------------------------
@@ -101,8 +102,9 @@ def test_env_step_template_limits_knobs_and_reports_every_term(env) -> None:
     step = np.abs(after - before) / span
     assert np.all(step <= 0.05 + 1e-9)
     assert step[0] == pytest.approx(0.05)  # fog 0 -> 5
-    for key in ("iou", "rules", "rss_deficit", "reward_perception", "reward_behaviour", "ego_speed", "knobs"):
+    for key in ("iou", "rules", "reward_perception", "reward_behaviour", "ego_speed", "knobs"):
         assert key in info
+    assert list(info["rules"]) == ["collision", "proximity", "rss_deficit"]  # every rule of the rulebook, by name
     assert reward == pytest.approx(info["reward_perception"] + info["reward_behaviour"])
     for _ in range(11):
         *_, terminated, truncated, info = env.step(env.action_space.sample())
@@ -143,3 +145,34 @@ def test_env_rejects_unknown_settings() -> None:
 
     with pytest.raises(UserInputError, match="unknown env setting\\(s\\) \\['fog'\\]"):
         GenesisEnv(fog=3)
+
+
+@pytest.mark.parametrize(("toml", "message"), [
+    ('[[rules]]\nname = "proximity"\nparams = { distance = nan }\n', "proximity.distance = nan must be a finite"),
+    ('[[rules]]\nname = "proximity"\nparams = { distance = inf }\n', "proximity.distance = inf must be a finite"),
+    ('[[rules]]\nname = "proximity"\nparams = { distance = -5.0 }\n', "proximity.distance = -5.0 must be a positive"),
+    ('[[rules]]\nname = "rss_deficit"\nparams = { decel = 0 }\n', "rss_deficit.decel = 0.0 must be a positive"),
+    ('[[rules]]\nname = "collision"\npriority = 1\n[[rules]]\nname = "proximity"\npriority = 1\n',
+     "two rules share a priority ([1, 1])"),
+    ('rules = "collision"\n', "`rules` must be a list of tables ([[rules]]), got str"),
+    ('rules = ["collision"]\n', "rules[0] must be a table with name, priority, params; got 'collision'"),
+    ('[[rules]]\nname = "proximity"\nparams = 5\n', "params = 5 must be a table"),
+    ('[[rules]]\nname = 3\n', "name = 3; allowed: collision, proximity, rss_deficit or package.module:Class"),
+    ('[[rules]]\nname = "no_such_module_xyz:Rule"\n', "cannot import module 'no_such_module_xyz'"),
+    ('[[rules]]\nname = "genesis_rl.knobs:KnobSpec"\n', "'KnobSpec' is not a subclass of genesis_rl.rules"),
+])
+def test_bad_rulebooks_are_refused_naming_the_field(tmp_path, toml: str, message: str) -> None:
+    """Issue 21 item 5: NaN, inf and non-positive parameters scored silently before (proximity with distance =
+    nan scored 0); duplicated priorities were accepted; wrong types ended in tracebacks."""
+    path = tmp_path / "rulebook.toml"
+    path.write_text(toml)
+    with pytest.raises(UserInputError) as err:
+        load_rulebook(path)
+    assert message in str(err.value)
+
+
+def test_a_rulebook_that_is_not_utf8_is_named(tmp_path) -> None:
+    path = tmp_path / "rulebook.toml"
+    path.write_bytes(b'[[rules]]\nname = "collision" # \xff\n')
+    with pytest.raises(UserInputError, match=f"rulebook '{path}' is not UTF-8 text"):
+        load_rulebook(path)

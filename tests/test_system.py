@@ -130,8 +130,8 @@ def test_user_system_loaded_by_import_path_drives_an_episode(tmp_path, monkeypat
     system = load_system("tiny_user_system:CreepForward")
     result = run_episode(backend, highway_scenes.scene(0), system, lambda _: Weather.default(), 40, seed=0)
     assert system.steps == 41  # the first frame, then one per step
-    assert [r["status"] for r in result.records] == ["creep"] * 40
-    assert result.records[-1]["throttle"] == 0.3
+    assert [r.ego.status for r in result.records] == ["creep"] * 40
+    assert result.records[-1].ego.throttle == 0.3
     assert result.identity == {"class": "tiny_user_system:CreepForward"}
 
 
@@ -202,11 +202,11 @@ def test_perception_matters_blind_hits_a_stopped_lead_and_oracle_stops(backend, 
     scene = _stopping_lead(highway_scenes.scene(1))
     clear = lambda _: Weather.default()  # noqa: E731
     blind = run_episode(backend, scene, load_system("blind"), clear, 300, seed=0, stop_on_collision=True)
-    hit = [r for r in blind.records if r["collision"]]
-    assert hit and hit[0]["collision_speed"] > 5.0
+    hit = [r for r in blind.records if r.collision.collided]
+    assert hit and hit[0].collision.speed > 5.0
     oracle = run_episode(backend, scene, load_system("oracle"), clear, 300, seed=0)
-    assert not any(r["collision"] for r in oracle.records)
-    assert min(r["ego_speed"] for r in oracle.records[-40:]) < 0.5  # it stopped behind the lead
+    assert not any(r.collision.collided for r in oracle.records)
+    assert min(r.ego.speed for r in oracle.records[-40:]) < 0.5  # it stopped behind the lead
 
 
 @pytest.mark.render

@@ -18,6 +18,7 @@ Layout of a campaign folder::
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import shutil
@@ -39,9 +40,10 @@ from genesis_rl.evaluation.failure_modes import (
     FailureModeThresholds,
     label_collision,
 )
-from genesis_rl.evaluation.policies import EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
+from genesis_rl.evaluation.policies import POLICIES, EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text, read_json
-from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
+from genesis_rl.knobs import KNOB_MODULES
+from genesis_rl.rules.rulebook import RULES, Rulebook, default_rulebook, load_rulebook
 
 CAMPAIGN_SCHEMA = "genesis-rl/campaign"
 CAMPAIGN_VERSION = 1
@@ -127,9 +129,19 @@ class CampaignRunner:
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(spec_json: dict[str, Any], folder: str, torch_threads: int) -> None:
-    import torch
+def plugin_modules() -> list[str]:
+    """The user modules that registered a policy, a rule or a knob in this process (``@register_policy``,
+    ``@register_rule``, ``register_knob``): a spawned worker imports them again, so the names resolve there
+    too (a ``__main__`` script is re-run by the spawn start method itself)."""
+    modules = {c.__module__ for c in [*POLICIES.values(), *RULES.values()]} | set(KNOB_MODULES.values())
+    return sorted(m for m in modules if m and not m.startswith("genesis_rl.") and m not in ("__main__", "__mp_main__"))
 
+
+def _worker_init(spec_json: dict[str, Any], folder: str, torch_threads: int, plugins: Sequence[str] = ()) -> None:
+    import torch  # local: start-up cost
+
+    for module in plugins:
+        importlib.import_module(module)
     torch.set_num_threads(torch_threads)
     spec_json = dict(spec_json)
     spec_json["policies"] = tuple(spec_json["policies"])
@@ -373,7 +385,7 @@ def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool
         raise UserInputError(f"--workers = {workers} must be >= 1")
     tasks = prepare_campaign(spec, folder, force, resume, progress)  # checks policies and agent first
     t0 = time.perf_counter()
-    init_args = (spec.to_json(), str(folder), 1)
+    init_args = (spec.to_json(), str(folder), 1, plugin_modules())
     bar = tqdm(total=len(tasks), desc="evaluate", unit="episode", disable=not progress)
     try:
         if workers == 1 or len(tasks) <= 1:

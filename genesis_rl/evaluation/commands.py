@@ -8,9 +8,7 @@ import math
 from pathlib import Path
 
 from genesis_rl.errors import UserInputError
-
-#: what to do about a campaign folder whose files were damaged by hand (report, export)
-_DAMAGED_REMEDY = "re-run genesis-rl evaluate --resume into a fresh copy, or --force"
+from genesis_rl.evaluation.summary import summary_rule_metrics
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -58,9 +56,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise UserInputError("--out is required when no --agent is given")
     summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
                            progress=not args.quiet)
-    brief = {p: {"collision": round(s["collision"]["mean"], 3), "proximity": round(s["proximity"]["mean"], 3),
-                 "rss_deficit": round(s["rss_deficit"]["mean"], 3), "episodes_with_collision":
-                 s["episodes_with_collision"], "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
+    rule_metrics = [m for m in summary_rule_metrics(summary) if m != "total"]
+    brief = {p: {**{m: None if s[m]["mean"] is None else round(s[m]["mean"], 3) for m in rule_metrics},
+                 "episodes_with_collision": s["episodes_with_collision"],
+                 "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
              for p, s in summary["policies"].items()}
     print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
     if not args.no_report:
@@ -73,13 +72,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.report import build_report
     from genesis_rl.evaluation.summary import summarize_campaign, summary_markdown
-    from genesis_rl.io_utils import damaged_files
-
-    with damaged_files(Path(args.campaign), _DAMAGED_REMEDY):
-        if args.markdown:
-            print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
-            return 0
-        path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
+    if args.markdown:
+        print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
+        return 0
+    path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
     print(f"report: {path}")
     return 0
 
@@ -147,10 +143,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     policies = [p.strip() for p in args.policies.split(",")] if args.policies else None
     if policies is not None and not all(policies):
         raise UserInputError(f"--policies '{args.policies}' has an empty name; give a comma list such as agent,random")
-    from genesis_rl.io_utils import damaged_files
-
-    with damaged_files(Path(args.campaign), _DAMAGED_REMEDY):
-        result = export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies)
+    result = export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies)
     print(json.dumps(result, indent=2))
     return 0
 

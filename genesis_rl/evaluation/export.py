@@ -38,9 +38,9 @@ def _frames(folder: Path) -> list[tuple[str, int, int, Path]]:
 
 def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
                    policies: list[str] | None = None) -> dict[str, Any]:
-    import pyarrow.parquet as pq
     from PIL import Image
 
+    from genesis_rl.evaluation.campaign_files import REMEDY, read_steps, steps_path
     from genesis_rl.evaluation.summary import load_campaign
     from genesis_rl.io_utils import ensure_folder_path
     from genesis_rl.knobs import KNOBS, Weather
@@ -77,15 +77,19 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     for image_id, (policy, scene, step, path) in enumerate(frames, start=1):
         key = (policy, scene)
         if key not in steps_cache:
-            steps_path = folder / "steps" / policy / f"scene_{scene:04d}.parquet"
             # a campaign written before a knob existed lacks its column: it reads as the knob's default
-            present = set(pq.read_schema(steps_path).names)
-            table = pq.read_table(steps_path, columns=["step", "gt_boxes", *(k for k in KNOBS if k in present)])
-            steps_cache[key] = {r["step"]: r for r in table.to_pylist()}
-        rec = steps_cache[key][step]
+            rows_ = read_steps(steps_path(folder, policy, scene), columns=["step", "gt_boxes", *KNOBS])
+            steps_cache[key] = {r["step"]: r for r in rows_}
+        rec = steps_cache[key].get(step)
+        if rec is None:
+            raise UserInputError(f"'{steps_path(folder, policy, scene)}' has no step {step} for the kept frame "
+                                 f"'{path}'; {REMEDY}")
         name = f"{policy}_scene{scene:04d}_step{step:04d}"
-        with Image.open(path) as im:
-            w, h = im.size
+        try:
+            with Image.open(path) as im:
+                w, h = im.size
+        except (OSError, SyntaxError) as err:  # PIL's UnidentifiedImageError is an OSError
+            raise UserInputError(f"frame '{path}' is damaged ({err}); {REMEDY}") from None
         shutil.copyfile(path, tmp / "images" / f"{name}.jpg")
         labels, ignore = [], []
         for b in (RecordedBox.from_row(row) for row in rec["gt_boxes"]):

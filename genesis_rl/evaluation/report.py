@@ -23,12 +23,13 @@ import numpy as np
 from PIL import Image
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign
 from genesis_rl.io_utils import atomic_write_text
-from genesis_rl.knobs import PAPER_KNOBS
+from genesis_rl.knobs import PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
-from genesis_rl.step_record import StepRecord, from_rows
+from genesis_rl.step_record import StepRecord
 from genesis_rl.viz.frames import annotate_frame
 
 POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8"}
@@ -82,16 +83,16 @@ def fig_comparison(summary: dict[str, Any], rulebook: Rulebook) -> str:
 
 def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[str]) -> str | None:
     import matplotlib.pyplot as plt
-    import pyarrow.parquet as pq
-
     series: dict[str, np.ndarray] = {}
     for policy, eps in rows.items():
         runs = []
         for e in eps:
-            path = folder / "steps" / policy / f"scene_{e['scene']:04d}.parquet"
+            path = steps_path(folder, policy, e["scene"])
             if path.is_file():
-                t = pq.read_table(path, columns=knobs)
-                runs.append(np.stack([t[k].to_numpy() for k in knobs], axis=1))
+                # a knob the campaign's version did not record reads as its default
+                steps = [Weather.from_recorded({k: r[k] for k in knobs if k in r})
+                         for r in read_steps(path, columns=knobs)]
+                runs.append(np.array([[w[k] for k in knobs] for w in steps], float).reshape(-1, len(knobs)))
         if runs:
             n = min(len(r) for r in runs)
             series[policy] = np.stack([r[:n] for r in runs])  # (episodes, steps, knobs)
@@ -173,9 +174,7 @@ def frame_strip(folder: Path, policy: str, scene: int, records: list[StepRecord]
 
 
 def _steps(folder: Path, policy: str, scene: int) -> list[StepRecord]:
-    import pyarrow.parquet as pq  # local: start-up cost
-
-    return from_rows(pq.read_table(folder / "steps" / policy / f"scene_{scene:04d}.parquet").to_pylist())
+    return read_step_records(steps_path(folder, policy, scene))
 
 
 CSS = """

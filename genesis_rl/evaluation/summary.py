@@ -9,12 +9,11 @@ import zlib
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds
+from genesis_rl.evaluation.campaign_files import read_campaign_meta, read_episode_row, read_step_records, steps_path
+from genesis_rl.evaluation.failure_modes import FAILURE_MODES, LABELLER_VERSION, FailureModeThresholds, label_collision
 from genesis_rl.evaluation.stats import bootstrap_mean_ci, paired_comparison
-from genesis_rl.io_utils import atomic_write_json, atomic_write_text, read_json
+from genesis_rl.io_utils import atomic_write_json, atomic_write_text
 from genesis_rl.rules.rulebook import Rulebook, build_rulebook
-from genesis_rl.step_record import from_rows
 
 #: Episode-row metrics summarised besides the rules' violations.
 OTHER_METRICS = ("mean_iou", "return")
@@ -46,13 +45,7 @@ def csv_columns(rulebook: Rulebook) -> list[str]:
 def load_campaign(folder: Path) -> tuple[dict[str, Any], dict[str, list[dict[str, Any]]]]:
     """The campaign's metadata and its finished episode rows by policy (in scene order)."""
     folder = Path(folder)
-    meta_path = folder / "campaign.json"
-    if not meta_path.is_file():
-        raise UserInputError(f"'{folder}' is not a campaign folder (no campaign.json); run genesis-rl evaluate first")
-    meta = read_json(meta_path, "campaign file")
-    if meta.get("schema") != "genesis-rl/campaign" or meta.get("version") != 1:
-        raise UserInputError(f"'{meta_path}' has schema {meta.get('schema')} version {meta.get('version')}; "
-                             "this genesis-rl reads genesis-rl/campaign version 1")
+    meta = read_campaign_meta(folder)
     rows: dict[str, list[dict[str, Any]]] = {}
     for policy in meta["spec"]["policies"]:
         files = sorted((folder / "episodes" / policy).glob("scene_*.json"))
@@ -62,16 +55,11 @@ def load_campaign(folder: Path) -> tuple[dict[str, Any], dict[str, list[dict[str
 
 def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     """An episode row, its collision relabelled (from its step Parquet) if an older labeller wrote it."""
-    from genesis_rl.evaluation.failure_modes import LABELLER_VERSION, label_collision
-
-    row = read_json(path, "episode file")
+    row = read_episode_row(path)
     if row.get("labeller_version") == LABELLER_VERSION:
         return row
     if row.get("first_collision_step") is not None:
-        import pyarrow.parquet as pq
-
-        steps = folder / "steps" / policy / f"scene_{row['scene']:04d}.parquet"
-        failure = label_collision(from_rows(pq.read_table(steps).to_pylist()))
+        failure = label_collision(read_step_records(steps_path(folder, policy, row["scene"])))
         row.update(failure=failure, failure_mode=failure["mode"] if failure else None)
     row["labeller_version"] = LABELLER_VERSION
     atomic_write_json(path, row, indent=1)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import Weather
+from genesis_rl.knobs import Weather, frame_hooks
 from genesis_rl.lite.maps import MAP_NAMES, load_map
 from genesis_rl.lite.traffic import AutopilotParams, Traffic
 from genesis_rl.scenes.catalog import Scene
@@ -74,6 +74,10 @@ class LiteSimulation(Simulation):
         rgb, depth, labels, boxes = self._renderer.render(
             self.poses(), t.braking, dims, self._weather, t.time, self._step
         )
+        for knob in frame_hooks():  # knobs declared with their own lite effect (knobs.register_knob)
+            value = float(self._weather[knob.name])
+            if value != knob.default:
+                rgb = knob.frame_hook(rgb, depth, value)  # type: ignore[misc]
         return SensorFrame(self._step, rgb, depth, boxes, labels)
 
     def actors(self) -> list[ActorState]:
