@@ -77,7 +77,7 @@ def ground_truth_boxes(
     all_front = front.all(axis=1)
     seen = (np.hypot(x - cpos[0], y - cpos[1]) <= MAX_BOX_RANGE) & front.any(axis=1)
     out: list[GroundTruthBox] = []
-    for k in np.flatnonzero(seen):
+    for k in np.flatnonzero(seen).tolist():
         u0, u1, v0, v1 = float(u_min[k]), float(u_max[k]), float(v_min[k]), float(v_max[k])
         if not all_front[k]:  # partly behind the camera: the box reaches the border it crosses
             u0 = 0.0 if u0 <= w / 2 else u0
@@ -89,7 +89,8 @@ def ground_truth_boxes(
         if ix1 <= ix0 or iy1 <= iy0:
             continue
         # its label's pixels in the window (OpenCV: four calls instead of eight numpy ones)
-        mask = cv2.compare(labels[iy0:iy1, ix0:ix1], vehicle_labels[k], cv2.CMP_EQ)
+        # (OpenCV takes the label as a scalar; its stubs know only arrays)
+        mask = cv2.compare(labels[iy0:iy1, ix0:ix1], vehicle_labels[k], cv2.CMP_EQ)  # type: ignore[call-overload]
         count = cv2.countNonZero(mask)
         if count < MIN_BOX_PIXELS:
             continue

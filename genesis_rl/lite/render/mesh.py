@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 class Mesh:
@@ -21,7 +22,7 @@ class Mesh:
         self.idx: list[np.ndarray] = []
         self.n = 0
 
-    def add(self, pos: np.ndarray, nrm: np.ndarray, col: np.ndarray, idx: np.ndarray, label: int) -> None:
+    def add(self, pos: ArrayLike, nrm: ArrayLike, col: ArrayLike, idx: ArrayLike, label: int) -> None:
         pos = np.asarray(pos, np.float32).reshape(-1, 3)
         k = len(pos)
         nrm = np.broadcast_to(np.asarray(nrm, np.float32), (k, 3))
@@ -35,13 +36,14 @@ class Mesh:
         self.idx.append(np.asarray(idx, np.int64).reshape(-1) + self.n)
         self.n += k
 
-    def quad(self, a, b, c, d, col, label: int) -> None:  # noqa: ANN001 - counter-clockwise seen from outside
+    def quad(self, a: ArrayLike, b: ArrayLike, c: ArrayLike, d: ArrayLike, col: ArrayLike, label: int) -> None:
+        """Two triangles a-b-c, a-c-d, with the flat normal of a-b-c (counter-clockwise seen from outside)."""
         p = np.array([a, b, c, d], np.float64)
         nrm = np.cross(p[1] - p[0], p[2] - p[0])
         nrm /= max(1e-9, float(np.linalg.norm(nrm)))
         self.add(p, nrm, col, np.array([0, 1, 2, 0, 2, 3]), label)
 
-    def strip(self, left: np.ndarray, right: np.ndarray, col, label: int) -> None:  # noqa: ANN001
+    def strip(self, left: np.ndarray, right: np.ndarray, col: ArrayLike, label: int) -> None:
         """Quads between two (N, 3) polylines, facing up (left is to the left of the direction of travel)."""
         n = len(left)
         if n < 2:
@@ -92,7 +94,7 @@ def box(
     w: float,
     d: float,
     h: float,
-    col,  # noqa: ANN001
+    col: ArrayLike,
     label: int,
     top: bool = True,
 ) -> None:
@@ -103,10 +105,11 @@ def box(
     base = np.array([cx, cy, z0])
     up = np.array([0.0, 0.0, h])
     corners = [base + ax + ay, base - ax + ay, base - ax - ay, base + ax - ay]  # counter-clockwise
-    col = np.asarray(col, np.float64)
+    rgb = np.asarray(col, np.float64)
     for k in range(4):
         p, q = corners[k], corners[(k + 1) % 4]
         shade = 0.85 + 0.15 * ((k % 2) == 0)
-        m.quad(q, p, p + up, q + up, col * shade, label)
+        m.quad(q, p, p + up, q + up, rgb * shade, label)
     if top:
-        m.quad(*(cr + up for cr in corners), col * 0.95, label)
+        a, b, c_, d_ = (cr + up for cr in corners)
+        m.quad(a, b, c_, d_, rgb * 0.95, label)

@@ -20,6 +20,7 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from genesis_rl.lite.maps.lane_graph import LANE_WIDTH, RoadMap
 from genesis_rl.lite.render import labels as L
@@ -125,7 +126,7 @@ def _line(
     nv: np.ndarray,
     off: float,
     w: float,
-    col,  # noqa: ANN001
+    col: ArrayLike,
     dash: tuple[float, float] | None,
     s: np.ndarray,
     keep: np.ndarray,
@@ -281,18 +282,18 @@ def _tree(
         ]
         unit = np.vstack([[[0, 0, -1.0]], *rings, [[0, 0, 1.0]]])
         pts = unit * np.array([rad, rad, rad * 0.85]) + np.array([x, y, cz])
-        tri = []
+        faces: list[list[int]] = []
         for q in range(sides):
             qn = (q + 1) % sides
-            tri.append([0, 1 + qn, 1 + q])
+            faces.append([0, 1 + qn, 1 + q])
             for rix in range(len(rings) - 1):
                 a0, b0 = 1 + rix * sides, 1 + (rix + 1) * sides
-                tri.append([a0 + q, a0 + qn, b0 + qn])
-                tri.append([a0 + q, b0 + qn, b0 + q])
+                faces.append([a0 + q, a0 + qn, b0 + qn])
+                faces.append([a0 + q, b0 + qn, b0 + q])
             top = 1 + len(rings) * sides
             last = 1 + (len(rings) - 1) * sides
-            tri.append([last + q, last + qn, top])
-        m.add(pts, unit, col, np.array(tri), L.VEGETATION)
+            faces.append([last + q, last + qn, top])
+        m.add(pts, unit, col, np.array(faces), L.VEGETATION)
         far_lo, far_rad = cz - 0.6 * rad, rad
     a3 = ang[::2]
     ring = np.column_stack([x + far_rad * np.cos(a3), y + far_rad * np.sin(a3), np.full(3, far_lo)])
