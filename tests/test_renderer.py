@@ -136,26 +136,6 @@ def test_deterministic(renderer, urban, lane) -> None:
     assert a[3] == b[3]
 
 
-def test_static_tiles_keep_every_triangle() -> None:
-    """Cutting the static scene into culling tiles neither drops nor duplicates a triangle or a vertex."""
-    from genesis_rl.lite.render.panda_renderer import _Mesh
-
-    rng = np.random.default_rng(0)
-    m = _Mesh()
-    for _ in range(50):
-        p = rng.uniform(-200, 200, (3, 3))
-        m.add(p, (0.0, 0.0, 1.0), rng.random(3), np.array([0, 1, 2]), 7)
-    tiles = m.tiles(64.0)
-    assert len(tiles) > 4
-    tri_in = np.concatenate(m.pos)[np.concatenate(m.idx).reshape(-1, 3)]
-    tri_out = np.concatenate([t.pos[0][t.idx[0].reshape(-1, 3)] for t in tiles.values()])
-    key = lambda a: sorted(map(tuple, a.reshape(len(a), -1).round(4)))  # noqa: E731
-    assert key(tri_in) == key(tri_out)
-    for (kx, ky), t in tiles.items():  # each triangle's centroid lies in its tile
-        c = t.pos[0][t.idx[0].reshape(-1, 3)].mean(axis=1)[:, :2]
-        assert np.all(np.floor(c / 64.0) == (kx, ky))
-
-
 def test_offscreen_vehicles_skipped_without_changing_the_frame(urban, lane) -> None:
     """Vehicles behind the camera or beside its frustum are hidden before the draw (no pose, lamp or shadow
     update); the frame is bit-identical to drawing them all and letting Panda3D cull."""

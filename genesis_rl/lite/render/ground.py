@@ -67,14 +67,14 @@ def coarse_blocks(
 ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Per square block of ``block_m`` metres: (pos, nrm, col, triangles) of the coarse grid over it.
 
-    The full-detail grid goes to blocks triangle by triangle, by centroid (as ``_Mesh.tiles`` cuts it); a
+    The full-detail grid goes to blocks triangle by triangle, by centroid (as ``Mesh.tiles`` in mesh.py cuts it); a
     coarse cell goes to every block that one of its full-detail triangles went to, so that a coarse block
     covers all the ground that its full-detail self covered and no sky shows through at a seam (a coarse
     cell shared by two coarse blocks is drawn twice, identically: the depth test keeps the first).
     """
     ny, nx = grid.shape
     rows, cols = _lines(ny, step), _lines(nx, step)
-    # block of each full-detail triangle, from its float32 centroid exactly as _Mesh.tiles computes it
+    # block of each full-detail triangle, from its float32 centroid exactly as Mesh.tiles computes it
     pos32 = grid.pos.reshape(-1, 3).astype(np.float32)
     fine = cell_triangles(nx, ny)
     key = np.floor(pos32[fine].mean(axis=1)[:, :2] / block_m).astype(np.int64)
