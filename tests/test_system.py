@@ -13,7 +13,7 @@ import pytest
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import Weather
 from genesis_rl.sim.interface import GroundTruthBox
-from genesis_rl.system.matching import frame_iou, iou_matrix
+from genesis_rl.geometry import frame_iou, iou_matrix
 from genesis_rl.system.protocol import load_system
 from genesis_rl.weather_schedule import load_schedule, save_schedule
 
