@@ -7,7 +7,7 @@ import pytest
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.lite.maps import load_map
-from genesis_rl.lite.vehicles import MAKES
+from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.scenes.catalog import catalog_from_json, load_catalog
 from genesis_rl.scenes.lite_generator import generate_catalog
 

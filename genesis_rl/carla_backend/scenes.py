@@ -22,7 +22,7 @@ import numpy as np
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.frames import pose_from_carla
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.vehicles import PALETTE
+from genesis_rl.scenes.vehicles import PALETTE
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
 from genesis_rl.scenes.lite_generator import draw_autopilot, draw_make, fits
 

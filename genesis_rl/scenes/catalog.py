@@ -133,7 +133,7 @@ def _autopilot(d: dict, role: str, where: str) -> dict[str, float] | None:
 
 
 def _vehicle(d: Any, where: str, road_map: Any | None) -> VehicleSpec:
-    from genesis_rl.lite.vehicles import MAKES
+    from genesis_rl.scenes.vehicles import MAKES
 
     role = _req(d, "role", str, where)
     if role not in ROLES:
@@ -181,7 +181,7 @@ def _check_apart(vehicles: tuple[VehicleSpec, ...], where: str) -> None:
     import numpy as np
 
     from genesis_rl.lite.collisions import colliding_pairs
-    from genesis_rl.lite.vehicles import MAKES
+    from genesis_rl.scenes.vehicles import MAKES
 
     pairs = colliding_pairs(*(np.array(col, float) for col in zip(
         *((v.x, v.y, v.yaw, MAKES[v.make].length, MAKES[v.make].width) for v in vehicles), strict=True)))

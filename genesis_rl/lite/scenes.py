@@ -9,7 +9,7 @@ import numpy as np
 from genesis_rl.lite.collisions import box_corners, boxes_overlap
 from genesis_rl.lite.maps import load_map
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
-from genesis_rl.lite.vehicles import MAKES, PALETTE
+from genesis_rl.scenes.vehicles import MAKES, PALETTE
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
 
 #: the paper's catalog sizes: Town10 (train) and Town05 (test)
