@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.geometry import frame_iou, in_view, iou_matrix
 from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import Backend, CameraConfig, SensorFrame, Simulation
-from genesis_rl.geometry import frame_iou, in_view, iou_matrix
 from genesis_rl.system.protocol import EpisodeContext, SystemOutput, SystemUnderTest
 
 

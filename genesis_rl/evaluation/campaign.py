@@ -302,8 +302,9 @@ def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
                      progress: bool = True) -> list[tuple[str, int, int]]:
     """Create (or reopen) the campaign folder; return the tasks still to run."""
+    from genesis_rl.backends import catalog_or_generate
     from genesis_rl.io_utils import ensure_folder_path
-    from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, catalog_or_generate
+    from genesis_rl.lite.scenes import DEFAULT_COUNTS
 
     check_spec(spec)
     ensure_folder_path(folder)

@@ -154,11 +154,11 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
     import torch
     from tqdm import tqdm
 
+    from genesis_rl.backends import catalog_from_json
     from genesis_rl.drive import ClosedLoop
     from genesis_rl.knobs import Weather
     from genesis_rl.lite.backend import LiteBackend
     from genesis_rl.rules.rulebook import build_rulebook
-    from genesis_rl.scenes.catalog import catalog_from_json
     from genesis_rl.sim.interface import CameraConfig
     from genesis_rl.system.protocol import load_system
 
