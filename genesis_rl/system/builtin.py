@@ -13,6 +13,7 @@ import numpy as np
 
 from genesis_rl import __version__
 from genesis_rl.lite.maps.lane_graph import RoadMap
+from genesis_rl.perception.detector import VehicleDetector
 from genesis_rl.sim.interface import ActorState, SensorFrame
 from genesis_rl.system.controller import ControllerConfig, FollowingController
 from genesis_rl.system.localisation import box_depth, localise
@@ -65,8 +66,6 @@ class BuiltinSystem(PerceptionDrivenSystem):
 
     def __init__(self, weights: str | None = None, score_threshold: float | None = None,
                  controller: ControllerConfig | dict[str, Any] | None = None) -> None:
-        from genesis_rl.perception.detector import VehicleDetector
-
         super().__init__(controller)
         self.detector = VehicleDetector(weights, score_threshold=score_threshold)
 
