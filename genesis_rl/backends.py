@@ -89,7 +89,7 @@ def backend_class(spec: str, setting: str = "--backend") -> type[Backend]:
     """The Backend class of a built-in name or an import path; ``setting`` names the flag or config key in
     errors (``env.backend``)."""
     if spec in BACKENDS or ":" in spec:
-        cls = load_class(spec, "backend", {k: e.target for k, e in BACKENDS.items()}, base=Backend)
+        cls = load_class(spec, setting, {k: e.target for k, e in BACKENDS.items()}, base=Backend)
         if cls.catalog_kind not in BACKENDS:
             raise UserInputError(f"{_named(setting, spec)}: its catalog_kind '{cls.catalog_kind}' is not a built-in "
                                  f"backend's; allowed: {', '.join(BACKENDS)}")

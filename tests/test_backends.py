@@ -43,8 +43,8 @@ def test_help_and_flag_list_the_registry():
 
 @pytest.mark.parametrize(("spec", "message"), [
     ("unreal", r"env.backend = 'unreal' is unknown; allowed: lite, carla or package.module:Class"),
-    ("genesis_rl.no_such_module:X", r"backend 'genesis_rl.no_such_module:X': cannot import module"),
-    ("ticklog_backend:Nope", r"module 'ticklog_backend' has no class 'Nope'"),
+    ("genesis_rl.no_such_module:X", r"env.backend 'genesis_rl.no_such_module:X': cannot import module 'genesis_rl"),
+    ("ticklog_backend:Nope", r"env.backend 'ticklog_backend:Nope': module 'ticklog_backend' has no class 'Nope'"),
     ("genesis_rl.knobs:KnobSpec", r"class KnobSpec is not a genesis_rl.sim.interface.Backend subclass"),
     ("carla", r"env.backend = 'carla' needs env.catalog: a catalog made with genesis-rl scenes --backend carla"),
 ])

@@ -10,6 +10,9 @@ string); :func:`generate_catalog_from_server` takes the map and its spawn points
 Catalog fields on CARLA: ``lane`` is :func:`lane_key` of (road id, lane id), ``s`` the OpenDRIVE s of the
 spawn waypoint, ``next_lane`` equals ``lane`` (the traffic manager routes NPCs at junctions), poses are in
 our right-handed frame (y and yaw are CARLA's negated), ``signal_offset`` is 0 (CARLA runs its own lights).
+
+The module-level :func:`check_map`, :func:`default_count`, :func:`generate` and :func:`check_catalog` are the
+CARLA backend's scene source (:class:`genesis_rl.backends.SceneSource`).
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ RADIUS = 90.0  # [m] others within this distance of the ego
 GRID = 5.0  # [m] spacing of the candidate waypoints for others
 SPEED_LIMIT = 30.0 / 3.6  # [m/s] CARLA's default urban limit; initial speeds and NPC targets scale with it
 CARLA_FIT_RADIUS = 20.0  # [m] vehicles checked for overlap when placing one (wider lanes, junctions than lite)
+
+
 def _driving(wp: Any) -> bool:
     carla = require_carla()
     return wp is not None and wp.lane_type == carla.LaneType.Driving
