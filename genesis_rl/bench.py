@@ -7,7 +7,7 @@ import time
 
 from genesis_rl.knobs import Weather
 from genesis_rl.lite.backend import LiteBackend
-from genesis_rl.scenes.lite_generator import generate_catalog
+from genesis_rl.lite.scenes import generate_catalog
 from genesis_rl.sim.interface import CameraConfig, Simulation, VehicleControl
 
 

@@ -9,6 +9,16 @@ import time
 from pathlib import Path
 
 from genesis_rl import __version__
+from genesis_rl.backends import (
+    add_backend_arguments,
+    backend_class,
+    backend_from_args,
+    catalog_or_generate,
+    check_backend_setting,
+    env_overrides_from_args,
+    scene_source,
+    settings_from_args,
+)
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
 
@@ -23,37 +33,19 @@ def _weather_help() -> str:
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
     from genesis_rl.io_utils import ensure_writable
-    from genesis_rl.lite.maps import MAP_NAMES
-    from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, generate_catalog
 
-    if args.backend == "carla":
-        from genesis_rl.carla_backend.scenes import DEFAULT_COUNTS as CARLA_COUNTS
-        from genesis_rl.carla_backend.scenes import generate_catalog_from_server
-
-        count = args.count if args.count is not None else CARLA_COUNTS.get(args.map, 50)
-        if count < 1:
-            raise UserInputError(f"--count must be >= 1, got {count}")
-        out = Path(args.out)
-        ensure_writable(out, args.force)
-        t0 = time.perf_counter()
-        catalog = generate_catalog_from_server(args.map, count, args.seed, host=args.carla_host,
-                                               port=args.carla_port, timeout=args.carla_timeout,
-                                               progress=not args.quiet)
-        catalog.save(out)
-        print(json.dumps({"out": str(out), "map": args.map, "backend": "carla", "scenes": count,
-                          "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2)}))
-        return 0
-    if args.map not in MAP_NAMES:
-        raise UserInputError(f"--map '{args.map}' is unknown; allowed: {', '.join(MAP_NAMES)}")
-    count = args.count if args.count is not None else DEFAULT_COUNTS[args.map]
+    source = scene_source(backend_class(args.backend).catalog_kind)
+    source.check_map(args.map, "--map")
+    count = args.count if args.count is not None else source.default_count(args.map)
     if count < 1:
         raise UserInputError(f"--count must be >= 1, got {count}")
     out = Path(args.out)
     ensure_writable(out, args.force)
     t0 = time.perf_counter()
-    catalog = generate_catalog(args.map, count, args.seed, progress=not args.quiet)
+    catalog = source.generate(args.map, count, args.seed, settings_from_args(args), progress=not args.quiet)
     catalog.save(out)
-    print(json.dumps({"out": str(out), "map": args.map, "scenes": count, "seed": args.seed,
+    backend = {} if catalog.backend == "lite" else {"backend": catalog.backend}  # lite's line as it always was
+    print(json.dumps({"out": str(out), "map": args.map, **backend, "scenes": count, "seed": args.seed,
                       "seconds": round(time.perf_counter() - t0, 2)}))
     return 0
 
@@ -61,7 +53,6 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     from genesis_rl.knobs import parse_weather
     from genesis_rl.render_cmd import render_one, render_sweep
-    from genesis_rl.scenes.lite_generator import catalog_or_generate
     from genesis_rl.sim.interface import CameraConfig
 
     if args.scene < 0:
@@ -95,8 +86,6 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_drive(args: argparse.Namespace) -> int:
     from genesis_rl.drive_cmd import drive_scenes, parse_scene_range, print_summary
     from genesis_rl.knobs import parse_weather
-    from genesis_rl.scenes.lite_generator import catalog_or_generate
-    from genesis_rl.sim.factory import backend_from_args
     from genesis_rl.weather_schedule import load_schedule
 
     if args.steps < 1:
@@ -111,10 +100,9 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     if args.gif and args.no_gif:
         raise UserInputError("--gif and --no-gif contradict each other; pass one")
     indices = parse_scene_range(args.scene)
-    if args.backend == "carla" and not args.catalog:
-        raise UserInputError("--backend carla needs --catalog: make one with genesis-rl scenes --backend carla")
-    catalog = catalog_or_generate(args.catalog, args.map, max(indices) + 1, args.seed)
-    if catalog.backend != args.backend:
+    kind = check_backend_setting(args.backend, args.catalog, "--backend", "--catalog").catalog_kind
+    catalog = catalog_or_generate(args.catalog, args.map, max(indices) + 1, args.seed, backend=args.backend)
+    if catalog.backend != kind:
         raise UserInputError(f"--catalog '{args.catalog}' holds {catalog.backend} scenes; pass --backend "
                              f"{catalog.backend} or a catalog made for --backend {args.backend}")
     parse_scene_range(args.scene, len(catalog.scenes))
@@ -161,9 +149,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for flag in ("system", "scenes", "catalog", "map"):
         if getattr(args, flag) is not None:
             env[flag] = getattr(args, flag)
-    if args.backend is not None:  # --backend carla --carla-host H ... override the config's [env] keys
-        env.update(backend=args.backend, carla_host=args.carla_host, carla_port=args.carla_port,
-                   carla_tm_port=args.carla_tm_port, carla_timeout=args.carla_timeout)
+    env.update(env_overrides_from_args(args))  # --backend carla --carla-host H ... override the config's [env]
     tr: dict = {}
     for flag, key in (("envs", "envs"), ("steps", "total_timesteps"), ("seed", "seed")):
         if getattr(args, flag) is not None:
@@ -200,8 +186,6 @@ def build_parser() -> argparse.ArgumentParser:
         prog="genesis-rl",
         description="GENESIS-RL: find natural edge cases for autonomous driving by turning the weather.",
     )
-    from genesis_rl.sim.factory import add_backend_arguments
-
     p.add_argument("--version", action="version", version=f"genesis-rl {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.geometry import frame_iou, in_view, iou_matrix
 from genesis_rl.io_utils import atomic_write
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.rules.rulebook import ProximityRule
@@ -29,7 +30,6 @@ from genesis_rl.step_record import (
     StepRecord,
     to_rows,
 )
-from genesis_rl.system.matching import frame_iou, in_view, iou_matrix
 from genesis_rl.system.protocol import EpisodeContext, SystemOutput, SystemUnderTest
 
 

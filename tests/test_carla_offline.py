@@ -16,11 +16,13 @@ import pytest
 
 carla = pytest.importorskip("carla")
 
+from genesis_rl.backends import catalog_from_json  # noqa: E402
 from genesis_rl.carla_backend.connection import (  # noqa: E402
     CarlaConnectionError,
     CarlaServerLost,
     guarded,
 )
+from genesis_rl.carla_backend.lanes import lane_from_key, lane_key  # noqa: E402
 from genesis_rl.carla_backend.lead import lane_path, lead_on_path  # noqa: E402
 from genesis_rl.carla_backend.projection import (  # noqa: E402
     box_in_camera,
@@ -28,7 +30,7 @@ from genesis_rl.carla_backend.projection import (  # noqa: E402
     project_box,
     world_to_optical,
 )
-from genesis_rl.carla_backend.scenes import generate_catalog, lane_from_key, lane_key  # noqa: E402
+from genesis_rl.carla_backend.scenes import generate_catalog  # noqa: E402
 from genesis_rl.carla_backend.sensors import bgra_to_rgb, decode_depth, encode_depth  # noqa: E402
 from genesis_rl.carla_backend.spawn import BLUEPRINTS, SPAWN_LIFT, plan_scene  # noqa: E402
 from genesis_rl.carla_backend.weather import (  # noqa: E402
@@ -40,7 +42,7 @@ from genesis_rl.carla_backend.weather import (  # noqa: E402
 )
 from genesis_rl.errors import UserInputError  # noqa: E402
 from genesis_rl.knobs import KNOBS, PRESETS, Weather  # noqa: E402
-from genesis_rl.scenes.catalog import Scene, VehicleSpec, catalog_from_json  # noqa: E402
+from genesis_rl.scenes.catalog import Scene, VehicleSpec  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
 
 # A straight road along +x, 200 m: lanes -1 and -2 drive towards +x (right of the reference line, which is
@@ -293,7 +295,7 @@ def test_missing_client_names_the_install_command(monkeypatch):
 def test_backend_flags_and_factory():
     import argparse
 
-    from genesis_rl.sim.factory import add_backend_arguments, make_backend
+    from genesis_rl.backends import add_backend_arguments, make_backend
 
     parser = argparse.ArgumentParser()
     add_backend_arguments(parser)

@@ -5,11 +5,11 @@ import sys
 import numpy as np
 import pytest
 
+from genesis_rl.backends import catalog_from_json, load_catalog
 from genesis_rl.errors import UserInputError
 from genesis_rl.lite.maps import load_map
-from genesis_rl.lite.vehicles import MAKES
-from genesis_rl.scenes.catalog import catalog_from_json, load_catalog
-from genesis_rl.scenes.lite_generator import generate_catalog
+from genesis_rl.lite.scenes import generate_catalog
+from genesis_rl.scenes.vehicles import MAKES
 
 
 @pytest.mark.parametrize("map_name", ["urban", "highway"])

@@ -34,7 +34,7 @@ def test_render_bad_weather_exits_2_naming_the_field(tmp_path, weather, field):
 def test_each_observe_returns_the_current_frame_not_the_previous_one():
     from genesis_rl.knobs import Weather
     from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.scenes.lite_generator import generate_catalog
+    from genesis_rl.lite.scenes import generate_catalog
 
     scene = generate_catalog("urban", 1, 0).scenes[0]
     backend = LiteBackend()
@@ -99,7 +99,7 @@ def test_bad_command_lines_exit_2_with_a_message_and_touch_nothing(tmp_path, cap
 
 
 def test_render_refuses_a_catalog_of_another_backend(tmp_path, capsys):
-    from genesis_rl.scenes.lite_generator import generate_catalog
+    from genesis_rl.lite.scenes import generate_catalog
 
     data = generate_catalog("urban", 1, 0).to_json()
     data["backend"] = "carla"

@@ -12,7 +12,7 @@ import pytest
 from genesis_rl.drive import run_episode
 from genesis_rl.knobs import Weather
 from genesis_rl.lite.backend import LiteBackend
-from genesis_rl.scenes.lite_generator import generate_catalog
+from genesis_rl.lite.scenes import generate_catalog
 from genesis_rl.system.protocol import load_system
 
 pytestmark = [pytest.mark.slow, pytest.mark.render]

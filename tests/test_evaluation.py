@@ -85,7 +85,7 @@ STEPS = 70
 
 @pytest.fixture(scope="module")
 def catalog(tmp_path_factory) -> str:
-    from genesis_rl.scenes.lite_generator import generate_catalog
+    from genesis_rl.lite.scenes import generate_catalog
 
     path = tmp_path_factory.mktemp("cat") / "highway.json"
     generate_catalog("highway", 12, 0).save(path)

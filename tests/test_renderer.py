@@ -11,7 +11,7 @@ from genesis_rl.knobs import Weather  # noqa: E402
 from genesis_rl.lite.maps import load_map  # noqa: E402
 from genesis_rl.lite.render import labels as L  # noqa: E402
 from genesis_rl.lite.render.panda_renderer import LiteRenderer  # noqa: E402
-from genesis_rl.lite.vehicles import MAKES  # noqa: E402
+from genesis_rl.scenes.vehicles import MAKES  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
 
 pytestmark = pytest.mark.render

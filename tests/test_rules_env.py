@@ -159,7 +159,7 @@ def test_env_rejects_unknown_settings() -> None:
     ('[[rules]]\nname = "proximity"\nparams = 5\n', "params = 5 must be a table"),
     ('[[rules]]\nname = 3\n', "name = 3; allowed: collision, proximity, rss_deficit or package.module:Class"),
     ('[[rules]]\nname = "no_such_module_xyz:Rule"\n', "cannot import module 'no_such_module_xyz'"),
-    ('[[rules]]\nname = "genesis_rl.knobs:KnobSpec"\n', "'KnobSpec' is not a subclass of genesis_rl.rules"),
+    ('[[rules]]\nname = "genesis_rl.knobs:KnobSpec"\n', "class KnobSpec is not a genesis_rl.rules.rulebook.Rule"),
 ])
 def test_bad_rulebooks_are_refused_naming_the_field(tmp_path, toml: str, message: str) -> None:
     """Issue 21 item 5: NaN, inf and non-positive parameters scored silently before (proximity with distance =

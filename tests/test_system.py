@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.geometry import frame_iou, iou_matrix
 from genesis_rl.knobs import Weather
 from genesis_rl.sim.interface import GroundTruthBox
-from genesis_rl.system.matching import frame_iou, iou_matrix
 from genesis_rl.system.protocol import load_system
 from genesis_rl.weather_schedule import load_schedule, save_schedule
 
@@ -116,7 +116,7 @@ def backend():
 
 @pytest.fixture(scope="module")
 def highway_scenes():
-    from genesis_rl.scenes.lite_generator import generate_catalog
+    from genesis_rl.lite.scenes import generate_catalog
 
     return generate_catalog("highway", 6, seed=0)
 

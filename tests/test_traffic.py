@@ -3,7 +3,7 @@ import pytest
 
 from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.lite.collisions import box_corners, boxes_overlap
-from genesis_rl.scenes.lite_generator import generate_catalog
+from genesis_rl.lite.scenes import generate_catalog
 from genesis_rl.sim.interface import VehicleControl
 
 

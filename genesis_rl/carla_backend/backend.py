@@ -35,6 +35,7 @@ from genesis_rl.sim.interface import (
     Backend,
     CameraConfig,
     Collision,
+    ConnectionSettings,
     LeadInfo,
     SensorFrame,
     Simulation,
@@ -66,6 +67,8 @@ class CarlaBackend(Backend):
     naming host:port and how to start one (:class:`~genesis_rl.carla_backend.connection.CarlaConnectionError`)."""
 
     name = "carla"
+    catalog_kind = "carla"
+    needs_catalog = True  # scenes are generated on a server, once: genesis-rl scenes --backend carla
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, timeout: float = DEFAULT_TIMEOUT,
                  tm_port: int = DEFAULT_TM_PORT, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
@@ -76,6 +79,10 @@ class CarlaBackend(Backend):
         self._map_cache: tuple[int, Any] | None = None
         if map is not None:
             self.load_map(map)
+
+    @classmethod
+    def from_settings(cls, settings: ConnectionSettings) -> CarlaBackend:
+        return cls(settings.host, settings.port, settings.timeout, settings.tm_port)
 
     def call(self, what: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run a client call; a lost server becomes :class:`CarlaServerLost` naming ``what``."""

@@ -2,14 +2,17 @@
 
 As the paper's Scenic program: the ego on a spawn point of a lane that has a same-direction lane to its
 right, a lead ahead in the ego's lane, a neighbour ahead in the lane to the right, the rest on driving lanes
-within a radius of the ego, none overlapping. Makes and colours come from the lite classes, so the catalog
-loader validates CARLA catalogs as it does lite ones.
+within a radius of the ego, none overlapping. Makes and colours come from the catalog's vocabulary
+(:mod:`genesis_rl.scenes.vehicles`), so the catalog loader validates CARLA catalogs as it does lite ones.
 
 The selection works on a ``carla.Map`` alone (so it is tested offline on a map built from an OpenDRIVE
 string); :func:`generate_catalog_from_server` takes the map and its spawn points from a running server.
 Catalog fields on CARLA: ``lane`` is :func:`lane_key` of (road id, lane id), ``s`` the OpenDRIVE s of the
 spawn waypoint, ``next_lane`` equals ``lane`` (the traffic manager routes NPCs at junctions), poses are in
 our right-handed frame (y and yaw are CARLA's negated), ``signal_offset`` is 0 (CARLA runs its own lights).
+
+The module-level :func:`check_map`, :func:`default_count`, :func:`generate` and :func:`check_catalog` are the
+CARLA backend's scene source (:class:`genesis_rl.backends.SceneSource`).
 """
 
 from __future__ import annotations
@@ -18,13 +21,17 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from genesis_rl.carla_backend._carla import require_carla
+from genesis_rl.carla_backend.backend import CarlaBackend
 from genesis_rl.carla_backend.frames import pose_from_carla
+from genesis_rl.carla_backend.lanes import lane_key
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.vehicles import PALETTE
+from genesis_rl.lite.scenes import draw_autopilot, draw_make, fits
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
-from genesis_rl.scenes.lite_generator import draw_autopilot, draw_make, fits
+from genesis_rl.scenes.vehicles import PALETTE
+from genesis_rl.sim.interface import ConnectionSettings
 
 #: the paper's catalog sizes on CARLA: Town10 (train) 1202 scenes, Town05 (test) 1199
 DEFAULT_COUNTS = {"Town10HD_Opt": 1202, "Town10HD": 1202, "Town05": 1199, "Town05_Opt": 1199}
@@ -33,20 +40,6 @@ RADIUS = 90.0  # [m] others within this distance of the ego
 GRID = 5.0  # [m] spacing of the candidate waypoints for others
 SPEED_LIMIT = 30.0 / 3.6  # [m/s] CARLA's default urban limit; initial speeds and NPC targets scale with it
 CARLA_FIT_RADIUS = 20.0  # [m] vehicles checked for overlap when placing one (wider lanes, junctions than lite)
-_LANE_OFFSET = 50  # lane ids are small (|id| < 50): key = road_id * 100 + lane_id + 50
-
-
-def lane_key(road_id: int, lane_id: int) -> int:
-    """One int for an OpenDRIVE (road, lane) pair, as the catalog's ``lane`` field holds."""
-    if not -_LANE_OFFSET < lane_id < _LANE_OFFSET:
-        raise ValueError(f"lane id {lane_id} out of range")
-    return int(road_id) * 2 * _LANE_OFFSET + int(lane_id) + _LANE_OFFSET
-
-
-def lane_from_key(key: int) -> tuple[int, int]:
-    """(road id, lane id) of a catalog ``lane`` written by this generator."""
-    road, rest = divmod(int(key), 2 * _LANE_OFFSET)
-    return road, rest - _LANE_OFFSET
 
 
 def _driving(wp: Any) -> bool:
@@ -139,8 +132,6 @@ def generate_catalog(carla_map: Any, map_name: str, count: int, seed: int, spawn
     """A catalog of ``count`` scenes on ``carla_map`` (offline or a server's)."""
     scenes: Iterator[Scene] = iter_scenes(carla_map, map_name, count, seed, spawn_points, n_vehicles)
     if progress:
-        from tqdm import tqdm
-
         scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
     return Catalog(map_name, seed, "carla", tuple(scenes))
 
@@ -149,8 +140,6 @@ def generate_catalog_from_server(map_name: str, count: int, seed: int, *, host: 
                                  timeout: float = 10.0, progress: bool = False) -> Catalog:
     """Load ``map_name`` on the server at host:port and generate from its map and spawn points (the map
     stays loaded: episodes on it start faster)."""
-    from genesis_rl.carla_backend.backend import CarlaBackend
-
     backend = CarlaBackend(host, port, timeout)
     try:
         world = backend.load_map(map_name)
@@ -159,3 +148,24 @@ def generate_catalog_from_server(map_name: str, count: int, seed: int, *, host: 
         return generate_catalog(carla_map, map_name, count, seed, spawn_points, progress=progress)
     finally:
         backend.close()
+
+
+# -- the scene source of the CARLA backend (genesis_rl.backends.SceneSource) --------------------------------
+def check_map(map_name: str, field: str) -> None:
+    """Nothing to check offline: the server says which maps it has when the catalog is generated."""
+
+
+def default_count(map_name: str) -> int:
+    """The paper's size for Town10 and Town05 (see :data:`DEFAULT_COUNTS`), else 50."""
+    return DEFAULT_COUNTS.get(map_name, 50)
+
+
+def generate(map_name: str, count: int, seed: int, settings: ConnectionSettings, progress: bool = False) -> Catalog:
+    """``count`` scenes on ``map_name``, generated on the server that ``settings`` name."""
+    return generate_catalog_from_server(map_name, count, seed, host=settings.host, port=settings.port,
+                                        timeout=settings.timeout, progress=progress)
+
+
+def check_catalog(catalog: Catalog) -> None:
+    """Nothing beyond the schema offline: poses are snapped to the server's lanes when spawned, and a pose
+    far from every lane fails there (:func:`genesis_rl.carla_backend.spawn.plan_scene`)."""

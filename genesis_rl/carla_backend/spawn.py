@@ -17,6 +17,7 @@ import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.frames import transform_to_carla
+from genesis_rl.carla_backend.lanes import lane_from_key
 from genesis_rl.errors import UserInputError
 from genesis_rl.scenes.catalog import Scene
 
@@ -80,8 +81,6 @@ def snap_to_lane(carla_map: Any, x: float, y: float, yaw: float, lane: int | Non
         return math.hypot(w.x - loc.x, w.y - loc.y)
 
     if lane is not None and s is not None:
-        from genesis_rl.carla_backend.scenes import lane_from_key
-
         road_id, lane_id = lane_from_key(lane)
         wp = carla_map.get_waypoint_xodr(road_id, lane_id, float(s)) if lane_id != 0 else None
         if wp is not None and wp.lane_type == carla.LaneType.Driving and planar(wp) < 0.5:

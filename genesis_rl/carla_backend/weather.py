@@ -1,8 +1,9 @@
 """Knobs <-> ``carla.WeatherParameters``: every field by name, and CARLA's named presets.
 
-The knob names are CARLA's field names (see :mod:`genesis_rl.knobs`), so the mapping is the identity on
-names; what this module adds is the check that the two sets agree (a CARLA release that adds or renames a
-field fails loudly, not silently), the float32 round-off of the wire format, and CARLA's sentinels (-1 in
+Each knob declares the ``carla.WeatherParameters`` field it sets (``KnobSpec.carla_field``; the built-in knobs
+bear CARLA's field names), and a knob with none (a user's lite-only knob) is left out. What this module adds
+is the check that the two sets agree (a CARLA release that adds or renames a field fails loudly, not
+silently), the float32 round-off of the wire format, and CARLA's sentinels (-1 in
 ``WeatherParameters.Default`` means "keep the map's value") which have no place in a knob range.
 """
 
@@ -13,7 +14,7 @@ from typing import Any
 
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.knobs import KNOBS, KnobSpec, Weather
 
 #: decimals kept when reading CARLA's float32 fields back (0.0331 comes back as 0.033100001)
 _DECIMALS = 4
@@ -36,24 +37,29 @@ def carla_preset_names() -> tuple[str, ...]:
                         and isinstance(getattr(cls, n), cls)))
 
 
+def carla_knobs() -> dict[str, KnobSpec]:
+    """The knobs CARLA realises, by the ``carla.WeatherParameters`` field each sets."""
+    return {k.carla_field: k for k in KNOBS.values() if k.carla_field}
+
+
 def check_fields() -> None:
     """Fail when the client's WeatherParameters and the knob specs disagree on names."""
-    fields = set(carla_weather_fields())
-    if fields != set(KNOBS):
+    fields, knobs = set(carla_weather_fields()), set(carla_knobs())
+    if fields != knobs:
         raise RuntimeError(
             "carla.WeatherParameters fields and genesis_rl knobs disagree: "
-            f"only in CARLA {sorted(fields - set(KNOBS))}, "
-            f"only in knobs {sorted(set(KNOBS) - fields)}; this backend is written for carla 0.9.16"
+            f"only in CARLA {sorted(fields - knobs)}, "
+            f"only in knobs {sorted(knobs - fields)}; this backend is written for carla 0.9.16"
         )
 
 
 def to_carla(weather: Weather) -> Any:
-    """A ``carla.WeatherParameters`` with every field set from the knob of the same name."""
+    """A ``carla.WeatherParameters`` with every field set from the knob that declares it."""
     carla = require_carla()
     check_fields()
     params = carla.WeatherParameters()
-    for name in KNOBS:
-        setattr(params, name, float(weather[name]))
+    for field, spec in carla_knobs().items():
+        setattr(params, field, float(weather[spec.name]))
     return params
 
 
@@ -64,14 +70,14 @@ def from_carla(params: Any) -> Weather:
     wrap (sun azimuth) are wrapped, so a preset's azimuth of -1 reads as 359."""
     check_fields()
     values: dict[str, float] = {}
-    for name, spec in KNOBS.items():
-        v = float(getattr(params, name))
+    for field, spec in carla_knobs().items():
+        v = float(getattr(params, field))
         if not math.isfinite(v):
-            raise UserInputError(f"carla weather field '{name}' is not finite: {v}")
+            raise UserInputError(f"carla weather field '{field}' is not finite: {v}")
         if spec.wraps:
             v = spec.low + (v - spec.low) % spec.span
-        values[name] = round(min(max(v, spec.low), spec.high), _DECIMALS)
-    return Weather(values)
+        values[spec.name] = round(min(max(v, spec.low), spec.high), _DECIMALS)
+    return Weather.from_recorded(values)  # knobs CARLA lacks stay at their defaults
 
 
 def carla_preset(name: str) -> Weather:

@@ -18,10 +18,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
+from genesis_rl.sim.interface import ConnectionSettings
 from genesis_rl.step_record import StepRecord
 
 ENV_ID = "genesis_rl/Weather-v0"
@@ -50,7 +52,7 @@ class EnvConfig:
     rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2)
     reward: RewardConfig = field(default_factory=RewardConfig)
     terminate_on_collision: bool = False  # the paper runs every episode for its full length
-    backend: str = "lite"  # simulator: lite (embedded) or carla (a CARLA 0.9.16 server; needs `catalog`)
+    backend: str = "lite"  # simulator: a name in genesis_rl.backends.BACKENDS (lite, carla) or package.module:Class
     carla_host: str = "localhost"
     carla_port: int = 2000  # RPC port
     carla_tm_port: int = 8000  # traffic manager port
@@ -79,11 +81,7 @@ class EnvConfig:
             raise UserInputError(f"env.carla_timeout = {self.carla_timeout} must be > 0 [s]")
         KnobActionMapper(self.knobs, self.max_step_fraction, self.disabled_knobs)  # names, limits checked
         parse_weather(self.start_weather)
-        if self.backend not in ("lite", "carla"):
-            raise UserInputError(f"env.backend = '{self.backend}' is unknown; allowed: lite, carla")
-        if self.backend == "carla" and not self.catalog:
-            raise UserInputError("env.backend = 'carla' needs env.catalog: a catalog made on the server with "
-                                 "genesis-rl scenes --backend carla (see docs/carla.md)")
+        check_backend_setting(self.backend, self.catalog, "env.backend", "env.catalog")
 
     @classmethod
     def field_names(cls) -> list[str]:
@@ -143,20 +141,18 @@ class GenesisEnv(gym.Env):
             self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
         with _setting("env.reward"):
             self.reward_fn = PaperReward(c.reward, self.rulebook)
-        from genesis_rl.scenes.lite_generator import catalog_or_generate
-
         with _setting("env.catalog" if c.catalog else "env.scenes"):
-            self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map")
+            self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map",
+                                               backend=c.backend)
 
-        from genesis_rl.sim.factory import make_backend
         from genesis_rl.sim.interface import CameraConfig
         from genesis_rl.system.protocol import load_system
 
         self.camera = CameraConfig(width=c.camera_width, height=c.camera_height)
         with _setting("env.system"):  # before the backend, so a bad system leaves no simulator open
             self.system = load_system(c.system, **c.system_kwargs)
-        self.backend = make_backend(c.backend, carla_host=c.carla_host, carla_port=c.carla_port,
-                                    carla_tm_port=c.carla_tm_port, carla_timeout=c.carla_timeout)
+        self.backend = make_backend(c.backend, ConnectionSettings(c.carla_host, c.carla_port, c.carla_tm_port,
+                                                                  c.carla_timeout))
 
         image = spaces.Box(0, 255, (c.obs_height, c.obs_width, 3), np.uint8)
         if c.obs_knobs:

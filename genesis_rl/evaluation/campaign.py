@@ -18,7 +18,6 @@ Layout of a campaign folder::
 
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import shutil
@@ -43,6 +42,7 @@ from genesis_rl.evaluation.failure_modes import (
 from genesis_rl.evaluation.policies import POLICIES, EpisodeOutcome, PolicyContext, WeatherPolicy, resolve_policy
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text, read_json
 from genesis_rl.knobs import KNOB_MODULES
+from genesis_rl.plugins import import_modules, user_modules
 from genesis_rl.rules.rulebook import RULES, Rulebook, default_rulebook, load_rulebook
 
 CAMPAIGN_SCHEMA = "genesis-rl/campaign"
@@ -131,17 +131,14 @@ _WORKER: dict[str, Any] = {}
 
 def plugin_modules() -> list[str]:
     """The user modules that registered a policy, a rule or a knob in this process (``@register_policy``,
-    ``@register_rule``, ``register_knob``): a spawned worker imports them again, so the names resolve there
-    too (a ``__main__`` script is re-run by the spawn start method itself)."""
-    modules = {c.__module__ for c in [*POLICIES.values(), *RULES.values()]} | set(KNOB_MODULES.values())
-    return sorted(m for m in modules if m and not m.startswith("genesis_rl.") and m not in ("__main__", "__mp_main__"))
+    ``@register_rule``, ``register_knob``): spawned workers import them again, so the names resolve there."""
+    return user_modules([*POLICIES.values(), *RULES.values()], KNOB_MODULES.values())
 
 
 def _worker_init(spec_json: dict[str, Any], folder: str, torch_threads: int, plugins: Sequence[str] = ()) -> None:
     import torch  # local: start-up cost
 
-    for module in plugins:
-        importlib.import_module(module)
+    import_modules(plugins)
     torch.set_num_threads(torch_threads)
     spec_json = dict(spec_json)
     spec_json["policies"] = tuple(spec_json["policies"])
@@ -323,8 +320,9 @@ def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
                      progress: bool = True) -> list[tuple[str, int, int]]:
     """Create (or reopen) the campaign folder; return the tasks still to run."""
+    from genesis_rl.backends import catalog_or_generate
     from genesis_rl.io_utils import ensure_folder_path
-    from genesis_rl.scenes.lite_generator import DEFAULT_COUNTS, catalog_or_generate
+    from genesis_rl.lite.scenes import DEFAULT_COUNTS
 
     check_spec(spec)
     ensure_folder_path(folder)

@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from genesis_rl.backends import add_backend_arguments, check_backend_setting, env_overrides_from_args
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
 
@@ -35,12 +36,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
     agent = str(Path(args.agent)) if args.agent else None
     env = env_settings_for(agent, args.config, args.system)
-    if args.backend is not None:
-        env.update(backend=args.backend, carla_host=args.carla_host, carla_port=args.carla_port,
-                   carla_tm_port=args.carla_tm_port, carla_timeout=args.carla_timeout)
-    if env.get("backend", "lite") == "carla" and not args.catalog:
-        raise UserInputError("--backend carla needs --catalog: a test catalog made with genesis-rl scenes "
-                             "--backend carla --map Town05 (docs/carla.md)")
+    env.update(env_overrides_from_args(args))
+    check_backend_setting(env.get("backend", "lite"), args.catalog, "--backend", "--catalog")
     spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
                         records=args.records,
@@ -173,8 +170,6 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--force", action="store_true", help="replace an existing campaign folder")
     ev.add_argument("--no-report", action="store_true", help="skip report.html")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
-    from genesis_rl.sim.factory import add_backend_arguments
-
     add_backend_arguments(ev, default=None)
     ev.set_defaults(func=_cmd_evaluate)
 

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.geometry import in_view_values, iou_matrix
 from genesis_rl.step_record import RecordedBox, StepRecord
-from genesis_rl.system.matching import in_view_values, iou_matrix
 
 FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "lost_detection", "detected",
                  "out_of_view")

@@ -17,7 +17,6 @@ Register your own with ``@register_policy`` or name it by import path (``package
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.plugins import load_class
 from genesis_rl.step_record import StepRecord
 
 POLICIES: dict[str, type[WeatherPolicy]] = {}
@@ -233,12 +233,5 @@ def resolve_policy(name: str) -> type[WeatherPolicy]:
     if name in POLICIES:
         return POLICIES[name]
     if ":" in name:
-        module_name, _, cls_name = name.partition(":")
-        try:
-            cls = getattr(importlib.import_module(module_name), cls_name)
-        except (ImportError, AttributeError) as err:
-            raise UserInputError(f"policy '{name}' cannot be imported: {err}") from None
-        if not (isinstance(cls, type) and issubclass(cls, WeatherPolicy)):
-            raise UserInputError(f"policy '{name}' is not a genesis_rl.evaluation.policies.WeatherPolicy subclass")
-        return cls
+        return load_class(name, "policy", {}, base=WeatherPolicy)
     raise UserInputError(f"unknown policy '{name}'; allowed: {', '.join(POLICIES)} or package.module:Class")

@@ -20,13 +20,13 @@ import numpy as np
 from tqdm import tqdm
 
 from genesis_rl import __version__
+from genesis_rl.backends import catalog_from_json
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.rules.rulebook import build_rulebook
-from genesis_rl.scenes.catalog import catalog_from_json
 from genesis_rl.sim.interface import CameraConfig
 from genesis_rl.step_record import RULE_PREFIX, StepRecord
 from genesis_rl.system.protocol import load_system

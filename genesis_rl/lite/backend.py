@@ -104,6 +104,7 @@ class LiteBackend(Backend):
     renderer serves one live simulation at a time, so simulations open side by side never share one."""
 
     name = "lite"
+    catalog_kind = "lite"
     #: Bumped whenever a change to the renderer changes pixels (records keep it: replay says when it
     #: differs, since the detector then sees slightly different frames). 2: tiled, two-level static scene.
     #: 3: roads and markings on simplified polylines, coarser ground in far blocks (<= 0.14 % of pixels).
@@ -117,7 +118,7 @@ class LiteBackend(Backend):
         return list(MAP_NAMES)
 
     def acquire_renderer(self, map_name: str, camera: CameraConfig):  # noqa: ANN201
-        from genesis_rl.lite.render.panda_renderer import LiteRenderer
+        from genesis_rl.lite.render.panda_renderer import LiteRenderer  # local: start-up cost (panda3d, cv2)
 
         pool = self._renderers.setdefault((map_name, camera), [])
         for r in pool:

@@ -16,7 +16,7 @@ import numpy as np
 
 from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
-from genesis_rl.lite.vehicles import MAKES
+from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import Collision, LeadInfo, VehicleControl
 
 MAX_STEER = np.radians(35.0)  # front wheel angle at steer = 1 [rad]

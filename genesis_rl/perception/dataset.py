@@ -223,7 +223,7 @@ def render_condition_sets(
     The traffic states are the same for every condition; each frame draws its own weather per condition.
     """
     from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.scenes.lite_generator import iter_scenes
+    from genesis_rl.lite.scenes import iter_scenes
 
     conditions = check_conditions(conditions)
     if n_scenes < 1 or frames_per_scene < 1:

@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.geometry import IN_VIEW_RANGE, MIN_BOX_HEIGHT, MIN_VISIBLE_FRACTION
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text, ensure_writable
 from genesis_rl.perception.dataset import CONDITIONS, EVAL_CONDITIONS, DetectionDataset, check_conditions
 from genesis_rl.perception.model import box_iou
-from genesis_rl.system.matching import IN_VIEW_RANGE, MIN_BOX_HEIGHT, MIN_VISIBLE_FRACTION
 
 #: catalog seeds of the evaluation scenes (training uses 100, validation 101: see train.py)
 EVAL_CATALOG_SEEDS = {"urban": 102, "highway": 103}

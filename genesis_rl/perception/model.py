@@ -248,7 +248,7 @@ def nms(dets: np.ndarray, iou_threshold: float) -> np.ndarray:
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU matrix (len(a), len(b)) of xyxy boxes (extra columns, e.g. scores, ignored)."""
-    from genesis_rl.system.matching import iou_matrix
+    from genesis_rl.geometry import iou_matrix
 
     a = np.asarray(a, np.float64).reshape(-1, max(4, np.shape(a)[-1] if np.size(a) else 4))[:, :4]
     b = np.asarray(b, np.float64).reshape(-1, max(4, np.shape(b)[-1] if np.size(b) else 4))[:, :4]

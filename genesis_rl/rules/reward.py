@@ -2,7 +2,7 @@
 
 Default (the paper): r_t = exp(-IoU_t) + ln(1 + w_c a_c + w_p a_p), with (w_c, w_p) = (500, 100), a_c the
 collision term and a_p the proximity term of the step (see ``rulebook``), and IoU_t the frame IoU of
-``genesis_rl.system.matching`` (1 when no vehicle is in view). The first term rewards hiding vehicles from
+``genesis_rl.geometry`` (1 when no vehicle is in view). The first term rewards hiding vehicles from
 the detector, the second (log-damped) rewards the behaviour violations that follow. Other rules join the
 log term by name through ``rule_weights``; a weighted rule the rulebook lacks is an error when the reward
 is built, not a silent zero.

@@ -24,7 +24,6 @@ unknown rule or parameter fails when the file is loaded.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import inspect
 import math
 import tomllib
@@ -34,6 +33,7 @@ from typing import Any, ClassVar
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import read_utf8
+from genesis_rl.plugins import load_class
 from genesis_rl.step_record import StepRecord
 
 RULES: dict[str, type[Rule]] = {}
@@ -73,18 +73,10 @@ def rule_class(spec: str, where: str = "rulebook") -> type[Rule]:
     """A rule class from a registered name (``collision``) or an import path (``package.module:Class``)."""
     if spec in RULES:
         return RULES[spec]
-    if not isinstance(spec, str) or ":" not in spec:
+    if ":" not in spec:
         raise UserInputError(f"{where}: unknown rule {spec!r}; allowed: {', '.join(sorted(RULES))} or "
                              "package.module:Class")
-    module_name, _, class_name = spec.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
-        raise UserInputError(f"{where}: rule '{spec}': cannot import module '{module_name}': {err}") from None
-    cls = getattr(module, class_name, None)
-    if cls is None:
-        raise UserInputError(f"{where}: rule '{spec}': module '{module_name}' has no class '{class_name}'")
-    return _as_rule_class(cls, f"{where}: rule '{spec}'")
+    return _as_rule_class(load_class(spec, f"{where}: rule", {}, base=Rule), f"{where}: rule '{spec}'")
 
 
 class Rule:

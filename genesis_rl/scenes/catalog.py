@@ -3,6 +3,10 @@
 A scene is what the paper's Scenic generator produced: 30 vehicles (ego, lead ahead in the ego's lane,
 neighbour front-right, 27 others within a radius), each with make, colour, pose on a lane and autopilot
 parameters, plus the seed that drives the episode's randomness.
+
+This module is the schema alone: it knows no backend. What a catalog must also satisfy on its backend (a
+lite vehicle on its lane, no two overlapping at the start) is checked by that backend's scene module, which
+:func:`genesis_rl.backends.load_catalog` calls; load catalogs through it.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from typing import Any
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.scenes.vehicles import MAKES
 
 SCHEMA_NAME = "genesis-rl/scene-catalog"
 SCHEMA_VERSION = 1
@@ -86,11 +91,9 @@ class Catalog:
 
 
 _TYPE_NAMES = {str: "a string", int: "an integer", list: "a list", dict: "an object", float: "a number"}
-BACKENDS = ("lite", "carla")
 #: autopilot fields (lite's AutopilotParams) and the least value each may take
 AUTOPILOT_MIN = {"target_speed": 0.0, "time_gap": 0.0, "min_gap": 0.0, "max_accel": 1e-3, "comfort_decel": 1e-3,
                  "stop_rate": 0.0, "speed_noise": 0.0}
-POSE_TOLERANCE_M = 1.0  # a vehicle's x, y may differ this much from its lane's point at s (lite maps)
 
 
 def _req(obj: Any, key: str, typ: type, where: str) -> Any:
@@ -132,9 +135,7 @@ def _autopilot(d: dict, role: str, where: str) -> dict[str, float] | None:
     return {k: _number(ap, k, f"{where}.autopilot", lo) for k, lo in AUTOPILOT_MIN.items()}
 
 
-def _vehicle(d: Any, where: str, road_map: Any | None) -> VehicleSpec:
-    from genesis_rl.lite.vehicles import MAKES
-
+def _vehicle(d: Any, where: str) -> VehicleSpec:
     role = _req(d, "role", str, where)
     if role not in ROLES:
         raise UserInputError(f"catalog: '{where}.role' = '{role}'; allowed: {', '.join(ROLES)}")
@@ -149,65 +150,19 @@ def _vehicle(d: Any, where: str, road_map: Any | None) -> VehicleSpec:
     next_lane = _req(d, "next_lane", int, where)
     s, x, y = _number(d, "s", where), _number(d, "x", where), _number(d, "y", where)
     yaw, speed = _number(d, "yaw", where), _number(d, "speed", where, 0.0)
-    if road_map is not None:
-        _check_on_lane(road_map, where, lane, next_lane, s, x, y)
     return VehicleSpec(role, make, _req(d, "color_name", str, where), tuple(float(c) for c in color), lane,
                        s, x, y, yaw, speed, next_lane, _autopilot(d, role, where))
 
 
-def _check_on_lane(road_map: Any, where: str, lane: int, next_lane: int, s: float, x: float, y: float) -> None:
-    """A lite vehicle is placed from its lane and s; its x, y must agree with them, so that what the catalog
-    says and what the simulator does are the same scene."""
-    n = len(road_map.lanes)
-    if not (0 <= lane < n and 0 <= next_lane < n):
-        raise UserInputError(f"catalog: '{where}.lane'/'next_lane' out of the map's lanes 0..{n - 1}")
-    length = float(road_map.length[lane])
-    if not 0.0 <= s <= length:
-        raise UserInputError(f"catalog: '{where}.s' = {s}; lane {lane} is {length:.1f} m long "
-                             f"(allowed 0..{length:.1f})")
-    successors = road_map.lanes[lane].successors
-    if next_lane not in successors:
-        raise UserInputError(f"catalog: '{where}.next_lane' = {next_lane} does not follow lane {lane}; "
-                             f"allowed: {', '.join(map(str, successors))}")
-    px, py, _, _ = road_map.pose(lane, s)
-    off = math.hypot(px - x, py - y)
-    if off > POSE_TOLERANCE_M:
-        raise UserInputError(f"catalog: '{where}.x'/'y' = ({x:.2f}, {y:.2f}) lie {off:.1f} m from lane {lane} at "
-                             f"s = {s:.1f} ({px:.2f}, {py:.2f}); allowed: within {POSE_TOLERANCE_M} m")
-
-
-def _check_apart(vehicles: tuple[VehicleSpec, ...], where: str) -> None:
-    """No two lite vehicles may start inside each other (the simulator would report a collision at step 0)."""
-    import numpy as np
-
-    from genesis_rl.lite.collisions import colliding_pairs
-    from genesis_rl.lite.vehicles import MAKES
-
-    pairs = colliding_pairs(*(np.array(col, float) for col in zip(
-        *((v.x, v.y, v.yaw, MAKES[v.make].length, MAKES[v.make].width) for v in vehicles), strict=True)))
-    if pairs:
-        i, j = pairs[0]
-        raise UserInputError(f"catalog: '{where}.vehicles[{i}]' and '{where}.vehicles[{j}]' overlap at the start; "
-                             "allowed: vehicles whose boxes do not intersect")
-
-
-def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
+def parse_catalog(data: Any) -> Catalog:
+    """A catalog from its JSON data, checked against the schema (not against a backend's maps)."""
     if not isinstance(data, dict) or data.get("schema") != SCHEMA_NAME:
         raise UserInputError(f"not a scene catalog: field 'schema' must be '{SCHEMA_NAME}'")
     version = data.get("version")
     if version != SCHEMA_VERSION:
         raise UserInputError(f"catalog field 'version' = {version!r}; this genesis-rl reads version {SCHEMA_VERSION}")
     backend = _req(data, "backend", str, "catalog")
-    if backend not in BACKENDS:
-        raise UserInputError(f"catalog field 'backend' = '{backend}'; allowed: {', '.join(BACKENDS)}")
     map_name = _req(data, "map", str, "catalog")
-    road_map = None
-    if backend == "lite" and check_map:
-        from genesis_rl.lite.maps import MAP_NAMES, load_map
-
-        if map_name not in MAP_NAMES:
-            raise UserInputError(f"catalog field 'map' = '{map_name}'; allowed: {', '.join(MAP_NAMES)}")
-        road_map = load_map(map_name)
     seed = _req(data, "seed", int, "catalog")
     scene_list = _req(data, "scenes", list, "catalog")
     if not scene_list:
@@ -222,7 +177,7 @@ def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
         scene_seed = _req(sd, "seed", int, where)
         if scene_seed < 0:
             raise UserInputError(f"catalog: '{where}.seed' = {scene_seed}; expected an integer >= 0")
-        vehicles = tuple(_vehicle(v, f"{where}.vehicles[{j}]", road_map)
+        vehicles = tuple(_vehicle(v, f"{where}.vehicles[{j}]")
                          for j, v in enumerate(_req(sd, "vehicles", list, where)))
         if not vehicles or vehicles[0].role != "ego":
             raise UserInputError(f"catalog: '{where}.vehicles[0].role' must be 'ego'")
@@ -230,16 +185,15 @@ def catalog_from_json(data: Any, check_map: bool = True) -> Catalog:
         if len(egos) > 1:
             raise UserInputError(f"catalog: '{where}.vehicles[{egos[1]}].role' = 'ego'; a scene has one ego, "
                                  f"vehicles[0]; allowed for the others: {', '.join(ROLES[1:])}")
-        if road_map is not None:
-            _check_apart(vehicles, where)
         scenes.append(Scene(index, scene_map, scene_seed, _number(sd, "signal_offset", where), vehicles))
     return Catalog(map_name, seed, backend, tuple(scenes))
 
 
-def load_catalog(path: Path | str) -> Catalog:
+def read_catalog(path: Path | str) -> Catalog:
+    """The catalog in a JSON file, checked against the schema only (see :func:`parse_catalog`)."""
     path = Path(path)
     if path.is_dir():
         raise UserInputError(f"catalog '{path}' is a folder; expected a catalog file (.json)")
     if not path.is_file():
         raise UserInputError(f"catalog file '{path}' does not exist")
-    return catalog_from_json(read_json(path, "catalog file"))
+    return parse_catalog(read_json(path, "catalog file"))

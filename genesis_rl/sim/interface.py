@@ -11,14 +11,12 @@ from __future__ import annotations
 import abc
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from genesis_rl.knobs import Weather
-
-if TYPE_CHECKING:
-    from genesis_rl.scenes.catalog import Scene
+from genesis_rl.scenes.catalog import Scene
 
 #: Simulation time step in seconds (CARLA synchronous mode with fixed_delta_seconds = 0.05).
 FIXED_DELTA_SECONDS = 0.05
@@ -219,10 +217,34 @@ class Simulation(abc.ABC):
         return self.actors()[0]
 
 
+@dataclass(frozen=True)
+class ConnectionSettings:
+    """Where a backend that talks to a simulator server finds it (``--carla-host`` ... or ``env.carla_*``);
+    an embedded backend ignores them."""
+
+    host: str = "localhost"
+    port: int = 2000  # RPC port
+    tm_port: int = 8000  # traffic manager port
+    timeout: float = 10.0  # [s] per client call
+
+
 class Backend(abc.ABC):
-    """A simulator connection: knows its maps, creates simulations, lives across episodes."""
+    """A simulator connection: knows its maps, creates simulations, lives across episodes.
+
+    A backend is named in ``genesis_rl.backends.BACKENDS`` (built in) or by its import path
+    ``package.module:Class``; the class attributes below are what the rest of the framework asks of it."""
 
     name: str = "abstract"
+    #: the scene catalogs it drives: their ``backend`` field, a built-in backend's name ("lite", "carla");
+    #: that backend's scene module generates and checks them. A subclass of LiteBackend drives lite catalogs.
+    catalog_kind: ClassVar[str] = ""
+    #: True when scenes cannot be generated on the fly: every command then needs a catalog file
+    needs_catalog: ClassVar[bool] = False
+
+    @classmethod
+    def from_settings(cls, settings: ConnectionSettings) -> Backend:
+        """A connected backend; an embedded one takes no settings."""
+        return cls()
 
     @abc.abstractmethod
     def map_names(self) -> list[str]: ...

@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 
 from genesis_rl import __version__
+from genesis_rl.lite.maps.lane_graph import RoadMap
+from genesis_rl.perception.detector import VehicleDetector
 from genesis_rl.sim.interface import ActorState, SensorFrame
 from genesis_rl.system.controller import ControllerConfig, FollowingController
 from genesis_rl.system.localisation import box_depth, localise
@@ -32,7 +34,7 @@ class PerceptionDrivenSystem:
         self.context: EpisodeContext | None = None
 
     def reset(self, context: EpisodeContext) -> None:
-        if context.backend != "lite":
+        if not isinstance(context.road_map, RoadMap):  # any backend that drives lite catalogs hands one over
             raise NotImplementedError("the built-in controller plans its route on lite maps only")
         self.context = context
         rng = np.random.default_rng(np.random.SeedSequence([context.seed, 7]))
@@ -64,8 +66,6 @@ class BuiltinSystem(PerceptionDrivenSystem):
 
     def __init__(self, weights: str | None = None, score_threshold: float | None = None,
                  controller: ControllerConfig | dict[str, Any] | None = None) -> None:
-        from genesis_rl.perception.detector import VehicleDetector
-
         super().__init__(controller)
         self.detector = VehicleDetector(weights, score_threshold=score_threshold)
 

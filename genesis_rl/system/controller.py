@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from genesis_rl.lite.vehicles import MAKES
+from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import ActorState, VehicleControl
 from genesis_rl.system.protocol import Detection
 from genesis_rl.system.route import LaneRoute

@@ -7,12 +7,11 @@ it acted on: the reward needs them for the IoU, and the failure analysis for the
 
 from __future__ import annotations
 
-import importlib
-import inspect
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.plugins import load_class
 from genesis_rl.sim.interface import ActorState, CameraConfig, SensorFrame, VehicleControl
 
 
@@ -98,29 +97,10 @@ def load_system(spec: str, **kwargs: Any) -> SystemUnderTest:
     Errors name what is wrong: a malformed path, a module that does not import, a missing class, a class
     that lacks the protocol's methods, or a constructor that fails.
     """
-    path = BUILTIN_SYSTEMS.get(spec, spec)
-    if ":" not in path:
-        raise UserInputError(
-            f"system '{spec}' is not an import path 'package.module:Class' nor a built-in "
-            f"({', '.join(BUILTIN_SYSTEMS)})"
-        )
-    module_name, _, class_name = path.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
-        raise UserInputError(f"system '{spec}': cannot import module '{module_name}': {err}") from None
-    cls = getattr(module, class_name, None)
-    if cls is None or not inspect.isclass(cls):
-        raise UserInputError(f"system '{spec}': module '{module_name}' has no class '{class_name}'")
-    missing = [m for m in REQUIRED_METHODS if not callable(getattr(cls, m, None))]
-    if missing:
-        raise UserInputError(
-            f"system '{spec}': class {class_name} lacks the protocol's methods: {', '.join(missing)} "
-            f"(a system needs {', '.join(REQUIRED_METHODS)}; see genesis_rl.system.protocol)"
-        )
+    cls = load_class(spec, "system", BUILTIN_SYSTEMS, methods=REQUIRED_METHODS, protocol="genesis_rl.system.protocol")
     try:
         return cls(**kwargs)
     except UserInputError:
         raise
     except Exception as err:  # noqa: BLE001
-        raise UserInputError(f"system '{spec}': constructing {class_name} failed: {err}") from None
+        raise UserInputError(f"system '{spec}': constructing {cls.__name__} failed: {err}") from None

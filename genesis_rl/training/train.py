@@ -175,7 +175,7 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
         cfg = load_run_config(out / "config.toml", {"train": {"total_timesteps": total_timesteps}})
         atomic_write_text(out / "config.toml", cfg.to_toml())
         return cfg
-    from genesis_rl.scenes.lite_generator import catalog_or_generate
+    from genesis_rl.backends import catalog_or_generate
 
     if out.exists() and any(out.iterdir()) and not force:
         raise UserInputError(f"run folder '{out}' exists; pass --resume to continue it or --force to replace it")

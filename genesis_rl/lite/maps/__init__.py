@@ -6,23 +6,17 @@ from collections.abc import Callable
 from functools import lru_cache
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.lite.maps.highway import build_highway
 from genesis_rl.lite.maps.lane_graph import RoadMap
+from genesis_rl.lite.maps.urban import build_urban
 
-
-def _builders() -> dict[str, Callable[[], RoadMap]]:
-    from genesis_rl.lite.maps.highway import build_highway
-    from genesis_rl.lite.maps.urban import build_urban
-
-    return {"urban": build_urban, "highway": build_highway}
-
-
-MAP_NAMES = ("urban", "highway")
+_BUILDERS: dict[str, Callable[[], RoadMap]] = {"urban": build_urban, "highway": build_highway}
+MAP_NAMES = tuple(_BUILDERS)
 
 
 @lru_cache(maxsize=4)
 def load_map(name: str) -> RoadMap:
     """Build (once per process) and return the named map. Maps are deterministic: no seed."""
-    builders = _builders()
-    if name not in builders:
+    if name not in _BUILDERS:
         raise UserInputError(f"unknown map '{name}'; allowed: {', '.join(MAP_NAMES)}")
-    return builders[name]()
+    return _BUILDERS[name]()

@@ -11,7 +11,7 @@ class RoadMask:
     """A raster of cells within ``clearance`` metres of any lane or junction, for placing scenery."""
 
     def __init__(self, lane_xy: np.ndarray, bounds: tuple[float, float, float, float], clearance: float) -> None:
-        import cv2
+        import cv2  # local: start-up cost (OpenCV, ~0.1 s; only map building needs it)
 
         self.xmin, self.ymin, xmax, ymax = bounds
         self.nx = int((xmax - self.xmin) / CELL) + 1

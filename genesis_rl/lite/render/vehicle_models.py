@@ -31,7 +31,7 @@ from panda3d.core import (
     NodePath,
 )
 
-from genesis_rl.lite.vehicles import MAKES
+from genesis_rl.scenes.vehicles import MAKES
 
 # --- colour roles -------------------------------------------------------------------------------------
 BODY, CARGO, GLASS, TYRE, RIM, HUB, ARCH, TRIM, PLATE, TAILBAR, UNDER, HEAD, TAIL = range(13)

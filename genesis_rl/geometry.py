@@ -1,4 +1,6 @@
-"""Matching detections to ground truth: the IoU that the reward and the telemetry use.
+"""Image-box geometry shared by the simulator, the system, perception and evaluation: box IoU, whether a
+ground-truth vehicle is in view, and matching detections to ground truth (the IoU that the reward and the
+telemetry use). It sits outside those packages so that none of them imports another for it.
 
 Frame IoU (the paper's reward term exp(-IoU)): every ground-truth vehicle *in view* (nearest visible point
 within ``IN_VIEW_RANGE`` metres, at least ``MIN_VISIBLE_FRACTION`` of it unoccluded and at least

@@ -1,4 +1,5 @@
-"""Vehicle makes: dimensions and handling, shared by physics, scene generation and rendering."""
+"""Vehicle makes and body colours: the catalog's vocabulary (a scene names a make and a colour), shared by
+every backend's physics, scene generation and rendering."""
 
 from __future__ import annotations
 

@@ -1,23 +1,32 @@
-"""Scene generator for the lite maps: ego, lead ahead in its lane, neighbour front-right, 27 others nearby."""
+"""Scene catalogs on the lite maps: the generator (ego, lead ahead in its lane, neighbour front-right, 27
+others nearby) and the checks a catalog must pass to be driven on lite (each vehicle on its lane, none
+overlapping another at the start).
+
+The module-level functions :func:`check_map`, :func:`default_count`, :func:`generate` and
+:func:`check_catalog` are the lite backend's scene source (:class:`genesis_rl.backends.SceneSource`).
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 
 import numpy as np
+from tqdm import tqdm
 
-from genesis_rl.lite.collisions import box_corners, boxes_overlap
-from genesis_rl.lite.maps import load_map
+from genesis_rl.errors import UserInputError
+from genesis_rl.lite.collisions import box_corners, boxes_overlap, colliding_pairs
+from genesis_rl.lite.maps import MAP_NAMES, load_map
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
-from genesis_rl.lite.vehicles import MAKES, PALETTE
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+from genesis_rl.scenes.vehicles import MAKES, PALETTE
+from genesis_rl.sim.interface import ConnectionSettings
 
 #: the paper's catalog sizes: Town10 (train) and Town05 (test)
 DEFAULT_COUNTS = {"urban": 1202, "highway": 1199}
 N_VEHICLES = 30
 RADIUS = 90.0  # others are placed within this distance of the ego [m]
-#: scenes a command generates itself when given no catalog (~5 ms each; beyond this, make a catalog once)
-MAX_GENERATED_ON_THE_FLY = 5000
+POSE_TOLERANCE_M = 1.0  # a vehicle's x, y may differ this much from its lane's point at s
 
 
 def draw_autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
@@ -128,31 +137,69 @@ def iter_scenes(map_name: str, count: int, seed: int) -> Iterator[Scene]:
         yield generate_scene(road_map, i, int(ss.generate_state(1)[0]))
 
 
-def catalog_or_generate(path: str | None, map_name: str, count: int, seed: int, map_field: str = "--map",
-                        progress: bool = False) -> Catalog:
-    """The catalog in ``path``, or else the first ``count`` scenes generated on ``map_name`` with ``seed``
-    (the same seed and index give the same scene whatever the count). ``map_field`` names the setting in
-    the error for an unknown map."""
-    from genesis_rl.errors import UserInputError
-    from genesis_rl.lite.maps import MAP_NAMES
-    from genesis_rl.scenes.catalog import load_catalog
-
-    if path:
-        return load_catalog(path)
-    if map_name not in MAP_NAMES:
-        raise UserInputError(f"{map_field} '{map_name}' is unknown; allowed: {', '.join(MAP_NAMES)}")
-    if count > MAX_GENERATED_ON_THE_FLY:
-        raise UserInputError(f"{count} scenes (indices up to {count - 1}) would be generated on the fly; without a "
-                             f"catalog at most {MAX_GENERATED_ON_THE_FLY} are. Make a catalog once with "
-                             f"'genesis-rl scenes --map {map_name} --count {count} --out FILE' and pass it as "
-                             "--catalog FILE")
-    return generate_catalog(map_name, count, seed, progress=progress)
-
-
 def generate_catalog(map_name: str, count: int, seed: int, progress: bool = False) -> Catalog:
     scenes = iter_scenes(map_name, count, seed)
     if progress:
-        from tqdm import tqdm
-
         scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
     return Catalog(map_name, seed, "lite", tuple(scenes))
+
+
+# -- the scene source of the lite backend (genesis_rl.backends.SceneSource) ---------------------------------
+def check_map(map_name: str, field: str) -> None:
+    """``field`` (the setting that named the map, e.g. ``--map``) must name a lite map."""
+    if map_name not in MAP_NAMES:
+        raise UserInputError(f"{field} '{map_name}' is unknown; allowed: {', '.join(MAP_NAMES)}")
+
+
+def default_count(map_name: str) -> int:
+    """The paper's catalog size for the map (see :data:`DEFAULT_COUNTS`)."""
+    return DEFAULT_COUNTS[map_name]
+
+
+def generate(map_name: str, count: int, seed: int, settings: ConnectionSettings, progress: bool = False) -> Catalog:
+    """``count`` scenes on ``map_name``; lite needs no connection (``settings`` is ignored)."""
+    return generate_catalog(map_name, count, seed, progress=progress)
+
+
+def check_catalog(catalog: Catalog) -> None:
+    """What the schema cannot check: the map is a lite map, every vehicle's pose agrees with its lane and
+    s, and no two vehicles of a scene start inside each other."""
+    if catalog.map not in MAP_NAMES:
+        raise UserInputError(f"catalog field 'map' = '{catalog.map}'; allowed: {', '.join(MAP_NAMES)}")
+    road_map = load_map(catalog.map)
+    for i, scene in enumerate(catalog.scenes):
+        where = f"scenes[{i}]"
+        for j, v in enumerate(scene.vehicles):
+            _check_on_lane(road_map, f"{where}.vehicles[{j}]", v.lane, v.next_lane, v.s, v.x, v.y)
+        _check_apart(scene.vehicles, where)
+
+
+def _check_on_lane(road_map: RoadMap, where: str, lane: int, next_lane: int, s: float, x: float, y: float) -> None:
+    """A lite vehicle is placed from its lane and s; its x, y must agree with them, so that what the catalog
+    says and what the simulator does are the same scene."""
+    n = len(road_map.lanes)
+    if not (0 <= lane < n and 0 <= next_lane < n):
+        raise UserInputError(f"catalog: '{where}.lane'/'next_lane' out of the map's lanes 0..{n - 1}")
+    length = float(road_map.length[lane])
+    if not 0.0 <= s <= length:
+        raise UserInputError(f"catalog: '{where}.s' = {s}; lane {lane} is {length:.1f} m long "
+                             f"(allowed 0..{length:.1f})")
+    successors = road_map.lanes[lane].successors
+    if next_lane not in successors:
+        raise UserInputError(f"catalog: '{where}.next_lane' = {next_lane} does not follow lane {lane}; "
+                             f"allowed: {', '.join(map(str, successors))}")
+    px, py, _, _ = road_map.pose(lane, s)
+    off = math.hypot(px - x, py - y)
+    if off > POSE_TOLERANCE_M:
+        raise UserInputError(f"catalog: '{where}.x'/'y' = ({x:.2f}, {y:.2f}) lie {off:.1f} m from lane {lane} at "
+                             f"s = {s:.1f} ({px:.2f}, {py:.2f}); allowed: within {POSE_TOLERANCE_M} m")
+
+
+def _check_apart(vehicles: tuple[VehicleSpec, ...], where: str) -> None:
+    """No two lite vehicles may start inside each other (the simulator would report a collision at step 0)."""
+    pairs = colliding_pairs(*(np.array(col, float) for col in zip(
+        *((v.x, v.y, v.yaw, MAKES[v.make].length, MAKES[v.make].width) for v in vehicles), strict=True)))
+    if pairs:
+        i, j = pairs[0]
+        raise UserInputError(f"catalog: '{where}.vehicles[{i}]' and '{where}.vehicles[{j}]' overlap at the start; "
+                             "allowed: vehicles whose boxes do not intersect")
