@@ -176,7 +176,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise UserInputError("--resume continues a run with its own config.toml; only --steps may change")
     cfg = load_run_config(args.config, {"env": env, "train": tr, "ppo": ppo})
     result = train(cfg, Path(args.out), force=args.force, resume=args.resume, progress=not args.quiet,
-                   argv=sys.argv, total_timesteps=args.steps if args.resume else None)
+                   argv=sys.argv, total_timesteps=args.steps if args.resume else None, inputs=[args.config])
     print(json.dumps(result, indent=2))
     return 0
 
