@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from genesis_rl import __version__
+from genesis_rl import __version__, limits
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
 
@@ -33,6 +33,7 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
         count = args.count if args.count is not None else CARLA_COUNTS.get(args.map, 50)
         if count < 1:
             raise UserInputError(f"--count must be >= 1, got {count}")
+        limits.SCENES.check(count, "--count")
         out = Path(args.out)
         ensure_writable(out, args.force)
         t0 = time.perf_counter()
@@ -48,6 +49,7 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     count = args.count if args.count is not None else DEFAULT_COUNTS[args.map]
     if count < 1:
         raise UserInputError(f"--count must be >= 1, got {count}")
+    limits.SCENES.check(count, "--count")
     out = Path(args.out)
     ensure_writable(out, args.force)
     t0 = time.perf_counter()
@@ -68,6 +70,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise UserInputError(f"--scene must be >= 0, got {args.scene}")
     if args.warmup < 0:
         raise UserInputError(f"--warmup must be >= 0, got {args.warmup}")
+    limits.SIM_STEPS.check(args.warmup, "--warmup")
+    limits.SCENES.check(args.scene, "--scene")  # the scenes up to it are generated
     if args.sweep and args.weather is not None:
         raise UserInputError("--weather does not apply with --sweep: the sheet sweeps each knob from clear noon")
     catalog = catalog_or_generate(args.catalog, args.map, args.scene + 1, args.seed)
@@ -84,10 +88,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise UserInputError(str(err)) from None
     out = Path(args.out)
     if args.sweep:
-        result = render_sweep(scene, camera, out, args.force, args.warmup)
+        result = render_sweep(scene, camera, out, args.force, args.warmup, inputs=[args.catalog])
     else:
         weather = parse_weather(args.weather or "clear_noon")
-        result = render_one(scene, weather, camera, out, args.force, args.warmup)
+        result = render_one(scene, weather, camera, out, args.force, args.warmup, inputs=[args.catalog])
     print(json.dumps(result))
     return 0
 
@@ -101,6 +105,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
 
     if args.steps < 1:
         raise UserInputError(f"--steps must be >= 1, got {args.steps}")
+    limits.SIM_STEPS.check(args.steps, "--steps")
     if args.gif_stride < 1:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
     if args.threads < 1:
@@ -134,7 +139,8 @@ def _cmd_drive(args: argparse.Namespace) -> int:
                                Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
                                gif_stride=args.gif_stride, gif_from=args.gif_from,
                                camera_size=(args.width, args.height),
-                               progress=not args.quiet, backend_factory=lambda: backend_from_args(args))
+                               progress=not args.quiet, backend_factory=lambda: backend_from_args(args),
+                               inputs=[args.catalog, args.schedule, args.weights])
     finally:
         torch.set_num_threads(threads_before)
     print_summary(summary)

@@ -84,14 +84,21 @@ def _inside(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
-def check_inputs(folder: Path, inputs: Sequence[str | Path | None], nested_ok: bool = False) -> None:
+def check_inputs(folder: Path, inputs: Sequence[str | Path | None], nested_ok: bool = False,
+                 files: Sequence[str] | None = None) -> None:
     """Refuse an output folder that is an input of the same command, holds one, or (unless ``nested_ok``:
-    ``evaluate`` writes RUN/eval by default) lies inside one."""
+    ``evaluate`` writes RUN/eval by default) lies inside one. With ``files`` (drive, render: the folder gets
+    these files added) only an input that is the folder or one of those files is refused."""
     out = Path(folder).resolve()
     for given in inputs:
         if given is None:
             continue
         path = Path(given).resolve()
+        if files is not None:
+            if path == out or path in {out / f for f in files}:
+                raise UserInputError(f"--out '{folder}' would overwrite this command's input '{given}'; write the "
+                                     "output somewhere else")
+            continue
         if _inside(path, out):
             what = "is" if path == out else "holds"
             raise UserInputError(f"--out '{folder}' {what} this command's input '{given}'; write the output "
@@ -145,15 +152,6 @@ def replace(folder: Path, kind: str) -> None:
                 entry.unlink()
     folder.mkdir(parents=True, exist_ok=True)
     write_marker(folder, kind)
-
-
-def open_files_folder(folder: Path, kind: str) -> None:
-    """For drive and render: create the folder and mark it when it is new or empty; a folder that already
-    holds other files is written into unmarked (``--force`` then needs it to be ours)."""
-    folder = Path(folder)
-    if not folder.is_dir() or not any(folder.iterdir()):
-        folder.mkdir(parents=True, exist_ok=True)
-        write_marker(folder, kind)
 
 
 def lock_path(folder: Path) -> Path:
@@ -214,13 +212,15 @@ def hold(folder: Path) -> Iterator[None]:
 
 @contextmanager
 def claim(folder: Path, kind: str, force: bool, *, resume: bool = False, files: Sequence[str] | None = None,
-          inputs: Sequence[str | Path | None] = (), nested_ok: bool = False) -> Iterator[None]:
+          inputs: Sequence[str | Path | None] = (), nested_ok: bool = False) -> Iterator[bool]:
     """Check the folder (inputs, content, ``--force``), then hold it for the block, checking again under the
-    lock: a writer that finished meanwhile may have filled it. ``resume`` skips the content check (the
-    command checks what it resumes) and marks a 0.4.0 folder it continues."""
+    lock: a writer that finished meanwhile may have filled it. Yields whether the folder was new or empty:
+    drive and render then mark it as theirs (``write_marker``) once they have written; a folder that already
+    held other files stays unmarked, so ``--force`` will not overwrite files in it. ``resume`` skips the
+    content check (the command checks what it resumes) and marks a 0.4.0 folder it continues."""
     if kind not in KINDS:
         raise ValueError(f"unknown output kind {kind!r}")
-    check_inputs(folder, inputs, nested_ok)
+    check_inputs(folder, inputs, nested_ok, files)
     if resume:
         ensure_folder_path(Path(folder))
     else:
@@ -230,4 +230,4 @@ def claim(folder: Path, kind: str, force: bool, *, resume: bool = False, files: 
             check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign"))
         elif Path(folder).is_dir() and not (Path(folder) / MARKER).exists() and legacy_kind(Path(folder)) == kind:
             write_marker(folder, kind)
-        yield
+        yield not Path(folder).is_dir() or not any(Path(folder).iterdir())

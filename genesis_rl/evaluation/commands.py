@@ -56,17 +56,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         out = run_folder_of(Path(args.agent)) / "eval"
     else:
         raise UserInputError("--out is required when no --agent is given")
-    summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
-                           progress=not args.quiet)
-    brief = {p: {"collision": round(s["collision"]["mean"], 3), "proximity": round(s["proximity"]["mean"], 3),
-                 "rss_deficit": round(s["rss_deficit"]["mean"], 3), "episodes_with_collision":
-                 s["episodes_with_collision"], "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
-             for p, s in summary["policies"].items()}
-    print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
-    if not args.no_report:
-        from genesis_rl.evaluation.report import build_report
+    from genesis_rl import output_folder
 
-        print(f"report: {build_report(out, force=True)}")
+    with output_folder.hold(out):  # through the report, which writes into the folder as well
+        summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
+                               progress=not args.quiet)
+        brief = {p: {"collision": round(s["collision"]["mean"], 3), "proximity": round(s["proximity"]["mean"], 3),
+                     "rss_deficit": round(s["rss_deficit"]["mean"], 3), "episodes_with_collision":
+                     s["episodes_with_collision"], "failure_modes": {k: v for k, v in s["failure_modes"].items()
+                                                                     if v}}
+                 for p, s in summary["policies"].items()}
+        print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
+        if not args.no_report:
+            from genesis_rl.evaluation.report import build_report
+
+            print(f"report: {build_report(out, force=True)}")
     return 0
 
 
