@@ -71,7 +71,6 @@ def _cmd_render(args: argparse.Namespace) -> int:
     if args.warmup < 0:
         raise UserInputError(f"--warmup must be >= 0, got {args.warmup}")
     limits.SIM_STEPS.check(args.warmup, "--warmup")
-    limits.SCENES.check(args.scene, "--scene")  # the scenes up to it are generated
     if args.sweep and args.weather is not None:
         raise UserInputError("--weather does not apply with --sweep: the sheet sweeps each knob from clear noon")
     catalog = catalog_or_generate(args.catalog, args.map, args.scene + 1, args.seed)

@@ -262,7 +262,6 @@ def test_two_evaluate_runs_into_one_folder_do_not_mix(tmp_path) -> None:
      "--scene '0:1000000000000' needs 1,000,000,000,000 scenes, over the limit of 100,000 scenes"),
     (["scenes", "--count", "1000000000000"], "--count = 1,000,000,000,000, over the limit of 100,000 scenes"),
     (["render", "--warmup", "100000000000"], "--warmup = 100,000,000,000, over the limit of 100,000 simulation"),
-    (["render", "--scene", "1000000"], "--scene = 1,000,000, over the limit of 100,000 scenes"),
     (["drive", "--steps", "100000000"], "--steps = 100,000,000, over the limit of 100,000 simulation steps"),
     (["train", "--steps", str(10**26)], "train.total_timesteps = 100,000,000,000,000,000,000,000,000, over the "
                                         "limit of 100,000,000 env steps"),
