@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from genesis_rl import __version__
+from genesis_rl import __version__, limits
 from genesis_rl.backends import (
     add_backend_arguments,
     backend_class,
@@ -39,6 +39,10 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     count = args.count if args.count is not None else source.default_count(args.map)
     if count < 1:
         raise UserInputError(f"--count must be >= 1, got {count}")
+    limits.SCENES.check(count, "--count")
+    if count < 1:
+        raise UserInputError(f"--count must be >= 1, got {count}")
+    limits.SCENES.check(count, "--count")
     out = Path(args.out)
     ensure_writable(out, args.force)
     t0 = time.perf_counter()
@@ -59,6 +63,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise UserInputError(f"--scene must be >= 0, got {args.scene}")
     if args.warmup < 0:
         raise UserInputError(f"--warmup must be >= 0, got {args.warmup}")
+    limits.SIM_STEPS.check(args.warmup, "--warmup")
     if args.sweep and args.weather is not None:
         raise UserInputError("--weather does not apply with --sweep: the sheet sweeps each knob from clear noon")
     catalog = catalog_or_generate(args.catalog, args.map, args.scene + 1, args.seed)
@@ -75,10 +80,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise UserInputError(str(err)) from None
     out = Path(args.out)
     if args.sweep:
-        result = render_sweep(scene, camera, out, args.force, args.warmup)
+        result = render_sweep(scene, camera, out, args.force, args.warmup, inputs=[args.catalog])
     else:
         weather = parse_weather(args.weather or "clear_noon")
-        result = render_one(scene, weather, camera, out, args.force, args.warmup)
+        result = render_one(scene, weather, camera, out, args.force, args.warmup, inputs=[args.catalog])
     print(json.dumps(result))
     return 0
 
@@ -90,6 +95,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
 
     if args.steps < 1:
         raise UserInputError(f"--steps must be >= 1, got {args.steps}")
+    limits.SIM_STEPS.check(args.steps, "--steps")
     if args.gif_stride < 1:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
     if args.threads < 1:
@@ -122,7 +128,8 @@ def _cmd_drive(args: argparse.Namespace) -> int:
                                Path(args.out), args.force, gif=not args.no_gif and (len(indices) == 1 or args.gif),
                                gif_stride=args.gif_stride, gif_from=args.gif_from,
                                camera_size=(args.width, args.height),
-                               progress=not args.quiet, backend_factory=lambda: backend_from_args(args))
+                               progress=not args.quiet, backend_factory=lambda: backend_from_args(args),
+                               inputs=[args.catalog, args.schedule, args.weights])
     finally:
         torch.set_num_threads(threads_before)
     print_summary(summary)
@@ -162,7 +169,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise UserInputError("--resume continues a run with its own config.toml; only --steps may change")
     cfg = load_run_config(args.config, {"env": env, "train": tr, "ppo": ppo})
     result = train(cfg, Path(args.out), force=args.force, resume=args.resume, progress=not args.quiet,
-                   argv=sys.argv, total_timesteps=args.steps if args.resume else None)
+                   argv=sys.argv, total_timesteps=args.steps if args.resume else None, inputs=[args.config])
     print(json.dumps(result, indent=2))
     return 0
 

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from genesis_rl import limits, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, ensure_writable
 from genesis_rl.knobs import Weather
@@ -19,13 +20,11 @@ if TYPE_CHECKING:
 def parse_scene_range(text: str, catalog_size: int | None = None) -> list[int]:
     """``3`` -> [3]; ``0:50`` -> [0..49]. Errors name the flag and the allowed form."""
     try:
-        if ":" in text:
-            a, b = text.split(":", 1)
-            idx = list(range(int(a), int(b)))
-        else:
-            idx = [int(text)]
+        start, stop = (int(v) for v in text.split(":", 1)) if ":" in text else (int(text), int(text) + 1)
     except ValueError:
         raise UserInputError(f"--scene '{text}' must be an index (3) or a range START:STOP (0:50)") from None
+    limits.SCENES.check(stop, "--scene", text)  # before the list is built: 0:10**12 would exhaust memory
+    idx = list(range(start, stop))
     if not idx or min(idx) < 0:
         raise UserInputError(f"--scene '{text}' selects no scene; indices start at 0")
     if catalog_size is not None and max(idx) >= catalog_size:
@@ -50,8 +49,29 @@ def drive_scenes(
     camera_size: tuple[int, int] = (320, 240),
     progress: bool = True,
     backend_factory: Callable[[], Backend] | None = None,
+    inputs: Sequence[str | Path | None] = (),
 ) -> dict[str, Any]:
-    """Drive each scene; ``backend_factory`` makes the simulator (default: lite)."""
+    """Drive each scene, holding ``out``; ``backend_factory`` makes the simulator (default: lite); ``inputs``
+    are the files the command reads (catalog, schedule, weights), which no output may replace."""
+    single = len(scene_indices) == 1
+    names = ["summary.json", *(_output_name("telemetry", "parquet", i, single) for i in scene_indices),
+             *((_output_name("drive", "gif", i, single) for i in scene_indices) if gif else [])]
+    with output_folder.claim(out, "drive", force, files=names, inputs=inputs) as fresh:
+        summary = _drive_scenes(catalog, scene_indices, system_spec, system_kwargs, base_weather, schedule, steps,
+                                seed, out, force, gif, gif_stride, gif_from, camera_size, progress, backend_factory)
+        if fresh:
+            output_folder.write_marker(out, "drive")
+    return summary
+
+
+def _output_name(stem: str, suffix: str, scene: int, single: bool) -> str:
+    return f"{stem}.{suffix}" if single else f"{stem}_scene_{scene:04d}.{suffix}"
+
+
+def _drive_scenes(catalog: Catalog, scene_indices: list[int], system_spec: str, system_kwargs: dict[str, Any],
+                  base_weather: Weather, schedule: list[Weather] | None, steps: int, seed: int, out: Path,
+                  force: bool, gif: bool, gif_stride: int, gif_from: int, camera_size: tuple[int, int],
+                  progress: bool, backend_factory: Callable[[], Backend] | None) -> dict[str, Any]:
     from tqdm import tqdm
 
     from genesis_rl.drive import run_episode, write_telemetry
@@ -63,10 +83,10 @@ def drive_scenes(
     single = len(scene_indices) == 1
 
     def telemetry_path(i: int) -> Path:
-        return out / ("telemetry.parquet" if single else f"telemetry_scene_{i:04d}.parquet")
+        return out / _output_name("telemetry", "parquet", i, single)
 
     def gif_path(i: int) -> Path:
-        return out / ("drive.gif" if single else f"drive_scene_{i:04d}.gif")
+        return out / _output_name("drive", "gif", i, single)
 
     summary_path = out / "summary.json"
     # refuse before driving: no earlier result is overwritten without --force, whichever file it is

@@ -4,12 +4,14 @@ sweep of each knob so a person sees each knob's effect at a glance."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 from PIL import Image
 
+from genesis_rl import output_folder
 from genesis_rl.io_utils import atomic_write, atomic_write_text, ensure_writable
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.lite.backend import LiteBackend
@@ -48,7 +50,17 @@ def _frame(backend: LiteBackend, scene: Scene, weather: Weather, camera: CameraC
 RENDER_OUTPUTS = ("rgb.png", "depth.png", "boxes.png", "boxes.json")
 
 
-def render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, force: bool, warmup: int = 0) -> dict:
+def render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, force: bool, warmup: int = 0,
+               inputs: Sequence[str | Path | None] = ()) -> dict:
+    """rgb.png, depth.png, boxes.png and boxes.json of one frame, written into ``out`` while holding it."""
+    with output_folder.claim(out, "render", force, files=RENDER_OUTPUTS, inputs=inputs) as fresh:
+        result = _render_one(scene, weather, camera, out, force, warmup)
+        if fresh:
+            output_folder.write_marker(out, "render")
+    return result
+
+
+def _render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, force: bool, warmup: int) -> dict:
     for name in RENDER_OUTPUTS:
         ensure_writable(out / name, force)
     backend = LiteBackend()
@@ -74,8 +86,18 @@ def sweep_rows() -> list[tuple[str, list[tuple[str, Weather]]]]:
     return rows
 
 
-def render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, warmup: int = 0) -> dict:
-    """A contact sheet: one row per knob sweep plus a row of showcase weathers."""
+def render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, warmup: int = 0,
+                 inputs: Sequence[str | Path | None] = ()) -> dict:
+    """A contact sheet: one row per knob sweep plus a row of showcase weathers, written while holding ``out``."""
+    name = f"contact_sheet_{scene.map}.png"
+    with output_folder.claim(out, "render", force, files=[name], inputs=inputs) as fresh:
+        result = _render_sweep(scene, camera, out, force, warmup)
+        if fresh:
+            output_folder.write_marker(out, "render")
+    return result
+
+
+def _render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, warmup: int) -> dict:
     import matplotlib
 
     matplotlib.use("Agg")

@@ -70,7 +70,7 @@ def test_bad_command_lines_exit_2_with_a_message_and_touch_nothing(tmp_path, cap
         (("scenes", "--map", "urban", "--count", "3", "--seed", "-5", "--out", str(tmp_path / "s.json")),
          "argument --seed: must be an integer >= 0, got -5"),
         (("drive", "--episode-seed", "-1", "--out", str(tmp_path / "d")), "argument --episode-seed: must be an"),
-        (("render", "--out", str(a_file)), f"output folder '{a_file}': '{a_file}' is a file; expected a folder"),
+        (("render", "--out", str(a_file)), f"--out '{a_file}': '{a_file}' is a file; expected a folder"),
         (("scenes", "--map", "urban", "--count", "2", "--out", str(a_dir), "--force"),
          f"output '{a_dir}' is a directory; expected a file path"),
         (("render", "--weather", "fog_density=10,fog_density=90", "--out", str(tmp_path / "r")),

@@ -77,15 +77,29 @@ def test_train_checkpoints_and_resumes_with_the_step_count(tmp_path, capsys) -> 
     result = json.loads(capsys.readouterr().out)
     assert result["timesteps"] == 48 and result["trained_steps_now"] == 16
     assert json.loads((run / "checkpoints" / "last.json").read_text())["timesteps"] == 48
-    (run / "checkpoints" / "last.zip").write_bytes(b"not a zip")
+    checkpoint = run / "checkpoints" / "step_00000048.zip"  # the one last.json names
+    good = checkpoint.read_bytes()
+    checkpoint.write_bytes(b"not a zip")
     assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
     assert "cannot be loaded" in capsys.readouterr().err
-    (run / "checkpoints" / "last.json").write_text("{")
+    checkpoint.write_bytes(good)
+    last = run / "checkpoints" / "last.json"
+    meta = json.loads(last.read_text())
+    for steps, message in ((-16, "timesteps = -16; allowed: 0..48"), (64, "timesteps = 64; allowed: 0..48"),
+                           (32, "it names 'step_00000048.zip'")):
+        last.write_text(json.dumps({**meta, "timesteps": steps}))
+        assert main(["train", "--out", str(run), "--resume", *common]) == 2
+        assert message in capsys.readouterr().err
+    last.write_text(json.dumps(meta))
+    assert main(["train", "--out", str(run), "--resume", "--steps", "32", *common]) == 2
+    assert "has trained 48 steps already; allowed: --steps >= 48" in capsys.readouterr().err
+    last.write_text("{")
     assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
     assert "last.json' is damaged (expected JSON with an integer 'timesteps')" in capsys.readouterr().err
-    (run / "checkpoints" / "last.zip").unlink()
+    last.write_text(json.dumps(meta))
+    checkpoint.unlink()
     assert main(["train", "--out", str(run), "--resume", "--steps", "64", *common]) == 2
-    assert "last.zip missing); start it again with --force" in capsys.readouterr().err
+    assert "step_00000048.zip missing); start it again with --force" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("table", "key"), [("train", "seed"), ("env", "catalog_seed")])

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl import __version__
+from genesis_rl import __version__, output_folder
 from genesis_rl.errors import SimulatorLost, UserInputError
 from genesis_rl.evaluation.failure_modes import (
     FAILURE_MODES,
@@ -346,19 +346,12 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
                                  f"({', '.join(diff)}); pass the same arguments, or --force to start over")
         pairs = [tuple(p) for p in saved["scenes"]]
     else:
-        if folder.exists() and any(folder.iterdir()):
-            if not force:
-                raise UserInputError(f"campaign folder '{folder}' exists; pass --resume to continue it or --force "
-                                     "to replace it")
-            if not (folder / "campaign.json").is_file():
-                raise UserInputError(f"--force: '{folder}' is not a campaign folder (no campaign.json); refusing to "
-                                     "delete it (is it a training run? campaigns go to RUN/eval)")
+        output_folder.check_inputs(folder, [spec.catalog, spec.agent], nested_ok=True)  # RUN/eval is the default
+        output_folder.check_target(folder, "campaign", force, resume_hint=True)
         count = DEFAULT_COUNTS.get(spec.map, 1)
         catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)
         pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
-        if folder.exists():
-            shutil.rmtree(folder)
-        folder.mkdir(parents=True)
+        output_folder.replace(folder, "campaign")
         catalog.save(folder / "catalog.json")
         from genesis_rl.training.train import git_commit
 
@@ -374,7 +367,14 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
 
 def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool = False, resume: bool = False,
                  progress: bool = True) -> dict[str, Any]:
-    """Run every (policy, scene) not yet done, then write summary.json; returns the summary."""
+    """Run every (policy, scene) not yet done, then write summary.json; returns the summary. The folder is
+    held for the whole run: a second campaign into it is refused, not mixed in."""
+    with output_folder.hold(folder):
+        return _run_campaign(spec, folder, workers, force, resume, progress)
+
+
+def _run_campaign(spec: CampaignSpec, folder: Path, workers: int, force: bool, resume: bool,
+                  progress: bool) -> dict[str, Any]:
     from tqdm import tqdm
 
     from genesis_rl.evaluation.summary import summarize_campaign

@@ -51,18 +51,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         out = run_folder_of(Path(args.agent)) / "eval"
     else:
         raise UserInputError("--out is required when no --agent is given")
-    summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
-                           progress=not args.quiet)
-    rule_metrics = [m for m in summary_rule_metrics(summary) if m != "total"]
-    brief = {p: {**{m: None if s[m]["mean"] is None else round(s[m]["mean"], 3) for m in rule_metrics},
-                 "episodes_with_collision": s["episodes_with_collision"],
-                 "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
-             for p, s in summary["policies"].items()}
-    print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
-    if not args.no_report:
-        from genesis_rl.evaluation.report import build_report
+    from genesis_rl import output_folder
 
-        print(f"report: {build_report(out, force=True)}")
+    with output_folder.hold(out):  # through the report, which writes into the folder as well
+        summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
+                               progress=not args.quiet)
+        rule_metrics = [m for m in summary_rule_metrics(summary) if m != "total"]
+        brief = {p: {**{m: None if s[m]["mean"] is None else round(s[m]["mean"], 3) for m in rule_metrics},
+                     "episodes_with_collision": s["episodes_with_collision"],
+                     "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
+                 for p, s in summary["policies"].items()}
+        print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
+        if not args.no_report:
+            from genesis_rl.evaluation.report import build_report
+
+            print(f"report: {build_report(out, force=True)}")
     return 0
 
 

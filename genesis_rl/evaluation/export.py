@@ -16,8 +16,15 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from PIL import Image
+
+from genesis_rl import output_folder
 from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign_files import REMEDY, read_steps, steps_path
+from genesis_rl.evaluation.summary import load_campaign
 from genesis_rl.io_utils import atomic_write_json, atomic_write_text
+from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.step_record import RecordedBox
 
 FORMATS = ("yolo", "coco")
 CLASSES = ("vehicle",)
@@ -38,16 +45,9 @@ def _frames(folder: Path) -> list[tuple[str, int, int, Path]]:
 
 def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
                    policies: list[str] | None = None) -> dict[str, Any]:
-    from PIL import Image
-
-    from genesis_rl.evaluation.campaign_files import REMEDY, read_steps, steps_path
-    from genesis_rl.evaluation.summary import load_campaign
-    from genesis_rl.io_utils import ensure_folder_path
-    from genesis_rl.knobs import KNOBS, Weather
-    from genesis_rl.step_record import RecordedBox
-
     if fmt not in FORMATS:
         raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
+    output_folder.check_inputs(out, [folder])  # before reading: export CAMP --out CAMP --force wiped CAMP
     meta, rows = load_campaign(folder)
     unknown = sorted(set(policies or []) - set(rows))
     if unknown:
@@ -63,12 +63,22 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
                                  f"'{folder / 'frames'}' (deleted?); re-run those episodes to export them")
         raise UserInputError(f"campaign '{folder}' kept no failure frames (no collisions"
                              f"{' for ' + ','.join(policies) if policies else ''}); nothing to export")
-    ensure_folder_path(out)
-    if out.exists() and any(out.iterdir()) and not force:
-        raise UserInputError(f"output '{out}' exists; pass --force to replace it")
-    tmp = out.with_name(f".{out.name}.partial")
+    with output_folder.claim(out, "export", force, inputs=[folder]):
+        tmp = out.with_name(f".{out.name}.partial")
+        try:
+            return _write(folder, fmt, out, tmp, meta, frames, modes)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)  # a failed export leaves no partial folder behind
+
+
+def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
+           frames: list[tuple[str, int, int, Path]], modes: dict[tuple[str, int], Any]) -> dict[str, Any]:
+    """Build the export in ``tmp`` beside ``out``, then put it in place of ``out``."""
+
+
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
+    output_folder.write_marker(tmp, "export")
     if fmt == "yolo":
         (tmp / "labels").mkdir()
     steps_cache: dict[tuple[str, int], dict[int, dict[str, Any]]] = {}

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from genesis_rl import limits
 from genesis_rl.config import dump_toml, from_mapping, read_toml, to_mapping
 from genesis_rl.env.genesis_env import EnvConfig
 from genesis_rl.errors import UserInputError
@@ -59,6 +60,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.total_timesteps < 1:
             raise UserInputError(f"train.total_timesteps = {self.total_timesteps} must be >= 1")
+        limits.TIMESTEPS.check(self.total_timesteps, "train.total_timesteps")
         if not 1 <= self.envs <= 64:
             raise UserInputError(f"train.envs = {self.envs} must be in 1..64")
         if self.checkpoint_every < 1:

@@ -8,22 +8,21 @@ counts, per-episode metrics (``episodes.csv``), TensorBoard logs (``tb/``) and t
 from __future__ import annotations
 
 import csv
-import json
 import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from genesis_rl import __version__
+from genesis_rl import __version__, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
+from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, load_run_config
-
-CHECKPOINTS = "checkpoints"
 
 
 def git_commit() -> str:
@@ -46,7 +45,7 @@ def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: 
             torch.set_num_threads(torch_threads)
         env = GenesisEnv(EnvConfig(**config_dict))
         env.reset(seed=seed + rank)
-        return Monitor(env)
+        return EpisodeLog(Monitor(env))
 
     return thunk
 
@@ -67,10 +66,11 @@ def build_vec_env(cfg: RunConfig, catalog_path: Path):  # noqa: ANN201
 
 
 class _Callbacks:
-    """Progress bar, per-episode metrics (CSV + TensorBoard) and periodic atomic checkpoints."""
+    """Progress bar, per-episode metrics (CSV + TensorBoard) and checkpoints at rollout boundaries."""
 
     @staticmethod
-    def make(run: Path, cfg: RunConfig, start_steps: int, progress: bool):  # noqa: ANN205
+    def make(run: Path, cfg: RunConfig, start_steps: int, progress: bool,
+             episode_sums: dict[int, dict[str, Any]] | None = None):  # noqa: ANN205
         from stable_baselines3.common.callbacks import BaseCallback
         from tqdm import tqdm
 
@@ -80,13 +80,24 @@ class _Callbacks:
             def __init__(self) -> None:
                 super().__init__()
                 self.bar = None
-                self.acc: dict[int, dict[str, Any]] = {}
+                # per env, the sums of the episode it is in; a checkpoint keeps them (an episode may span one)
+                self.acc: dict[int, dict[str, Any]] = dict(episode_sums or {})
                 self.last_ckpt = start_steps
                 self.episodes_path = run / "episodes.csv"
 
             def _on_training_start(self) -> None:
                 self.bar = tqdm(total=cfg.train.total_timesteps, initial=start_steps, unit="step",
                                 desc="train", disable=not progress, smoothing=0.05)
+
+            def _on_rollout_start(self) -> None:
+                # here the previous rollout's update is done and the next has not begun: the only point where
+                # a checkpoint holds all the trainer's state (at train.checkpoint_every, rounded up to rollouts)
+                if self.model.num_timesteps - self.last_ckpt >= cfg.train.checkpoint_every:
+                    self.checkpoint()
+
+            def checkpoint(self) -> None:
+                save_checkpoint(run, self.model, self.model.num_timesteps, self.acc)
+                self.last_ckpt = self.model.num_timesteps
 
             def _on_step(self) -> bool:
                 n_envs = self.training_env.num_envs
@@ -100,9 +111,6 @@ class _Callbacks:
                     if "episode_violations" in info:
                         self._episode_done(a, info["episode_violations"])
                         self.acc.pop(i)
-                if self.num_timesteps - self.last_ckpt >= cfg.train.checkpoint_every:
-                    save_checkpoint(run, self.model, self.num_timesteps)
-                    self.last_ckpt = self.num_timesteps
                 return True
 
             def _episode_done(self, a: dict[str, Any], violations: dict[str, float]) -> None:
@@ -128,63 +136,34 @@ class _Callbacks:
         return TrainingCallback()
 
 
-def save_checkpoint(run: Path, model: Any, steps: int) -> None:
-    """``checkpoints/step_N.zip`` and ``last.zip`` + ``last.json`` (its step count), each written atomically."""
-    ck = run / CHECKPOINTS
-    atomic_write(ck / f"step_{steps:08d}.zip", lambda p: model.save(p))
-    atomic_write(ck / "last.zip", lambda p: model.save(p))
-    atomic_write_json(ck / "last.json", {"timesteps": int(steps), "time": time.time()})
-
-
-def load_checkpoint(run: Path, env: Any, device: str) -> tuple[Any, int]:
-    from stable_baselines3 import PPO
-
-    ck = run / CHECKPOINTS
-    meta_path = ck / "last.json"
-    missing = [p for p in (meta_path, ck / "last.zip") if not p.is_file()]
-    if missing:
-        raise UserInputError(f"--resume: run '{run}' has no complete checkpoint ({', '.join(map(str, missing))} "
-                             "missing); start it again with --force")
-    try:
-        steps = int(json.loads(meta_path.read_text(encoding="utf-8"))["timesteps"])
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
-        raise UserInputError(f"--resume: checkpoint file '{meta_path}' is damaged (expected JSON with an integer "
-                             "'timesteps'); start the run again with --force") from None
-    try:
-        model = PPO.load(ck / "last.zip", env=env, device=device)
-    except Exception as err:  # noqa: BLE001 - a corrupt checkpoint is the user's to see, clearly
-        raise UserInputError(f"--resume: checkpoint '{ck / 'last.zip'}' cannot be loaded: {err}") from None
-    model.num_timesteps = steps
-    return model, steps
+def max_timesteps(cfg: RunConfig) -> int:
+    """The steps a run of ``cfg`` ends at: SB3 collects whole rollouts, so total_timesteps rounds up."""
+    n = cfg.ppo.n_steps
+    return -(-cfg.train.total_timesteps // n) * n
 
 
 def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
                 total_timesteps: int | None = None, progress: bool = True) -> RunConfig:
     """Create (or reopen with ``resume``) the run folder; returns the config the run uses. On resume,
-    ``total_timesteps`` may raise the run's target (it is written back to its config.toml)."""
-    import shutil
-
-    from genesis_rl.io_utils import ensure_folder_path
-
-    ensure_folder_path(out)
+    ``total_timesteps`` may raise the run's target (it is written back to its config.toml). Call it holding
+    the folder (``output_folder.claim``)."""
     if resume:
         if not (out / "config.toml").is_file():
             raise UserInputError(f"--resume: '{out}' is not a run folder (no config.toml)")
         if total_timesteps is None:
             return load_run_config(out / "config.toml")
         cfg = load_run_config(out / "config.toml", {"train": {"total_timesteps": total_timesteps}})
-        atomic_write_text(out / "config.toml", cfg.to_toml())
-        return cfg
+        done = read_last(out, 2**63)[0] if (out / CHECKPOINTS / "last.json").is_file() else 0
+        if total_timesteps < done:
+            raise UserInputError(f"--steps {total_timesteps}: the run in '{out}' has trained {done} steps already; "
+                                 f"allowed: --steps >= {done}")
+        return cfg  # written back to config.toml once the checkpoint has loaded
     from genesis_rl.backends import catalog_or_generate
 
-    if out.exists() and any(out.iterdir()) and not force:
-        raise UserInputError(f"run folder '{out}' exists; pass --resume to continue it or --force to replace it")
     # the catalog is resolved before an old run is removed, so a bad catalog setting loses nothing
     catalog = catalog_or_generate(cfg.env.catalog, cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed,
                                   map_field="env.map", progress=progress)
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder.replace(out, "run")
     catalog.save(out / "catalog.json")
     atomic_write_text(out / "config.toml", cfg.to_toml())
     atomic_write_json(out / "run.json", {
@@ -197,17 +176,21 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
 
 
 def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, progress: bool = True,
-          argv: list[str] | None = None, total_timesteps: int | None = None) -> dict[str, Any]:
-    """Train (or ``resume``) the run in ``out``; a new run that fails before its first checkpoint is removed."""
-    cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
-    try:
-        return _train_prepared(cfg, out, resume, progress)
-    except BaseException:
-        if not resume and not (out / "checkpoints" / "last.json").exists():
-            # nothing was trained (e.g. the system under test failed to load): leave no folder behind that a
-            # corrected re-run would need --force to replace
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+          argv: list[str] | None = None, total_timesteps: int | None = None,
+          inputs: Sequence[str | Path | None] = ()) -> dict[str, Any]:
+    """Train (or ``resume``) the run in ``out``, holding the folder; a new run that fails before its first
+    checkpoint is removed. ``inputs`` are files the command reads (its config), which ``out`` may not hold."""
+    out = Path(out)
+    with output_folder.claim(out, "run", force, resume=resume, inputs=[cfg.env.catalog, *inputs]):
+        cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
+        try:
+            return _train_prepared(cfg, out, resume, progress)
+        except BaseException:
+            if not resume and not (out / CHECKPOINTS / "last.json").exists():
+                # nothing was trained (e.g. the system under test failed to load): leave no folder behind that
+                # a corrected re-run would need --force to replace
+                shutil.rmtree(out, ignore_errors=True)
+            raise
 
 
 def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> dict[str, Any]:
@@ -221,8 +204,12 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> 
     env = build_vec_env(cfg, out / "catalog.json")
     try:
         policy = "MultiInputPolicy" if cfg.env.obs_knobs else "CnnPolicy"
+        sums: dict[int, dict[str, Any]] = {}
         if resume:
-            model, done = load_checkpoint(out, env, p.device)
+            resumed = load_checkpoint(out, env, p.device, max_timesteps(cfg))
+            model, done, sums = resumed.model, resumed.steps, resumed.episode_sums
+            if load_run_config(out / "config.toml") != cfg:  # --steps raised the target
+                atomic_write_text(out / "config.toml", cfg.to_toml())
         else:
             model = PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
                         batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
@@ -241,14 +228,18 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> 
         remaining = cfg.train.total_timesteps - done
         t0 = time.perf_counter()
         if remaining > 0:
-            cb = _Callbacks.make(out, cfg, done, progress)
+            cb = _Callbacks.make(out, cfg, done, progress, sums)
             try:
                 model.learn(total_timesteps=remaining, callback=cb, reset_num_timesteps=not resume,
                             progress_bar=False)
             except KeyboardInterrupt:
-                save_checkpoint(out, model, model.num_timesteps)  # --resume continues from here
+                # a checkpoint is only whole between rollouts, so none is taken here: --resume goes back to the
+                # last one and trains the steps since again, exactly as before
+                if (out / CHECKPOINTS / "last.json").exists():
+                    print(f"genesis-rl train: interrupted at step {model.num_timesteps}; --resume continues from "
+                          f"the checkpoint at step {cb.last_ckpt}", file=sys.stderr, flush=True)
                 raise
-            save_checkpoint(out, model, model.num_timesteps)
+            cb.checkpoint()
         atomic_write(out / "agent.zip", lambda q: model.save(q))
         seconds = time.perf_counter() - t0
         result = {"run": str(out), "timesteps": int(model.num_timesteps), "trained_steps_now": max(remaining, 0),

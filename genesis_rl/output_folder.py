@@ -1,0 +1,233 @@
+"""Output folders that ``--force`` may replace, and that one command at a time writes.
+
+A folder this package creates gets a marker file, ``.genesis-rl.json``, naming the kind of output (run,
+campaign, export, drive, render) and the package version. ``--force`` replaces (or, for drive and render,
+overwrites the outputs in) only a folder whose marker names the same kind; anything else is refused, naming
+the folder and what is in it, so a mistyped ``--out`` cannot delete a user's files. Folders written by
+genesis-rl 0.4.0 carry no marker and are recognised by their content instead (``legacy_kind``). An output
+folder is never the input of the same command, nor contains it.
+
+While a command writes a folder it holds an exclusive OS lock (``flock``) on a lock file beside it,
+``.NAME.genesis-rl.lock``; a second writer is refused at once, naming the holder's pid. The kernel drops the
+lock when its process dies, so a killed run's lock is taken over without any clean-up.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import re
+import shutil
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+from genesis_rl import __version__
+from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import atomic_write_json, ensure_folder_path
+
+MARKER = ".genesis-rl.json"
+MARKER_SCHEMA = "genesis-rl/output-folder"
+KINDS = ("run", "campaign", "export", "drive", "render")
+#: kinds whose folder is one unit that --force replaces whole; drive and render write named files into theirs
+WHOLE_FOLDER = ("run", "campaign", "export")
+
+#: the files that drive and render write: a marker-less folder holding only these is one of theirs (0.4.0)
+_FILE_PATTERNS = {
+    "drive": re.compile(r"summary\.json|telemetry(_scene_\d{4})?\.parquet|drive(_scene_\d{4})?\.gif"),
+    "render": re.compile(r"rgb\.png|depth\.png|boxes\.png|boxes\.json|contact_sheet_\w+\.png"),
+}
+
+
+def _json_object(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def legacy_kind(folder: Path) -> str | None:
+    """The kind of a genesis-rl 0.4.0 output folder (no marker), told by files only this package writes."""
+    if _json_object(folder / "campaign.json").get("schema") == "genesis-rl/campaign":
+        return "campaign"
+    if (folder / "config.toml").is_file() and (
+            _json_object(folder / "run.json").get("package") == "genesis-rl"
+            or (folder / "checkpoints" / "last.json").is_file() or (folder / "agent.zip").is_file()):
+        return "run"
+    if (folder / "export.json").is_file() and (folder / "metadata.jsonl").is_file():
+        return "export"
+    names = [p.name for p in folder.iterdir()]
+    for kind, pattern in _FILE_PATTERNS.items():
+        if names and all(pattern.fullmatch(n) for n in names):
+            return kind
+    return None
+
+
+def folder_kind(folder: Path) -> str | None:
+    """The kind of output a folder holds: its marker's, else what its 0.4.0 content shows, else None."""
+    marker = _json_object(folder / MARKER)
+    if marker.get("schema") == MARKER_SCHEMA and marker.get("kind") in KINDS:
+        return str(marker["kind"])
+    return legacy_kind(folder)
+
+
+def _entries(folder: Path, shown: int = 4) -> str:
+    names = sorted(p.name + ("/" if p.is_dir() else "") for p in folder.iterdir())
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path == folder or folder in path.parents
+
+
+def check_inputs(folder: Path, inputs: Sequence[str | Path | None], nested_ok: bool = False,
+                 files: Sequence[str] | None = None) -> None:
+    """Refuse an output folder that is an input of the same command, holds one, or (unless ``nested_ok``:
+    ``evaluate`` writes RUN/eval by default) lies inside one. With ``files`` (drive, render: the folder gets
+    these files added) only an input that is the folder or one of those files is refused."""
+    out = Path(folder).resolve()
+    for given in inputs:
+        if given is None:
+            continue
+        path = Path(given).resolve()
+        if files is not None:
+            if path == out or path in {out / f for f in files}:
+                raise UserInputError(f"--out '{folder}' would overwrite this command's input '{given}'; write the "
+                                     "output somewhere else")
+            continue
+        if _inside(path, out):
+            what = "is" if path == out else "holds"
+            raise UserInputError(f"--out '{folder}' {what} this command's input '{given}'; write the output "
+                                 "somewhere else")
+        if not nested_ok and _inside(out, path):
+            raise UserInputError(f"--out '{folder}' lies inside this command's input '{given}'; write the output "
+                                 "somewhere else")
+
+
+def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | None = None,
+                 resume_hint: bool = False) -> None:
+    """Refuse, before anything is written, an output folder that the command may not write: an existing
+    one without ``--force`` (for drive and render: one holding a file of the same name), or, with
+    ``--force``, one that is not a genesis-rl folder of this kind."""
+    folder = Path(folder)
+    ensure_folder_path(folder)
+    if not folder.is_dir() or not any(folder.iterdir()):
+        return
+    clashes = [n for n in files if (folder / n).exists()] if files is not None else None
+    if clashes == []:
+        return  # drive and render add files beside others; nothing is overwritten
+    if not force:
+        if clashes:
+            raise UserInputError(f"output '{folder / clashes[0]}' already exists; pass --force to overwrite it")
+        hint = "--resume to continue it or --force to replace it" if resume_hint else "--force to replace it"
+        label = {"run": "run folder", "campaign": "campaign folder"}.get(kind, "output")
+        raise UserInputError(f"{label} '{folder}' exists; pass {hint}")
+    found = folder_kind(folder)
+    if found == kind:
+        return
+    why = (f"it holds a genesis-rl {found} output" if found else f"no {MARKER}") + f": {_entries(folder)}"
+    action = "delete it" if kind in WHOLE_FOLDER else "overwrite files in it"
+    hint = " (is it a training run? campaigns go to RUN/eval)" if (kind, found) == ("campaign", "run") else ""
+    raise UserInputError(f"--force: '{folder}' is not a {kind} folder written by genesis-rl ({why}); refusing to "
+                         f"{action}{hint}; choose another --out, or empty it yourself")
+
+
+def write_marker(folder: Path, kind: str) -> None:
+    atomic_write_json(Path(folder) / MARKER, {"schema": MARKER_SCHEMA, "kind": kind, "version": __version__},
+                      indent=2)
+
+
+def replace(folder: Path, kind: str) -> None:
+    """Empty (or create) the folder and mark it as this kind's. Call it under ``hold`` after ``check_target``."""
+    folder = Path(folder)
+    if folder.is_dir():
+        for entry in folder.iterdir():
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    write_marker(folder, kind)
+
+
+def lock_path(folder: Path) -> Path:
+    folder = Path(folder).resolve()
+    return folder.parent / f".{folder.name}.genesis-rl.lock"
+
+
+_HELD: dict[Path, list] = {}  # lock path -> [file descriptor, depth]: re-entrant within one process
+
+
+def _acquire(path: Path, folder: Path) -> int:
+    while True:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise UserInputError(f"cannot lock output folder '{folder}': {err.strerror} ({path})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise UserInputError(f"output folder '{folder}' is being written by another genesis-rl process "
+                                     f"(pid {holder}); wait for it to finish or choose another --out") from None
+            raise UserInputError(f"cannot lock output folder '{folder}': {err.strerror} ({path})") from None
+        try:  # the holder before us may have removed the file as it released it: lock the file now there
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+
+
+@contextmanager
+def hold(folder: Path) -> Iterator[None]:
+    """Hold the folder exclusively (re-entrant within this process) for the block."""
+    path = lock_path(folder)
+    if path in _HELD:
+        _HELD[path][1] += 1
+    else:
+        _HELD[path] = [_acquire(path, Path(folder)), 1]
+    try:
+        yield
+    finally:
+        _HELD[path][1] -= 1
+        if _HELD[path][1] == 0:
+            fd, _ = _HELD.pop(path)
+            try:
+                path.unlink(missing_ok=True)  # while still locked, so no one locks a file that is going away
+            except OSError:
+                pass
+            os.close(fd)
+
+
+@contextmanager
+def claim(folder: Path, kind: str, force: bool, *, resume: bool = False, files: Sequence[str] | None = None,
+          inputs: Sequence[str | Path | None] = (), nested_ok: bool = False) -> Iterator[bool]:
+    """Check the folder (inputs, content, ``--force``), then hold it for the block, checking again under the
+    lock: a writer that finished meanwhile may have filled it. Yields whether the folder was new or empty:
+    drive and render then mark it as theirs (``write_marker``) once they have written; a folder that already
+    held other files stays unmarked, so ``--force`` will not overwrite files in it. ``resume`` skips the
+    content check (the command checks what it resumes) and marks a 0.4.0 folder it continues."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown output kind {kind!r}")
+    check_inputs(folder, inputs, nested_ok, files)
+    if resume:
+        ensure_folder_path(Path(folder))
+    else:
+        check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign"))
+    with hold(folder):
+        if not resume:
+            check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign"))
+        elif Path(folder).is_dir() and not (Path(folder) / MARKER).exists() and legacy_kind(Path(folder)) == kind:
+            write_marker(folder, kind)
+        yield not Path(folder).is_dir() or not any(Path(folder).iterdir())

@@ -1,0 +1,285 @@
+"""Nothing lost, nothing mixed (issue 21): --force replaces only our own folders, one writer per output
+folder, training resumes exactly, and sizes that would exhaust memory or run for days are refused."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from genesis_rl.cli import main
+from genesis_rl.errors import UserInputError
+
+TINY_RUN = """
+[env]
+map = "urban"
+scenes = 3
+system = "blind"
+episode_steps = 10          # episodes cross rollout boundaries: a checkpoint falls mid-episode
+camera_width = 64
+camera_height = 48
+obs_width = 36
+obs_height = 36
+
+[ppo]
+n_steps = 16
+batch_size = 8
+n_epochs = 2
+
+[train]
+total_timesteps = 64
+checkpoint_every = 16
+seed = 3
+torch_threads = 1
+"""
+
+
+def _weights(path: Path) -> dict:
+    from stable_baselines3 import PPO
+
+    model = PPO.load(path, device="cpu")
+    return {**{f"policy.{k}": v for k, v in model.policy.state_dict().items()},
+            **{f"optimizer.{k}": v for k, v in _flat(model.policy.optimizer.state_dict()).items()}}
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        elif isinstance(v, list):
+            out.update(_flat(dict(enumerate(v)), f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+@pytest.mark.render
+def test_an_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path, monkeypatch, capsys) -> None:
+    import torch
+
+    from genesis_rl.env.genesis_env import GenesisEnv
+
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_RUN)
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    assert main(["train", "--config", str(config), "--out", str(whole), "--quiet"]) == 0
+
+    step = GenesisEnv.step
+    calls = {"n": 0}
+
+    def interrupted_step(self, action):  # noqa: ANN001, ANN202 - stopped 12 steps after the checkpoint at 32
+        calls["n"] += 1
+        if calls["n"] == 45:
+            raise KeyboardInterrupt
+        return step(self, action)
+
+    monkeypatch.setattr(GenesisEnv, "step", interrupted_step)
+    assert main(["train", "--config", str(config), "--out", str(cut), "--quiet"]) == 130
+    monkeypatch.setattr(GenesisEnv, "step", step)
+    assert "--resume continues from the checkpoint at step 32" in capsys.readouterr().err
+    assert json.loads((cut / "checkpoints" / "last.json").read_text())["timesteps"] == 32
+    rows_at_cut = (cut / "episodes.csv").read_text().splitlines()
+    assert len(rows_at_cut) == 1 + 4  # episodes ended at 10, 20, 30, and at 40, after the checkpoint
+    assert main(["train", "--out", str(cut), "--resume", "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["timesteps"] == 64 and result["trained_steps_now"] == 32
+
+    # the same episodes, once each, with the same numbers
+    assert (cut / "episodes.csv").read_text() == (whole / "episodes.csv").read_text()
+    assert len((whole / "episodes.csv").read_text().splitlines()) == 1 + 6
+    # the same weights and optimizer state, bit for bit (CPU, one torch thread)
+    a, b = _weights(whole / "agent.zip"), _weights(cut / "agent.zip")
+    assert a.keys() == b.keys() and len(a) > 10
+    different = [k for k in a if isinstance(a[k], torch.Tensor) and not torch.equal(a[k], b[k])
+                 or not isinstance(a[k], torch.Tensor) and a[k] != b[k]]
+    assert different == []
+    # a checkpoint holds the policy after its update: step_32 is not the initial policy
+    assert _weights(cut / "checkpoints" / "step_00000032.zip")["optimizer.state.0.step"] > 0
+
+
+# --- 1. --force replaces only a folder this tool wrote, never the command's input --------------------------
+
+def _users_folder(path: Path) -> Path:
+    path.mkdir()
+    (path / "thesis.tex").write_text("years of work")
+    return path
+
+
+def test_train_force_refuses_a_folder_it_did_not_write(tmp_path, capsys) -> None:
+    mine = _users_folder(tmp_path / "mine")
+    assert main(["train", "--out", str(mine), "--force", "--system", "blind", "--scenes", "2", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"--force: '{mine}' is not a run folder written by genesis-rl (no .genesis-rl.json: thesis.tex)" in err
+    assert (mine / "thesis.tex").read_text() == "years of work"
+    assert [p.name for p in tmp_path.iterdir()] == ["mine"]  # and no lock file left beside it
+
+
+def test_export_refuses_its_own_input_as_output(tmp_path, capsys) -> None:
+    campaign = tmp_path / "camp"
+    campaign.mkdir()
+    (campaign / "campaign.json").write_text(json.dumps({"schema": "genesis-rl/campaign"}))
+    for out, word in ((campaign, "is"), (tmp_path, "holds"), (campaign / "export", "lies inside")):
+        assert main(["export", str(campaign), "--format", "coco", "--out", str(out), "--force"]) == 2
+        assert f"--out '{out}' {word} this command's input '{campaign}'" in capsys.readouterr().err
+    assert [p.name for p in campaign.iterdir()] == ["campaign.json"]
+
+
+@pytest.mark.render
+def test_drive_and_render_force_overwrite_only_in_their_own_folders(tmp_path, capsys) -> None:
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "summary.json").write_text('{"my": "numbers"}')
+    (mine / "rgb.png").write_text("my picture")
+    (mine / "notes.txt").write_text("mine")
+    assert main(["drive", "--scene", "0", "--steps", "2", "--system", "blind", "--out", str(mine), "--force",
+                 "--no-gif", "--quiet"]) == 2
+    assert "is not a drive folder written by genesis-rl (no .genesis-rl.json: notes.txt, rgb.png, summary.json)" \
+        in capsys.readouterr().err
+    assert main(["render", "--out", str(mine), "--force", "--width", "32", "--height", "24"]) == 2
+    assert "refusing to overwrite files in it" in capsys.readouterr().err
+    assert (mine / "summary.json").read_text() == '{"my": "numbers"}' and (mine / "rgb.png").read_text() == "my picture"
+    # a folder render made itself is overwritten with --force; drive adds its files beside render's
+    ours = tmp_path / "ours"
+    for _ in range(2):
+        assert main(["render", "--out", str(ours), "--force", "--width", "32", "--height", "24"]) == 0
+    assert json.loads((ours / ".genesis-rl.json").read_text())["kind"] == "render"
+    assert main(["drive", "--scene", "0", "--steps", "2", "--system", "blind", "--out", str(ours), "--no-gif",
+                 "--quiet"]) == 0
+    assert main(["drive", "--scene", "0", "--steps", "2", "--system", "blind", "--out", str(ours), "--no-gif",
+                 "--quiet", "--force"]) == 2  # a render folder, not a drive folder
+    capsys.readouterr()
+
+
+def test_folders_of_genesis_rl_0_4_0_are_recognised_by_their_content(tmp_path) -> None:
+    from genesis_rl import output_folder
+
+    def folder(name: str, files: dict[str, str]) -> Path:
+        path = tmp_path / name
+        for rel, text in files.items():
+            (path / rel).parent.mkdir(parents=True, exist_ok=True)
+            (path / rel).write_text(text)
+        return path
+
+    run = folder("run", {"config.toml": "", "run.json": '{"package": "genesis-rl"}', "tb/x": ""})
+    camp = folder("camp", {"campaign.json": '{"schema": "genesis-rl/campaign"}', "steps/a": ""})
+    drive = folder("drive", {"summary.json": "{}", "telemetry_scene_0003.parquet": "", "drive_scene_0003.gif": ""})
+    render = folder("render", {"rgb.png": "", "contact_sheet_urban.png": ""})
+    export = folder("export", {"export.json": "{}", "metadata.jsonl": "", "images/a.jpg": ""})
+    fake_run = folder("fake_run", {"config.toml": "", "run.json": '{"package": "other"}'})
+    fake_render = folder("fake_render", {"rgb.png": "", "holiday.png": ""})
+    fake_camp = folder("fake_camp", {"campaign.json": '{"schema": "something/else"}'})
+    assert {p.name: output_folder.folder_kind(p) for p in (run, camp, drive, render, export, fake_run, fake_render,
+                                                           fake_camp)} == {
+        "run": "run", "camp": "campaign", "drive": "drive", "render": "render", "export": "export",
+        "fake_run": None, "fake_render": None, "fake_camp": None}
+    output_folder.check_target(camp, "campaign", force=True)  # replaceable
+    with pytest.raises(UserInputError, match="holds a genesis-rl run output.*is it a training run"):
+        output_folder.check_target(run, "campaign", force=True)
+    with pytest.raises(UserInputError, match="no .genesis-rl.json: campaign.json"):
+        output_folder.check_target(fake_camp, "campaign", force=True)
+
+
+# --- 2. one writer per output folder ------------------------------------------------------------------------
+
+_HOLDER = """
+import sys, time
+from pathlib import Path
+from genesis_rl import output_folder
+with output_folder.hold(Path(sys.argv[1])):
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def _start_holder(folder: Path, seconds: float) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", _HOLDER, str(folder), str(seconds)], stdout=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_second_writer_is_refused_and_a_killed_writers_lock_is_taken_over(tmp_path) -> None:
+    from genesis_rl import output_folder
+
+    folder = tmp_path / "out"
+    holder = _start_holder(folder, 60)
+    try:
+        with pytest.raises(UserInputError, match=rf"output folder '{folder}' is being written by another "
+                                                 rf"genesis-rl process \(pid {holder.pid}\)"):
+            with output_folder.claim(folder, "drive", force=False, files=["summary.json"]):
+                pass
+    finally:
+        holder.kill()  # SIGKILL: no clean-up runs, the lock file stays
+        holder.wait()
+    assert output_folder.lock_path(folder).read_text().strip() == str(holder.pid)
+    with output_folder.claim(folder, "drive", force=False, files=["summary.json"]):
+        assert output_folder.lock_path(folder).read_text().strip() == str(os.getpid())
+    assert not output_folder.lock_path(folder).exists()  # released and removed
+
+
+@pytest.mark.render
+def test_two_evaluate_runs_into_one_folder_do_not_mix(tmp_path) -> None:
+    from genesis_rl import output_folder
+
+    catalog = tmp_path / "cat.json"
+    assert main(["scenes", "--map", "highway", "--count", "2", "--out", str(catalog), "--quiet"]) == 0
+    out = tmp_path / "campaign"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+
+    def evaluate(policy: str, steps: int) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "genesis_rl", "evaluate", "--policies", policy, "--catalog",
+                                 str(catalog), "--scenes", "1", "--steps", str(steps), "--system", "blind", "--out",
+                                 str(out), "--no-report", "--quiet", "--force"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+    first = evaluate("random", 48)
+    lock = output_folder.lock_path(out)
+    for _ in range(600):
+        if lock.exists() or first.poll() is not None:
+            break
+        time.sleep(0.05)
+    second = evaluate("sunny", 32)
+    _, err = second.communicate(timeout=120)
+    assert second.returncode == 2
+    assert f"output folder '{out}' is being written by another genesis-rl process (pid {first.pid})" in err
+    assert first.wait(timeout=300) == 0
+    spec = json.loads((out / "campaign.json").read_text())["spec"]
+    assert (spec["policies"], spec["steps"]) == (["random"], 48)
+    assert [p.name for p in (out / "episodes").iterdir()] == ["random"]
+    assert not lock.exists()
+
+
+# --- 7. sizes and counts that would exhaust memory or run for days ------------------------------------------
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["drive", "--scene", "0:1000000000000"],
+     "--scene '0:1000000000000' needs 1,000,000,000,000 scenes, over the limit of 100,000 scenes"),
+    (["scenes", "--count", "1000000000000"], "--count = 1,000,000,000,000, over the limit of 100,000 scenes"),
+    (["render", "--warmup", "100000000000"], "--warmup = 100,000,000,000, over the limit of 100,000 simulation"),
+    (["drive", "--steps", "100000000"], "--steps = 100,000,000, over the limit of 100,000 simulation steps"),
+    (["train", "--steps", str(10**26)], "train.total_timesteps = 100,000,000,000,000,000,000,000,000, over the "
+                                        "limit of 100,000,000 env steps"),
+])
+def test_sizes_that_would_run_for_days_are_refused(tmp_path, capsys, argv, message) -> None:
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "set GENESIS_RL_MAX_" in err and "to raise it" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_limit_is_raised_by_its_environment_variable(monkeypatch) -> None:
+    from genesis_rl.training.config import load_run_config
+
+    with pytest.raises(UserInputError, match="GENESIS_RL_MAX_TIMESTEPS"):
+        load_run_config(None, {"train": {"total_timesteps": 200_000_000}})
+    monkeypatch.setenv("GENESIS_RL_MAX_TIMESTEPS", "300000000")
+    assert load_run_config(None, {"train": {"total_timesteps": 200_000_000}}).train.total_timesteps == 200_000_000
+    monkeypatch.setenv("GENESIS_RL_MAX_TIMESTEPS", "many")
+    with pytest.raises(UserInputError, match="GENESIS_RL_MAX_TIMESTEPS = 'many' must be an integer"):
+        load_run_config(None)
