@@ -1,0 +1,130 @@
+"""A campaign's folder: created once, reopened to resume, never mixed.
+
+Layout::
+
+    campaign.json                    the spec, scenes, episode seeds, identity (version, agent and weights
+                                     hashes, rulebook), git commit
+    catalog.json                     the test catalog the scenes come from
+    episodes/<policy>/scene_NNNN.json     one summary row per episode (written last: marks it done)
+    steps/<policy>/scene_NNNN.parquet     every step: the flat columns of StepRecord
+    frames/<policy>/scene_NNNN/step_NNNN.jpg  camera frames around the first collision
+    records/<policy>_scene_NNNN.json      self-contained edge-case records (replayable)
+    summary.json, episodes.csv            written by ``summary.summarize_campaign``
+
+Resuming checks that nothing deciding the results changed (spec, package version, agent and weights
+hashes, the rulebook's content) and runs again every episode that is missing or whose files are damaged.
+Reading the files is ``campaign_files``' job.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+from genesis_rl import __version__, output_folder
+from genesis_rl.backends import catalog_or_generate
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign_files import (
+    CAMPAIGN_SCHEMA,
+    CAMPAIGN_VERSION,
+    episode_name,
+    episode_path,
+    read_episode_row,
+    read_steps,
+    steps_path,
+)
+from genesis_rl.evaluation.campaign_spec import CampaignSpec, check_spec, pick_scenes
+from genesis_rl.evaluation.policies import agent_file
+from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, read_json
+from genesis_rl.lite.scenes import DEFAULT_COUNTS
+from genesis_rl.perception.detector import file_sha256
+from genesis_rl.provenance import git_commit
+from genesis_rl.rules.rulebook import default_rulebook, load_rulebook
+from genesis_rl.system.protocol import load_system
+
+Task = tuple[str, int, int]  # (policy, scene, episode seed)
+
+
+def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
+    """What must not change between a campaign and its resumption besides the spec: the package version,
+    the agent's file, the system under test (class, weights hash) and the rulebook's content (its rules
+    and parameters, not its file's path). Summaries and reports read the rulebook from here."""
+    found = agent_file(Path(spec.agent)) if spec.agent else None
+    agent_sha = file_sha256(found) if found else None
+    system = load_system(spec.env.get("system", "builtin"), **spec.env.get("system_kwargs", {}))
+    rulebook_path = spec.env.get("rulebook")
+    try:
+        rulebook = load_rulebook(rulebook_path) if rulebook_path else default_rulebook()
+    except UserInputError as err:
+        raise UserInputError(f"env.rulebook: {err}") from None
+    return {"package_version": __version__, "agent_sha256": agent_sha,
+            "system": json.loads(json.dumps(system.identity(), default=str)),
+            "rulebook": rulebook.describe()}
+
+
+def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
+                     progress: bool = True) -> list[Task]:
+    """Create (or reopen) the campaign folder; return the tasks still to run."""
+    check_spec(spec)
+    ensure_folder_path(folder)
+    meta = folder / "campaign.json"
+    identity = campaign_identity(spec)
+    if resume:
+        if not meta.is_file():
+            raise UserInputError(f"--resume: '{folder}' is not a campaign folder (no campaign.json)")
+        saved = read_json(meta, "campaign file")
+        saved_identity = saved.get("identity", {})
+        # a key the campaign's version did not store (the rulebook before 0.5.0) cannot be compared
+        changed = sorted(k for k in identity if k in saved_identity and saved_identity[k] != identity[k])
+        if changed:
+            raise UserInputError(f"--resume: {', '.join(changed)} changed since the campaign in '{folder}' began "
+                                 "(results would mix); pass --force to start over")
+        now = json.loads(json.dumps(spec.to_json()))
+        # the agent is compared by its file's hash (in the identity above), not by how its path was spelled
+        diff = sorted(k for k in now if k != "agent" and saved.get("spec", {}).get(k) != now[k])
+        if diff:
+            raise UserInputError(f"--resume: the campaign in '{folder}' was run with other settings "
+                                 f"({', '.join(diff)}); pass the same arguments, or --force to start over")
+        pairs = [tuple(p) for p in saved["scenes"]]
+    else:
+        output_folder.check_inputs(folder, [spec.catalog, spec.agent], nested_ok=True)  # RUN/eval is the default
+        output_folder.check_target(folder, "campaign", force, resume_hint=True)
+        count = DEFAULT_COUNTS.get(spec.map, 1)
+        catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)
+        pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
+        output_folder.replace(folder, "campaign")
+        catalog.save(folder / "catalog.json")
+        atomic_write_json(meta, {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION, "package_version": __version__,
+                                 "git_commit": git_commit(), "spec": spec.to_json(), "scenes": pairs,
+                                 "identity": identity,
+                                 "catalog": {"map": catalog.map, "seed": catalog.seed,
+                                             "scenes": len(catalog.scenes)},
+                                 "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
+    return [(p, s, e) for p in spec.policies for s, e in pairs if not episode_done(folder, p, s, resume)]
+
+
+def episode_done(folder: Path, policy: str, scene: int, resume: bool) -> bool:
+    """Whether an episode's files are all there and sound. On resume, a damaged episode (its row or its steps
+    unreadable, e.g. a disk filled up or a file was edited) is set aside under ``damaged/`` and run again."""
+    row_path = episode_path(folder, policy, scene)
+    if not row_path.is_file():
+        return False
+    if not resume:
+        return True
+    try:
+        read_episode_row(row_path)
+        read_steps(steps_path(folder, policy, scene), columns=["step"])
+        return True
+    except UserInputError as err:
+        aside = folder / "damaged" / time.strftime("%Y%m%d-%H%M%S") / policy
+        aside.mkdir(parents=True, exist_ok=True)
+        for path in (row_path, steps_path(folder, policy, scene)):
+            if path.exists():
+                shutil.move(str(path), aside / path.name)
+        warnings.warn(f"{policy} {episode_name(scene)} is damaged ({err}); it is run again (the damaged files "
+                      f"are kept in '{aside}')", stacklevel=2)
+        return False

@@ -1,0 +1,98 @@
+"""What a campaign is: the policies, the held-out scenes and their seeds, and the env they play under.
+
+The paper's testing protocol: scenes picked from the test catalog by the campaign seed, each with an
+episode seed drawn from it, so NPC appearance and paths are identical across policies; 512 steps each.
+Everything here is checked before a folder is touched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.config import read_toml
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.policies import PolicyContext, load_agent, resolve_policy
+
+
+@dataclass(frozen=True)
+class CampaignSpec:
+    """Everything that decides a campaign's results (``workers`` does not)."""
+
+    policies: tuple[str, ...]
+    map: str = "highway"
+    catalog: str | None = None  # test catalog file; None: generate the map's default catalog
+    catalog_seed: int = 0
+    scenes: int = 50
+    seed: int = 0
+    steps: int = 512
+    agent: str | None = None  # run folder or .zip of the trained agent
+    env: dict[str, Any] = field(default_factory=dict)  # EnvConfig fields (from the agent's run)
+    options: dict[str, Any] = field(default_factory=dict)  # policy options (search_budget, ...)
+    records: str = "failures"  # edge-case records for: failures (collision or proximity violation), all
+    frames_before: int = 40  # steps of camera frames kept before the first collision
+    frames_after: int = 6
+    frame_stride: int = 2
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["policies"] = list(self.policies)
+        return d
+
+
+def pick_scenes(n_catalog: int, count: int, seed: int) -> list[tuple[int, int]]:
+    """(scene index, episode seed) pairs: ``count`` distinct scenes drawn by ``seed``, in catalog order."""
+    if not 1 <= count <= n_catalog:
+        raise UserInputError(f"--scenes = {count} must be in 1..{n_catalog} (the test catalog's size)")
+    rng = np.random.default_rng(seed)
+    indices = sorted(int(i) for i in rng.choice(n_catalog, size=count, replace=False))
+    return [(i, int(np.random.default_rng([seed, i]).integers(0, 2**31 - 1))) for i in indices]
+
+
+def run_folder_of(agent: Path) -> Path:
+    """The training run folder of ``--agent``: a folder, its agent.zip, or a checkpoint inside it."""
+    if agent.suffix != ".zip":
+        return agent
+    return agent.parent.parent if agent.parent.name == "checkpoints" else agent.parent
+
+
+def env_settings_for(agent: str | None, config: str | None, system: str | None) -> dict[str, Any]:
+    """The env settings policies play under: the trained agent's own (so its observation matches), else a
+    config file's [env], else the defaults; ``system`` overrides the system under test."""
+    env: dict[str, Any] = {}
+    if agent:
+        run = Path(agent)
+        run_dir = run_folder_of(run)
+        cfg_path = run_dir / "config.toml"
+        if not run.exists():
+            raise UserInputError(f"--agent '{agent}' does not exist")
+        if not cfg_path.is_file():
+            raise UserInputError(f"--agent '{agent}': no config.toml in '{run_dir}', so its env settings are unknown")
+        env = dict(read_toml(cfg_path).get("env", {}))
+    elif config:
+        env = dict(read_toml(config).get("env", {}))
+    if system:
+        env["system"] = system
+    for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps"):
+        env.pop(key, None)  # the campaign decides these
+    env["terminate_on_collision"] = False  # the protocol drives every episode for its full length
+    return env
+
+
+def check_spec(spec: CampaignSpec) -> None:
+    """Everything that can be checked before a folder is touched: policies, their options, the agent."""
+    if spec.steps < 1:
+        raise UserInputError(f"--steps = {spec.steps} must be >= 1")
+    if spec.records not in ("failures", "all"):
+        raise UserInputError(f"records = '{spec.records}' is unknown; allowed: failures, all")
+    for name in spec.policies:
+        cls = resolve_policy(name)
+        if cls.needs_agent and not spec.agent:
+            raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
+        if not cls.needs_agent:
+            cls(PolicyContext(action_dim=1, seed=spec.seed, options={**spec.options, "steps": spec.steps}))
+    if any(resolve_policy(p).needs_agent for p in spec.policies):
+        load_agent(Path(spec.agent) if spec.agent else None)
