@@ -21,6 +21,7 @@ from genesis_rl.backends import (
 )
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
+from genesis_rl.plugins import import_env_plugins
 
 
 def _weather_help() -> str:
@@ -298,6 +299,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        import_env_plugins()  # before the parser: a user's knobs are known to --weather and --help
+    except UserInputError as err:
+        print(f"genesis-rl: error: {err}", file=sys.stderr)
+        return err.exit_code
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

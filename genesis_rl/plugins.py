@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -57,7 +58,22 @@ def user_modules(classes: Iterable[type], modules: Iterable[str] = ()) -> list[s
                   and m not in ("__main__", "__mp_main__"))
 
 
-def import_modules(names: Iterable[str]) -> None:
-    """Import each module (in a worker process: the user modules the parent had registered plug-ins from)."""
+def import_modules(names: Iterable[str], field: str = "plugins") -> None:
+    """Import each module: user modules that register plug-ins at import (``register_knob``,
+    ``@register_policy``, ``@register_rule``), named by ``env.plugins`` or ``GENESIS_RL_PLUGINS``, and, in a
+    worker process, those its parent had imported. ``field`` names the setting in errors."""
     for name in names:
-        importlib.import_module(name)
+        try:
+            importlib.import_module(name)
+        except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
+            raise UserInputError(f"{field}: cannot import module '{name}': {err}") from None
+
+
+#: Environment variable: comma-separated modules the command line imports before it reads its arguments
+#: (so a knob a module declares is known to ``--weather`` and ``--help``).
+PLUGINS_VARIABLE = "GENESIS_RL_PLUGINS"
+
+
+def import_env_plugins() -> None:
+    names = [n.strip() for n in os.environ.get(PLUGINS_VARIABLE, "").split(",") if n.strip()]
+    import_modules(names, PLUGINS_VARIABLE)

@@ -166,3 +166,23 @@ def test_a_user_knob_is_turned_drawn_and_recorded_by_the_env(user_knob) -> None:
     corner = dirty[: h // 6, : w // 6].mean() / clean[: h // 6, : w // 6].mean()
     centre = dirty[h // 3: 2 * h // 3, w // 3: 2 * w // 3].mean() / clean[h // 3: 2 * h // 3, w // 3: 2 * w // 3].mean()
     assert 0.86 < corner < 0.95 and centre > 0.97
+
+
+@pytest.mark.render
+def test_a_user_knob_module_named_in_genesis_rl_plugins_reaches_the_command_line(tmp_path, monkeypatch,
+                                                                                user_knob, capsys) -> None:
+    """``GENESIS_RL_PLUGINS`` imports a user's modules before the command line is read; ``env.plugins`` does
+    the same for an env (and for training's env processes, which build their env from the config)."""
+    from genesis_rl.cli import main
+    from genesis_rl.env.genesis_env import EnvConfig
+
+    monkeypatch.setenv("GENESIS_RL_PLUGINS", "user_knob")
+    assert main(["render", "--map", "highway", "--scene", "0", "--weather", "lens_dirt=60", "--width", "64",
+                 "--height", "48", "--out", str(tmp_path / "r")]) == 0
+    assert json.loads((tmp_path / "r" / "boxes.json").read_text())["weather"]["lens_dirt"] == 60.0
+    monkeypatch.setenv("GENESIS_RL_PLUGINS", "user_knob,no_such_module_xyz")
+    assert main(["render", "--out", str(tmp_path / "x")]) == 2
+    assert "GENESIS_RL_PLUGINS: cannot import module 'no_such_module_xyz'" in capsys.readouterr().err
+    assert EnvConfig(plugins=("user_knob",), knobs=("fog_density", "lens_dirt")).knobs[1] == "lens_dirt"
+    with pytest.raises(UserInputError, match="env.plugins: cannot import module 'nope_xyz'"):
+        EnvConfig(plugins=("nope_xyz",))

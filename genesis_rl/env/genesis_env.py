@@ -21,6 +21,7 @@ from gymnasium import spaces
 from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
+from genesis_rl.plugins import import_modules
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
 from genesis_rl.sim.interface import ConnectionSettings
@@ -39,6 +40,7 @@ class EnvConfig:
     catalog_seed: int = 0
     system: str = "builtin"  # system under test: builtin, blind, oracle, yolo or package.module:Class
     system_kwargs: dict[str, Any] = field(default_factory=dict)
+    plugins: tuple[str, ...] = ()  # modules imported first: they register knobs, rules (docs/extending.md)
     knobs: tuple[str, ...] = PAPER_KNOBS  # the knobs the agent turns (action dimensions, in order)
     disabled_knobs: tuple[str, ...] = ()  # ablation: these stay at their starting value
     max_step_fraction: float = 0.05  # naturalness limit: largest change per step, as a fraction of range
@@ -59,6 +61,7 @@ class EnvConfig:
     carla_timeout: float = 10.0  # [s] per client call
 
     def __post_init__(self) -> None:
+        import_modules(self.plugins, "env.plugins")  # before the knob checks below
         if self.episode_steps < 1:
             raise UserInputError(f"env.episode_steps = {self.episode_steps} must be >= 1")
         for k in ("obs_width", "obs_height"):
