@@ -26,7 +26,7 @@ def bench_sim(physics_steps: int = 2000, frames: int = 100, render: bool = True)
     try:
         # the traffic alone: the ego on the NPC autopilot, so it stays on the road like the other 29
         with backend.create_simulation(scene, seed=0, render=False) as sim:
-            sim.traffic.ego_autopilot = True
+            sim.traffic.drive_ego_on_autopilot()
             out["physics_steps_per_s"] = _ticks_per_s(sim, physics_steps)
         # the ego at constant throttle without steering, as in the first rows of docs/benchmarks.md: it
         # leaves the road, so each step also re-anchors it to the nearest lane

@@ -91,7 +91,8 @@ class Traffic:
         self.is_npc = np.ones(n, bool)
         self.is_npc[0] = False
         self.ego_control = VehicleControl()
-        #: drive the ego with the NPC autopilot instead of ``ego_control`` (benchmarks of the traffic alone)
+        #: drive the ego with the NPC autopilot instead of ``ego_control`` (benchmarks of the traffic alone);
+        #: set it with ``drive_ego_on_autopilot``, which also gives the ego a target speed
         self.ego_autopilot = False
         self.time = 0.0
         self._contacts: set[tuple[int, int]] = set()
@@ -214,6 +215,12 @@ class Traffic:
         stopping = self.stop_timer > 0
         acc = np.where(stopping, np.minimum(acc, -self.stop_decel), acc)
         return np.clip(acc, -MAX_BRAKE, self.a_max), delta
+
+    def drive_ego_on_autopilot(self, target_speed: float = 13.9) -> None:
+        """Let the NPC autopilot drive the ego at ``target_speed`` [m/s] (50 km/h by default). The ego has no
+        autopilot parameters of its own (its target speed is 0, so the autopilot alone crawled at 0.1 m/s)."""
+        self.ego_autopilot = True
+        self.v0_base[0] = self.v0[0] = target_speed
 
     def step(self, step_index: int) -> list[Collision]:
         dt = self.dt
