@@ -12,25 +12,32 @@ import shutil
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+from tqdm import tqdm
 
 from genesis_rl import __version__, output_folder
+from genesis_rl.backends import catalog_or_generate
+from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
 from genesis_rl.provenance import git_commit
+from genesis_rl.rules.reward import RewardConfig
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, load_run_config
 
 
 def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int):  # noqa: ANN202
     def thunk():  # noqa: ANN202
-        import torch
-        from stable_baselines3.common.monitor import Monitor
-
-        from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 
         if torch_threads:
             torch.set_num_threads(torch_threads)
@@ -42,11 +49,6 @@ def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: 
 
 
 def build_vec_env(cfg: RunConfig, catalog_path: Path):  # noqa: ANN201
-    from dataclasses import asdict, replace
-
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
-    from genesis_rl.rules.reward import RewardConfig
 
     env_cfg = replace(cfg.env, catalog=str(catalog_path))
     d = asdict(env_cfg)
@@ -62,8 +64,6 @@ class _Callbacks:
     @staticmethod
     def make(run: Path, cfg: RunConfig, start_steps: int, progress: bool,
              episode_sums: dict[int, dict[str, Any]] | None = None):  # noqa: ANN205
-        from stable_baselines3.common.callbacks import BaseCallback
-        from tqdm import tqdm
 
         knobs = list(cfg.env.knobs)
 
@@ -149,7 +149,6 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
             raise UserInputError(f"--steps {total_timesteps}: the run in '{out}' has trained {done} steps already; "
                                  f"allowed: --steps >= {done}")
         return cfg  # written back to config.toml once the checkpoint has loaded
-    from genesis_rl.backends import catalog_or_generate
 
     # the catalog is resolved before an old run is removed, so a bad catalog setting loses nothing
     catalog = catalog_or_generate(cfg.env.catalog, cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed,
@@ -185,9 +184,6 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
 
 
 def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> dict[str, Any]:
-    import torch
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.logger import configure
 
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
