@@ -400,7 +400,7 @@ def test_an_episode_whose_simulator_dies_is_retried_after_reconnecting(tmp_path,
     (lambda r: r.update(step_digest=5), "field 'step_digest' = '5'; allowed: a hex string or null"),
     (lambda r: r["violations"].update(collision="x"), "field 'violations.collision' = 'x'; allowed: a number"),
 ])
-def test_a_hand_edited_record_is_refused_naming_the_field(tmp_path, campaign: Path, capsys, edit, message) -> None:
+def test_a_hand_edited_record_is_refused_naming_the_field(tmp_path, hit: dict, capsys, edit, message) -> None:
     rec = json.loads((hit["record"]).read_text())
     edit(rec)
     bad = tmp_path / "bad.json"
@@ -422,10 +422,11 @@ def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Pat
     assert main(["report", str(copy), "--force"]) == 2
     assert f"'{episode}' is damaged: field 'collision_events' = 'two'; expected an integer" in capsys.readouterr().err
     episode.write_text(json.dumps(row))
+    assert main(["report", str(copy), "--force"]) == 0
     # a user error is reported as itself, not as damage (it was "holds a damaged or foreign file" before)
     assert main(["report", str(copy)]) == 2
     err = capsys.readouterr().err
-    assert "exists; pass --force to rebuild it" in err and "damaged" not in err
+    assert "exists; pass --force to rebuild it" in err and "is damaged" not in err and "foreign" not in err
     # a truncated step file is named where it is read
     hit_dir = sorted(p for p in (copy / "frames").glob("*/*") if p.is_dir())[0]
     steps = copy / "steps" / hit_dir.parent.name / f"{hit_dir.name}.parquet"
