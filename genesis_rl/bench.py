@@ -6,7 +6,7 @@ import platform
 import time
 
 from genesis_rl.knobs import Weather
-from genesis_rl.lite.backend import LiteBackend
+from genesis_rl.lite.backend import LiteBackend, LiteSimulation
 from genesis_rl.lite.scenes import generate_catalog
 from genesis_rl.sim.interface import CameraConfig, Simulation, VehicleControl
 
@@ -26,6 +26,7 @@ def bench_sim(physics_steps: int = 2000, frames: int = 100, render: bool = True)
     try:
         # the traffic alone: the ego on the NPC autopilot, so it stays on the road like the other 29
         with backend.create_simulation(scene, seed=0, render=False) as sim:
+            assert isinstance(sim, LiteSimulation)  # LiteBackend builds LiteSimulations
             sim.traffic.drive_ego_on_autopilot()
             out["physics_steps_per_s"] = _ticks_per_s(sim, physics_steps)
         # the ego at constant throttle without steering, as in the first rows of docs/benchmarks.md: it
@@ -79,6 +80,7 @@ def bench_system(frames: int = 200, batch: int = 16, steps: int = 200, system: s
             rgbs = []
             for _ in range(batch):
                 loop.advance(Weather.default())
+                assert loop.frame is not None  # set by start() and advance()
                 rgbs.append(loop.frame.rgb)
             detector = getattr(sut, "detector", None)
             if detector is not None:

@@ -55,7 +55,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         if not isinstance(value, str):
             raise UserInputError(f"{key} = {value!r} must be a string")
         return value
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):  # a class, never an instance, in an annotation
         return from_mapping(tp, value, key)
     return value
 

@@ -14,6 +14,8 @@ from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Catalog, Scene
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from genesis_rl.sim.interface import Backend
 
 
@@ -106,7 +108,7 @@ def _drive_scenes(catalog: Catalog, scene_indices: list[int], system_spec: str, 
         bar = tqdm(scene_indices, desc="scenes", unit="scene", disable=not progress or single)
         for i in bar:
             scene: Scene = catalog.scene(i)
-            frames = []
+            frames: list[np.ndarray] = []
 
             def hook(step: int, frame, out_, rec, frames=frames) -> None:  # noqa: ANN001
                 if gif and step >= gif_from and (step - gif_from) % gif_stride == 0:

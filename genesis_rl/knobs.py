@@ -244,12 +244,12 @@ def parse_weather(text: str, base: Weather | None = None) -> Weather:
             continue
         if "=" not in part:
             if i == 0:
-                weather = Weather.from_partial(PRESETS.get(part, {}), base=weather) if part in PRESETS else None
-                if weather is None:
+                if part not in PRESETS:
                     raise UserInputError(
                         f"--weather: '{part}' is neither KNOB=VALUE nor a preset; presets: {', '.join(PRESETS)}; "
                         f"knobs: {', '.join(KNOBS)}"
                     )
+                weather = Weather.from_partial(PRESETS[part], base=weather)
                 continue
             raise UserInputError(f"--weather: malformed item '{part}'; expected KNOB=VALUE, e.g. fog_density=60")
         name, _, raw = part.partition("=")

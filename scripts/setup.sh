@@ -2,7 +2,7 @@
 # Set up GENESIS-RL in ./.venv on a fresh machine: idempotent, safe to re-run.
 # - torch: installs the CPU build torch==2.13.0 only where no torch is importable
 #   (a bare `torch` requirement would pull a multi-GB CUDA build); an existing torch is kept.
-# - the package itself in editable mode with the extras in GENESIS_EXTRAS (default: dev = pytest, ruff;
+# - the package itself in editable mode with the extras in GENESIS_EXTRAS (default: dev = pytest, ruff, mypy;
 #   scripts/test.sh adds carla, the CARLA client, for the offline CARLA tests).
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up (if needed), lint, and run the whole test suite, slow tests included as a second step.
+# Set up (if needed), lint, type-check, and run the whole test suite, slow tests included as a second step.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 GENESIS_EXTRAS=dev,carla bash scripts/setup.sh
@@ -9,5 +9,7 @@ if .venv/bin/python -c "import sys; sys.exit(sys.version_info[:2] != (3, 11))"; 
 fi
 echo "[test] ruff"
 .venv/bin/ruff check genesis_rl tests
+echo "[test] mypy"
+.venv/bin/mypy genesis_rl
 echo "[test] pytest (all tests, slow and render ones included)"
 .venv/bin/python -m pytest -q "$@"

@@ -131,8 +131,10 @@ class CarlaSimulation(Simulation):
                  render: bool) -> None:
         self._backend = backend
         self.scene, self.seed, self.camera, self.render = scene, int(seed), camera, bool(render)
-        self._weather, self._applied_weather = weather, None
-        self._control, self._applied_control = VehicleControl(), None
+        self._weather = weather
+        self._applied_weather: Weather | None = None  # what the server has; None: nothing sent yet
+        self._control = VehicleControl()
+        self._applied_control: VehicleControl | None = None
         self._step = 0
         self._actors: dict[int, Any] = {}  # scene index -> carla.Vehicle
         self._index_of: dict[int, int] = {}  # carla actor id -> scene index

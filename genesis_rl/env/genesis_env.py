@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import gymnasium as gym
@@ -24,8 +24,11 @@ from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weath
 from genesis_rl.plugins import import_modules
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
-from genesis_rl.sim.interface import ConnectionSettings
+from genesis_rl.sim.interface import ConnectionSettings, Simulation
 from genesis_rl.step_record import StepRecord
+
+if TYPE_CHECKING:
+    from genesis_rl.drive import ClosedLoop
 
 ENV_ID = "genesis_rl/Weather-v0"
 
@@ -165,8 +168,8 @@ class GenesisEnv(gym.Env):
             self.observation_space = image
         self.action_space = spaces.Box(-1.0, 1.0, (self.mapper.action_dim,), np.float32)
 
-        self._sim = None
-        self._loop = None
+        self._sim: Simulation | None = None
+        self._loop: ClosedLoop | None = None
         self.weather = self.start_weather
         self.records: list[StepRecord] = []
         self.scene_index = -1

@@ -15,7 +15,7 @@ import numpy as np
 N_BOOT = 10_000
 
 
-def bootstrap_mean_ci(values: Sequence[float], seed: int, n_boot: int = N_BOOT,
+def bootstrap_mean_ci(values: Sequence[float] | np.ndarray, seed: int, n_boot: int = N_BOOT,
                       level: float = 0.95) -> dict[str, float | int | None]:
     """Mean and percentile bootstrap CI of the mean (None when there are no values: JSON has no NaN)."""
     x = np.asarray(values, np.float64)

@@ -83,11 +83,12 @@ class LiteSimulation(Simulation):
     def actors(self) -> list[ActorState]:
         t = self.traffic
         p = self.poses()
-        return [
-            ActorState(i, v.role, v.make, *map(float, p[i]), float(t.v[i]), float(t.length[i]),
-                       float(t.width[i]), float(t.height[i]))
-            for i, v in enumerate(self.scene.vehicles)
-        ]
+        out = []
+        for i, v in enumerate(self.scene.vehicles):
+            x, y, z, yaw, pitch = map(float, p[i])  # poses(): one row of x, y, z, yaw, pitch per vehicle
+            out.append(ActorState(i, v.role, v.make, x, y, z, yaw, pitch, float(t.v[i]), float(t.length[i]),
+                                  float(t.width[i]), float(t.height[i])))
+        return out
 
     def lead(self) -> LeadInfo | None:
         return self.traffic.lead()

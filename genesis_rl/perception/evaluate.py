@@ -33,6 +33,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -208,7 +209,7 @@ def measure_speed(detector, batch_size: int = 16, batches: int = 10, num_threads
     old = torch.get_num_threads()
     torch.set_num_threads(num_threads)
     try:
-        w, h = size or getattr(detector, "input_size", (320, 240))
+        w, h = size or cast("tuple[int, int]", getattr(detector, "input_size", (320, 240)))
         rng = np.random.default_rng(0)
         frames = rng.integers(0, 256, (batch_size, h, w, 3), dtype=np.uint8)
         detector.detect_batch(frames)  # warm-up

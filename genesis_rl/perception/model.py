@@ -79,6 +79,9 @@ class VehicleDetectorNet(nn.Module):
     "size": log(w, h) in pixels (B,2,h,w), "offset": sub-cell offset (B,2,h,w)}``.
     """
 
+    mean: torch.Tensor  # buffers (register_buffer), typed here for the checker
+    std: torch.Tensor
+
     def __init__(self, config: DetectorModelConfig | None = None) -> None:
         super().__init__()
         self.config = cfg = config or DetectorModelConfig()
@@ -100,12 +103,14 @@ class VehicleDetectorNet(nn.Module):
         self.heatmap = nn.Conv2d(f, 1, 1)
         self.size = nn.Conv2d(f, 2, 1)
         self.offset = nn.Conv2d(f, 2, 1)
-        nn.init.constant_(self.heatmap.bias, HEATMAP_BIAS_INIT)
+        heatmap_bias, size_bias, offset_bias = self.heatmap.bias, self.size.bias, self.offset.bias
+        assert heatmap_bias is not None and size_bias is not None and offset_bias is not None  # bias=True
+        nn.init.constant_(heatmap_bias, HEATMAP_BIAS_INIT)
         nn.init.normal_(self.heatmap.weight, std=0.01)
         nn.init.normal_(self.size.weight, std=0.01)
-        nn.init.constant_(self.size.bias, math.log(16.0))
+        nn.init.constant_(size_bias, math.log(16.0))
         nn.init.normal_(self.offset.weight, std=0.01)
-        nn.init.constant_(self.offset.bias, 0.5)
+        nn.init.constant_(offset_bias, 0.5)
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         x = (x - self.mean) / self.std

@@ -249,7 +249,8 @@ def train_detector(config: DetectorTrainConfig | None = None, out_dir: str | Pat
     torch.manual_seed(int(init_seed.generate_state(1)[0]))
     rng = np.random.default_rng(shuffle_ss)
     mcfg = cfg.model_config()
-    net = VehicleDetectorNet(mcfg).to(memory_format=torch.channels_last)
+    # Module.to takes memory_format at run time, but torch's overloads for it omit the keyword
+    net = VehicleDetectorNet(mcfg).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = math.ceil(len(train) / cfg.batch_size)
     total_steps = steps_per_epoch * cfg.epochs

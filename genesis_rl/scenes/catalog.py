@@ -150,7 +150,8 @@ def _vehicle(d: Any, where: str) -> VehicleSpec:
     next_lane = _req(d, "next_lane", int, where)
     s, x, y = _number(d, "s", where), _number(d, "x", where), _number(d, "y", where)
     yaw, speed = _number(d, "yaw", where), _number(d, "speed", where, 0.0)
-    return VehicleSpec(role, make, _req(d, "color_name", str, where), tuple(float(c) for c in color), lane,
+    r, g, b = (float(c) for c in color)
+    return VehicleSpec(role, make, _req(d, "color_name", str, where), (r, g, b), lane,
                        s, x, y, yaw, speed, next_lane, _autopilot(d, role, where))
 
 

@@ -18,13 +18,16 @@ import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, SupportsFloat, cast
 
 import gymnasium as gym
 import numpy as np
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
+
+if TYPE_CHECKING:
+    from genesis_rl.env.genesis_env import GenesisEnv
 
 CHECKPOINTS = "checkpoints"
 STATE_FORMAT = 1
@@ -52,14 +55,14 @@ class EpisodeLog(gym.Wrapper):
         self._obs_digest = _digest(obs)
         return obs, info
 
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._actions.append(np.asarray(action).tolist())
         self._obs_digest = _digest(obs)
         return obs, reward, terminated, truncated, info
 
     def resume_state(self) -> dict[str, Any]:
-        u = self.unwrapped
+        u = cast("GenesisEnv", self.unwrapped)  # the env this wrapper is put around
         return {"scene": int(u.scene_index), "episode_seed": int(u.episode_seed), "actions": self._actions,
                 "action_dtype": str(self.action_space.dtype), "obs_sha256": self._obs_digest,
                 "np_random": u.np_random.bit_generator.state}
@@ -81,7 +84,9 @@ def _trainer_rng() -> dict[str, Any]:
     import torch
 
     version, internal, gauss = random.getstate()
-    name, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 - SB3 shuffles minibatches with it
+    # SB3 shuffles minibatches with the global generator; an MT19937, so its state is the legacy tuple
+    legacy = cast("tuple[str, np.ndarray, int, int, float]", np.random.get_state())  # noqa: NPY002
+    name, keys, pos, has_gauss, cached = legacy
     state = {"python": [version, list(internal), gauss],
              "numpy": [name, keys.tolist(), int(pos), int(has_gauss), float(cached)],
              "torch": base64.b64encode(torch.get_rng_state().numpy().tobytes()).decode()}
@@ -219,5 +224,6 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int) -> Resumed
         _set_trainer_rng(state["trainer_rng"])  # last: PPO.load reseeded them, and replaying may draw
         sums = {int(i): a for i, a in state["episode_sums"].items()}
     except (KeyError, TypeError, ValueError, IndexError) as err:
+        assert state_path is not None  # the state was read from it
         raise _damaged(state_path, f"{type(err).__name__}: {err}") from None
     return Resumed(model, steps, sums)

@@ -46,8 +46,8 @@ def annotate_frame(rgb: np.ndarray, record: StepRecord, scale: int = 1) -> np.nd
     font_scale = 0.8 * img.shape[1] / 320.0
     pitch = int(round(12 * img.shape[1] / 320.0))
     strip = np.full((pitch * len(lines) + 6, img.shape[1], 3), 20, np.uint8)
-    for k, text in enumerate(lines):
-        cv2.putText(strip, text, (4, pitch * (k + 1)), cv2.FONT_HERSHEY_PLAIN, font_scale, (235, 235, 235), 1,
+    for row, text in enumerate(lines):
+        cv2.putText(strip, text, (4, pitch * (row + 1)), cv2.FONT_HERSHEY_PLAIN, font_scale, (235, 235, 235), 1,
                     cv2.LINE_AA)
     return np.vstack([img, strip])
 

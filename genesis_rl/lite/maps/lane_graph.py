@@ -334,10 +334,10 @@ def build_network(spec: NetworkSpec) -> tuple[list[Lane], list[Road], list[Junct
                 lane = Lane(len(lanes), rid, -1, k, xy)
                 lanes.append(lane)
                 bucket.append(lane.id)
-        for group in (road.forward_lanes, road.backward_lanes):
-            for k, lid in enumerate(group):
-                lanes[lid].left = group[k - 1] if k > 0 else -1
-                lanes[lid].right = group[k + 1] if k + 1 < len(group) else -1
+        for side in (road.forward_lanes, road.backward_lanes):
+            for k, lid in enumerate(side):
+                lanes[lid].left = side[k - 1] if k > 0 else -1
+                lanes[lid].right = side[k + 1] if k + 1 < len(side) else -1
         roads.append(road)
         node_roads[a].append(rid)
         node_roads[b].append(rid)

@@ -281,7 +281,8 @@ class LiteRenderer:
         for idx, make, color in vehicles:
             if idx == 0:
                 continue
-            vm = build_vehicle_model(make, tuple(color), L.vehicle_label(idx))
+            r, g, b = color
+            vm = build_vehicle_model(make, (r, g, b), L.vehicle_label(idx))
             vm.root.reparent_to(self.root)
             vm.root.hide()
             self._vehicles[int(idx)] = vm
@@ -408,14 +409,17 @@ class LiteRenderer:
         h, w = self.height, self.width
         data = memoryview(tex.get_ram_image())
         ct = tex.get_component_type()
+        d: np.ndarray
         if ct == Texture.T_float:
             d = np.frombuffer(data, np.float32).reshape(h, w)
         elif ct == Texture.T_unsigned_int_24_8:
-            if self._depth_u32 is None:
-                self._depth_u32, self._depth_f64 = np.empty((h, w), np.uint32), np.empty((h, w), np.float64)
-            np.right_shift(np.frombuffer(data, np.uint32).reshape(h, w), 8, out=self._depth_u32)
-            np.copyto(self._depth_f64, self._depth_u32)
-            return np.divide(self._depth_f64, float(2**24 - 1), out=self._depth_f64)
+            u32, f64 = self._depth_u32, self._depth_f64
+            if u32 is None or f64 is None:  # both are made together, on the first read
+                u32, f64 = np.empty((h, w), np.uint32), np.empty((h, w), np.float64)
+                self._depth_u32, self._depth_f64 = u32, f64
+            np.right_shift(np.frombuffer(data, np.uint32).reshape(h, w), 8, out=u32)
+            np.copyto(f64, u32)
+            return np.divide(f64, float(2**24 - 1), out=f64)
         elif ct == Texture.T_unsigned_int:
             d = np.frombuffer(data, np.uint32).reshape(h, w).astype(np.float64) / float(2**32 - 1)
         elif ct == Texture.T_unsigned_short:

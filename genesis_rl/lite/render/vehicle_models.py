@@ -146,9 +146,9 @@ class _Mesh:
             "front": ([(x0, y1, z0), (x0, y1, z1), (x1, y1, z1), (x1, y1, z0)], (0, 1, 0)),
             "rear": ([(x0, y0, z0), (x1, y0, z0), (x1, y0, z1), (x0, y0, z1)], (0, -1, 0)),
         }
-        for name, (pts, out) in faces.items():
+        for name, ((a, b, c, d), out) in faces.items():
             if name not in skip:
-                self.quad(*pts, role=role, out=out)
+                self.quad(a, b, c, d, role=role, out=out)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         return (
@@ -190,8 +190,8 @@ def _decal(
 ) -> None:
     """A panel on a (planar) face quad c00,c10,c11,c01, in its (u, v) coordinates, lifted off the face."""
     n = _unit_normal(*quad)
-    pts = [_offset(_bilerp(*quad, u, v), n, lift) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
-    m.quad(*pts, role=role, out=n, shades=shades)
+    a, b, c, d = (_offset(_bilerp(*quad, u, v), n, lift) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1)))
+    m.quad(a, b, c, d, role=role, out=n, shades=shades)
 
 
 # --- make specifications ------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ Vehicle lights are pixels of a vehicle label with a channel above 204 at night; 
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import cv2
 import numpy as np
@@ -347,7 +348,7 @@ class WeatherCompositor:
             # they stay visible through fog (attenuated by the gain) and glow: forward scattering spreads
             # them into halos, larger the denser the air.
             gain_h = cv2.resize(gain, (hw, hh), dst=self._h1[3], interpolation=cv2.INTER_AREA)
-            src = cv2.multiply(lights, _three(gain_h), dst=self._h3[4])
+            src: np.ndarray = cv2.multiply(lights, _three(gain_h), dst=self._h3[4])
             src *= np.float32(_LIGHT_EXCESS * lighting.headlight_strength)
             haze = 1.0 - math.exp(-beta_excess * 30.0)
             quarter = cv2.resize(src, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
@@ -481,7 +482,7 @@ class WeatherCompositor:
         if cv2.countNonZero(gloss) == 0:
             return None
         # Full resolution: darkening and the light lost to reflection.
-        wb = cv2.LUT(sub_lab, dark_lut, dst=b[9][:hs])
+        wb: np.ndarray = cv2.LUT(sub_lab, dark_lut, dst=b[9][:hs])
         np.subtract(1.0, wb, out=wb)
         fresnel = self._fresnel(self._row_yn[y0:], cp, sp)
         refl = np.multiply(gloss, fresnel, out=gloss)
@@ -489,7 +490,7 @@ class WeatherCompositor:
         np.multiply(wb, refl, out=wb)
         has_puddles = puddle_s > 0.0 and bool((lab_h == L.PUDDLE).any())
         if has_puddles:
-            pm = cv2.LUT(sub_lab, self._puddle_lut, dst=b[8][:hs])
+            pm: np.ndarray = cv2.LUT(sub_lab, self._puddle_lut, dst=b[8][:hs])
             pm *= np.float32(puddle_s)
             rp = 0.6 + 0.4 * fresnel
             wb *= 1.0 - pm
@@ -510,12 +511,13 @@ class WeatherCompositor:
         mirror_rows = np.clip(np.rint(2.0 * hz - np.arange(y0h, hh)).astype(np.intp), 0, hh - 1)
         sharp = np.take(img_h, mirror_rows, axis=0, out=self._h3[1][:hsh])
         # Rough asphalt: reflections smear mostly vertically (a sun or a lamp becomes a streak).
-        mirror = cv2.blur(sharp, (3, max(3, (hh // 24) | 1)), dst=self._h3[2][:hsh])
+        mirror: np.ndarray = cv2.blur(sharp, (3, max(3, (hh // 24) | 1)), dst=self._h3[2][:hsh])
         mirror *= np.float32(0.8)
         hor = [c * 0.2 * 255.0 for c in lighting.sky_horizon]
-        cv2.add(mirror, (hor[0], hor[1], hor[2], 0.0), dst=mirror)
+        # OpenCV takes a Scalar (a 4-tuple) as src2; its stubs admit only arrays there
+        cv2.add(mirror, cast("cv2.typing.MatLike", (hor[0], hor[1], hor[2], 0.0)), dst=mirror)
         if has_puddles:
-            pm_h = cv2.LUT(sub_lab_h, self._puddle_lut, dst=h1[2][:hsh])
+            pm_h: np.ndarray = cv2.LUT(sub_lab_h, self._puddle_lut, dst=h1[2][:hsh])
             pm_h *= np.float32(puddle_s)
             refl_h *= 1.0 - pm_h
             ws = np.multiply(pm_h, 0.6 + 0.4 * fresnel_h, out=pm_h)
