@@ -126,7 +126,7 @@ def summarize_campaign(folder: Path, write: bool = True,
 
 def summary_rule_metrics(summary: dict[str, Any]) -> list[str]:
     """The rule columns of a summary (violations and ``total``), in its order, read from the summary itself."""
-    stats = next(iter(summary["policies"].values()), {})
+    stats: dict[str, Any] = next(iter(summary["policies"].values()), {})
     return [k for k, v in stats.items() if isinstance(v, dict) and "mean" in v and k not in OTHER_METRICS]
 
 

@@ -70,7 +70,7 @@ class _Callbacks:
         class TrainingCallback(BaseCallback):
             def __init__(self) -> None:
                 super().__init__()
-                self.bar = None
+                self.bar: Any = None  # a tqdm bar, made in _on_training_start
                 # per env, the sums of the episode it is in; a checkpoint keeps them (an episode may span one)
                 self.acc: dict[int, dict[str, Any]] = dict(episode_sums or {})
                 self.last_ckpt = start_steps
