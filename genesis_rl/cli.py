@@ -21,6 +21,7 @@ from genesis_rl.backends import (
 )
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import os_error_message
 
 
 def _weather_help() -> str:
@@ -305,6 +306,12 @@ def main(argv: list[str] | None = None) -> int:
     except UserInputError as err:
         print(f"genesis-rl {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
+    except OSError as err:  # permission, read-only, disk full, name too long: the machine's, not a bug
+        message = os_error_message(err)
+        if message is None:
+            raise
+        print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
+        return UserInputError.exit_code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -198,6 +198,7 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> 
     from stable_baselines3 import PPO
     from stable_baselines3.common.logger import configure
 
+    cfg.ppo.check_device_present()
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     p = cfg.ppo
