@@ -6,6 +6,7 @@ import errno
 import json
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -61,6 +62,18 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
     except BaseException:  # KeyboardInterrupt: clean up, and let it through as it is
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def remove_tree(path: Path) -> None:
+    """``shutil.rmtree``, its error naming the full path of the entry it could not remove (rmtree's own error
+    names it relative to the folder it was in)."""
+    def named(func: Any, entry: str, exc_info: Any) -> None:
+        err = exc_info[1]
+        if isinstance(err, OSError) and err.errno is not None:
+            raise OSError(err.errno, err.strerror, entry) from err
+        raise err
+
+    shutil.rmtree(path, onerror=named)  # onexc from Python 3.12; onerror works on 3.10 to 3.13
 
 
 def _naming(err: BaseException, path: Path) -> OSError | None:

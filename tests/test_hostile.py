@@ -64,7 +64,7 @@ def test_a_writer_failing_on_a_full_disk_is_named_as_a_full_disk(tmp_path, monke
         io_utils.atomic_write(tmp_path / "w.pt", _raiser(RuntimeError("a bug")))
     # pyarrow's wording: "[errno 28]" in the message of an OSError without errno
     with pytest.raises(OSError) as caught:
-        io_utils.atomic_write(tmp_path / "t.parquet", _raiser(OSError("Error writing bytes. Detail: [errno 28] No space")))
+        io_utils.atomic_write(tmp_path / "t.parquet", _raiser(OSError("Error writing. Detail: [errno 28] No space")))
     assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(tmp_path / "t.parquet")
     assert os.listdir(tmp_path) == []
 

@@ -115,8 +115,12 @@ def truncate_csv(path: Path, rows: int) -> None:
     """Keep the header and the first ``rows`` rows: rows written after the checkpoint are trained again."""
     if not path.is_file():
         return
-    with path.open(newline="") as fh:
-        lines = list(csv.reader(fh))
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            lines = list(csv.reader(fh))
+    except (UnicodeDecodeError, csv.Error) as err:  # not the checkpoint's damage: name the file that is
+        raise UserInputError(f"--resume: the episode log '{path}' is damaged ({err}); move it away to resume "
+                             "without it, or start the run again with --force") from None
     if len(lines) - 1 > rows:
         def write(p: Path) -> None:
             with p.open("w", newline="") as fh:
