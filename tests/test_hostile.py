@@ -233,3 +233,47 @@ def test_a_failed_export_leaves_no_partial_folder(campaign, tmp_path, capsys, mo
     assert main(["export", str(campaign), "--out", str(tmp_path / "ex")]) == 2
     assert f"frame '{frame}' is damaged" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == ["f.jpg"]  # neither ex/, .ex.partial/ nor a lock file
+
+
+# -- found by the sweep --------------------------------------------------------------------------------
+def test_a_full_disk_while_locking_is_named_and_leaves_no_lock_file(tmp_path, monkeypatch) -> None:
+    from genesis_rl import output_folder
+
+    monkeypatch.setattr(output_folder.os, "pwrite", _raiser(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
+    with pytest.raises(UserInputError, match=r"cannot lock output folder '.*out': '.*\.out\.genesis-rl\.lock': No "
+                                             r"space left on device \(ENOSPC\)"):
+        with output_folder.hold(tmp_path / "out"):
+            pass
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_folder_that_cannot_be_removed_is_named_in_full(tmp_path, monkeypatch) -> None:
+    (tmp_path / "ex" / "images").mkdir(parents=True)
+    (tmp_path / "ex" / "images" / "a.jpg").write_text("x")
+    monkeypatch.setattr(os, "unlink", _raiser(OSError(errno.EROFS, os.strerror(errno.EROFS), "a.jpg")))
+    with pytest.raises(OSError) as caught:
+        io_utils.remove_tree(tmp_path / "ex")
+    assert caught.value.filename == str(tmp_path / "ex" / "images" / "a.jpg")  # rmtree's own: 'a.jpg'
+
+
+def test_train_resume_names_a_damaged_episode_log(tmp_path) -> None:
+    from genesis_rl.training.checkpoint import truncate_csv
+
+    log = tmp_path / "episodes.csv"
+    log.write_bytes(bytes(range(256)))
+    with pytest.raises(UserInputError, match=r"the episode log '.*episodes\.csv' is damaged"):
+        truncate_csv(log, 3)
+
+
+def test_evaluate_steps_that_would_run_for_days_are_refused(tmp_path, capsys) -> None:
+    assert main(["evaluate", "--policies", "sunny", "--steps", "999999999", "--out", str(tmp_path / "c")]) == 2
+    assert "--steps = 999,999,999, over the limit of 100,000 simulation steps" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_folder_as_schedule_is_called_a_folder(tmp_path) -> None:
+    from genesis_rl.knobs import parse_weather
+    from genesis_rl.weather_schedule import load_schedule
+
+    with pytest.raises(UserInputError, match="schedule '.*' is a folder; expected a CSV file"):
+        load_schedule(tmp_path, parse_weather("clear_noon"), 5)
