@@ -179,6 +179,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_sim, bench_system, bench_train
 
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 512}[args.what]
+    least = 2 if args.what == "train" else 1  # a PPO update needs two steps
+    if steps < least:
+        raise UserInputError(f"--steps = {steps} must be >= {least}")
+    if args.frames < 1:
+        raise UserInputError(f"--frames = {args.frames} must be >= 1")
+    limits.SIM_STEPS.check(steps, "--steps")
     if args.what == "train":
         print(json.dumps(bench_train(n_steps=steps, system=args.system), indent=2))
         return 0

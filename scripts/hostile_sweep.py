@@ -424,7 +424,7 @@ def build_cases() -> None:  # noqa: PLR0915 - a list
     case("replay", RP + ["bin.json"], setup=write("bin.json", BIN))
     case("replay", RP + ["list.json"], setup=write("list.json", "[]"))
     case("replay", RP + ["rec.json"], "a truncated record", setup=chain(copy("record.json", "rec.json"), truncate_first("rec.json", 200)))
-    case("replay", RP + ["rec.json"], "record schedule holds NaN",
+    case("replay", RP + ["rec.json"], "record start_weather holds NaN",
          setup=chain(copy("record.json", "rec.json"), edit_json("rec.json", put("fog_density", "NaN"), raw=True)))
     case("replay", RP + ["rec.json"], "record without its scene",
          setup=chain(copy("record.json", "rec.json"), edit_json("rec.json", lambda r: {k: v for k, v in r.items() if k != "scene"})))

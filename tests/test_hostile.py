@@ -277,3 +277,20 @@ def test_a_folder_as_schedule_is_called_a_folder(tmp_path) -> None:
 
     with pytest.raises(UserInputError, match="schedule '.*' is a folder; expected a CSV file"):
         load_schedule(tmp_path, parse_weather("clear_noon"), 5)
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["bench", "sim", "--steps", "10", "--frames", "0"], "--frames = 0 must be >= 1"),  # was ZeroDivisionError
+    (["bench", "train", "--steps", "1"], "--steps = 1 must be >= 2"),  # was SB3's AssertionError
+    (["bench", "sim", "--steps", "-1"], "--steps = -1 must be >= 1"),  # was accepted
+])
+def test_bench_refuses_counts_it_cannot_time(capsys, argv, message) -> None:
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_a_recorded_weather_holding_nan_is_refused() -> None:
+    from genesis_rl.knobs import Weather
+
+    with pytest.raises(UserInputError, match=r"non-finite knob value\(s\) \{'fog_density': nan\}"):
+        Weather.from_recorded({"fog_density": float("nan")})  # replay of a damaged record exited 0

@@ -222,6 +222,8 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int) -> Resumed
                 raise UserInputError(f"--resume: env {i}: {problem}; start the run again with --force")
         _set_trainer_rng(state["trainer_rng"])  # last: PPO.load reseeded them, and replaying may draw
         sums = {int(i): a for i, a in state["episode_sums"].items()}
+    except UserInputError:  # a ValueError, but one that names its own file
+        raise
     except (KeyError, TypeError, ValueError, IndexError) as err:
         raise _damaged(state_path, f"{type(err).__name__}: {err}") from None
     return Resumed(model, steps, sums)
