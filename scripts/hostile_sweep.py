@@ -16,6 +16,7 @@ Where these are not possible the case is reported as skipped.
 Writes ``WORK/results.json`` and prints a Markdown table (``--md`` writes it to a file).
 """
 
+# ruff: noqa: E501 - the cases are a table, one a line
 from __future__ import annotations
 
 import argparse
@@ -473,7 +474,7 @@ def build_cases() -> None:  # noqa: PLR0915 - a list
 # -- running ------------------------------------------------------------------------------------------
 def snapshot(root: Path) -> dict[str, str]:
     out = {}
-    for dirpath, dirnames, filenames in os.walk(root):
+    for dirpath, _, filenames in os.walk(root):
         for name in filenames:
             p = Path(dirpath) / name
             try:
