@@ -21,6 +21,7 @@ from genesis_rl.backends import (
 )
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import os_error_message
 from genesis_rl.plugins import import_env_plugins
 
 
@@ -179,6 +180,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_sim, bench_system, bench_train
 
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 512}[args.what]
+    least = 2 if args.what == "train" else 1  # a PPO update needs two steps
+    if steps < least:
+        raise UserInputError(f"--steps = {steps} must be >= {least}")
+    if args.frames < 1:
+        raise UserInputError(f"--frames = {args.frames} must be >= 1")
+    limits.SIM_STEPS.check(steps, "--steps")
     if args.what == "train":
         print(json.dumps(bench_train(n_steps=steps, system=args.system), indent=2))
         return 0
@@ -311,6 +318,12 @@ def main(argv: list[str] | None = None) -> int:
     except UserInputError as err:
         print(f"genesis-rl {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
+    except OSError as err:  # permission, read-only, disk full, name too long: the machine's, not a bug
+        message = os_error_message(err)
+        if message is None:
+            raise
+        print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
+        return UserInputError.exit_code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

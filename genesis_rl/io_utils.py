@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -19,7 +22,7 @@ def ensure_writable(path: Path, force: bool) -> None:
     if path.is_dir():
         raise UserInputError(f"output '{path}' is a directory; expected a file path")
     ensure_folder_path(path.parent, flag="output folder")
-    if path.exists() and not force:
+    if (path.exists() or path.is_symlink()) and not force:  # a dangling link is the user's too
         raise UserInputError(f"output '{path}' already exists; pass --force to overwrite it")
 
 
@@ -34,10 +37,15 @@ def ensure_folder_path(path: Path, flag: str = "--out") -> None:
 
 
 def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
-    """Call ``writer(tmp_path)`` then rename the temporary file onto ``path`` (atomic on POSIX)."""
+    """Call ``writer(tmp_path)`` then rename the temporary file onto ``path`` (atomic on POSIX). A failure
+    leaves no temporary file behind; one that the machine caused (permission, read-only, disk full, ...)
+    is raised as an ``OSError`` naming ``path``, whatever library the writer used (pyarrow, torch, PIL)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
+    except OSError as err:  # mkstemp names its random file; the user knows the output's name
+        raise _naming(err, path) or err from None
     os.close(fd)
     try:
         writer(Path(tmp))
@@ -45,9 +53,83 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give results the usual permissions
         os.replace(tmp, path)
-    except BaseException:
+    except Exception as err:
+        Path(tmp).unlink(missing_ok=True)
+        named = _naming(err, path)
+        if named is None:
+            raise
+        raise named from err
+    except BaseException:  # KeyboardInterrupt: clean up, and let it through as it is
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def remove_tree(path: Path) -> None:
+    """``shutil.rmtree``, its error naming the full path of the entry it could not remove (rmtree's own error
+    names it relative to the folder it was in)."""
+    def named(func: Any, entry: str, exc_info: Any) -> None:
+        err = exc_info[1]
+        if isinstance(err, OSError) and err.errno is not None:
+            raise OSError(err.errno, err.strerror, entry) from err
+        raise err
+
+    shutil.rmtree(path, onerror=named)  # onexc from Python 3.12; onerror works on 3.10 to 3.13
+
+
+def _naming(err: BaseException, path: Path) -> OSError | None:
+    """``err`` as an OSError naming ``path``, when the machine caused it: an OSError with an errno (or, as
+    pyarrow words it, "[errno N]" in its message), or any error of a writer on a disk now full (torch
+    reports a failed write as a RuntimeError)."""
+    code = err.errno if isinstance(err, OSError) else None
+    if code is None:
+        found = re.search(r"\[errno (\d+)\]", str(err), re.IGNORECASE)
+        code = int(found.group(1)) if found else None
+    if code is None and _disk_full(path.parent):
+        code = errno.ENOSPC
+    if code is None:
+        return None
+    return OSError(code, os.strerror(code), str(path))
+
+
+def _disk_full(folder: Path) -> bool:
+    try:
+        return os.statvfs(folder).f_bavail == 0
+    except OSError:
+        return False
+
+
+#: errors the machine or the file system causes (not bugs), with what the user can do about each
+OS_ERROR_HINTS: dict[int, str] = {
+    errno.EACCES: "check the folder's permissions or choose another output path",
+    errno.EPERM: "check the file's permissions and attributes (lsattr) or choose another output path",
+    errno.EROFS: "choose an output path on a writable file system",
+    errno.ENOSPC: "free some space and run again (train and evaluate continue with --resume)",
+    errno.EDQUOT: "free some space and run again (train and evaluate continue with --resume)",
+    errno.EFBIG: "choose an output path on a file system that allows larger files",
+    errno.ENAMETOOLONG: "shorten the path (most file systems allow 255 bytes a name)",
+    errno.ENOTDIR: "a part of the path is a file where a folder should be",
+    errno.EISDIR: "a folder is where a file should be",
+    errno.ENOENT: "check the path",
+    errno.EEXIST: "remove it or choose another path",
+    errno.ENOTEMPTY: "remove it or choose another path",
+    errno.ELOOP: "check the symbolic links on the path",
+    errno.EIO: "the disk or network file system failed; check it and run again",
+    errno.EMFILE: "raise the limit of open files (ulimit -n)",
+    errno.ENFILE: "close other programs or raise the system's limit of open files",
+    errno.EXDEV: "keep the input and output on one file system",
+    errno.ETXTBSY: "wait for the program using it to finish",
+}
+
+
+def os_error_message(err: OSError, hint: bool = True) -> str | None:
+    """One line for an OSError the machine caused, naming the path and the cause (and, with ``hint``, what to
+    do about it); None for any other."""
+    if err.errno not in OS_ERROR_HINTS:
+        return None
+    paths = [p for p in (err.filename, err.filename2) if p is not None]
+    where = " -> ".join(f"'{os.fsdecode(p)}'" for p in paths) if paths else "a file"
+    cause = err.strerror or os.strerror(err.errno)
+    return f"{where}: {cause} ({errno.errorcode[err.errno]})" + (f"; {OS_ERROR_HINTS[err.errno]}" if hint else "")
 
 
 def atomic_write_text(path: Path, text: str) -> None:

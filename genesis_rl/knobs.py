@@ -206,7 +206,11 @@ class Weather:
         if unknown:
             raise UserInputError(f"recorded weather names unknown knob(s) {sorted(unknown)}; "
                                  f"allowed: {', '.join(KNOBS)}")
-        return cls({k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()})
+        read = {k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()}
+        bad = {k: v for k, v in read.items() if not math.isfinite(v)}
+        if bad:  # JSON's NaN and Infinity parse; a damaged record or telemetry file must not steer the simulator
+            raise UserInputError(f"recorded weather has non-finite knob value(s) {bad}; expected finite numbers")
+        return cls(read)
 
     @classmethod
     def preset(cls, name: str) -> Weather:

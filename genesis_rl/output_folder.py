@@ -19,14 +19,13 @@ import fcntl
 import json
 import os
 import re
-import shutil
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 from genesis_rl import __version__
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json, ensure_folder_path
+from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_message, remove_tree
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
@@ -147,7 +146,7 @@ def replace(folder: Path, kind: str) -> None:
     if folder.is_dir():
         for entry in folder.iterdir():
             if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry)
+                remove_tree(entry)
             else:
                 entry.unlink()
     folder.mkdir(parents=True, exist_ok=True)
@@ -168,7 +167,7 @@ def _acquire(path: Path, folder: Path) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
-            raise UserInputError(f"cannot lock output folder '{folder}': {err.strerror} ({path})") from None
+            raise _lock_error(folder, path, err) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
@@ -177,16 +176,26 @@ def _acquire(path: Path, folder: Path) -> int:
             if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise UserInputError(f"output folder '{folder}' is being written by another genesis-rl process "
                                      f"(pid {holder}); wait for it to finish or choose another --out") from None
-            raise UserInputError(f"cannot lock output folder '{folder}': {err.strerror} ({path})") from None
+            raise _lock_error(folder, path, err) from None
         try:  # the holder before us may have removed the file as it released it: lock the file now there
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
             same = False
         if same:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            try:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            except OSError as err:  # a full disk: release and remove the lock, leave nothing behind
+                path.unlink(missing_ok=True)
+                os.close(fd)
+                raise _lock_error(folder, path, err) from None
             return fd
         os.close(fd)
+
+
+def _lock_error(folder: Path, path: Path, err: OSError) -> UserInputError:
+    cause = os_error_message(OSError(err.errno, err.strerror, str(path))) or f"{err.strerror} ({path})"
+    return UserInputError(f"cannot lock output folder '{folder}': {cause}")
 
 
 @contextmanager

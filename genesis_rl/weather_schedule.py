@@ -16,6 +16,8 @@ from genesis_rl.knobs import KNOBS, Weather
 def load_schedule(path: str | Path, base: Weather, steps: int) -> list[Weather]:
     """Read a schedule of exactly ``steps`` rows; errors name the file, row and knob."""
     path = Path(path)
+    if path.is_dir():
+        raise UserInputError(f"schedule '{path}' is a folder; expected a CSV file")
     if not path.is_file():
         raise UserInputError(f"schedule file '{path}' does not exist")
     try:

@@ -43,6 +43,10 @@ def read_campaign_meta(folder: Path) -> dict[str, Any]:
     """``campaign.json``, checked for the fields that summaries, reports, exports and resumption read."""
     folder = Path(folder)
     path = folder / "campaign.json"
+    if not folder.exists():
+        raise UserInputError(f"campaign folder '{folder}' does not exist")
+    if not folder.is_dir():
+        raise UserInputError(f"'{folder}' is a file; expected a campaign folder (genesis-rl evaluate --out)")
     if not path.is_file():
         raise UserInputError(f"'{folder}' is not a campaign folder (no campaign.json); run genesis-rl evaluate first")
     meta = read_json(path, "campaign file")
@@ -78,6 +82,8 @@ _ROW_FIELDS: dict[str, tuple[str, Any]] = {
     "failure_mode": ("a failure mode or null", lambda v: v is None or isinstance(v, str)),
     "mean_iou": ("a number or null", lambda v: v is None or _is_number(v)),
     "return": ("a number", lambda v: _is_number(v)),
+    "collision_speed": ("a number", lambda v: _is_number(v)),
+    "min_gap": ("a number or null", lambda v: v is None or _is_number(v)),
     "sim_steps": ("an integer", lambda v: _is_int(v)),
 }
 

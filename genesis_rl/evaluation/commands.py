@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from genesis_rl import limits
 from genesis_rl.backends import add_backend_arguments, check_backend_setting, env_overrides_from_args
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
@@ -30,6 +31,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             raise UserInputError(f"--{flag.replace('_', '-')} = {getattr(args, flag)} must be >= 0")
     if args.retries < 0:
         raise UserInputError(f"--retries = {args.retries} must be >= 0")
+    limits.SIM_STEPS.check(args.steps, "--steps")  # as drive --steps: 999999999 ran for days
     if args.search_segments < 1:
         raise UserInputError(f"--search-segments = {args.search_segments} must be >= 1")
     if args.search_budget < 2:

@@ -22,7 +22,7 @@ from genesis_rl import output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import REMEDY, read_steps, steps_path
 from genesis_rl.evaluation.summary import load_campaign
-from genesis_rl.io_utils import atomic_write_json, atomic_write_text
+from genesis_rl.io_utils import atomic_write_json, atomic_write_text, remove_tree
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.step_record import RecordedBox
 
@@ -74,8 +74,6 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
 def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
            frames: list[tuple[str, int, int, Path]], modes: dict[tuple[str, int], Any]) -> dict[str, Any]:
     """Build the export in ``tmp`` beside ``out``, then put it in place of ``out``."""
-
-
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
     output_folder.write_marker(tmp, "export")
@@ -143,6 +141,6 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
               "episodes": len({(f[0], f[1]) for f in frames})}
     atomic_write_json(tmp / "export.json", result, indent=2)
     if out.exists():  # replaced only now that the new export is complete
-        shutil.rmtree(out)
+        remove_tree(out)
     tmp.rename(out)
     return result

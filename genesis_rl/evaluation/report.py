@@ -16,6 +16,7 @@ import base64
 import html
 import io
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +26,8 @@ from PIL import Image
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
-from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign
-from genesis_rl.io_utils import atomic_write_text
+from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
+from genesis_rl.io_utils import atomic_write_text, os_error_message
 from genesis_rl.knobs import PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
 from genesis_rl.step_record import StepRecord
@@ -203,8 +204,9 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
         raise UserInputError(f"report '{out}' exists; pass --force to rebuild it")
     if not any(rows.values()):
         raise UserInputError(f"campaign '{folder}' has no finished episodes yet; nothing to report")
-    summary = summarize_campaign(folder, loaded=(meta, rows))
+    summary = summarize_campaign(folder, write=False, loaded=(meta, rows))
     rulebook = campaign_rulebook(meta, rows)
+    _update_summary_files(folder, out, summary, rows, rulebook)
     rule_metrics = rulebook.metric_columns()
     sums = [f"{r.name}_sum" for r in rulebook.rules if not r.in_total]
     spec = meta["spec"]
@@ -317,5 +319,28 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
         h.append(f"<tr><td class=l>{scene}</td>{''.join(cells)}</tr>")
     h.append("</table>")
     h.append(f"<h2>Campaign settings</h2><pre>{html.escape(json.dumps(spec, indent=1))}</pre></body></html>")
-    atomic_write_text(out, "\n".join(h))
+    try:
+        atomic_write_text(out, "\n".join(h))
+    except OSError as err:
+        message = os_error_message(err, hint=False)
+        if message is None or out.parent.resolve() != folder.resolve():
+            raise
+        raise UserInputError(f"{message}; pass --out FILE to write the report elsewhere") from None
     return out
+
+
+def _update_summary_files(folder: Path, out: Path, summary: dict[str, Any], rows: dict[str, list[dict[str, Any]]],
+                          rulebook: Rulebook) -> None:
+    """Bring the campaign's ``summary.json`` and ``episodes.csv`` up to date (written only when changed). When
+    the campaign folder cannot be written (read-only, no permission, full) and the report goes elsewhere,
+    say so and go on: the report is built from the episodes as they are."""
+    try:
+        write_summary_files(folder, summary, rows, rulebook)
+    except OSError as err:
+        message = os_error_message(err, hint=False)
+        if message is None:
+            raise
+        if out.parent.resolve() == folder.resolve():
+            raise UserInputError(f"{message}; pass --out FILE to write the report elsewhere") from None
+        print(f"genesis-rl report: note: summary.json and episodes.csv of '{folder}' not updated ({message}); the "
+              "report is built from its episode files as they are", file=sys.stderr)

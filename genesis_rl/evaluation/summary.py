@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import zlib
 from pathlib import Path
 from typing import Any
@@ -62,7 +63,10 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
         failure = label_collision(read_step_records(steps_path(folder, policy, row["scene"])))
         row.update(failure=failure, failure_mode=failure["mode"] if failure else None)
     row["labeller_version"] = LABELLER_VERSION
-    atomic_write_json(path, row, indent=1)
+    try:
+        atomic_write_json(path, row, indent=1)
+    except OSError:  # a read-only campaign: the relabelled row is used as it is, and relabelled next time again
+        pass
     return row
 
 
@@ -114,14 +118,34 @@ def summarize_campaign(folder: Path, write: bool = True,
         "policies": policies, "comparisons": comparisons,
     }
     if write:
-        atomic_write_json(folder / "summary.json", summary, indent=2)
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=csv_columns(rulebook), extrasaction="ignore")
-        w.writeheader()
-        for eps in rows.values():
-            w.writerows(eps)
-        atomic_write_text(folder / "episodes.csv", buf.getvalue())
+        write_summary_files(folder, summary, rows, rulebook)
     return summary
+
+
+def write_summary_files(folder: Path, summary: dict[str, Any], rows: dict[str, list[dict[str, Any]]],
+                        rulebook: Rulebook) -> list[Path]:
+    """Write ``summary.json`` and ``episodes.csv`` where their content changed; returns the files written.
+    An unchanged file is left alone, so ``report`` on a finished campaign in a read-only folder writes nothing
+    there (its ``--out`` goes elsewhere)."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=csv_columns(rulebook), extrasaction="ignore")
+    w.writeheader()
+    for eps in rows.values():
+        w.writerows(eps)
+    written = []
+    for path, text in ((folder / "summary.json", json.dumps(summary, indent=2)),
+                       (folder / "episodes.csv", buf.getvalue())):
+        if not _holds(path, text):
+            atomic_write_text(path, text)
+            written.append(path)
+    return written
+
+
+def _holds(path: Path, text: str) -> bool:
+    try:
+        return path.is_file() and path.read_bytes() == text.encode("utf-8")  # bytes: csv ends its lines \r\n
+    except OSError:
+        return False
 
 
 def summary_rule_metrics(summary: dict[str, Any]) -> list[str]:

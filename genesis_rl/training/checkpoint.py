@@ -120,8 +120,12 @@ def truncate_csv(path: Path, rows: int) -> None:
     """Keep the header and the first ``rows`` rows: rows written after the checkpoint are trained again."""
     if not path.is_file():
         return
-    with path.open(newline="") as fh:
-        lines = list(csv.reader(fh))
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            lines = list(csv.reader(fh))
+    except (UnicodeDecodeError, csv.Error) as err:  # not the checkpoint's damage: name the file that is
+        raise UserInputError(f"--resume: the episode log '{path}' is damaged ({err}); move it away to resume "
+                             "without it, or start the run again with --force") from None
     if len(lines) - 1 > rows:
         def write(p: Path) -> None:
             with p.open("w", newline="") as fh:
@@ -223,6 +227,8 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int) -> Resumed
                 raise UserInputError(f"--resume: env {i}: {problem}; start the run again with --force")
         _set_trainer_rng(state["trainer_rng"])  # last: PPO.load reseeded them, and replaying may draw
         sums = {int(i): a for i, a in state["episode_sums"].items()}
+    except UserInputError:  # a ValueError, but one that names its own file
+        raise
     except (KeyError, TypeError, ValueError, IndexError) as err:
         assert state_path is not None  # the state was read from it
         raise _damaged(state_path, f"{type(err).__name__}: {err}") from None

@@ -48,6 +48,25 @@ class PPOConfig:
         if kind not in ("auto", "cpu", "cuda", "mps") or (index and not (kind == "cuda" and index.isdigit())):
             raise UserInputError(f"ppo.device = '{self.device}'; allowed: auto, cpu, cuda, cuda:N, mps")
 
+    def check_device_present(self) -> None:
+        """Refuse a device this machine lacks: SB3 would fall back to the CPU without a word, and a run meant
+        for a GPU would take hours instead of minutes. ("auto" takes the GPU when there is one.)"""
+        import torch  # local: start-up cost; checked only when training starts
+
+        kind, _, index = self.device.partition(":")
+        fix = 'set ppo.device = "auto" (the GPU when there is one) or "cpu"'
+        if kind == "cuda":
+            if not torch.cuda.is_available():
+                raise UserInputError(f"ppo.device = '{self.device}' but torch.cuda.is_available() = False on this "
+                                     f"machine (torch {torch.__version__}, built for CUDA {torch.version.cuda}); "
+                                     f"{fix}")
+            if index and int(index) >= torch.cuda.device_count():
+                raise UserInputError(f"ppo.device = '{self.device}' but this machine has "
+                                     f"{torch.cuda.device_count()} CUDA device(s), 0..{torch.cuda.device_count() - 1}"
+                                     f"; {fix}")
+        if kind == "mps" and not torch.backends.mps.is_available():
+            raise UserInputError(f"ppo.device = 'mps' but torch.backends.mps.is_available() = False; {fix}")
+
 
 @dataclass(frozen=True)
 class TrainConfig:

@@ -185,6 +185,7 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
 
 def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> dict[str, Any]:
 
+    cfg.ppo.check_device_present()
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     p = cfg.ppo
