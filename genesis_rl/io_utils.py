@@ -36,7 +36,7 @@ def ensure_folder_path(path: Path, flag: str = "--out") -> None:
             return
 
 
-def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
+def atomic_write(path: Path, writer: Callable[[Path], object]) -> None:
     """Call ``writer(tmp_path)`` then rename the temporary file onto ``path`` (atomic on POSIX). A failure
     leaves no temporary file behind; one that the machine caused (permission, read-only, disk full, ...)
     is raised as an ``OSError`` naming ``path``, whatever library the writer used (pyarrow, torch, PIL)."""

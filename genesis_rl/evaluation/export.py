@@ -80,7 +80,9 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
     if fmt == "yolo":
         (tmp / "labels").mkdir()
     steps_cache: dict[tuple[str, int], dict[int, dict[str, Any]]] = {}
-    images, annotations, metadata = [], [], []
+    images: list[dict[str, Any]] = []
+    annotations: list[dict[str, Any]] = []
+    metadata: list[dict[str, Any]] = []
     n_labels = n_ignored = 0
     for image_id, (policy, scene, step, path) in enumerate(frames, start=1):
         key = (policy, scene)
@@ -99,7 +101,8 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
         except (OSError, SyntaxError) as err:  # PIL's UnidentifiedImageError is an OSError
             raise UserInputError(f"frame '{path}' is damaged ({err}); {REMEDY}") from None
         shutil.copyfile(path, tmp / "images" / f"{name}.jpg")
-        labels, ignore = [], []
+        labels: list[dict[str, Any]] = []
+        ignore: list[dict[str, Any]] = []
         for b in (RecordedBox.from_row(row) for row in rec["gt_boxes"]):
             x0, y0, x1, y1 = (float(v) for v in b.box_xyxy)
             x0, x1 = max(0.0, x0), min(float(w), x1)
@@ -122,8 +125,8 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
         else:
             images.append({"id": image_id, "file_name": f"images/{name}.jpg", "width": w, "height": h,
                            "genesis_rl": {k: v for k, v in metadata[-1].items() if k not in ("labels", "ignore")}})
-            for b, crowd in [(b, 0) for b in labels] + [(b, 1) for b in ignore]:
-                x0, y0, x1, y1 = b["xyxy"]
+            for labelled, crowd in [(b, 0) for b in labels] + [(b, 1) for b in ignore]:
+                x0, y0, x1, y1 = labelled["xyxy"]
                 annotations.append({"id": len(annotations) + 1, "image_id": image_id, "category_id": 1,
                                     "bbox": [round(x0, 2), round(y0, 2), round(x1 - x0, 2), round(y1 - y0, 2)],
                                     "area": round((x1 - x0) * (y1 - y0), 2), "iscrowd": crowd})

@@ -297,9 +297,9 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
         from genesis_rl.evaluation.campaign import run_folder_of
         from genesis_rl.training.curves import plot_learning_curve
 
-        fig = plot_learning_curve(run_folder_of(Path(spec["agent"])))
-        if fig is not None:
-            h.append(f"<h2>Training of the agent</h2><img src='{_png(fig)}'>")
+        curve = plot_learning_curve(run_folder_of(Path(spec["agent"])))
+        if curve is not None:
+            h.append(f"<h2>Training of the agent</h2><img src='{_png(curve)}'>")
 
     # 5. per-scene table
     counted = [r.name for r in rulebook.rules if r.in_total]
@@ -309,13 +309,13 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
     for scene, _ in meta["scenes"]:
         cells = []
         for p in rows:
-            e = by_scene[p].get(scene)
-            if e is None:
+            ep = by_scene[p].get(scene)
+            if ep is None:
                 cells.append("<td class=meta>missing</td>")
                 continue
-            mode = f"<br><span class=meta>{e['failure_mode']}</span>" if e["failure_mode"] else ""
-            scores = " / ".join(f"{e[m]:.1f}" for m in counted)
-            cells.append(f"<td class={'hit' if e['collision_events'] else ''}>{scores}{mode}</td>")
+            mode = f"<br><span class=meta>{ep['failure_mode']}</span>" if ep["failure_mode"] else ""
+            scores = " / ".join(f"{ep[m]:.1f}" for m in counted)
+            cells.append(f"<td class={'hit' if ep['collision_events'] else ''}>{scores}{mode}</td>")
         h.append(f"<tr><td class=l>{scene}</td>{''.join(cells)}</tr>")
     h.append("</table>")
     h.append(f"<h2>Campaign settings</h2><pre>{html.escape(json.dumps(spec, indent=1))}</pre></body></html>")
