@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import gymnasium as gym
@@ -19,16 +19,16 @@ import numpy as np
 from gymnasium import spaces
 
 from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
+from genesis_rl.drive import ClosedLoop
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.plugins import import_modules
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
-from genesis_rl.sim.interface import ConnectionSettings, Simulation
+from genesis_rl.sim.interface import CameraConfig, ConnectionSettings, Simulation
 from genesis_rl.step_record import StepRecord
-
-if TYPE_CHECKING:
-    from genesis_rl.drive import ClosedLoop
+from genesis_rl.system.protocol import load_system
+from genesis_rl.viz.frames import annotate_frame
 
 ENV_ID = "genesis_rl/Weather-v0"
 
@@ -151,8 +151,6 @@ class GenesisEnv(gym.Env):
             self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map",
                                                backend=c.backend)
 
-        from genesis_rl.sim.interface import CameraConfig
-        from genesis_rl.system.protocol import load_system
 
         self.camera = CameraConfig(width=c.camera_width, height=c.camera_height)
         with _setting("env.system"):  # before the backend, so a bad system leaves no simulator open
@@ -190,7 +188,6 @@ class GenesisEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
         """Sample a scene (or take ``options['scene']``) and an episode seed from the env's generator."""
         super().reset(seed=seed)
-        from genesis_rl.drive import ClosedLoop
 
         self._close_sim()
         options = options or {}
@@ -237,7 +234,6 @@ class GenesisEnv(gym.Env):
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._loop is None or self._loop.frame is None:
             return None
-        from genesis_rl.viz.frames import annotate_frame
 
         if self.records:
             return annotate_frame(self._loop.frame.rgb, self.records[-1])

@@ -25,12 +25,14 @@ from PIL import Image
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
+from genesis_rl.evaluation.campaign_spec import run_folder_of
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
 from genesis_rl.io_utils import atomic_write_text, os_error_message
 from genesis_rl.knobs import PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
 from genesis_rl.step_record import StepRecord
+from genesis_rl.training.curves import plot_learning_curve
 from genesis_rl.viz.frames import annotate_frame
 
 POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8"}
@@ -294,8 +296,6 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
 
     # training curve of the agent, when its run folder is at hand
     if spec.get("agent"):
-        from genesis_rl.evaluation.campaign import run_folder_of
-        from genesis_rl.training.curves import plot_learning_curve
 
         curve = plot_learning_curve(run_folder_of(Path(spec["agent"])))
         if curve is not None:
