@@ -186,3 +186,14 @@ def test_a_user_knob_module_named_in_genesis_rl_plugins_reaches_the_command_line
     assert EnvConfig(plugins=("user_knob",), knobs=("fog_density", "lens_dirt")).knobs[1] == "lens_dirt"
     with pytest.raises(UserInputError, match="env.plugins: cannot import module 'nope_xyz'"):
         EnvConfig(plugins=("nope_xyz",))
+
+
+@pytest.mark.render
+def test_a_record_from_before_a_knob_existed_replays_with_it_at_its_default(user_knob, tmp_path) -> None:
+    """The 0.4.0 record (tests/data) knows nothing of lens_dirt; with the knob declared it replays bit for bit,
+    the knob at its default (so its hook never runs), and the new telemetry carries the knob's column."""
+    record = load_record(Path(__file__).parent / "data" / "campaign_0.4.0" / "records" / "sunny_scene_0000.json")
+    assert "lens_dirt" not in record["knobs"]
+    replay = replay_record(record, keep_frames=False)
+    assert replay["reproduced"] and replay["steps_identical"]
+    assert {r.knobs["lens_dirt"] for r in replay["records"]} == {0.0}
