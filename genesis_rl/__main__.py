@@ -1,3 +1,3 @@
-from genesis_rl.cli import main
+from genesis_rl.entry import main
 
 raise SystemExit(main())

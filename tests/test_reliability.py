@@ -283,3 +283,21 @@ def test_a_limit_is_raised_by_its_environment_variable(monkeypatch) -> None:
     monkeypatch.setenv("GENESIS_RL_MAX_TIMESTEPS", "many")
     with pytest.raises(UserInputError, match="GENESIS_RL_MAX_TIMESTEPS = 'many' must be an integer"):
         load_run_config(None)
+
+
+def test_ctrl_c_while_the_command_line_imports_is_one_line(monkeypatch, capsys) -> None:
+    """The hostile sweep's one traceback: Ctrl-C during the start-up imports (before cli.main's handler)."""
+    import sys
+
+    from genesis_rl import entry
+
+    class Interrupt:  # a meta-path finder that is "interrupted" while genesis_rl.cli imports
+        def find_spec(self, name, path=None, target=None):
+            if name == "genesis_rl.cli":
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "genesis_rl.cli", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [Interrupt(), *sys.meta_path])
+    assert entry.main() == 130
+    assert capsys.readouterr().err == "interrupted\n"
