@@ -17,6 +17,7 @@ import html
 import io
 import json
 import sys
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +66,9 @@ def fig_comparison(summary: dict[str, Any], rulebook: Rulebook) -> str:
     import matplotlib.pyplot as plt
 
     pols = list(summary["policies"])
-    metrics = [(r.name, f"{r.name.replace('_', ' ')} violation\n({r.description or r.unit})") for r in rulebook.rules]
+    # a panel per rule: its name and unit, its description wrapped so that neighbouring titles do not overlap
+    metrics = [(r.name, f"{r.name.replace('_', ' ')}" + (f" [{r.unit}]" if r.unit else "") + "\n"
+                + textwrap.fill(r.description.split(" [")[0], 38)) for r in rulebook.rules]
     fig, axes = plt.subplots(1, len(metrics), figsize=(4 * len(metrics), 3.6), squeeze=False)
     for ax, (m, title) in zip(axes[0], metrics, strict=True):
         st = [summary["policies"][p][m] for p in pols]
