@@ -19,18 +19,16 @@ from genesis_rl.io_utils import atomic_write
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.rules.rulebook import ProximityRule
 from genesis_rl.scenes.catalog import Scene
-from genesis_rl.sim.interface import Backend, CameraConfig, GroundTruthBox, SensorFrame, Simulation
+from genesis_rl.sim.interface import Backend, CameraConfig, SensorFrame, Simulation
 from genesis_rl.step_record import (
     CollisionStep,
     EgoStep,
     LeadStep,
     PerceptionStep,
-    RecordedBox,
-    RecordedDetection,
     StepRecord,
     to_rows,
 )
-from genesis_rl.system.protocol import Detection, EpisodeContext, SystemOutput, SystemUnderTest
+from genesis_rl.system.protocol import EpisodeContext, SystemOutput, SystemUnderTest
 
 
 def episode_context(sim: Simulation, backend_name: str, seed: int) -> EpisodeContext:
@@ -76,8 +74,8 @@ def step_record(step: int, sim: Simulation, frame: SensorFrame, out: SystemOutpu
             n_detections=len(out.detections),
             n_in_view=sum(1 for b in frame.boxes if in_view(b)),
             iou=iou,
-            detections=tuple(_recorded_detection(d) for d in out.detections),
-            gt_boxes=tuple(_recorded_box(b) for b in frame.boxes),
+            detections=tuple(d.recorded() for d in out.detections),
+            gt_boxes=tuple(b.recorded() for b in frame.boxes),
         ),
         collision=CollisionStep(
             collided=bool(ego_hits),
@@ -87,19 +85,6 @@ def step_record(step: int, sim: Simulation, frame: SensorFrame, out: SystemOutpu
         ),
         knobs={k: float(weather[k]) for k in knob_names},
     )
-
-
-def _recorded_box(b: GroundTruthBox) -> RecordedBox:
-    """A ground-truth box as recorded: rounded as ``GroundTruthBox.as_dict`` rounds it for the files."""
-    return RecordedBox(b.vehicle_id, (b.x0, b.y0, b.x1, b.y1), round(b.distance, 3), round(b.visible_fraction, 3),
-                       b.truncated)
-
-
-def _recorded_detection(d: Detection) -> RecordedDetection:
-    """A detection as recorded: rounded as ``Detection.as_dict`` rounds it for the files."""
-    x0, y0, x1, y1 = (round(v, 1) for v in d.xyxy)
-    pos = None if d.position is None else (round(d.position[0], 3), round(d.position[1], 3), round(d.position[2], 3))
-    return RecordedDetection((x0, y0, x1, y1), round(d.score, 4), pos)
 
 
 def _lead_detected(lead: Any, frame: SensorFrame, dets: np.ndarray) -> bool | None:

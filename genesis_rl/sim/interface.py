@@ -17,6 +17,7 @@ import numpy as np
 
 from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Scene
+from genesis_rl.step_record import RecordedBox
 
 #: Simulation time step in seconds (CARLA synchronous mode with fixed_delta_seconds = 0.05).
 FIXED_DELTA_SECONDS = 0.05
@@ -92,14 +93,13 @@ class GroundTruthBox:
     def area(self) -> int:
         return max(0, self.x1 - self.x0) * max(0, self.y1 - self.y0)
 
+    def recorded(self) -> RecordedBox:
+        """The box as step records and files keep it (distance and visible fraction to 3 decimals)."""
+        return RecordedBox(self.vehicle_id, (self.x0, self.y0, self.x1, self.y1), round(self.distance, 3),
+                           round(self.visible_fraction, 3), self.truncated)
+
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "vehicle_id": self.vehicle_id,
-            "box_xyxy": [self.x0, self.y0, self.x1, self.y1],
-            "distance_m": round(self.distance, 3),
-            "visible_fraction": round(self.visible_fraction, 3),
-            "truncated": self.truncated,
-        }
+        return self.recorded().to_row()
 
 
 @dataclass

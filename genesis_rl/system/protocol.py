@@ -13,6 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 from genesis_rl.errors import UserInputError
 from genesis_rl.plugins import load_class
 from genesis_rl.sim.interface import ActorState, CameraConfig, SensorFrame, VehicleControl
+from genesis_rl.step_record import RecordedDetection
 
 
 @dataclass(frozen=True)
@@ -31,10 +32,15 @@ class Detection:
     def xyxy(self) -> tuple[float, float, float, float]:
         return (self.x0, self.y0, self.x1, self.y1)
 
+    def recorded(self) -> RecordedDetection:
+        """The detection as step records and files keep it (box to 0.1 px, score to 4 decimals, position to mm)."""
+        x0, y0, x1, y1 = (round(v, 1) for v in self.xyxy)
+        p = self.position
+        return RecordedDetection((x0, y0, x1, y1), round(self.score, 4),
+                                 None if p is None else (round(p[0], 3), round(p[1], 3), round(p[2], 3)))
+
     def as_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"box_xyxy": [round(v, 1) for v in self.xyxy], "score": round(self.score, 4)}
-        d["position"] = None if self.position is None else [round(v, 3) for v in self.position]
-        return d
+        return self.recorded().to_row()
 
 
 @dataclass(frozen=True)
