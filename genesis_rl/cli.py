@@ -22,7 +22,7 @@ from genesis_rl.backends import (
     scene_source,
     settings_from_args,
 )
-from genesis_rl.cli_args import seed_int
+from genesis_rl.cli_args import add_odd_arguments, odd_overrides_from_args, seed_int
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import os_error_message
 from genesis_rl.plugins import import_env_plugins
@@ -162,6 +162,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if getattr(args, flag) is not None:
             env[flag] = getattr(args, flag)
     env.update(env_overrides_from_args(args))  # --backend carla --carla-host H ... override the config's [env]
+    env.update(odd_overrides_from_args(args))
     tr: dict = {}
     for flag, key in (("envs", "envs"), ("steps", "total_timesteps"), ("seed", "seed")):
         if getattr(args, flag) is not None:
@@ -279,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--scenes", type=int, default=None, help="number of generated scenes (env.scenes)")
     tr.add_argument("--catalog", default=None, help="scene catalog file (env.catalog)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_odd_arguments(tr)
     add_backend_arguments(tr, default=None)
     tr.set_defaults(func=_cmd_train)
 

@@ -14,3 +14,27 @@ def seed_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
     return value
+
+
+def add_odd_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--odd FILE`` and ``--dynamics``: the operational design domain and how fast the weather may change
+    (docs/odd.md); both override a config's or a trained agent's ``[env]``."""
+    parser.add_argument("--odd", default=None, metavar="FILE",
+                        help="operational design domain (configs/odd/*.toml): every policy is kept inside it and "
+                             "every step and failure is labelled inside / boundary / outside")
+    parser.add_argument("--dynamics", default=None, choices=["paper", "natural"],
+                        help="paper: a knob moves 5%% of its range per step; natural: at most what outdoor weather "
+                             "does per second (the sun is held)")
+
+
+def odd_overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
+    """The ``[env]`` keys ``--odd`` and ``--dynamics`` set; the ODD path is made absolute so that a run's
+    workers and a later ``--resume`` find it from any folder."""
+    from pathlib import Path
+
+    out = {}
+    if args.odd is not None:
+        out["odd"] = str(Path(args.odd).resolve())
+    if args.dynamics is not None:
+        out["dynamics"] = args.dynamics
+    return out

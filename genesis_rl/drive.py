@@ -7,6 +7,7 @@ columns are what the telemetry Parquet holds.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +18,7 @@ import numpy as np
 from genesis_rl.geometry import frame_iou, in_view, iou_matrix
 from genesis_rl.io_utils import atomic_write
 from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.odd.conditions import Conditions, conditions_model
 from genesis_rl.rules.rulebook import ProximityRule
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import Backend, CameraConfig, SensorFrame, Simulation
@@ -50,9 +52,10 @@ def episode_context(sim: Simulation, backend_name: str, seed: int) -> EpisodeCon
 
 
 def step_record(step: int, sim: Simulation, frame: SensorFrame, out: SystemOutput, collisions: list,
-                weather: Weather, ego_speed: float, knob_names: Sequence[str]) -> StepRecord:
+                weather: Weather, ego_speed: float, knob_names: Sequence[str],
+                conditions: Conditions | None = None) -> StepRecord:
     """The record of one step: the state after the step's tick, the frame observed then and the system's
-    answer to it; collisions are those of that tick."""
+    answer to it; collisions are those of that tick; ``conditions`` those of the weather seen from the ego."""
     lead = sim.lead()
     dets = np.array([d.xyxy for d in out.detections], np.float64).reshape(-1, 4)
     iou, _ = frame_iou(frame.boxes, dets)
@@ -84,6 +87,7 @@ def step_record(step: int, sim: Simulation, frame: SensorFrame, out: SystemOutpu
                                               else ego_hits[0].vehicle_a),
         ),
         knobs={k: float(weather[k]) for k in knob_names},
+        conditions=conditions,
     )
 
 
@@ -146,6 +150,7 @@ class ClosedLoop:
         self.sim = sim
         self.system = system
         self.knob_names = list(KNOBS)
+        self.conditions_model = conditions_model(backend_name)
         system.reset(episode_context(sim, backend_name, seed))
         self.frame: SensorFrame | None = None
         self.output: SystemOutput | None = None
@@ -167,8 +172,14 @@ class ClosedLoop:
         tick = sim.tick()
         self._perceive()
         assert self.frame is not None and self.output is not None
+        conditions = self.conditions_model.conditions(weather, self.heading_deg)
         return step_record(sim.step_count, sim, self.frame, self.output, tick.collisions, weather,
-                           self.ego.speed, self.knob_names)
+                           self.ego.speed, self.knob_names, conditions)
+
+    @property
+    def heading_deg(self) -> float:
+        """The ego's (and its camera's) heading, counter-clockwise from east [deg]."""
+        return math.degrees(self.ego.yaw)
 
 
 def run_episode(

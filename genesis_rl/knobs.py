@@ -275,13 +275,14 @@ def parse_weather(text: str, base: Weather | None = None) -> Weather:
 
 class KnobActionMapper:
     """Maps an agent action in [-1, 1]^n to a new weather: each knob moves at most
-    ``max_step_fraction`` of its range per step; disabled knobs never move."""
+    ``max_step_fraction`` of its range per step (or ``max_delta`` of its unit); disabled knobs never move."""
 
     def __init__(
         self,
         knobs: Sequence[str] = PAPER_KNOBS,
         max_step_fraction: float = 0.05,
         disabled: Iterable[str] = (),
+        max_delta: Sequence[float] | np.ndarray | None = None,
     ) -> None:
         for name in knobs:
             knob_spec(name)
@@ -301,8 +302,11 @@ class KnobActionMapper:
         self._high = np.array([s.high for s in specs])
         self._wraps = np.array([s.wraps for s in specs])
         active = np.array([n not in disabled for n in self.knobs], dtype=np.float64)
-        #: largest change per step of each knob, in the knob's unit (0 for disabled knobs)
-        self.max_delta = (self._high - self._low) * self.max_step_fraction * active
+        #: largest change per step of each knob, in the knob's unit (0 for disabled knobs); ``max_delta``
+        #: overrides the fraction of the range (``odd.dynamics.max_deltas``: the natural preset's rates)
+        per_step = (self._high - self._low) * self.max_step_fraction if max_delta is None else \
+            np.asarray(max_delta, np.float64)
+        self.max_delta = per_step * active
 
     @property
     def action_dim(self) -> int:

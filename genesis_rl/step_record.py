@@ -16,6 +16,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from genesis_rl.odd.conditions import Conditions
+
 
 @dataclass(frozen=True, slots=True)
 class RecordedBox:
@@ -111,6 +113,8 @@ class CollisionStep:
 BASE_COLUMNS = ("step", "time_s", "ego_speed", "throttle", "brake", "steer", "status", "lead_id",
                 "true_lead_distance", "lead_speed", "perceived_lead_distance", "n_detections", "n_in_view", "iou",
                 "lead_detected", "collision", "collision_speed", "collision_with", "detections", "gt_boxes")
+#: The conditions columns (``odd.conditions``) and the step's ODD label, after the knobs (genesis-rl 0.6.0 on).
+CONDITION_COLUMNS = ("visibility_m", "rain_mm_h", "road_state", "light", "sun_glare", "odd_status")
 #: The prefix of rule-term columns (``rule_collision``); reward terms are ``reward*`` columns.
 RULE_PREFIX = "rule_"
 REWARD_PREFIX = "reward"
@@ -131,6 +135,8 @@ class StepRecord:
     knobs: Mapping[str, float]
     rules: Mapping[str, float] = field(default_factory=dict)
     reward: Mapping[str, float] = field(default_factory=dict)
+    conditions: Conditions | None = None
+    odd_status: str | None = None
 
     @property
     def iou(self) -> float:
@@ -153,6 +159,9 @@ class StepRecord:
             "detections": [d.to_row() for d in p.detections], "gt_boxes": [b.to_row() for b in p.gt_boxes],
         }
         row.update(self.knobs)
+        if self.conditions is not None:
+            row.update(self.conditions.as_dict())
+            row["odd_status"] = self.odd_status
         row.update({RULE_PREFIX + k: v for k, v in self.rules.items()})
         row.update(self.reward)
         return row
@@ -162,7 +171,12 @@ class StepRecord:
         """A record from a telemetry row (Parquet, JSON). ``knob_names``: the knob columns to read (default:
         every column that is not a base, rule or reward column)."""
         if knob_names is None:
-            knob_names = [k for k in row if k not in _BASE_SET and not k.startswith((RULE_PREFIX, REWARD_PREFIX))]
+            knob_names = [k for k in row if k not in _BASE_SET and k not in CONDITION_COLUMNS
+                          and not k.startswith((RULE_PREFIX, REWARD_PREFIX))]
+        conditions = None
+        if row.get("visibility_m") is not None:
+            conditions = Conditions(row["visibility_m"], row["rain_mm_h"], row["road_state"], row["light"],
+                                    bool(row["sun_glare"]))
         return cls(
             step=int(row["step"]), time_s=row["time_s"],
             ego=EgoStep(row["ego_speed"], row["throttle"], row["brake"], row["steer"], row["status"]),
@@ -175,6 +189,7 @@ class StepRecord:
             knobs={k: row[k] for k in knob_names if k in row},
             rules={k[len(RULE_PREFIX):]: v for k, v in row.items() if k.startswith(RULE_PREFIX)},
             reward={k: v for k, v in row.items() if k.startswith(REWARD_PREFIX)},
+            conditions=conditions, odd_status=row.get("odd_status"),
         )
 
 

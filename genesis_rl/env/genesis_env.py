@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import cv2
@@ -22,10 +22,13 @@ from genesis_rl.backends import catalog_or_generate, check_backend_setting, make
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
+from genesis_rl.odd.conditions import conditions_model
+from genesis_rl.odd.domain import ODD, check_start, load_odd
+from genesis_rl.odd.dynamics import DYNAMICS, WeatherModel, max_deltas
 from genesis_rl.plugins import import_modules
 from genesis_rl.rules.reward import PaperReward, RewardConfig
-from genesis_rl.rules.rulebook import Rulebook, default_rulebook, load_rulebook
-from genesis_rl.sim.interface import CameraConfig, ConnectionSettings, Simulation
+from genesis_rl.rules.rulebook import Rulebook, rulebook_for
+from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, CameraConfig, ConnectionSettings, Simulation
 from genesis_rl.step_record import StepRecord
 from genesis_rl.system.protocol import load_system
 from genesis_rl.viz.frames import annotate_frame
@@ -47,6 +50,8 @@ class EnvConfig:
     knobs: tuple[str, ...] = PAPER_KNOBS  # the knobs the agent turns (action dimensions, in order)
     disabled_knobs: tuple[str, ...] = ()  # ablation: these stay at their starting value
     max_step_fraction: float = 0.05  # naturalness limit: largest change per step, as a fraction of range
+    dynamics: str = "paper"  # paper: max_step_fraction per step; natural: outdoor rates per second (docs/odd.md)
+    odd: str | None = None  # operational design domain file (configs/odd/*.toml): policies are kept inside it
     start_weather: str = "clear_noon"  # preset and/or KNOB=VALUE list
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
@@ -54,7 +59,8 @@ class EnvConfig:
     obs_width: int = 96  # the policy's image [px] (the paper's 640x480, downscaled; 4:3 as the camera)
     obs_height: int = 72
     obs_knobs: bool = False  # observe {"image", "knobs"} instead of the image alone
-    rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2)
+    rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2), and
+    #                              speed_for_visibility when an ODD is declared
     reward: RewardConfig = field(default_factory=RewardConfig)
     terminate_on_collision: bool = False  # the paper runs every episode for its full length
     backend: str = "lite"  # simulator: a name in genesis_rl.backends.BACKENDS (lite, carla) or package.module:Class
@@ -86,12 +92,27 @@ class EnvConfig:
         if not self.carla_timeout > 0:
             raise UserInputError(f"env.carla_timeout = {self.carla_timeout} must be > 0 [s]")
         KnobActionMapper(self.knobs, self.max_step_fraction, self.disabled_knobs)  # names, limits checked
-        parse_weather(self.start_weather)
+        if self.dynamics not in DYNAMICS:
+            raise UserInputError(f"env.dynamics = '{self.dynamics}' is unknown; allowed: {', '.join(DYNAMICS)}")
+        start = parse_weather(self.start_weather)
+        if self.odd is not None:
+            odd = self.load_odd()
+            try:
+                check_start(odd, start, conditions_model(self.backend))
+            except UserInputError as err:
+                raise UserInputError(f"env.odd: {err}") from None
         check_backend_setting(self.backend, self.catalog, "env.backend", "env.catalog")
 
     @classmethod
     def field_names(cls) -> list[str]:
         return [f.name for f in fields(cls)]
+
+    def load_odd(self) -> ODD:
+        assert self.odd is not None
+        try:
+            return load_odd(self.odd, conditions_model(self.backend))
+        except UserInputError as err:
+            raise UserInputError(f"env.odd: {err}") from None
 
 
 def step_info(rec: StepRecord, knobs: dict[str, float]) -> dict[str, Any]:
@@ -141,10 +162,16 @@ class GenesisEnv(gym.Env):
         if render_mode not in (None, "rgb_array"):
             raise UserInputError(f"render_mode '{render_mode}' is not supported; allowed: rgb_array")
         self.render_mode = render_mode
-        self.mapper = KnobActionMapper(c.knobs, c.max_step_fraction, c.disabled_knobs)
+        self.dt = FIXED_DELTA_SECONDS
+        self.mapper = KnobActionMapper(c.knobs, c.max_step_fraction, c.disabled_knobs,
+                                       max_delta=max_deltas(c.knobs, c.dynamics, self.dt, c.max_step_fraction))
         self.start_weather: Weather = parse_weather(c.start_weather)
+        #: the declared domain (None: none), the backend's knob -> conditions map, the weather model
+        self.odd: ODD | None = c.load_odd() if c.odd else None
+        self.conditions_model = conditions_model(c.backend)
+        self.weather_model = WeatherModel(tuple(c.knobs))
         with _setting("env.rulebook"):
-            self.rulebook: Rulebook = load_rulebook(c.rulebook) if c.rulebook else default_rulebook()
+            self.rulebook: Rulebook = rulebook_for(c.rulebook, with_odd=c.odd is not None)
         with _setting("env.reward"):
             self.reward_fn = PaperReward(c.reward, self.rulebook)
         with _setting("env.catalog" if c.catalog else "env.scenes"):
@@ -210,10 +237,27 @@ class GenesisEnv(gym.Env):
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         if self._loop is None:
             raise RuntimeError("call reset() before step()")
-        self.weather = self.mapper.apply(self.weather, action)
-        rec = self._loop.advance(self.weather)
+        before = self.weather
+        proposed = self.mapper.apply(before, action)
+        if self.odd is not None:
+            proposed = self.odd.keep_inside(before, proposed, self.conditions_model, self._loop.heading_deg)
+        return self.step_weather(proposed, before)
+
+    def step_weather(self, weather: Weather, before: Weather | None = None
+                     ) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """One step under ``weather`` as given (``step`` after mapping and the ODD; a counterfactual replay
+        plays a recorded trajectory through it): tick, conditions, rules, reward."""
+        if self._loop is None:
+            raise RuntimeError("call reset() before step_weather()")
+        before = before or self.weather
+        self.weather = weather
+        rec = self._loop.advance(weather)
+        if self.odd is not None and rec.conditions is not None:
+            rec = replace(rec, odd_status=self.odd.status(rec.conditions))
         rule_terms = self.rulebook.step_terms(rec)
-        rec = rec.scored(rule_terms, self.reward_fn.terms(rec.iou, rule_terms))
+        surprise = self.weather_model.surprise(before.values, weather.values, self.dt) \
+            if self.config.reward.naturalness_weight > 0 else 0.0
+        rec = rec.scored(rule_terms, self.reward_fn.terms(rec.iou, rule_terms, surprise))
         self.records.append(rec)
         terminated = bool(self.config.terminate_on_collision and rec.collision.collided)
         truncated = len(self.records) >= self.config.episode_steps

@@ -41,9 +41,10 @@ from genesis_rl.evaluation.campaign_spec import CampaignSpec, check_spec, pick_s
 from genesis_rl.evaluation.policies import agent_file
 from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, read_json
 from genesis_rl.lite.scenes import DEFAULT_COUNTS
+from genesis_rl.odd.domain import load_odd
 from genesis_rl.perception.detector import file_sha256
 from genesis_rl.provenance import git_commit
-from genesis_rl.rules.rulebook import default_rulebook, load_rulebook
+from genesis_rl.rules.rulebook import rulebook_for
 from genesis_rl.system.protocol import load_system
 
 Task = tuple[str, int, int]  # (policy, scene, episode seed)
@@ -56,14 +57,16 @@ def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
     found = agent_file(Path(spec.agent)) if spec.agent else None
     agent_sha = file_sha256(found) if found else None
     system = load_system(spec.env.get("system", "builtin"), **spec.env.get("system_kwargs", {}))
-    rulebook_path = spec.env.get("rulebook")
     try:
-        rulebook = load_rulebook(rulebook_path) if rulebook_path else default_rulebook()
+        rulebook = rulebook_for(spec.env.get("rulebook"), with_odd=spec.env.get("odd") is not None)
     except UserInputError as err:
         raise UserInputError(f"env.rulebook: {err}") from None
-    return {"package_version": __version__, "agent_sha256": agent_sha,
-            "system": json.loads(json.dumps(system.identity(), default=str)),
-            "rulebook": rulebook.describe()}
+    identity = {"package_version": __version__, "agent_sha256": agent_sha,
+                "system": json.loads(json.dumps(system.identity(), default=str)),
+                "rulebook": rulebook.describe()}
+    if spec.env.get("odd"):  # the domain's content: a campaign keeps meaning what it meant if the file changes
+        identity["odd"] = load_odd(spec.env["odd"]).describe()
+    return identity
 
 
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from genesis_rl import limits
 from genesis_rl.backends import add_backend_arguments, check_backend_setting, env_overrides_from_args
+from genesis_rl.cli_args import add_odd_arguments, odd_overrides_from_args
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
 
@@ -42,12 +43,14 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     agent = str(Path(args.agent)) if args.agent else None
     env = env_settings_for(agent, args.config, args.system)
     env.update(env_overrides_from_args(args))
+    env.update(odd_overrides_from_args(args))
     check_backend_setting(env.get("backend", "lite"), args.catalog, "--backend", "--catalog")
     spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
                         records=args.records,
                         options={"search_budget": args.search_budget, "search_segments": args.search_segments,
-                                 "retries": args.retries})
+                                 "retries": args.retries,
+                                 **({"counterfactual": False} if args.no_counterfactual else {})})
     if args.out:
         out = Path(args.out)
     elif args.agent:
@@ -178,6 +181,10 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--force", action="store_true", help="replace an existing campaign folder")
     ev.add_argument("--no-report", action="store_true", help="skip report.html")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_odd_arguments(ev)
+    ev.add_argument("--no-counterfactual", action="store_true",
+                    help="skip the oracle replay of each collision (by default on with an ODD): blame then rests "
+                         "on the visibility evidence alone")
     add_backend_arguments(ev, default=None)
     ev.set_defaults(func=_cmd_evaluate)
 

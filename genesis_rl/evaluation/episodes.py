@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +19,21 @@ from PIL import Image
 from genesis_rl.config import from_mapping
 from genesis_rl.drive import write_telemetry
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+from genesis_rl.evaluation.blame import blame_label, visibility_evidence
 from genesis_rl.evaluation.campaign_files import episode_name, episode_path, steps_path
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
+from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
 from genesis_rl.evaluation.failure_modes import LABELLER_VERSION, label_collision
 from genesis_rl.evaluation.policies import EpisodeOutcome
 from genesis_rl.evaluation.records import make_record, save_record
 from genesis_rl.io_utils import atomic_write, atomic_write_json
+from genesis_rl.knobs import Weather
+from genesis_rl.odd.domain import STATUSES
 from genesis_rl.rules.rulebook import Rulebook
+from genesis_rl.step_record import StepRecord
+
+#: after the recorded impact, how long the counterfactual replay drives on looking for a collision [s]
+COUNTERFACTUAL_MARGIN_S = 2.0
 
 
 class CampaignRunner:
@@ -36,6 +45,7 @@ class CampaignRunner:
         self.config = from_mapping(EnvConfig, env_cfg, "env")
         self.env = GenesisEnv(self.config)
         self.spec = spec
+        self._oracle: GenesisEnv | None = None
 
     def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int) -> EpisodeOutcome:
         env, spec = self.env, self.spec
@@ -58,8 +68,24 @@ class CampaignRunner:
                 break
         return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records))
 
+    def oracle_collides(self, scene: int, episode_seed: int, records: Sequence[StepRecord], hit_at: int) -> bool:
+        """The counterfactual: the same scene, seeds and weather trajectory, driven by the ``oracle`` system
+        (the same controller on ground-truth boxes). Does it collide by the recorded impact (plus a margin)?"""
+        if self._oracle is None:
+            self._oracle = GenesisEnv(replace(self.config, system="oracle", system_kwargs={}))
+        env = self._oracle
+        env.reset(options={"scene": scene, "episode_seed": episode_seed})
+        end = min(len(records), hit_at + 1 + int(round(COUNTERFACTUAL_MARGIN_S / env.dt)))
+        for rec in records[:end]:
+            env.step_weather(Weather.from_recorded(rec.knobs))
+            if env.records[-1].collision.collided:
+                return True
+        return False
+
     def close(self) -> None:
         self.env.close()
+        if self._oracle is not None:
+            self._oracle.close()
 
 
 def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, policy: str, scene: int,
@@ -69,6 +95,7 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     records = outcome.records
     write_telemetry(steps_path(folder, policy, scene), records)
     row = episode_row(policy, scene, episode_seed, outcome, env.rulebook, env.config.knobs)
+    add_natural_fields(row, runner, scene, episode_seed, records)
     row["seconds"] = round(seconds, 2)
     for step, rgb in sorted(outcome.frames.items()):
         _write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
@@ -79,6 +106,45 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
         row["record"] = f"records/{policy}_{name}.json"
     atomic_write_json(episode_path(folder, policy, scene), row, indent=1)  # last: marks it done
     return row
+
+
+def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, episode_seed: int,
+                       records: Sequence[StepRecord]) -> None:
+    """What makes a failure a natural edge case, added to the episode's row: its steps' ODD labels, the
+    weather trajectory's log-likelihood, and for a collision the conditions and ODD status at the impact,
+    the visibility evidence, the counterfactual oracle replay (when ``counterfactual`` is on: by default with
+    an ODD), the blame, what was hit and the failure's cluster fields (``evaluation.distinct``)."""
+    env = runner.env
+    if not records:
+        return
+    trajectory = [env.start_weather.values, *(r.knobs for r in records)]
+    model = env.weather_model
+    row["naturalness"] = {"log_likelihood": round(model.log_likelihood(trajectory, env.dt), 3),
+                          "ratio_to_held": round(model.naturalness(trajectory, env.dt), 3)}
+    if env.odd is not None:
+        row["odd"] = {s: sum(1 for r in records if r.odd_status == s) for s in STATUSES}
+    failure = row.get("failure")
+    if not failure:
+        return
+    hit_at = next(i for i, r in enumerate(records) if r.collision.collided)
+    at = records[hit_at]
+    evidence = visibility_evidence(records, hit_at, env.dt)
+    run_oracle = bool(runner.spec.options.get("counterfactual", env.odd is not None))
+    oracle = runner.oracle_collides(scene, episode_seed, records, hit_at) if run_oracle else None
+    c = at.conditions
+    failure.update(
+        naturalness=round(model.naturalness(trajectory[:hit_at + 2], env.dt), 3),
+        odd_status=at.odd_status or "no ODD",
+        conditions=None if c is None else c.as_dict(),
+        visibility=None if c is None else visibility_band(c.visibility_m),
+        rain=None if c is None else rain_band(c.rain_mm_h),
+        light=None if c is None else c.light,
+        road_state=None if c is None else c.road_state,
+        hit=what_was_hit(records, hit_at, env.dt),
+        evidence=evidence,
+        oracle_collides=oracle,
+        blame=blame_label(evidence, oracle),
+    )
 
 
 def _write_jpeg(path: Path, rgb: np.ndarray) -> None:

@@ -1,5 +1,7 @@
 """``report.html``: one self-contained page (figures embedded) that tells a campaign's story.
 
+0. For a campaign from 0.6.0 on: distinct failures inside the ODD, the ODD coverage map, blame and
+   naturalness (``report_natural``).
 1. The paper's Fig. 2: the mean violation of every rule of the campaign's rulebook per policy (the paper's:
    collision, proximity, RSS deficit), with bootstrap 95% CIs, and the paired agent-vs-baseline comparison.
 2. Fig. 3-style telemetry for one collision per failure mode: speeds, throttle and brake, true and
@@ -28,6 +30,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
 from genesis_rl.evaluation.campaign_spec import run_folder_of
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
+from genesis_rl.evaluation.report_natural import section as natural_section
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
 from genesis_rl.io_utils import atomic_write_text, os_error_message
 from genesis_rl.knobs import PAPER_KNOBS, Weather
@@ -227,6 +230,10 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
         missing = {p: v["missing"] for p, v in summary["policies"].items() if v["missing"]}
         h.append(f"<p class=warn>This campaign is not finished: missing episodes {missing}. Figures use the "
                  "finished episodes only; <code>genesis-rl evaluate ... --resume</code> completes it.</p>")
+
+    # 0. natural edge cases (campaigns from 0.6.0 on)
+    h.extend(natural_section(folder, summary, rows, lambda p, sc: _steps(folder, p, sc), _png,
+                             lambda p, sc, recs: frame_strip(folder, p, sc, recs)))
 
     # 1. comparison
     h.append("<h2>1. Violations by policy (paper Fig. 2)</h2>")

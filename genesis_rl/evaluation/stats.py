@@ -2,12 +2,13 @@
 
 Every policy meets the same scenes with the same episode seeds, so two policies compare *paired*, scene by
 scene: the mean difference with a paired bootstrap CI, wins/ties/losses, and a sign-flip permutation
-p-value (two-sided). All resampling is seeded.
+p-value (two-sided). All resampling is seeded. Failure rates get exact Clopper-Pearson intervals.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -41,3 +42,26 @@ def paired_comparison(a: Sequence[float], b: Sequence[float], seed: int, n_boot:
     null = np.abs((signs * d).mean(axis=1))
     out["p_value"] = float((1 + (null >= abs(d.mean()) - 1e-12).sum()) / (n_boot + 1))
     return out
+
+
+def _binom_cdf(k: int, n: int, p: float) -> float:
+    return float(sum(math.comb(n, i) * p**i * (1 - p) ** (n - i) for i in range(k + 1)))
+
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> dict[str, float | int | None]:
+    """The exact (Clopper-Pearson) confidence interval of a rate of ``k`` events in ``n`` trials, found by
+    bisection on the binomial tail probabilities (no SciPy needed)."""
+    if n == 0:
+        return {"rate": None, "ci_low": None, "ci_high": None, "k": 0, "n": 0}
+    alpha = (1 - level) / 2
+
+    def solve(f: Callable[[float], bool]) -> float:  # the p in [0, 1] where f turns from False to True
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = (lo + hi) / 2
+            lo, hi = (lo, mid) if f(mid) else (mid, hi)
+        return (lo + hi) / 2
+
+    low = 0.0 if k == 0 else solve(lambda p: 1 - _binom_cdf(k - 1, n, p) >= alpha)
+    high = 1.0 if k == n else solve(lambda p: _binom_cdf(k, n, p) <= alpha)
+    return {"rate": k / n, "ci_low": round(low, 4), "ci_high": round(high, 4), "k": k, "n": n}

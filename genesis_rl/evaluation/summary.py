@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.evaluation.campaign_files import read_campaign_meta, read_episode_row, read_step_records, steps_path
+from genesis_rl.evaluation.distinct import natural_summary
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, LABELLER_VERSION, FailureModeThresholds, label_collision
 from genesis_rl.evaluation.stats import bootstrap_mean_ci, paired_comparison
 from genesis_rl.io_utils import atomic_write_json, atomic_write_text
@@ -95,6 +96,9 @@ def summarize_campaign(folder: Path, write: bool = True,
         stats["collision_events"] = sum(e["collision_events"] for e in eps)
         stats["failure_modes"] = {m: sum(1 for e in eps if e["failure_mode"] == m) for m in FAILURE_MODES}
         stats["sim_steps"] = sum(e["sim_steps"] for e in eps)
+        natural = natural_summary(policy, eps)
+        if natural is not None:
+            stats["natural"] = natural
         policies[policy] = stats
     comparisons: dict[str, Any] = {}
     if "agent" in rows:
@@ -117,6 +121,9 @@ def summarize_campaign(folder: Path, write: bool = True,
         "failure_mode_thresholds": FailureModeThresholds().as_dict(),
         "policies": policies, "comparisons": comparisons,
     }
+    odd = meta.get("identity", {}).get("odd")
+    if odd:
+        summary["odd"] = odd
     if write:
         write_summary_files(folder, summary, rows, rulebook)
     return summary

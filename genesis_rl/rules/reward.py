@@ -4,8 +4,8 @@ Default (the paper): r_t = exp(-IoU_t) + ln(1 + w_c a_c + w_p a_p), with (w_c, w
 collision term and a_p the proximity term of the step (see ``rulebook``), and IoU_t the frame IoU of
 ``genesis_rl.geometry`` (1 when no vehicle is in view). The first term rewards hiding vehicles from
 the detector, the second (log-damped) rewards the behaviour violations that follow. Other rules join the
-log term by name through ``rule_weights``; a weighted rule the rulebook lacks is an error when the reward
-is built, not a silent zero.
+log term by name through ``rule_weights``; ``naturalness_weight`` adds the weather change's surprise; a
+weighted rule the rulebook lacks is an error when the reward is built, not a silent zero.
 """
 
 from __future__ import annotations
@@ -24,9 +24,10 @@ class RewardConfig:
     proximity_weight: float = 100.0  # w_p [1 / (m/s)]: weight of the rule named "proximity"
     iou_weight: float = 1.0  # scales exp(-IoU)
     rule_weights: dict[str, float] = field(default_factory=dict)  # more rules by name [1 / rule unit]
+    naturalness_weight: float = 0.0  # scales the step's weather surprise (-0.5 sum z^2, odd.dynamics) [1/nat]
 
     def __post_init__(self) -> None:
-        for k in ("collision_weight", "proximity_weight", "iou_weight"):
+        for k in ("collision_weight", "proximity_weight", "iou_weight", "naturalness_weight"):
             if not (math.isfinite(getattr(self, k)) and getattr(self, k) >= 0):
                 raise ValueError(f"reward.{k} = {getattr(self, k)} must be a finite number >= 0")
         for name, w in self.rule_weights.items():
@@ -56,7 +57,14 @@ class PaperReward:
                     f"{', '.join(rulebook.names)}); add them to the rulebook or set their weight to 0 "
                     "(reward.collision_weight, reward.proximity_weight, reward.rule_weights)")
 
-    def terms(self, iou: float, rule_terms: Mapping[str, float]) -> dict[str, float]:
+    def terms(self, iou: float, rule_terms: Mapping[str, float], surprise: float = 0.0) -> dict[str, float]:
+        """Every part of the step's reward. ``surprise``: the weather change's log-likelihood less that of no
+        change (<= 0, ``odd.dynamics.WeatherModel.surprise``); with ``naturalness_weight`` > 0 it joins the
+        reward as ``reward_naturalness``, so the agent searches for the most likely failure (AST)."""
         perception = self.config.iou_weight * math.exp(-iou)
         behaviour = math.log1p(sum(w * float(rule_terms.get(k, 0.0)) for k, w in self.weights.items()))
-        return {"reward_perception": perception, "reward_behaviour": behaviour, "reward": perception + behaviour}
+        out = {"reward_perception": perception, "reward_behaviour": behaviour, "reward": perception + behaviour}
+        if self.config.naturalness_weight > 0:
+            out["reward_naturalness"] = self.config.naturalness_weight * surprise
+            out["reward"] += out["reward_naturalness"]
+        return out

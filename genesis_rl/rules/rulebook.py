@@ -164,6 +164,50 @@ class RSSFollowingDistanceRule(Rule):
         return max(0.0, d_min - gap)
 
 
+#: Road states on which braking distances at least double (UK Highway Code rule 227): deceleration halves.
+WET_ROAD_STATES = frozenset({"wet", "standing_water"})
+
+
+def stopping_distance_m(speed: float, road_state: str = "dry", reaction_s: float = 0.67,
+                        decel: float = 6.5) -> float:
+    """Thinking plus braking distance [m] at ``speed`` [m/s]. The defaults are the UK Highway Code's
+    typical stopping distances (70 mph: 21 m thinking, 75 m braking: 0.67 s, 6.5 m/s^2); on a wet road
+    the braking part doubles."""
+    a = decel / 2.0 if road_state in WET_ROAD_STATES else decel
+    return speed * reaction_s + speed * speed / (2.0 * a)
+
+
+def speed_for_visibility(visibility_m: float, road_state: str = "dry", reaction_s: float = 0.67,
+                         decel: float = 6.5) -> float:
+    """The highest speed [m/s] that stops within ``visibility_m`` (the inverse of ``stopping_distance_m``)."""
+    a = decel / 2.0 if road_state in WET_ROAD_STATES else decel
+    return a * (-reaction_s + math.sqrt(reaction_s * reaction_s + 2.0 * max(0.0, visibility_m) / a))
+
+
+@register_rule
+class SpeedForVisibilityRule(Rule):
+    """Drive at a speed that stops within the distance one can see (UK Highway Code rule 126; German StVO
+    section 3(1)): the ego's speed above that speed [m/s], per step. Needs the step's conditions (0 when a
+    record has none); reported beside the paper's total, not in it."""
+
+    name = "speed_for_visibility"
+    description = "speed above the speed that stops within the visibility [m/s]"
+    unit = "m/s"
+    in_total = False
+    reaction_s: float = 0.67  # [s]
+    decel: float = 6.5  # [m/s^2] on a dry road; halved on a wet one
+
+    def __post_init__(self) -> None:
+        _positive(self)
+
+    def term(self, record: StepRecord) -> float:
+        c = record.conditions
+        if c is None:
+            return 0.0
+        limit = speed_for_visibility(c.visibility_m, c.road_state, self.reaction_s, self.decel)
+        return max(0.0, float(record.ego.speed) - limit)
+
+
 @dataclasses.dataclass(frozen=True)
 class Rulebook:
     """Rules in priority order (index 0 = highest priority)."""
@@ -268,6 +312,19 @@ def build_rulebook(entries: Sequence[Mapping[str, Any]], source: str = "rulebook
 def default_rulebook() -> Rulebook:
     """The paper's rules: collision before proximity, with the RSS deficit as a third, reported metric."""
     return build_rulebook([{"name": "collision"}, {"name": "proximity"}, {"name": "rss_deficit"}], "default")
+
+
+def odd_rulebook() -> Rulebook:
+    """The paper's rules and speed for visibility: the default rulebook when an ODD is declared."""
+    return build_rulebook([{"name": "collision"}, {"name": "proximity"}, {"name": "rss_deficit"},
+                           {"name": "speed_for_visibility"}], "default")
+
+
+def rulebook_for(path: str | Path | None, with_odd: bool) -> Rulebook:
+    """An env's rulebook: its file, else the default (with speed for visibility when an ODD is declared)."""
+    if path:
+        return load_rulebook(path)
+    return odd_rulebook() if with_odd else default_rulebook()
 
 
 def load_rulebook(path: str | Path) -> Rulebook:
