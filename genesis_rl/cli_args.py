@@ -22,19 +22,27 @@ def add_odd_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--odd", default=None, metavar="FILE",
                         help="operational design domain (configs/odd/*.toml): every policy is kept inside it and "
                              "every step and failure is labelled inside / boundary / outside")
+    parser.add_argument("--odd-label-only", action="store_true",
+                        help="label steps and failures against --odd without keeping the policy inside it (to audit "
+                             "what a policy does when nothing holds it back)")
     parser.add_argument("--dynamics", default=None, choices=["paper", "natural"],
                         help="paper: a knob moves 5%% of its range per step; natural: at most what outdoor weather "
                              "does per second (the sun is held)")
 
 
-def odd_overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
+def odd_overrides_from_args(args: argparse.Namespace) -> dict[str, str | bool]:
     """The ``[env]`` keys ``--odd`` and ``--dynamics`` set; the ODD path is made absolute so that a run's
     workers and a later ``--resume`` find it from any folder."""
     from pathlib import Path
 
-    out = {}
+    out: dict[str, str | bool] = {}
+    if args.odd_label_only and args.odd is None:
+        from genesis_rl.errors import UserInputError
+
+        raise UserInputError("--odd-label-only needs --odd FILE (the domain to label against)")
     if args.odd is not None:
         out["odd"] = str(Path(args.odd).resolve())
+        out["odd_keep_inside"] = not args.odd_label_only
     if args.dynamics is not None:
         out["dynamics"] = args.dynamics
     return out

@@ -51,7 +51,8 @@ class EnvConfig:
     disabled_knobs: tuple[str, ...] = ()  # ablation: these stay at their starting value
     max_step_fraction: float = 0.05  # naturalness limit: largest change per step, as a fraction of range
     dynamics: str = "paper"  # paper: max_step_fraction per step; natural: outdoor rates per second (docs/odd.md)
-    odd: str | None = None  # operational design domain file (configs/odd/*.toml): policies are kept inside it
+    odd: str | None = None  # operational design domain file (configs/odd/*.toml): steps are labelled against it
+    odd_keep_inside: bool = True  # and policies are kept inside it (false: label only, e.g. to audit old runs)
     start_weather: str = "clear_noon"  # preset and/or KNOB=VALUE list
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
@@ -239,7 +240,7 @@ class GenesisEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         before = self.weather
         proposed = self.mapper.apply(before, action)
-        if self.odd is not None:
+        if self.odd is not None and self.config.odd_keep_inside:
             proposed = self.odd.keep_inside(before, proposed, self.conditions_model, self._loop.heading_deg)
         return self.step_weather(proposed, before)
 
