@@ -157,7 +157,8 @@ def test_env_rejects_unknown_settings() -> None:
     ('rules = "collision"\n', "`rules` must be a list of tables ([[rules]]), got str"),
     ('rules = ["collision"]\n', "rules[0] must be a table with name, priority, params; got 'collision'"),
     ('[[rules]]\nname = "proximity"\nparams = 5\n', "params = 5 must be a table"),
-    ('[[rules]]\nname = 3\n', "name = 3; allowed: collision, proximity, rss_deficit, speed_for_visibility or package.module:Class"),
+    ('[[rules]]\nname = 3\n',
+     "name = 3; allowed: collision, proximity, rss_deficit, speed_for_visibility or package.module:Class"),
     ('[[rules]]\nname = "no_such_module_xyz:Rule"\n', "cannot import module 'no_such_module_xyz'"),
     ('[[rules]]\nname = "genesis_rl.knobs:KnobSpec"\n', "class KnobSpec is not a genesis_rl.rules.rulebook.Rule"),
 ])
