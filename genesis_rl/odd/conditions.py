@@ -101,9 +101,11 @@ class ConditionsModel:
         self.visibility_range_m = (self.visibility_m(dense), self.visibility_m(clear))
 
     def visibility_m(self, weather: Weather) -> float:
-        from genesis_rl.lite.render.lighting import lighting_for
+        """Exactly the visibility lite renders: its fog and rain extinction (``lighting_for`` uses the same)."""
+        from genesis_rl.lite.render.lighting import KOSCHMIEDER, extinctions
 
-        return float(lighting_for(weather).visibility_m)
+        fog, rain = extinctions(weather["fog_density"], weather["precipitation"])
+        return KOSCHMIEDER / (fog + rain)
 
     def cloud_cover(self, weather: Weather) -> float:
         cloud, rain = float(weather["cloudiness"]) / 100.0, float(weather["precipitation"]) / 100.0

@@ -85,7 +85,7 @@ class ODD:
 
     # -- keeping a policy inside ---------------------------------------------------------------------------
     def keep_inside(self, before: Weather, proposed: Weather, model: ConditionsModel,
-                    heading_deg: float | None = None, iterations: int = 12) -> Weather:
+                    heading_deg: float | None = None, iterations: int = 10) -> Weather:
         """``proposed`` if it is inside; else each knob, in declaration order, moves from ``before`` as far
         toward its proposed value as the domain allows (a bisection per knob), so a policy pushing fog
         against the visibility bound still turns the road wet. ``before`` is returned as it is when it is
@@ -107,7 +107,10 @@ class ODD:
             if self.contains(model.conditions(full, heading_deg)):
                 best = full
                 continue
-            lo, hi = 0.0, 1.0
+            # a knob held at its bound (the usual case when a policy pushes against it) costs one more look
+            if not self.contains(model.conditions(_with(best, name, start + _FIRST_LOOK * delta), heading_deg)):
+                continue
+            lo, hi = _FIRST_LOOK, 1.0
             for _ in range(iterations):
                 mid = (lo + hi) / 2
                 w = _with(best, name, start + mid * delta)
@@ -130,6 +133,10 @@ class ODD:
             d[q] = {"allowed": list(allowed)}
         d["sun_glare"] = {"allowed": self.sun_glare_allowed}
         return d
+
+
+#: the smallest share of a step a blocked knob is tried with before it is bisected
+_FIRST_LOOK = 1.0 / 64.0
 
 
 def _with(weather: Weather, name: str, value: float) -> Weather:

@@ -98,6 +98,12 @@ def fog_visibility_m(fog_density: float) -> float:
     return _FOG_VISIBILITY_TABLE[-1][1]
 
 
+def extinctions(fog_density: float, precipitation: float) -> tuple[float, float]:
+    """beta of fog + clear-air haze and beta of falling rain [1/m] (visibility = KOSCHMIEDER / their sum)."""
+    rain = float(precipitation) / 100.0
+    return KOSCHMIEDER / fog_visibility_m(float(fog_density)), _RAIN_EXTINCTION_MAX * rain**1.2
+
+
 # Reference colours (sRGB 0..1).
 _ZENITH_DAY: Color = (0.20, 0.42, 0.80)
 _HORIZON_DAY: Color = (0.66, 0.79, 0.93)
@@ -157,8 +163,7 @@ def lighting_for(weather: Weather) -> Lighting:
     # Airlight: the horizon colour, mostly desaturated (fog scatters every wavelength alike).
     fog_color = _lerp(_desaturate(horizon, 1.0, (0.98, 1.0, 1.03)), horizon, 0.35)
 
-    fog_extinction = KOSCHMIEDER / fog_visibility_m(fog)
-    rain_extinction = _RAIN_EXTINCTION_MAX * rain**1.2
+    fog_extinction, rain_extinction = extinctions(fog, weather["precipitation"])
     visibility_m = KOSCHMIEDER / (fog_extinction + rain_extinction)
 
     headlight_strength = 1.0 - smoothstep(-6.0, 6.0, alt)
