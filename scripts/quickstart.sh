@@ -19,7 +19,9 @@ mkdir -p "$OUT"
     --out "$OUT/drive_fog" --force --quiet
 # a small adversarial weather agent (configs/paper.toml is the paper's full schedule)
 .venv/bin/genesis-rl train --config configs/quickstart.toml --out "$OUT/run" --force
-# evaluate it on held-out scenes of the test town against the baselines; writes report.html
+# evaluate it on held-out scenes of the test town against the baselines, and label every failure against
+# a highway day-time ODD (inside or not, blame, naturalness, distinct failures: docs/odd.md); report.html
 .venv/bin/genesis-rl evaluate --agent "$OUT/run" --catalog "$OUT/highway_scenes.json" --scenes 10 --steps 256 \
-    --policies sunny,random,agent --workers 2 --out "$OUT/run/eval" --force
+    --policies sunny,random,agent --odd configs/odd/highway_day.toml --odd-label-only --workers 2 \
+    --out "$OUT/run/eval" --force
 echo "[quickstart] done. Report: $OUT/run/eval/report.html"

@@ -92,3 +92,10 @@ def test_bad_odd_input_exits_2_naming_the_field(tmp_path, capsys) -> None:
                  "--config", str(cfg), "--out", str(tmp_path / "y")]) == 2
     assert "start weather is outside the ODD" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_a_failure_inside_the_odd_replays_with_its_speed_for_visibility_terms(campaign: Path, tmp_path) -> None:
+    record = next((campaign / "records").glob("sunny_*.json"))
+    stored = json.loads(record.read_text())
+    assert "speed_for_visibility" in [r["name"] for r in stored["rulebook"]]
+    assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--no-gif", "--quiet"]) == 0
