@@ -16,6 +16,7 @@ import numpy as np
 from genesis_rl.config import read_toml
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.policies import PolicyContext, load_agent, resolve_policy
+from genesis_rl.knobs import PAPER_KNOBS
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,7 @@ def check_spec(spec: CampaignSpec) -> None:
         if cls.needs_agent and not spec.agent:
             raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
         if not cls.needs_agent:
-            cls(PolicyContext(action_dim=1, seed=spec.seed, options={**spec.options, "steps": spec.steps}))
+            action_dim = len(spec.env.get("knobs") or PAPER_KNOBS)
+            cls(PolicyContext(action_dim=action_dim, seed=spec.seed, options={**spec.options, "steps": spec.steps}))
     if any(resolve_policy(p).needs_agent for p in spec.policies):
         load_agent(Path(spec.agent) if spec.agent else None)

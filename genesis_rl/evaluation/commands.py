@@ -17,6 +17,16 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
 
 
+def _constant_action(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UserInputError(f"--constant-action = '{text}': expected numbers in [-1, 1], e.g. 1,1,1,1,0") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise UserInputError(f"--constant-action = '{text}': expected numbers in [-1, 1], e.g. 1,1,1,1,0")
+    return values
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
     from genesis_rl.evaluation.policies import resolve_policy
@@ -50,6 +60,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                         records=args.records,
                         options={"search_budget": args.search_budget, "search_segments": args.search_segments,
                                  "retries": args.retries,
+                                 **({"constant_action": _constant_action(args.constant_action)}
+                                    if args.constant_action is not None else {}),
                                  **({"counterfactual": False} if args.no_counterfactual else {})})
     if args.out:
         out = Path(args.out)
@@ -171,6 +183,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
     ev.add_argument("--search-budget", type=int, default=8, help="episodes per scene a search baseline may spend")
     ev.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
+    ev.add_argument("--constant-action", default=None, metavar="A,B,...",
+                    help="policy 'constant': its action, one value in [-1, 1] per knob (default: 1 on every knob)")
     ev.add_argument("--records", default="failures", choices=["failures", "all"],
                     help="write replayable edge-case records for failing episodes only, or for all")
     ev.add_argument("--retries", type=int, default=2,

@@ -119,6 +119,30 @@ class RandomPolicy(StepPolicy):
 
 
 @register_policy
+class ConstantPolicy(StepPolicy):
+    """The same action every step (``--constant-action``, one value in [-1, 1] per knob; default +1 on every
+    knob): an open-loop schedule. +1 on fog, rain and deposits and on the sun's altitude (noon) is the
+    schedule that gives the paper agent's figures (docs/results.md): the reference a reactive agent must beat."""
+
+    name = "constant"
+    description = "the same action every step (--constant-action), an open-loop schedule"
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        raw = context.options.get("constant_action")
+        values = [1.0] * context.action_dim if raw is None else [float(v) for v in raw]
+        if len(values) == 1:
+            values = values * context.action_dim
+        if len(values) != context.action_dim or not all(-1.0 <= v <= 1.0 for v in values):
+            raise UserInputError(f"--constant-action = {raw!r}: give one value in [-1, 1], or one per knob "
+                                 f"({context.action_dim})")
+        self.action = np.array(values, np.float32)
+
+    def act(self, obs: Any) -> np.ndarray:
+        return self.action
+
+
+@register_policy
 class AgentPolicy(StepPolicy):
     name = "agent"
     needs_agent = True
