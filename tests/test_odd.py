@@ -271,3 +271,16 @@ def test_odd_describe_round_trips():
                                                                                           False)
     old = synthetic_step(3).to_row()
     assert "visibility_m" not in old and StepRecord.from_row(old).conditions is None
+
+
+def test_constant_policy_repeats_its_action_and_checks_it():
+    from genesis_rl.evaluation.policies import ConstantPolicy, PolicyContext
+
+    p = ConstantPolicy(PolicyContext(action_dim=5, seed=0, options={"constant_action": [1, 1, 1, 1, 0]}))
+    assert p.act(None).tolist() == [1, 1, 1, 1, 0] and p.act(None).tolist() == [1, 1, 1, 1, 0]
+    assert ConstantPolicy(PolicyContext(action_dim=3, seed=0, options={"constant_action": [-0.5]})).act(
+        None).tolist() == [-0.5] * 3
+    assert ConstantPolicy(PolicyContext(action_dim=2, seed=0)).act(None).tolist() == [1.0, 1.0]
+    for bad in ([1, 1], [2.0]):
+        with pytest.raises(UserInputError, match="--constant-action"):
+            ConstantPolicy(PolicyContext(action_dim=5, seed=0, options={"constant_action": bad}))
