@@ -92,17 +92,19 @@ def to_mapping(obj: Any) -> dict[str, Any]:
     return out
 
 
-def read_toml(path: str | Path) -> dict[str, Any]:
+def read_toml(path: str | Path, what: str = "config", hint: str = "") -> dict[str, Any]:
+    """A TOML file's tables; a folder, a missing file, bytes that are not UTF-8 and bad TOML are user errors
+    that name ``what`` the file is (config, rulebook, ODD) and the file."""
     path = Path(path)
     if path.is_dir():
-        raise UserInputError(f"config '{path}' is a folder; expected a TOML file")
+        raise UserInputError(f"{what} '{path}' is a folder; expected a TOML file")
     if not path.is_file():
-        raise UserInputError(f"config file '{path}' does not exist")
-    text = read_utf8(path, "config")
+        raise UserInputError(f"{what} file '{path}' does not exist{hint}")
+    text = read_utf8(path, what)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
-        raise UserInputError(f"config '{path}' is not valid TOML: {err}") from None
+        raise UserInputError(f"{what} '{path}' is not valid TOML: {err}") from None
 
 
 def dump_toml(data: Mapping[str, Any]) -> str:

@@ -12,14 +12,12 @@ empty domains and bounds the backend cannot show are refused, naming the field.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import read_utf8
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.odd.conditions import LIGHTS, ROAD_STATES, Conditions, ConditionsModel
 
@@ -222,13 +220,9 @@ def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | Non
 
 def load_odd(path: str | Path, model: ConditionsModel | None = None) -> ODD:
     """Read an ODD file; every error names the file and the field."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserInputError(f"ODD file '{path}' does not exist; shipped ones: configs/odd/*.toml")
-    try:
-        data = tomllib.loads(read_utf8(path, "ODD"))
-    except tomllib.TOMLDecodeError as err:
-        raise UserInputError(f"ODD '{path}' is not valid TOML: {err}") from None
+    from genesis_rl.config import read_toml
+
+    data = read_toml(path, "ODD", hint="; shipped ones: configs/odd/*.toml")
     return parse_odd(data, str(path), model)
 
 

@@ -26,13 +26,11 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
-import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import read_utf8
 from genesis_rl.plugins import load_class
 from genesis_rl.step_record import StepRecord
 
@@ -329,13 +327,9 @@ def rulebook_for(path: str | Path | None, with_odd: bool) -> Rulebook:
 
 def load_rulebook(path: str | Path) -> Rulebook:
     """Read a TOML rulebook: ``[[rules]]`` tables with ``name``, optional ``priority`` and ``params``."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserInputError(f"rulebook file '{path}' does not exist")
-    try:
-        data = tomllib.loads(read_utf8(path, "rulebook"))
-    except tomllib.TOMLDecodeError as err:
-        raise UserInputError(f"rulebook '{path}' is not valid TOML: {err}") from None
+    from genesis_rl.config import read_toml
+
+    data = read_toml(path, "rulebook")
     unknown = set(data) - {"rules"}
     if unknown:
         raise UserInputError(f"rulebook '{path}': unknown key(s) {sorted(unknown)}; allowed: rules")
