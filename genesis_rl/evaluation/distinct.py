@@ -83,6 +83,10 @@ def _failure_of(row: Mapping[str, Any], policy: str) -> dict[str, Any]:
     return f
 
 
+def _blame_counts(failures: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    return {b: sum(1 for f in failures if f.get("blame") == b) for b in ("perception", "control", "unavoidable")}
+
+
 def natural_summary(policy: str, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
     """A policy's natural-edge-case figures (None for a campaign older than 0.6.0): its collisions inside the
     ODD with an exact CI on their rate, the distinct ones, the blame split, naturalness, and the ODD share
@@ -103,7 +107,8 @@ def natural_summary(policy: str, rows: Sequence[Mapping[str, Any]]) -> dict[str,
         "in_odd_collisions": len(in_odd),
         "in_odd_collision_rate": clopper_pearson(len(in_odd), len(rows)),
         "distinct_in_odd_failures": len(groups),
-        "blame": {b: sum(1 for f in in_odd if f.get("blame") == b) for b in ("perception", "control", "unavoidable")},
+        "blame": _blame_counts(in_odd),
+        "outside_odd_blame": _blame_counts([f for f in failures if f not in in_odd]),
         "naturalness_mean": round(float(np.mean([r["naturalness"]["ratio_to_held"] for r in rows])), 3),
         "failure_naturalness_mean": round(float(np.mean([f["naturalness"] for f in in_odd])), 3) if in_odd else None,
         "odd_steps": {s: round(n / total_steps, 4) for s, n in steps.items()} if has_odd and total_steps else None,

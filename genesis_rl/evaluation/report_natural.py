@@ -40,9 +40,14 @@ def lead_lines(summary: dict[str, Any]) -> list[str]:
         blame = ", ".join(f"{k} {v}" for k, v in n["blame"].items() if v) or "none"
         nat = "" if n["failure_naturalness_mean"] is None else \
             f"; their weather's naturalness {n['failure_naturalness_mean']:.3g} nats (0: weather held)"
+        outside = n["collisions"] - n["in_odd_collisions"]
+        beyond = ""
+        if outside:
+            split = ", ".join(f"{k} {v}" for k, v in n.get("outside_odd_blame", {}).items() if v)
+            beyond = f"; <b>{outside} more outside the ODD</b>" + (f" (blame: {split})" if split else "")
         out.append(f"<b>{html.escape(policy)}</b>: <b>{n['distinct_in_odd_failures']} distinct {where} "
                    f"failure(s)</b> ({n['in_odd_collisions']} {where} collisions in {rate['n']} episodes{ci}); "
-                   f"blame: {blame}{nat}")
+                   f"blame: {blame}{nat}{beyond}")
     return out
 
 
@@ -56,7 +61,7 @@ def fig_odd_coverage(summary: dict[str, Any], rows: dict[str, list[dict[str, Any
         return None
     odd = summary.get("odd") or {}
     vmin = odd.get("visibility", {}).get("min")
-    fig, axes = plt.subplots(1, len(policies), figsize=(4.2 * len(policies), 3.8), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(policies), figsize=(4.2 * len(policies) + 1.8, 3.8), squeeze=False, sharey=True)
     vis_axis = np.geomspace(8, 4000, 200)
     for ax, policy in zip(axes[0], policies, strict=True):
         vis, speed, status = [], [], []
@@ -93,7 +98,7 @@ def fig_odd_coverage(summary: dict[str, Any], rows: dict[str, list[dict[str, Any
         ax.set_xlabel("visibility [m]")
         ax.set_title(f"{policy}: {len(hits)} collision(s)", fontsize=10)
     axes[0][0].set_ylabel("ego speed [m/s]")
-    axes[0][-1].legend(fontsize=7, loc="upper left", markerscale=3)
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), markerscale=3)
     fig.tight_layout()
     return png(fig)
 
