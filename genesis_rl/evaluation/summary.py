@@ -181,6 +181,22 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         cells = [p, str(s["episodes"]), *(ci(s[m]) for m in rules), *(f"{s[k]:.1f}" for k in sums),
                  str(s["episodes_with_collision"]), modes, ci(s["mean_iou"], 3), str(s["sim_steps"])]
         lines.append("| " + " | ".join(cells) + " |")
+    natural = [(p, s["natural"]) for p, s in summary["policies"].items() if s.get("natural")]
+    if natural:
+        lines += ["", "| policy | collisions | inside the ODD | in-ODD collision rate [95% CI] | distinct in-ODD "
+                  "failures | blame in / outside the ODD (perception, control, unavoidable) | naturalness per "
+                  "episode / of the failures [nats] | steps inside / boundary / outside |", "|" + " --- |" * 8]
+        for p, n in natural:
+            r = n["in_odd_collision_rate"]
+            rate = "–" if r["rate"] is None else \
+                f"{100 * r['rate']:.0f}% [{100 * r['ci_low']:.0f}, {100 * r['ci_high']:.0f}]"
+            splits = (n["blame"], n.get("outside_odd_blame", {}))
+            blame = " / ".join(", ".join(str(v) for v in b.values()) for b in splits)
+            fails = "–" if n["failure_naturalness_mean"] is None else f"{n['failure_naturalness_mean']:.3g}"
+            steps = " / ".join(f"{100 * v:.0f}%" for v in n["odd_steps"].values()) if n["odd_steps"] else "–"
+            lines.append(f"| {p} | {n['collisions']} | {n['in_odd_collisions']} | {rate} | "
+                         f"{n['distinct_in_odd_failures']} | {blame} | {n['naturalness_mean']:.3g} / {fails} | "
+                         f"{steps} |")
     if summary["comparisons"]:
         lines += ["", "| comparison | metric | mean difference [95% CI] | wins / ties / losses | p (sign-flip) |",
                   "| --- | --- | --- | --- | --- |"]
