@@ -289,7 +289,7 @@ def test_report_of_a_half_finished_campaign_says_what_is_missing(tmp_path, campa
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--policies", "sunny,bogus"], "unknown policy 'bogus'; allowed: sunny, random, agent, cmaes"),
+        (["--policies", "sunny,bogus"], "unknown policy 'bogus'; allowed: sunny, random, constant, agent, cmaes"),
         (["--policies", "agent"], "policy 'agent' needs --agent"),
         (["--policies", "sunny", "--agent", "nowhere"], "--agent 'nowhere' does not exist"),
         (["--policies", "sunny", "--scenes", "0"], "--scenes = 0 must be in 1..12"),
