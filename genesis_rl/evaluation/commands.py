@@ -33,7 +33,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
     if not policies:
-        raise UserInputError("--policies is empty; allowed: sunny, random, constant, agent, cmaes or package.module:Class")
+        raise UserInputError("--policies is empty; allowed: sunny, random, constant, agent, cmaes or "
+                             "package.module:Class")
     if len(set(policies)) != len(policies):
         raise UserInputError(f"--policies names a policy twice: {','.join(policies)}")
     for p in policies:
