@@ -228,7 +228,7 @@ def load_odd(path: str | Path, model: ConditionsModel | None = None) -> ODD:
 
 def check_start(odd: ODD, start: Weather, model: ConditionsModel) -> None:
     """The start weather must lie in the domain (glare aside: it depends on where the road points)."""
-    bad = [v for v in odd.violations(model.conditions(start, None))]
+    bad = odd.violations(model.conditions(start, None))
     if bad:
         raise UserInputError(f"the start weather is outside the ODD '{odd.name}' ({odd.source}): "
                              f"{'; '.join(bad)}; choose env.start_weather inside it")
