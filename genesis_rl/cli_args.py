@@ -46,3 +46,15 @@ def odd_overrides_from_args(args: argparse.Namespace) -> dict[str, str | bool]:
     if args.dynamics is not None:
         out["dynamics"] = args.dynamics
     return out
+
+
+def add_scale_arguments(parser: argparse.ArgumentParser, parallel: str) -> None:
+    """``--executor``, ``--ray-address`` and ``--carla-servers``: where the ``parallel`` processes (``--workers``
+    or ``--envs``) run, and which CARLA server each drives (docs/scaling.md)."""
+    parser.add_argument("--executor", default="local", choices=["local", "ray"],
+                        help=f"where the {parallel} run: local processes, or Ray actors (pip install -e .[ray])")
+    parser.add_argument("--ray-address", default=None, metavar="ADDR",
+                        help="Ray cluster to join (HOST:PORT, ray://HOST:PORT or auto; default: a local Ray)")
+    parser.add_argument("--carla-servers", default=None, metavar="HOST:PORT[:TM],...",
+                        help=f"--backend carla: one server per process of {parallel} (traffic manager at PORT+6000 "
+                             "unless given)")

@@ -8,13 +8,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from genesis_rl import limits
 from genesis_rl.backends import add_backend_arguments, check_backend_setting, env_overrides_from_args
-from genesis_rl.cli_args import add_odd_arguments, odd_overrides_from_args
+from genesis_rl.cli_args import add_odd_arguments, add_scale_arguments, odd_overrides_from_args
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
+
+if TYPE_CHECKING:
+    from genesis_rl.evaluation.executors import ExecutorSettings
 
 
 def _constant_action(text: str) -> list[float]:
@@ -25,6 +30,16 @@ def _constant_action(text: str) -> list[float]:
     if not values or not all(math.isfinite(v) for v in values):
         raise UserInputError(f"--constant-action = '{text}': expected numbers in [-1, 1], e.g. 1,1,1,1,0")
     return values
+
+
+def executor_from_args(args: argparse.Namespace, backend: str) -> ExecutorSettings:
+    """Where the campaign's episodes run, checked before anything is written."""
+    from genesis_rl.distributed.servers import parse_servers, servers_for_workers
+    from genesis_rl.evaluation.executors import ExecutorSettings
+
+    settings = ExecutorSettings(kind=args.executor, workers=args.workers, ray_address=args.ray_address)
+    servers = servers_for_workers(backend, parse_servers(args.carla_servers), args.workers)
+    return replace(settings, servers=tuple(servers))
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -55,6 +70,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     env = env_settings_for(agent, args.config, args.system)
     env.update(env_overrides_from_args(args))
     env.update(odd_overrides_from_args(args))
+    executor = executor_from_args(args, env.get("backend", "lite"))
     check_backend_setting(env.get("backend", "lite"), args.catalog, "--backend", "--catalog")
     spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
@@ -75,8 +91,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from genesis_rl import output_folder
 
     with output_folder.hold(out):  # through the report, which writes into the folder as well
-        summary = run_campaign(spec, out, workers=args.workers, force=args.force, resume=args.resume,
-                               progress=not args.quiet)
+        summary = run_campaign(spec, out, force=args.force, resume=args.resume, progress=not args.quiet,
+                               executor=executor)
         rule_metrics = [m for m in summary_rule_metrics(summary) if m != "total"]
         brief = {p: {**{m: None if s[m]["mean"] is None else round(s[m]["mean"], 3) for m in rule_metrics},
                      "episodes_with_collision": s["episodes_with_collision"],
@@ -190,7 +206,9 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
                     help="write replayable edge-case records for failing episodes only, or for all")
     ev.add_argument("--retries", type=int, default=2,
                     help="times an episode is retried after reconnecting when the simulator dies mid-episode")
-    ev.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    ev.add_argument("--workers", type=int, default=1,
+                    help="parallel workers (processes, or Ray actors with --executor ray), one episode each at a time")
+    add_scale_arguments(ev, "--workers")
     ev.add_argument("--out", default=None, help="campaign folder (default: AGENT/eval)")
     ev.add_argument("--resume", action="store_true", help="continue an interrupted campaign in --out")
     ev.add_argument("--force", action="store_true", help="replace an existing campaign folder")

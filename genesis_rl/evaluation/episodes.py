@@ -40,8 +40,10 @@ class CampaignRunner:
     """One worker's environment: plays a policy's actions on a scene and captures frames around the
     first collision. Implements ``policies.EpisodeRunner``."""
 
-    def __init__(self, spec: CampaignSpec, folder: Path) -> None:
-        env_cfg = {**spec.env, "catalog": str(folder / "catalog.json"), "episode_steps": spec.steps}
+    def __init__(self, spec: CampaignSpec, folder: Path, env_settings: dict[str, Any] | None = None) -> None:
+        # env_settings: this worker's own (e.g. its CARLA server, genesis_rl.distributed.servers)
+        env_cfg = {**spec.env, **(env_settings or {}), "catalog": str(folder / "catalog.json"),
+                   "episode_steps": spec.steps}
         self.config = from_mapping(EnvConfig, env_cfg, "env")
         self.env = GenesisEnv(self.config)
         self.spec = spec

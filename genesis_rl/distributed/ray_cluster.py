@@ -1,0 +1,98 @@
+"""Connecting to Ray: a local instance when no address is given, an existing cluster with one.
+
+Ray is an optional extra (``pip install -e .[ray]``). Everything that can go wrong before a campaign or a
+training run starts (Ray not installed, an address nobody answers, a cluster with fewer CPUs than the
+workers asked for) is a :class:`UserInputError` raised *before* any output folder is touched, so a bad
+``--ray-address`` writes nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import ModuleType
+from typing import Any
+
+from genesis_rl.errors import UserInputError
+
+#: seconds to wait for a TCP answer from --ray-address before ray.init (which retries for minutes)
+CONNECT_TIMEOUT_S = 5.0
+INSTALL_HINT = "install the extra: pip install -e .[ray] (or pip install ray)"
+
+
+def require_ray(flag: str = "--executor ray") -> ModuleType:
+    """The ``ray`` module, or a clear error naming the extra that installs it."""
+    try:
+        import ray
+    except ImportError:
+        raise UserInputError(f"{flag} needs Ray, which is not installed here; {INSTALL_HINT}") from None
+    return ray
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """The (host, port) an address names, or None for ``auto``/``local`` (Ray finds or starts those)."""
+    if address in ("auto", "local"):
+        return None
+    rest = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise UserInputError(f"--ray-address = '{address}'; allowed: HOST:PORT (a cluster's GCS, e.g. "
+                             "10.0.0.5:6379), ray://HOST:PORT (Ray client, port 10001) or auto")
+    return host, int(port)
+
+
+def check_reachable(address: str) -> None:
+    """Refuse an address that does not answer within CONNECT_TIMEOUT_S (``ray.init`` would retry for minutes)."""
+    hp = _host_port(address)
+    if hp is None:
+        return
+    try:
+        with socket.create_connection(hp, timeout=CONNECT_TIMEOUT_S):
+            pass
+    except OSError as err:
+        raise UserInputError(f"--ray-address = '{address}': nothing answers at {hp[0]}:{hp[1]} ({err}); start the "
+                             "cluster's head (ray start --head) or leave --ray-address out for a local Ray") from None
+
+
+def driver_paths() -> list[str]:
+    """This process's import path: workers on this machine add it, so user plug-in modules (policies, rules,
+    knobs) found here resolve in Ray workers too. Paths a remote node lacks are skipped there."""
+    return [p for p in sys.path if p and os.path.isdir(p)]
+
+
+def add_driver_paths(paths: list[str]) -> None:
+    for p in reversed(paths):
+        if p not in sys.path and os.path.isdir(p):
+            sys.path.insert(0, p)
+
+
+@contextmanager
+def ray_session(address: str | None, workers: int) -> Iterator[ModuleType]:
+    """Ray, initialised for the duration: a local instance with at least ``workers`` CPUs when ``address`` is
+    None, else the cluster at ``address``; an instance this process already started is reused and kept."""
+    ray = require_ray()
+    started = False
+    if not ray.is_initialized():
+        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
+                                  "configure_logging": True, "logging_level": "ERROR"}
+        if address:
+            check_reachable(address)
+            try:
+                ray.init(address=address, **kwargs)
+            except (ConnectionError, RuntimeError, ValueError) as err:
+                raise UserInputError(f"--ray-address = '{address}': Ray could not connect ({err})") from None
+        else:
+            ray.init(num_cpus=max(workers, os.cpu_count() or 1), **kwargs)
+        started = True
+    try:
+        cpus = float(ray.cluster_resources().get("CPU", 0))
+        if cpus < workers:
+            raise UserInputError(f"--workers = {workers} but the Ray cluster has {cpus:g} CPUs; each worker takes "
+                                 f"one: allowed --workers 1..{int(cpus)}, or add nodes")
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()

@@ -1,0 +1,84 @@
+"""CARLA servers for parallel workers: one server per worker, never two workers on one server.
+
+A CARLA server accepts one client that ticks it in synchronous mode and one traffic-manager server per port,
+so a campaign with ``--workers N`` (or a training run with ``--envs N``) on ``--backend carla`` needs N
+servers, named with ``--carla-servers HOST:PORT[:TM_PORT],...``. Worker i (a pool process, a Ray actor or a
+training env) drives server i. The lite backend needs none and ignores the list.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from genesis_rl.errors import UserInputError
+
+#: CARLA's defaults put the traffic manager 6000 above the RPC port (2000 -> 8000)
+TM_PORT_OFFSET = 6000
+FORMAT = "HOST:PORT[:TM_PORT],... (e.g. localhost:2000,localhost:3000)"
+
+
+@dataclass(frozen=True)
+class CarlaServer:
+    host: str
+    port: int  # RPC port
+    tm_port: int  # traffic manager port
+
+    def env_settings(self) -> dict[str, Any]:
+        """The ``[env]`` keys that point an env at this server."""
+        return {"carla_host": self.host, "carla_port": self.port, "carla_tm_port": self.tm_port}
+
+    def __str__(self) -> str:
+        return f"{self.host}:{self.port}:{self.tm_port}"
+
+
+def _port(text: str, item: str, flag: str) -> int:
+    if not text.isdigit() or not 1 <= int(text) <= 65535:
+        raise UserInputError(f"{flag}: '{item}' has port '{text}'; allowed: 1..65535, as {FORMAT}")
+    return int(text)
+
+
+def parse_servers(text: str | None, flag: str = "--carla-servers") -> tuple[CarlaServer, ...]:
+    """``HOST:PORT[:TM_PORT],...`` as servers; the traffic-manager port defaults to PORT + 6000."""
+    if text is None:
+        return ()
+    servers: list[CarlaServer] = []
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        parts = item.split(":")
+        if len(parts) not in (2, 3) or not parts[0]:
+            raise UserInputError(f"{flag}: '{item}' is not a server; allowed: {FORMAT}")
+        port = _port(parts[1], item, flag)
+        tm = _port(parts[2], item, flag) if len(parts) == 3 else port + TM_PORT_OFFSET
+        if tm > 65535:
+            raise UserInputError(f"{flag}: '{item}': the default traffic-manager port {tm} (PORT + 6000) is not a "
+                                 "port; give it as HOST:PORT:TM_PORT")
+        servers.append(CarlaServer(parts[0], port, tm))
+    if not servers:
+        raise UserInputError(f"{flag} is empty; allowed: {FORMAT}")
+    for kind, key in (("RPC", lambda s: (s.host, s.port)), ("traffic-manager", lambda s: (s.host, s.tm_port))):
+        seen = [key(s) for s in servers]
+        dup = next((k for k in seen if seen.count(k) > 1), None)
+        if dup is not None:
+            raise UserInputError(f"{flag} names the {kind} port {dup[0]}:{dup[1]} twice; each worker needs a "
+                                 "server of its own")
+    return tuple(servers)
+
+
+def servers_for_workers(backend: str, servers: tuple[CarlaServer, ...], workers: int,
+                        what: str = "--workers") -> list[CarlaServer | None]:
+    """The server of each of ``workers`` workers (None: the env's own carla_host/carla_port, or no server).
+    Refuses more CARLA workers than servers, with the fix in the message."""
+    if backend != "carla":
+        return [None] * workers
+    if not servers:
+        if workers > 1:
+            raise UserInputError(f"{what} = {workers} on --backend carla would tick one CARLA server from {workers} "
+                                 f"processes (a server takes one synchronous client); start {workers} servers "
+                                 f"and name them with --carla-servers {FORMAT}, or use {what} 1")
+        return [None]
+    if len(servers) < workers:
+        raise UserInputError(f"{what} = {workers} but --carla-servers names {len(servers)} server(s); each worker "
+                             f"needs its own: allowed {what} 1..{len(servers)}, or start more servers")
+    return list(servers[:workers])

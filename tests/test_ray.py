@@ -1,0 +1,143 @@
+"""Campaigns on Ray: the same summary as the local executor whatever the number of workers, a killed
+worker's episode retried, and bad scale-out settings refused before anything is written."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from genesis_rl.cli import main
+from genesis_rl.distributed.servers import CarlaServer, parse_servers, servers_for_workers
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign import CampaignSpec, ExecutorSettings, run_campaign
+
+ray = pytest.importorskip("ray", reason="scripts/test.sh installs the ray extra; CI runs these")  # see test.sh
+PLUGINS = Path(__file__).parent / "plugins"
+STEPS = 60
+
+
+@pytest.fixture(scope="module")
+def crash_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("crash")
+
+
+@pytest.fixture(scope="module")
+def local_ray(crash_dir):
+    """One local Ray instance for the module (campaigns reuse an instance they did not start). The crash
+    policy's settings are in the environment before Ray starts, so its workers inherit them."""
+    os.environ["GENESIS_RL_TEST_CRASH_DIR"] = str(crash_dir)
+    os.environ["GENESIS_RL_TEST_CRASH_SCENE"] = "5"
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory) -> str:
+    from genesis_rl.lite.scenes import generate_catalog
+
+    path = tmp_path_factory.mktemp("cat") / "highway.json"
+    generate_catalog("highway", 12, 0).save(path)
+    return str(path)
+
+
+def _spec(catalog: str, policies=("sunny", "random")) -> CampaignSpec:
+    # the blind system never sees a vehicle: scene 5 (seed 1) ends in a collision, so records and frames are
+    # written and travel back from the workers
+    return CampaignSpec(policies=policies, catalog=catalog, scenes=3, seed=1, steps=STEPS, env={"system": "blind"})
+
+
+def _stable(folder: Path) -> dict:
+    summary = json.loads((folder / "summary.json").read_text())
+    return {k: v for k, v in summary.items() if k not in ("campaign", "run_seconds", "workers", "executor")}
+
+
+def _files(folder: Path) -> dict[str, int]:
+    """Every result file and its size (the rows' timings aside, which differ between runs)."""
+    files = {p.relative_to(folder).as_posix(): p.stat().st_size for p in folder.rglob("*") if p.is_file()}
+    return {k: v for k, v in files.items() if not k.startswith("episodes/")
+            and k not in ("run_time.json", "summary.json", "campaign.json", "episodes.csv")}
+
+
+@pytest.mark.render
+def test_ray_campaigns_with_1_and_2_workers_equal_the_local_one(tmp_path, catalog, local_ray) -> None:
+    local = tmp_path / "local"
+    run_campaign(_spec(catalog), local, progress=False)
+    for workers in (1, 2):
+        folder = tmp_path / f"ray{workers}"
+        run_campaign(_spec(catalog), folder, progress=False, executor=ExecutorSettings("ray", workers))
+        assert _stable(folder) == _stable(local)
+        assert _files(folder) == _files(local)
+        assert json.loads((folder / "run_time.json").read_text())["executor"] == "ray"
+    s = _stable(local)
+    assert s["policies"]["random"]["episodes_with_collision"] == 1  # the campaign has a failure to carry
+    assert any((tmp_path / "ray2" / "records").glob("*.json")) and any((tmp_path / "ray2" / "frames").rglob("*.jpg"))
+    # a Ray campaign resumes like a local one: one episode removed, one run again, same summary
+    (tmp_path / "ray2" / "episodes" / "random" / "scene_0005.json").unlink()
+    summary = run_campaign(_spec(catalog), tmp_path / "ray2", resume=True, progress=False,
+                           executor=ExecutorSettings("ray", 2))
+    assert json.loads((tmp_path / "ray2" / "run_time.json").read_text())["episodes_run"] == 1
+    assert summary["policies"] == json.loads((local / "summary.json").read_text())["policies"]
+
+
+@pytest.mark.render
+def test_a_killed_ray_worker_costs_one_retried_episode(tmp_path, catalog, local_ray, crash_dir, monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(PLUGINS))
+    import crash_once  # noqa: F401 - registers the policy; the workers import it again
+
+    spec = _spec(catalog, policies=("sunny", "crash_once"))
+    folder = tmp_path / "crash"
+    summary = run_campaign(spec, folder, progress=False, executor=ExecutorSettings("ray", 2))
+    assert (crash_dir / "crashed_5").is_file()  # the worker did die once
+    assert summary["complete"] and summary["policies"]["crash_once"]["episodes"] == 3
+    # the retried episode is the episode: crash_once plays sunny weather, so its results are sunny's
+    a, b = summary["policies"]["sunny"], summary["policies"]["crash_once"]
+    assert a["collision"] == b["collision"] and a["episodes_with_collision"] == b["episodes_with_collision"] == 1
+
+
+# -- bad input: exit 2, nothing written ---------------------------------------------------------------------
+def _evaluate(tmp_path, *extra: str) -> tuple[int, Path]:
+    out = tmp_path / "camp"
+    rc = main(["evaluate", "--policies", "sunny", "--scenes", "1", "--steps", "5", "--out", str(out), "--quiet",
+               "--no-report", *extra])
+    return rc, out
+
+
+def test_an_unreachable_ray_address_is_refused_before_anything_is_written(tmp_path, capsys) -> None:
+    rc, out = _evaluate(tmp_path, "--executor", "ray", "--ray-address", "127.0.0.1:9")
+    assert rc == 2 and not out.exists()
+    assert "nothing answers at 127.0.0.1:9" in capsys.readouterr().err
+    rc, out = _evaluate(tmp_path, "--executor", "ray", "--ray-address", "no-port")
+    assert rc == 2 and not out.exists()
+    assert "allowed: HOST:PORT" in capsys.readouterr().err
+    rc, out = _evaluate(tmp_path, "--ray-address", "127.0.0.1:6379")
+    assert rc == 2 and "--ray-address needs --executor ray" in capsys.readouterr().err
+
+
+def test_ray_not_installed_names_the_extra(tmp_path, capsys, monkeypatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
+    rc, out = _evaluate(tmp_path, "--executor", "ray")
+    assert rc == 2 and not out.exists()
+    assert "pip install -e .[ray]" in capsys.readouterr().err
+
+
+def test_carla_workers_need_one_server_each(tmp_path, capsys) -> None:
+    assert parse_servers("a:2000, b:3000:9000") == (CarlaServer("a", 2000, 8000), CarlaServer("b", 3000, 9000))
+    assert servers_for_workers("lite", (), 4) == [None] * 4
+    with pytest.raises(UserInputError, match="names the RPC port a:2000 twice"):
+        parse_servers("a:2000,a:2000:9000")
+    with pytest.raises(UserInputError, match="traffic-manager port a:8000 twice"):
+        parse_servers("a:2000,a:3000:8000")
+    with pytest.raises(UserInputError, match="has port 'x'"):
+        parse_servers("a:x")
+    rc, out = _evaluate(tmp_path, "--backend", "carla", "--workers", "2")
+    assert rc == 2 and not out.exists()
+    assert "would tick one CARLA server from 2 processes" in capsys.readouterr().err
+    rc, out = _evaluate(tmp_path, "--backend", "carla", "--workers", "3", "--carla-servers", "h:2000,h:3000")
+    assert rc == 2 and not out.exists()
+    assert "--workers = 3 but --carla-servers names 2 server(s)" in capsys.readouterr().err
