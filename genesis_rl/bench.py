@@ -165,3 +165,59 @@ def bench_train(n_steps: int = 512, updates: int = 2, system: str = "builtin") -
         "projected_paper_schedule_minutes": round((40960 / steps_per_s + paper_updates * update_s * 2048 / n_steps)
                                                   / 60.0, 1),
     }
+
+
+def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...] = ("local", "ray"),
+                   workers: tuple[int, ...] = (1, 2), system: str = "builtin") -> dict:
+    """Episodes per minute of one campaign (sunny weather, ``scenes`` highway scenes of ``steps`` steps) per
+    executor and worker count, the summaries checked equal; Ray's start-up is timed apart from the campaign,
+    and its cost per episode is the difference to the local executor with as many workers."""
+    import json
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from genesis_rl.distributed.settings import ExecutorSettings
+    from genesis_rl.evaluation.campaign import CampaignSpec, run_campaign
+
+    out: dict = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
+                 "scenes": scenes, "steps": steps, "system": system, "runs": []}
+    stable: dict | None = None
+    with tempfile.TemporaryDirectory(prefix="genesis-rl-bench-") as tmp:
+        catalog = Path(tmp) / "highway.json"
+        generate_catalog("highway", max(scenes, 12), 0).save(catalog)
+        spec = CampaignSpec(policies=("sunny",), catalog=str(catalog), scenes=scenes, seed=0, steps=steps,
+                            env={"system": system})
+        ray = None
+        if "ray" in executors:
+            from genesis_rl.distributed.ray_cluster import require_ray
+
+            ray = require_ray("bench campaign")
+            t0 = time.perf_counter()
+            ray.init(num_cpus=max(max(workers), os.cpu_count() or 1), include_dashboard=False, log_to_driver=False,
+                     logging_level="ERROR")
+            out["ray_init_seconds"] = round(time.perf_counter() - t0, 2)
+        try:
+            for kind in executors:
+                for n in workers:
+                    folder = Path(tmp) / f"{kind}_{n}"
+                    t0 = time.perf_counter()
+                    summary = run_campaign(spec, folder, progress=False, executor=ExecutorSettings(kind, n))
+                    seconds = time.perf_counter() - t0
+                    body = json.dumps(summary["policies"], sort_keys=True)
+                    stable = stable or {"summary": body}
+                    sent = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()
+                               and p.parts[len(folder.parts)] in ("episodes", "steps", "frames", "records"))
+                    out["runs"].append({"executor": kind, "workers": n, "seconds": round(seconds, 1),
+                                        "episodes_per_minute": round(60.0 * scenes / seconds, 2),
+                                        "result_bytes_per_episode": sent // scenes,
+                                        "same_summary_as_first": body == stable["summary"]})
+        finally:
+            if ray is not None:
+                ray.shutdown()
+    local = {r["workers"]: r["seconds"] for r in out["runs"] if r["executor"] == "local"}
+    for r in out["runs"]:
+        if r["executor"] == "ray" and r["workers"] in local:
+            r["ray_overhead_seconds_per_episode"] = round((r["seconds"] - local[r["workers"]]) * r["workers"] / scenes,
+                                                          2)
+    return out

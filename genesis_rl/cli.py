@@ -22,7 +22,7 @@ from genesis_rl.backends import (
     scene_source,
     settings_from_args,
 )
-from genesis_rl.cli_args import add_odd_arguments, odd_overrides_from_args, seed_int
+from genesis_rl.cli_args import add_odd_arguments, add_scale_arguments, odd_overrides_from_args, seed_int
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import os_error_message
 from genesis_rl.plugins import import_env_plugins
@@ -174,23 +174,45 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.resume and (env or extra or ppo or args.config):
         raise UserInputError("--resume continues a run with its own config.toml; only --steps may change")
     cfg = load_run_config(args.config, {"env": env, "train": tr, "ppo": ppo})
+    from genesis_rl.distributed.servers import parse_servers
+    from genesis_rl.distributed.settings import ExecutorSettings
+
+    scale = ExecutorSettings(kind=args.executor, ray_address=args.ray_address,
+                             servers=parse_servers(args.carla_servers))
     result = train(cfg, Path(args.out), force=args.force, resume=args.resume, progress=not args.quiet,
-                   argv=sys.argv, total_timesteps=args.steps if args.resume else None, inputs=[args.config])
+                   argv=sys.argv, total_timesteps=args.steps if args.resume else None, inputs=[args.config],
+                   scale=scale)
     print(json.dumps(result, indent=2))
     return 0
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from genesis_rl.bench import bench_sim, bench_system, bench_train
+    from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
 
-    steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 512}[args.what]
+    steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 512,
+                                                       "campaign": 256}[args.what]
     least = 2 if args.what == "train" else 1  # a PPO update needs two steps
     if steps < least:
         raise UserInputError(f"--steps = {steps} must be >= {least}")
     if args.frames < 1:
         raise UserInputError(f"--frames = {args.frames} must be >= 1")
     limits.SIM_STEPS.check(steps, "--steps")
-    if args.what == "train":
+    if args.what == "campaign":
+        executors = tuple(_csv_list(args.executors) or [])
+        bad = [e for e in executors if e not in ("local", "ray")]
+        if bad or not executors:
+            raise UserInputError(f"--executors {args.executors!r}; allowed: a comma list of local, ray")
+        try:
+            counts = tuple(int(w) for w in _csv_list(args.workers) or [])
+        except ValueError:
+            counts = ()
+        if not counts or min(counts) < 1:
+            raise UserInputError(f"--workers {args.workers!r}; allowed: a comma list of integers >= 1, e.g. 1,2")
+        if not 1 <= args.scenes <= 500:
+            raise UserInputError(f"--scenes = {args.scenes} must be in 1..500")
+        print(json.dumps(bench_campaign(scenes=args.scenes, steps=steps, executors=executors, workers=counts,
+                                        system=args.system), indent=2))
+    elif args.what == "train":
         print(json.dumps(bench_train(n_steps=steps, system=args.system), indent=2))
         return 0
     if args.what == "system":
@@ -268,7 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", required=True, help="run folder (runs/NAME)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     tr.add_argument("--force", action="store_true", help="replace an existing run folder")
-    tr.add_argument("--envs", type=int, default=None, help="parallel environments (subprocesses)")
+    tr.add_argument("--envs", type=int, default=None,
+                    help="parallel environments (subprocesses, or Ray actors with --executor ray)")
     tr.add_argument("--steps", type=int, default=None, help="total env steps (train.total_timesteps)")
     tr.add_argument("--n-steps", type=int, default=None, help="steps per PPO update (ppo.n_steps)")
     tr.add_argument("--episode-steps", type=int, default=None, help="steps per episode (env.episode_steps)")
@@ -282,6 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     add_odd_arguments(tr)
     add_backend_arguments(tr, default=None)
+    add_scale_arguments(tr, "--envs")
     tr.set_defaults(func=_cmd_train)
 
     from genesis_rl.perception.commands import add_detector_commands
@@ -293,9 +317,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_evaluation_commands(sub)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
-    bench.add_argument("what", choices=["sim", "system", "train"],
+    bench.add_argument("what", choices=["sim", "system", "train", "campaign"],
                        help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "
-                            "train: PPO rollout steps/s, seconds per update, projected paper-schedule time")
+                            "train: PPO rollout steps/s, seconds per update, projected paper-schedule time; "
+                            "campaign: episodes/minute per executor and worker count")
+    bench.add_argument("--executors", default="local,ray", help="bench campaign: comma list of local, ray")
+    bench.add_argument("--workers", default="1,2", help="bench campaign: comma list of worker counts")
+    bench.add_argument("--scenes", type=int, default=8, help="bench campaign: episodes per run (highway scenes)")
     bench.add_argument("--steps", type=int, default=None,
                        help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, 512)")
     bench.add_argument("--system", default="builtin",

@@ -21,10 +21,11 @@ from tqdm import tqdm
 
 from genesis_rl import output_folder
 from genesis_rl.distributed.ray_cluster import check_reachable, require_ray
+from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.evaluation.campaign_folder import Task, prepare_campaign
 from genesis_rl.evaluation.campaign_spec import CampaignSpec, env_settings_for, pick_scenes, run_folder_of
 from genesis_rl.evaluation.episodes import CampaignRunner, episode_row
-from genesis_rl.evaluation.executors import ExecutorSettings, WorkerSetup, run_tasks
+from genesis_rl.evaluation.executors import WorkerSetup, run_tasks
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds
 from genesis_rl.evaluation.policies import resolve_policy
 from genesis_rl.evaluation.summary import summarize_campaign

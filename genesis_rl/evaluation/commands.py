@@ -19,7 +19,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
 
 if TYPE_CHECKING:
-    from genesis_rl.evaluation.executors import ExecutorSettings
+    from genesis_rl.distributed.settings import ExecutorSettings
 
 
 def _constant_action(text: str) -> list[float]:
@@ -35,7 +35,7 @@ def _constant_action(text: str) -> list[float]:
 def executor_from_args(args: argparse.Namespace, backend: str) -> ExecutorSettings:
     """Where the campaign's episodes run, checked before anything is written."""
     from genesis_rl.distributed.servers import parse_servers, servers_for_workers
-    from genesis_rl.evaluation.executors import ExecutorSettings
+    from genesis_rl.distributed.settings import ExecutorSettings
 
     settings = ExecutorSettings(kind=args.executor, workers=args.workers, ray_address=args.ray_address)
     servers = servers_for_workers(backend, parse_servers(args.carla_servers), args.workers)

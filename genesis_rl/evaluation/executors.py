@@ -19,35 +19,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.distributed.servers import CarlaServer
-from genesis_rl.errors import UserInputError
+from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.evaluation.campaign_folder import Task
 from genesis_rl.evaluation.worker import close_worker, init_worker, run_task
 from genesis_rl.io_utils import atomic_write
-
-EXECUTORS = ("local", "ray")
-
-
-@dataclass(frozen=True)
-class ExecutorSettings:
-    """How to run a campaign's episodes."""
-
-    kind: str = "local"  # local or ray
-    workers: int = 1  # processes (local) or Ray actors, each one episode at a time
-    ray_address: str | None = None  # None: a local Ray instance; HOST:PORT, ray://HOST:PORT or auto
-    servers: tuple[CarlaServer | None, ...] = ()  # worker i's CARLA server (evaluation: servers_for_workers)
-
-    def __post_init__(self) -> None:
-        if self.kind not in EXECUTORS:
-            raise UserInputError(f"--executor = '{self.kind}'; allowed: {', '.join(EXECUTORS)}")
-        if self.workers < 1:
-            raise UserInputError(f"--workers = {self.workers} must be >= 1")
-        if self.ray_address is not None and self.kind != "ray":
-            raise UserInputError("--ray-address needs --executor ray")
-
-    def server(self, i: int) -> dict[str, Any]:
-        s = self.servers[i] if i < len(self.servers) else None
-        return s.env_settings() if s is not None else {}
 
 
 @dataclass(frozen=True)

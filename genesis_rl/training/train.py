@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from genesis_rl import __version__, output_folder
 from genesis_rl.backends import catalog_or_generate
+from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
@@ -48,14 +49,36 @@ def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: 
     return thunk
 
 
-def build_vec_env(cfg: RunConfig, catalog_path: Path):  # noqa: ANN201
-
+def build_vec_env(cfg: RunConfig, catalog_path: Path, scale: ExecutorSettings | None = None):  # noqa: ANN201
+    """The training envs: in this process (one env), in subprocesses, or in Ray actors (``scale.kind`` ray);
+    env i drives ``scale``'s server i when the backend is CARLA. The same seeds give the same rollouts."""
+    scale = scale or ExecutorSettings(workers=cfg.train.envs, what="--envs")
     env_cfg = replace(cfg.env, catalog=str(catalog_path))
     d = asdict(env_cfg)
     d["reward"] = RewardConfig(**d["reward"])
     n = cfg.train.envs
-    fns = [_make_env(d, i, cfg.train.seed, 1 if n > 1 else cfg.train.torch_threads) for i in range(n)]
+    fns = [_make_env({**d, **scale.server(i)}, i, cfg.train.seed, 1 if n > 1 or scale.kind == "ray"
+                     else cfg.train.torch_threads) for i in range(n)]
+    if scale.kind == "ray":
+        from genesis_rl.training.ray_vec_env import RayVecEnv
+
+        return RayVecEnv(fns, scale.ray_address)
     return SubprocVecEnv(fns, start_method="spawn") if n > 1 else DummyVecEnv(fns)
+
+
+def check_scale(cfg: RunConfig, scale: ExecutorSettings | None) -> ExecutorSettings:
+    """The executor for ``cfg``'s envs, checked before the run folder is touched (Ray installed and its
+    address answering; one CARLA server per env)."""
+    from genesis_rl.distributed.ray_cluster import check_reachable, require_ray
+    from genesis_rl.distributed.servers import servers_for_workers
+
+    scale = replace(scale or ExecutorSettings(), workers=cfg.train.envs, what="--envs")
+    if scale.kind == "ray":
+        require_ray()
+        if scale.ray_address:
+            check_reachable(scale.ray_address)
+    servers = tuple(s for s in scale.servers if s is not None)
+    return replace(scale, servers=tuple(servers_for_workers(cfg.env.backend, servers, cfg.train.envs, "--envs")))
 
 
 class _Callbacks:
@@ -167,14 +190,18 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
 
 def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, progress: bool = True,
           argv: list[str] | None = None, total_timesteps: int | None = None,
-          inputs: Sequence[str | Path | None] = ()) -> dict[str, Any]:
+          inputs: Sequence[str | Path | None] = (), scale: ExecutorSettings | None = None) -> dict[str, Any]:
     """Train (or ``resume``) the run in ``out``, holding the folder; a new run that fails before its first
-    checkpoint is removed. ``inputs`` are files the command reads (its config), which ``out`` may not hold."""
+    checkpoint is removed. ``inputs`` are files the command reads (its config), which ``out`` may not hold.
+    ``scale``: where the envs run (default: subprocesses); not part of the run's config, so a run may resume
+    on another executor."""
     out = Path(out)
+    if not resume:
+        scale = check_scale(cfg, scale)
     with output_folder.claim(out, "run", force, resume=resume, inputs=[cfg.env.catalog, *inputs]):
         cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
         try:
-            return _train_prepared(cfg, out, resume, progress)
+            return _train_prepared(cfg, out, resume, progress, check_scale(cfg, scale) if resume else scale)
         except BaseException:
             if not resume and not (out / CHECKPOINTS / "last.json").exists():
                 # nothing was trained (e.g. the system under test failed to load): leave no folder behind that
@@ -183,13 +210,14 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
             raise
 
 
-def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool) -> dict[str, Any]:
+def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
+                    scale: ExecutorSettings | None = None) -> dict[str, Any]:
 
     cfg.ppo.check_device_present()
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     p = cfg.ppo
-    env = build_vec_env(cfg, out / "catalog.json")
+    env = build_vec_env(cfg, out / "catalog.json", scale)
     try:
         policy = "MultiInputPolicy" if cfg.env.obs_knobs else "CnnPolicy"
         sums: dict[int, dict[str, Any]] = {}

@@ -1,0 +1,126 @@
+"""``RayVecEnv``: Stable-Baselines3's vectorised env with each sub-env in a Ray actor, so ``train --envs N
+--executor ray`` spreads the environments (and their simulators) over a Ray cluster while SB3 stays the
+trainer in this process.
+
+It follows ``SubprocVecEnv`` step for step (auto-reset on done with the terminal observation in ``info``,
+seeds and options handed to the next reset), so the same seeds give the same rollouts and the same agent.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
+from stable_baselines3.common.vec_env.subproc_vec_env import _stack_obs
+
+from genesis_rl.distributed.ray_cluster import add_driver_paths, driver_paths, ray_session
+
+
+class EnvActor:
+    """One sub-env in a Ray actor."""
+
+    def __init__(self, env_fn: Callable[[], gym.Env], paths: list[str]) -> None:
+        add_driver_paths(paths)
+        self.env = env_fn()
+
+    def step(self, action: Any) -> tuple[Any, Any, bool, dict[str, Any], dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        done = terminated or truncated
+        info["TimeLimit.truncated"] = truncated and not terminated
+        reset_info: dict[str, Any] = {}
+        if done:
+            info["terminal_observation"] = obs
+            obs, reset_info = self.env.reset()
+        return obs, reward, done, info, reset_info
+
+    def reset(self, seed: int | None, options: dict[str, Any] | None) -> tuple[Any, dict[str, Any]]:
+        return self.env.reset(seed=seed, **({"options": options} if options else {}))
+
+    def get_attr(self, name: str) -> Any:
+        return self.env.get_wrapper_attr(name)
+
+    def set_attr(self, name: str, value: Any) -> None:
+        setattr(self.env, name, value)
+
+    def env_method(self, name: str, args: Sequence[Any], kwargs: dict[str, Any]) -> Any:
+        return self.env.get_wrapper_attr(name)(*args, **kwargs)
+
+    def is_wrapped(self, wrapper_class: type[gym.Wrapper]) -> bool:
+        from stable_baselines3.common.env_util import is_wrapped
+
+        return is_wrapped(self.env, wrapper_class)
+
+    def spaces(self) -> tuple[gym.Space, gym.Space]:
+        return self.env.observation_space, self.env.action_space
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class RayVecEnv(VecEnv):
+    """Sub-envs as Ray actors (one CPU each) on a local Ray (``address`` None) or a cluster."""
+
+    def __init__(self, env_fns: list[Callable[[], gym.Env]], address: str | None = None) -> None:
+        self._stack = ExitStack()
+        ray = self._ray = self._stack.enter_context(ray_session(address, len(env_fns)))
+        remote = ray.remote(num_cpus=1)(EnvActor)
+        paths = driver_paths()
+        self.actors = [remote.remote(fn, paths) for fn in env_fns]
+        self.closed = False
+        observation_space, action_space = ray.get(self.actors[0].spaces.remote())
+        super().__init__(len(env_fns), observation_space, action_space)
+        self._pending: list[Any] = []
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._pending = [a.step.remote(action) for a, action in zip(self.actors, actions, strict=True)]
+
+    def step_wait(self) -> VecEnvStepReturn:
+        results = self._ray.get(self._pending)
+        self._pending = []
+        obs, rews, dones, infos, reset_infos = zip(*results, strict=True)
+        self.reset_infos = list(reset_infos)
+        return _stack_obs(obs, self.observation_space), np.stack(rews), np.stack(dones), list(infos)
+
+    def reset(self) -> VecEnvObs:
+        results = self._ray.get([a.reset.remote(self._seeds[i], self._options[i]) for i, a in enumerate(self.actors)])
+        obs, reset_infos = zip(*results, strict=True)
+        self.reset_infos = list(reset_infos)
+        self._reset_seeds()
+        self._reset_options()
+        return _stack_obs(obs, self.observation_space)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        try:
+            self._ray.get([a.close.remote() for a in self.actors], timeout=60)
+        except Exception:  # noqa: BLE001 - a dead actor has nothing to close
+            pass
+        self.closed = True
+        self._stack.close()
+
+    def _targets(self, indices: VecEnvIndices) -> list[Any]:
+        return [self.actors[i] for i in self._get_indices(indices)]
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return self._ray.get([a.get_attr.remote(attr_name) for a in self._targets(indices)])
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        self._ray.get([a.set_attr.remote(attr_name, value) for a in self._targets(indices)])
+
+    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
+                   **method_kwargs: Any) -> list[Any]:
+        return self._ray.get([a.env_method.remote(method_name, method_args, method_kwargs)
+                              for a in self._targets(indices)])
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return self._ray.get([a.is_wrapped.remote(wrapper_class) for a in self._targets(indices)])
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return self.env_method("render")
+
+
