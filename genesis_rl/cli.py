@@ -212,7 +212,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise UserInputError(f"--scenes = {args.scenes} must be in 1..500")
         print(json.dumps(bench_campaign(scenes=args.scenes, steps=steps, executors=executors, workers=counts,
                                         system=args.system), indent=2))
-    elif args.what == "train":
+        return 0
+    if args.what == "train":
         print(json.dumps(bench_train(n_steps=steps, system=args.system), indent=2))
         return 0
     if args.what == "system":
