@@ -64,7 +64,10 @@ def _files(folder: Path) -> dict[str, int]:
 
 
 @pytest.mark.render
-def test_ray_campaigns_with_1_and_2_workers_equal_the_local_one(tmp_path, catalog, local_ray) -> None:
+def test_ray_campaigns_with_1_and_2_workers_equal_the_local_one(tmp_path, catalog, local_ray, monkeypatch) -> None:
+    # earlier tests in the session registered policies from tests/plugins; workers import those modules again,
+    # so the folder must be importable, as a user's plug-ins are
+    monkeypatch.syspath_prepend(str(PLUGINS))
     local = tmp_path / "local"
     run_campaign(_spec(catalog), local, progress=False)
     for workers in (1, 2):
