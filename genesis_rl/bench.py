@@ -175,6 +175,7 @@ def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...]
     import json
     import os
     import tempfile
+    from contextlib import ExitStack
     from pathlib import Path
 
     from genesis_rl.distributed.settings import ExecutorSettings
@@ -182,22 +183,19 @@ def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...]
 
     out: dict = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
                  "scenes": scenes, "steps": steps, "system": system, "runs": []}
-    stable: dict | None = None
     with tempfile.TemporaryDirectory(prefix="genesis-rl-bench-") as tmp:
         catalog = Path(tmp) / "highway.json"
         generate_catalog("highway", max(scenes, 12), 0).save(catalog)
         spec = CampaignSpec(policies=("sunny",), catalog=str(catalog), scenes=scenes, seed=0, steps=steps,
                             env={"system": system})
-        ray = None
-        if "ray" in executors:
-            from genesis_rl.distributed.ray_cluster import require_ray
+        with ExitStack() as stack:
+            if "ray" in executors:
+                from genesis_rl.distributed.ray_cluster import ray_session
 
-            ray = require_ray("bench campaign")
-            t0 = time.perf_counter()
-            ray.init(num_cpus=max(max(workers), os.cpu_count() or 1), include_dashboard=False, log_to_driver=False,
-                     logging_level="ERROR")
-            out["ray_init_seconds"] = round(time.perf_counter() - t0, 2)
-        try:
+                t0 = time.perf_counter()
+                stack.enter_context(ray_session(None, max(workers)))  # campaigns reuse it; timed apart
+                out["ray_init_seconds"] = round(time.perf_counter() - t0, 2)
+            first: str | None = None
             for kind in executors:
                 for n in workers:
                     folder = Path(tmp) / f"{kind}_{n}"
@@ -205,16 +203,13 @@ def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...]
                     summary = run_campaign(spec, folder, progress=False, executor=ExecutorSettings(kind, n))
                     seconds = time.perf_counter() - t0
                     body = json.dumps(summary["policies"], sort_keys=True)
-                    stable = stable or {"summary": body}
+                    first = first or body
                     sent = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()
                                and p.parts[len(folder.parts)] in ("episodes", "steps", "frames", "records"))
                     out["runs"].append({"executor": kind, "workers": n, "seconds": round(seconds, 1),
                                         "episodes_per_minute": round(60.0 * scenes / seconds, 2),
                                         "result_bytes_per_episode": sent // scenes,
-                                        "same_summary_as_first": body == stable["summary"]})
-        finally:
-            if ray is not None:
-                ray.shutdown()
+                                        "same_summary_as_first": body == first})
     local = {r["workers"]: r["seconds"] for r in out["runs"] if r["executor"] == "local"}
     for r in out["runs"]:
         if r["executor"] == "ray" and r["workers"] in local:

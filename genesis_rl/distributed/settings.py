@@ -30,6 +30,15 @@ class ExecutorSettings:
         if self.ray_address is not None and self.kind != "ray":
             raise UserInputError("--ray-address needs --executor ray")
 
+    def preflight(self) -> None:
+        """Before any folder is touched: Ray installed and its address answering (with ``kind`` ray)."""
+        if self.kind == "ray":
+            from genesis_rl.distributed.ray_cluster import check_reachable, require_ray
+
+            require_ray()
+            if self.ray_address:
+                check_reachable(self.ray_address)
+
     def server(self, i: int) -> dict[str, Any]:
         s = self.servers[i] if i < len(self.servers) else None
         return s.env_settings() if s is not None else {}

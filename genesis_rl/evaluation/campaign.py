@@ -20,7 +20,6 @@ from typing import Any
 from tqdm import tqdm
 
 from genesis_rl import output_folder
-from genesis_rl.distributed.ray_cluster import check_reachable, require_ray
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.evaluation.campaign_folder import Task, prepare_campaign
 from genesis_rl.evaluation.campaign_spec import CampaignSpec, env_settings_for, pick_scenes, run_folder_of
@@ -39,10 +38,7 @@ def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool
     held for the whole run: a second campaign into it is refused, not mixed in. ``executor`` says where the
     episodes run (default: ``workers`` local processes)."""
     settings = executor or ExecutorSettings(workers=workers)
-    if settings.kind == "ray":  # before the folder is touched: a bad --ray-address writes nothing
-        require_ray()
-        if settings.ray_address:
-            check_reachable(settings.ray_address)
+    settings.preflight()  # before the folder is touched: a bad --ray-address writes nothing
     with output_folder.hold(folder):
         return _run_campaign(spec, folder, settings, force, resume, progress)
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,9 +36,9 @@ def executor_from_args(args: argparse.Namespace, backend: str) -> ExecutorSettin
     from genesis_rl.distributed.servers import parse_servers, servers_for_workers
     from genesis_rl.distributed.settings import ExecutorSettings
 
-    settings = ExecutorSettings(kind=args.executor, workers=args.workers, ray_address=args.ray_address)
     servers = servers_for_workers(backend, parse_servers(args.carla_servers), args.workers)
-    return replace(settings, servers=tuple(servers))
+    return ExecutorSettings(kind=args.executor, workers=args.workers, ray_address=args.ray_address,
+                            servers=tuple(servers))
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:

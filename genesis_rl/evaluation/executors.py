@@ -54,30 +54,20 @@ def _run_here(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSetti
         close_worker()
 
 
-def _pool_init(setup: WorkerSetup, slots: Any, servers: list[dict[str, Any]]) -> None:
-    """A pool process takes the next free worker slot, and with it its CARLA server."""
-    init_worker(setup.spec_json, str(setup.folder), 1, setup.plugins, servers[slots.get()])
+def _pool_init(setup: WorkerSetup, next_slot: Any, servers: list[dict[str, Any]]) -> None:
+    """A pool process takes the next worker slot, and with it its CARLA server."""
+    with next_slot.get_lock():
+        slot = next_slot.value
+        next_slot.value += 1
+    init_worker(setup.spec_json, str(setup.folder), 1, setup.plugins, servers[slot])
 
 
 def _run_pool(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettings) -> Iterator[dict[str, Any]]:
     ctx = mp.get_context("spawn")
     n = min(settings.workers, len(tasks))
-    slots = ctx.Manager().Queue() if settings.servers else _Slots()
-    for i in range(n):
-        slots.put(i)
     servers = [settings.server(i) for i in range(n)]
-    with ctx.Pool(n, initializer=_pool_init, initargs=(setup, slots, servers)) as pool:
+    with ctx.Pool(n, initializer=_pool_init, initargs=(setup, ctx.Value("i", 0), servers)) as pool:
         yield from pool.imap_unordered(run_task, tasks)
-
-
-class _Slots:
-    """Worker slots when no worker has a server of its own: every process takes slot 0's (empty) settings."""
-
-    def put(self, i: int) -> None:
-        pass
-
-    def get(self) -> int:
-        return 0
 
 
 # -- Ray ------------------------------------------------------------------------------------------------

@@ -69,14 +69,10 @@ def build_vec_env(cfg: RunConfig, catalog_path: Path, scale: ExecutorSettings | 
 def check_scale(cfg: RunConfig, scale: ExecutorSettings | None) -> ExecutorSettings:
     """The executor for ``cfg``'s envs, checked before the run folder is touched (Ray installed and its
     address answering; one CARLA server per env)."""
-    from genesis_rl.distributed.ray_cluster import check_reachable, require_ray
     from genesis_rl.distributed.servers import servers_for_workers
 
     scale = replace(scale or ExecutorSettings(), workers=cfg.train.envs, what="--envs")
-    if scale.kind == "ray":
-        require_ray()
-        if scale.ray_address:
-            check_reachable(scale.ray_address)
+    scale.preflight()
     servers = tuple(s for s in scale.servers if s is not None)
     return replace(scale, servers=tuple(servers_for_workers(cfg.env.backend, servers, cfg.train.envs, "--envs")))
 
