@@ -118,17 +118,21 @@ def bench_system(frames: int = 200, batch: int = 16, steps: int = 200, system: s
     return out
 
 
-def bench_train(n_steps: int = 512, updates: int = 2, system: str = "builtin") -> dict:
-    """PPO on GenesisEnv (one env, the paper's settings but ``n_steps`` per update): env steps/s while
-    collecting rollouts, seconds per PPO update, and the projected wall time of the paper's 40,960 steps."""
+def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_steps: int | None = None,
+                system: str | None = None) -> dict:
+    """The real trainer (``genesis-rl train``, checkpoints and all) for ``updates`` PPO updates of the paper's
+    config (``config``; None: the paper's values) with ``envs`` env processes: env steps/s while collecting
+    rollouts, seconds per PPO update, the start-up (envs built before the first step), and the paper
+    schedule's projected wall time (40,960 steps = 20 updates of 2048) from them."""
     import os
+    import tempfile
+    from pathlib import Path
 
     import torch
-    from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from genesis_rl.env.genesis_env import GenesisEnv
+    from genesis_rl.training.config import load_run_config
+    from genesis_rl.training.train import train
 
     marks: list[tuple[str, float]] = []
 
@@ -142,28 +146,40 @@ def bench_train(n_steps: int = 512, updates: int = 2, system: str = "builtin") -
         def _on_step(self) -> bool:
             return True
 
-    env = DummyVecEnv([lambda: GenesisEnv(system=system, scenes=20, episode_steps=512)])
-    try:
-        model = PPO("CnnPolicy", env, n_steps=n_steps, batch_size=64, n_epochs=10, seed=0, device="cpu", verbose=0)
+    overrides: dict[str, dict] = {"train": {"envs": envs}}
+    if n_steps is not None:
+        overrides["ppo"] = {"n_steps": n_steps}
+    if system is not None:
+        overrides["env"] = {"system": system}
+    cfg = load_run_config(config, overrides)
+    per_update = cfg.ppo.n_steps
+    cfg = load_run_config(config, {**overrides, "train": {**overrides["train"],
+                                                          "total_timesteps": per_update * updates}})
+    threads = torch.get_num_threads()
+    with tempfile.TemporaryDirectory(prefix="genesis-rl-bench-") as tmp:
         t0 = time.perf_counter()
-        model.learn(total_timesteps=n_steps * updates, callback=Timer())
+        train(cfg, Path(tmp) / "run", progress=False, callbacks=[Timer()])
         total = time.perf_counter() - t0
-    finally:
-        env.close()
+    torch.set_num_threads(threads)
     starts = [t for k, t in marks if k == "rollout_start"]
     ends = [t for k, t in marks if k == "rollout_end"]
-    rollout = sum(e - s for s, e in zip(starts, ends, strict=False))
-    update = total - rollout
-    steps_per_s = n_steps * updates / rollout
+    rollout = sum(e - s for s, e in zip(starts, ends, strict=True))
+    # an update runs from a rollout's end to the next rollout's start (checkpoint included); the last one
+    # from the last rollout's end to the end of train()
+    update = sum(s - e for e, s in zip(ends, [*starts[1:], t0 + total], strict=True))
+    setup = starts[0] - t0
+    steps_per_s = per_update * updates / rollout
     update_s = update / updates
-    paper_updates = 40960 / 2048
+    paper_updates = 40960 // 2048
     return {
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(), "system": system, "n_steps": n_steps, "updates": updates,
+        "torch_threads": threads, "system": cfg.env.system, "envs": envs, "n_steps": per_update,
+        "updates": updates, "obs": [cfg.env.obs_width, cfg.env.obs_height],
+        "setup_seconds": round(setup, 1),
         "rollout_env_steps_per_s": round(steps_per_s, 2),
-        "seconds_per_update": round(update_s, 1),
-        "projected_paper_schedule_minutes": round((40960 / steps_per_s + paper_updates * update_s * 2048 / n_steps)
-                                                  / 60.0, 1),
+        "seconds_per_update": round(update_s, 2),
+        "projected_paper_schedule_minutes": round((setup + 40960 / steps_per_s
+                                                   + paper_updates * update_s * 2048 / per_update) / 60.0, 2),
     }
 
 

@@ -189,7 +189,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
 
-    steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 512,
+    steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
                                                        "campaign": 256}[args.what]
     least = 2 if args.what == "train" else 1  # a PPO update needs two steps
     if steps < least:
@@ -214,7 +214,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                                         system=args.system), indent=2))
         return 0
     if args.what == "train":
-        print(json.dumps(bench_train(n_steps=steps, system=args.system), indent=2))
+        if not 1 <= args.envs <= 64 or not 1 <= args.updates <= 100:
+            raise UserInputError(f"--envs = {args.envs} must be in 1..64 and --updates = {args.updates} in 1..100")
+        if steps % args.envs:
+            raise UserInputError(f"--steps = {steps} must be a multiple of --envs = {args.envs}")
+        print(json.dumps(bench_train(args.config, envs=args.envs, updates=args.updates, n_steps=steps,
+                                     system=args.system), indent=2))
         return 0
     if args.what == "system":
         print(json.dumps(bench_system(frames=args.frames, steps=steps, system=args.system), indent=2))
@@ -320,13 +325,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim", "system", "train", "campaign"],
                        help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "
-                            "train: PPO rollout steps/s, seconds per update, projected paper-schedule time; "
+                            "train: the real trainer for --updates PPO updates: rollout steps/s, seconds per "
+                            "update, projected paper-schedule time; "
                             "campaign: episodes/minute per executor and worker count")
     bench.add_argument("--executors", default="local,ray", help="bench campaign: comma list of local, ray")
     bench.add_argument("--workers", default="1,2", help="bench campaign: comma list of worker counts")
     bench.add_argument("--scenes", type=int, default=8, help="bench campaign: episodes per run (highway scenes)")
     bench.add_argument("--steps", type=int, default=None,
-                       help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, 512)")
+                       help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, "
+                            "2048)")
+    bench.add_argument("--config", default=None,
+                       help="bench train: the training config (default: the paper's values, configs/paper.toml)")
+    bench.add_argument("--envs", type=int, default=2, help="bench train: env processes (default 2)")
+    bench.add_argument("--updates", type=int, default=2, help="bench train: PPO updates to time (default 2)")
     bench.add_argument("--system", default="builtin",
                        help="system under test for 'bench system' and 'bench train' (default: builtin)")
     bench.add_argument("--frames", type=int, default=100,

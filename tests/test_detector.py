@@ -175,6 +175,25 @@ def test_shipped_detector_clear_vs_fog_and_night(held_out_sets) -> None:
 
 
 @pytest.mark.render
+def test_fast_input_path_is_bit_identical(held_out_sets) -> None:
+    """The closed loop's detector path (a table look-up for /255 and the normalisation, a TorchScript trace of
+    the net) gives the eager net's outputs on x / 255 bit for bit, single frames and batches alike: the
+    system under test is the same whatever the speed-ups (docs/benchmarks.md)."""
+    det = VehicleDetector()
+    frames = np.stack([f for d in held_out_sets.values() for f in d.images[:6]])
+    with torch.inference_mode():
+        for batch in (1, 4):
+            for s in range(0, len(frames) - batch + 1, batch):
+                chunk = frames[s : s + batch]
+                x = torch.from_numpy(chunk).permute(0, 3, 1, 2).float().div_(255.0)
+                eager = det._net(x.contiguous(memory_format=torch.channels_last))
+                fast = det._forward(torch.from_numpy(det._normalized(chunk)).permute(0, 3, 1, 2))
+                for key in ("heatmap", "size", "offset"):
+                    assert torch.equal(eager[key], fast[key]), (batch, s, key)
+    assert len(det._traced) == 2  # one trace per input shape, reused
+
+
+@pytest.mark.render
 def test_detector_rescales_other_frame_sizes(held_out_sets) -> None:
     import cv2
 

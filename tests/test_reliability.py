@@ -103,6 +103,29 @@ def test_an_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path, m
     assert _weights(cut / "checkpoints" / "step_00000032.zip")["optimizer.state.0.step"] > 0
 
 
+@pytest.mark.render
+def test_env_processes_resume_exactly_with_the_fast_trainer(tmp_path, capsys) -> None:
+    """With envs in subprocesses the trainer switches torch threads between rollouts and updates and runs the
+    channels-last CNN with fused Adam (training/throughput.py): a run stopped at a checkpoint and resumed in
+    a new process still ends with the uninterrupted run's weights, optimizer state and episodes, bit for bit."""
+    import torch
+
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_RUN.replace("torch_threads = 1", "torch_threads = 2\nenvs = 2"))
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    assert main(["train", "--config", str(config), "--out", str(whole), "--quiet"]) == 0
+    assert main(["train", "--config", str(config), "--out", str(cut), "--steps", "32", "--quiet"]) == 0
+    assert main(["train", "--out", str(cut), "--resume", "--steps", "64", "--quiet"]) == 0
+    capsys.readouterr()
+    a, b = _weights(whole / "agent.zip"), _weights(cut / "agent.zip")
+    assert "policy.features_extractor.cnn.0.weight" in a and a["optimizer.state.0.step"] == 4 * 2 * 2
+    different = [k for k in a if isinstance(a[k], torch.Tensor) and not torch.equal(a[k], b[k])
+                 or not isinstance(a[k], torch.Tensor) and a[k] != b[k]]
+    assert different == []
+    assert (cut / "episodes.csv").read_text() == (whole / "episodes.csv").read_text()
+    assert torch.get_num_threads() == 2  # the update's threads are restored when training ends
+
+
 # --- 1. --force replaces only a folder this tool wrote, never the command's input --------------------------
 
 def _users_folder(path: Path) -> Path:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -136,6 +137,9 @@ class VehicleDetector:
         if num_threads is not None:
             torch.set_num_threads(int(num_threads))
         self._net = _fold_batch_norm(net.eval()).to(memory_format=torch.channels_last)
+        #: uint8 -> normalised float32 per channel, one look-up instead of four passes over the frame
+        self._input_table = self._net.input_table()
+        self._traced: dict[tuple[int, ...], Any] = {}  # per input shape, see _forward
         self._sha256: str | None = None
         self.name = f"vehicle_detector:{self.weights_path.name}"
 
@@ -180,15 +184,45 @@ class VehicleDetector:
                 if resize:
                     interp = cv2.INTER_AREA if w > iw else cv2.INTER_LINEAR
                     chunk = np.stack([cv2.resize(f, (iw, ih), interpolation=interp) for f in chunk])
-                x = torch.from_numpy(np.ascontiguousarray(chunk)).permute(0, 3, 1, 2).float().div_(255.0)
-                x = x.contiguous(memory_format=torch.channels_last)
-                dets = decode(self._net(x), self.score_threshold, self.max_detections,
+                # (B, H, W, 3) float32 is (B, 3, H, W) in channels-last layout, which the net runs in
+                x = torch.from_numpy(self._normalized(chunk)).permute(0, 3, 1, 2)
+                dets = decode(self._forward(x), self.score_threshold, self.max_detections,
                               self.model_config.output_stride, image_size=(iw, ih))
                 if resize:
                     scale = np.array([w / iw, h / ih, w / iw, h / ih, 1.0], np.float32)
                     dets = [d * scale for d in dets]
                 out.extend(dets)
         return out
+
+    def _forward(self, x: Any) -> dict[str, Any]:
+        """The net on a normalised batch, through a TorchScript trace of it per input shape: the same
+        kernels in the same order (bit-identical outputs, tested) without Python's module calls, about
+        0.45 ms of a 4 ms frame on one thread. No numerics-changing graph rewrites (``optimize_numerics``)."""
+        import torch
+
+        from genesis_rl.perception.model import NormalizedForward
+
+        key = tuple(x.shape)
+        if key not in self._traced:
+            try:
+                with warnings.catch_warnings():  # TorchScript is deprecated in favour of torch.compile, which
+                    warnings.simplefilter("ignore")  # needs a C++ compiler and a minute's compile per process
+                    traced = torch.jit.trace(NormalizedForward(self._net).eval(), x, strict=False)
+                    self._traced[key] = torch.jit.freeze(traced, optimize_numerics=False)
+            except Exception:  # noqa: BLE001 - a torch without TorchScript: the eager net, same numbers
+                self._traced[key] = self._net.forward_normalized
+        return self._traced[key](x)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_traced": {}}  # traces are remade where the detector is unpickled
+
+    def _normalized(self, chunk: np.ndarray) -> np.ndarray:
+        """(B, H, W, 3) float32: the net's normalised input, by table look-up (bit for bit its arithmetic)."""
+        import cv2
+
+        b, h, w, _ = chunk.shape
+        flat = np.ascontiguousarray(chunk).reshape(b * h, w, 3)
+        return cv2.LUT(flat, self._input_table).reshape(b, h, w, 3)
 
     def describe(self) -> dict:
         """What an edge-case record should store about this detector."""

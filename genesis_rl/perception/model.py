@@ -113,7 +113,19 @@ class VehicleDetectorNet(nn.Module):
         nn.init.constant_(offset_bias, 0.5)
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        x = (x - self.mean) / self.std
+        return self.forward_normalized((x - self.mean) / self.std)
+
+    def input_table(self) -> np.ndarray:
+        """(1, 256, 3) float32: what ``forward`` feeds its first layer for each 8-bit value of each channel,
+        computed with the same float32 operations (``/ 255``, ``- mean``, ``/ std``), so that a table look-up
+        of a uint8 frame followed by :meth:`forward_normalized` is bit for bit ``forward(frame / 255)``."""
+        v = torch.arange(256, dtype=torch.float32).view(1, 1, 256, 1).expand(1, 3, 256, 1).contiguous()
+        with torch.no_grad():
+            t = (v.div_(255.0) - self.mean) / self.std  # (1, 3, 256, 1)
+        return np.ascontiguousarray(t[0, :, :, 0].T.numpy()).reshape(1, 256, 3)
+
+    def forward_normalized(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``forward`` of an image already normalised by ``mean`` and ``std``."""
         x4 = self.s4(self.stem(x))
         x8 = self.s8(x4)
         x16 = self.s16(x8)
@@ -124,6 +136,17 @@ class VehicleDetectorNet(nn.Module):
         p = self.lat4(x4) + F.interpolate(p, size=x4.shape[-2:], mode="nearest")
         h = self.head(self.merge(p))
         return {"heatmap": self.heatmap(h), "size": self.size(h), "offset": self.offset(h)}
+
+
+class NormalizedForward(nn.Module):
+    """A net's ``forward_normalized`` as a module's ``forward``: what the detector traces with TorchScript."""
+
+    def __init__(self, net: VehicleDetectorNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.net.forward_normalized(x)
 
 
 # ---------------------------------------------------------------------------------------------- targets

@@ -35,6 +35,7 @@ from genesis_rl.provenance import git_commit
 from genesis_rl.rules.reward import RewardConfig
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, load_run_config
+from genesis_rl.training.throughput import RolloutThreads, policy_kwargs
 
 
 def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int):  # noqa: ANN202
@@ -186,18 +187,20 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
 
 def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, progress: bool = True,
           argv: list[str] | None = None, total_timesteps: int | None = None,
-          inputs: Sequence[str | Path | None] = (), scale: ExecutorSettings | None = None) -> dict[str, Any]:
+          inputs: Sequence[str | Path | None] = (), scale: ExecutorSettings | None = None,
+          callbacks: Sequence[BaseCallback] = ()) -> dict[str, Any]:
     """Train (or ``resume``) the run in ``out``, holding the folder; a new run that fails before its first
     checkpoint is removed. ``inputs`` are files the command reads (its config), which ``out`` may not hold.
     ``scale``: where the envs run (default: subprocesses); not part of the run's config, so a run may resume
-    on another executor."""
+    on another executor. ``callbacks``: more SB3 callbacks (``bench train`` times the phases with one)."""
     out = Path(out)
     if not resume:
         scale = check_scale(cfg, scale)
     with output_folder.claim(out, "run", force, resume=resume, inputs=[cfg.env.catalog, *inputs]):
         cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
         try:
-            return _train_prepared(cfg, out, resume, progress, check_scale(cfg, scale) if resume else scale)
+            return _train_prepared(cfg, out, resume, progress, check_scale(cfg, scale) if resume else scale,
+                                   callbacks)
         except BaseException:
             if not resume and not (out / CHECKPOINTS / "last.json").exists():
                 # nothing was trained (e.g. the system under test failed to load): leave no folder behind that
@@ -207,7 +210,7 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
 
 
 def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
-                    scale: ExecutorSettings | None = None) -> dict[str, Any]:
+                    scale: ExecutorSettings | None = None, extra: Sequence[BaseCallback] = ()) -> dict[str, Any]:
 
     cfg.ppo.check_device_present()
     if cfg.train.torch_threads:
@@ -227,7 +230,8 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                         batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
                         gae_lambda=p.gae_lambda,
                         clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
-                        max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device, verbose=0)
+                        max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device,
+                        policy_kwargs=policy_kwargs(policy), verbose=0)
             done = 0
         formats = ["csv"]
         try:
@@ -241,8 +245,11 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
         t0 = time.perf_counter()
         if remaining > 0:
             cb = _Callbacks.make(out, cfg, done, progress, sums)
+            # envs in other processes: this one needs a single thread while they step (training/throughput.py)
+            remote_envs = cfg.train.envs > 1 or (scale is not None and scale.kind == "ray")
+            threads = [RolloutThreads(cfg.train.torch_threads)] if remote_envs else []
             try:
-                model.learn(total_timesteps=remaining, callback=cb, reset_num_timesteps=not resume,
+                model.learn(total_timesteps=remaining, callback=[cb, *threads, *extra], reset_num_timesteps=not resume,
                             progress_bar=False)
             except KeyboardInterrupt:
                 # a checkpoint is only whole between rollouts, so none is taken here: --resume goes back to the
