@@ -212,3 +212,22 @@ def test_rejects_wrong_shapes() -> None:
     with pytest.raises(ValueError):
         comp.apply(np.zeros((10, 10, 3), np.uint8), np.zeros((H, W), np.float32), np.zeros((H, W), np.uint8),
                    wx, lighting_for(wx), 0.0, 0.0, 0)
+
+
+@pytest.mark.parametrize("partial", [
+    {**NOON, "fog_density": 100.0},
+    {**NOON, "fog_density": 60.0, "precipitation": 100.0, "precipitation_deposits": 90.0},
+    {"sun_altitude_angle": -30.0, "fog_density": 80.0, "precipitation": 40.0},
+    {"sun_altitude_angle": 4.0, "sun_azimuth_angle": 0.0, "fog_density": 60.0, "precipitation": 70.0},
+])
+def test_exp_floor_leaves_every_pixel_as_it_was(monkeypatch, partial) -> None:
+    """The optical depth is floored at -87 before cv2.exp (OpenCV's fast path, weather_effects._EXP_FLOOR);
+    the frame equals the unfloored one bit for bit, in fog thick enough that far pixels pass the floor."""
+    from genesis_rl.lite.render import weather_effects
+
+    wx = Weather.from_partial(partial)
+    light = lighting_for(wx)
+    assert (light.fog_extinction + light.rain_extinction) * 1000.0 > 87.0  # the sky's depth passes the floor
+    floored = _render(wx, step=3)
+    monkeypatch.setattr(weather_effects, "_EXP_FLOOR", np.float32(-np.inf))
+    np.testing.assert_array_equal(floored, _render(wx, step=3))

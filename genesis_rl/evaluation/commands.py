@@ -155,6 +155,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         if same_violations:
             print("genesis-rl replay: the violations are the recorded ones, but the per-step telemetry is not "
                   "(its digest differs: a detection score or distance changed somewhere)", flush=True)
+            _explain_platform(result["recorded_platform"], result["platform"])
         else:
             print("genesis-rl replay: the replayed violations differ from the recorded ones", flush=True)
         from genesis_rl import __version__
@@ -171,6 +172,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                   f"{__version__}; replay it with the recorded version to reproduce it exactly", flush=True)
         return 1
     return 0
+
+
+def _explain_platform(recorded: dict | None, now: dict) -> None:
+    """Say when the record was made where float math differs in its last bits (provenance.numeric_platform)."""
+    if recorded is None:
+        print("genesis-rl replay: the record does not name the machine that made it (records before genesis-rl "
+              "0.8.0); a CPU with other vector extensions (AVX2 against AVX-512) or another numpy or torch "
+              f"differs in the last bits of float math; this machine: {now}", flush=True)
+    elif recorded != now:
+        diff = {k: (recorded.get(k), v) for k, v in now.items() if recorded.get(k) != v}
+        print("genesis-rl replay: the record was made on a machine whose float math differs in its last bits "
+              f"from this one's (recorded, here): {diff}; replay it on such a machine to reproduce it bit for "
+              "bit", flush=True)
 
 
 def _cmd_export(args: argparse.Namespace) -> int:

@@ -25,6 +25,7 @@ from genesis_rl.drive import ClosedLoop
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.provenance import numeric_platform
 from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.rules.rulebook import build_rulebook
 from genesis_rl.sim.interface import CameraConfig
@@ -62,6 +63,7 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
         "schema": RECORD_SCHEMA, "version": RECORD_VERSION,
         "package_version": __version__, "backend": env.backend.name,
         "render_version": getattr(env.backend, "render_version", None),
+        "platform": numeric_platform(),
         "policy": policy, "campaign_seed": spec.seed,
         "scene": {"index": sc.index, "map": sc.map, "seed": sc.seed, "signal_offset": sc.signal_offset,
                   "vehicles": [asdict(v) for v in sc.vehicles]},
@@ -205,4 +207,5 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
         math.isclose(violations[k], recorded[k], rel_tol=1e-9, abs_tol=1e-9) for k in recorded)
     return {"records": records, "frames": frames, "violations": violations, "recorded_violations": recorded,
             "reproduced": reproduced, "steps_identical": same_steps, "step_digest": digest, "identity": now_id,
-            "render_version": LiteBackend.render_version, "recorded_render_version": recorded_render}
+            "render_version": LiteBackend.render_version, "recorded_render_version": recorded_render,
+            "platform": numeric_platform(), "recorded_platform": rec.get("platform")}
