@@ -25,8 +25,8 @@ from genesis_rl.drive import ClosedLoop
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS, Weather
-from genesis_rl.provenance import numeric_platform
 from genesis_rl.lite.backend import LiteBackend
+from genesis_rl.provenance import numeric_platform
 from genesis_rl.rules.rulebook import build_rulebook
 from genesis_rl.sim.interface import CameraConfig
 from genesis_rl.step_record import RULE_PREFIX, StepRecord
