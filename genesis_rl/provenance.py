@@ -27,7 +27,10 @@ def numeric_platform() -> dict[str, str]:
     import torch
 
     try:  # numpy's own runtime report (np.show_runtime) reads the same
-        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+        from numpy._core._multiarray_umath import (  # type: ignore[import-not-found]
+            __cpu_dispatch__,
+            __cpu_features__,
+        )
 
         simd = [f for f in __cpu_dispatch__ if __cpu_features__.get(f)]
         numpy_simd = simd[-1] if simd else "baseline"
