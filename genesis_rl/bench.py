@@ -119,11 +119,11 @@ def bench_system(frames: int = 200, batch: int = 16, steps: int = 200, system: s
 
 
 def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_steps: int | None = None,
-                system: str | None = None) -> dict:
+                system: str | None = None, executor: str = "local") -> dict:
     """The real trainer (``genesis-rl train``, checkpoints and all) for ``updates`` PPO updates of the paper's
-    config (``config``; None: the paper's values) with ``envs`` env processes: env steps/s while collecting
-    rollouts, seconds per PPO update, the start-up (envs built before the first step), and the paper
-    schedule's projected wall time (40,960 steps = 20 updates of 2048) from them."""
+    config (``config``; None: the paper's values) with ``envs`` env processes (``executor`` ray: Ray actors):
+    env steps/s while collecting rollouts, seconds per PPO update, the start-up (envs built before the first
+    step), and the paper schedule's projected wall time (40,960 steps = 20 updates of 2048) from them."""
     import os
     import tempfile
     from pathlib import Path
@@ -131,6 +131,7 @@ def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_st
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
+    from genesis_rl.distributed.settings import ExecutorSettings
     from genesis_rl.training.config import load_run_config
     from genesis_rl.training.train import train
 
@@ -158,7 +159,7 @@ def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_st
     threads = torch.get_num_threads()
     with tempfile.TemporaryDirectory(prefix="genesis-rl-bench-") as tmp:
         t0 = time.perf_counter()
-        train(cfg, Path(tmp) / "run", progress=False, callbacks=[Timer()])
+        train(cfg, Path(tmp) / "run", progress=False, callbacks=[Timer()], scale=ExecutorSettings(executor, envs))
         total = time.perf_counter() - t0
     torch.set_num_threads(threads)
     starts = [t for k, t in marks if k == "rollout_start"]
@@ -173,7 +174,8 @@ def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_st
     paper_updates = 40960 // 2048
     return {
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
-        "torch_threads": threads, "system": cfg.env.system, "envs": envs, "n_steps": per_update,
+        "torch_threads": threads, "system": cfg.env.system, "executor": executor, "envs": envs,
+        "n_steps": per_update,
         "updates": updates, "obs": [cfg.env.obs_width, cfg.env.obs_height],
         "setup_seconds": round(setup, 1),
         "rollout_env_steps_per_s": round(steps_per_s, 2),

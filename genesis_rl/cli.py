@@ -188,6 +188,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
+    from genesis_rl.distributed.settings import ExecutorSettings
 
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
                                                        "campaign": 256}[args.what]
@@ -198,7 +199,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise UserInputError(f"--frames = {args.frames} must be >= 1")
     limits.SIM_STEPS.check(steps, "--steps")
     if args.what == "campaign":
-        executors = tuple(_csv_list(args.executors) or [])
+        executors = tuple(_csv_list(args.executors or "local,ray") or [])
         bad = [e for e in executors if e not in ("local", "ray")]
         if bad or not executors:
             raise UserInputError(f"--executors {args.executors!r}; allowed: a comma list of local, ray")
@@ -218,8 +219,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise UserInputError(f"--envs = {args.envs} must be in 1..64 and --updates = {args.updates} in 1..100")
         if steps % args.envs:
             raise UserInputError(f"--steps = {steps} must be a multiple of --envs = {args.envs}")
+        executor = args.executors or "local"
+        if executor not in ("local", "ray"):
+            raise UserInputError(f"--executors {executor!r}: bench train takes one of local, ray")
+        ExecutorSettings(executor, args.envs, what="--envs").preflight()  # Ray installed, before any work
         print(json.dumps(bench_train(args.config, envs=args.envs, updates=args.updates, n_steps=steps,
-                                     system=args.system), indent=2))
+                                     system=args.system, executor=executor), indent=2))
         return 0
     if args.what == "system":
         print(json.dumps(bench_system(frames=args.frames, steps=steps, system=args.system), indent=2))
@@ -328,7 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "train: the real trainer for --updates PPO updates: rollout steps/s, seconds per "
                             "update, projected paper-schedule time; "
                             "campaign: episodes/minute per executor and worker count")
-    bench.add_argument("--executors", default="local,ray", help="bench campaign: comma list of local, ray")
+    bench.add_argument("--executors", default=None,
+                       help="bench campaign: comma list of local, ray (default both); bench train: local or ray "
+                            "(where the envs run, default local)")
     bench.add_argument("--workers", default="1,2", help="bench campaign: comma list of worker counts")
     bench.add_argument("--scenes", type=int, default=8, help="bench campaign: episodes per run (highway scenes)")
     bench.add_argument("--steps", type=int, default=None,

@@ -283,6 +283,9 @@ def test_a_folder_as_schedule_is_called_a_folder(tmp_path) -> None:
     (["bench", "sim", "--steps", "10", "--frames", "0"], "--frames = 0 must be >= 1"),  # was ZeroDivisionError
     (["bench", "train", "--steps", "1"], "--steps = 1 must be >= 2"),  # was SB3's AssertionError
     (["bench", "sim", "--steps", "-1"], "--steps = -1 must be >= 1"),  # was accepted
+    (["bench", "train", "--executors", "slurm"], "--executors 'slurm': bench train takes one of local, ray"),
+    (["bench", "train", "--envs", "3"], "--steps = 2048 must be a multiple of --envs = 3"),
+    (["bench", "train", "--updates", "0"], "--updates = 0 in 1..100"),
 ])
 def test_bench_refuses_counts_it_cannot_time(capsys, argv, message) -> None:
     assert main(argv) == 2

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from genesis_rl.cli import main
-from genesis_rl.distributed.servers import CarlaServer, parse_servers, servers_for_workers
+from genesis_rl.distributed.servers import CarlaServer, NodeServer, parse_servers, servers_for_workers
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign import CampaignSpec, ExecutorSettings, run_campaign
 
@@ -31,7 +31,8 @@ def local_ray(crash_dir):
     policy's settings are in the environment before Ray starts, so its workers inherit them."""
     os.environ["GENESIS_RL_TEST_CRASH_DIR"] = str(crash_dir)
     os.environ["GENESIS_RL_TEST_CRASH_SCENE"] = "5"
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    ray.init(num_cpus=2, resources={"carla_server": 2}, include_dashboard=False, log_to_driver=False,
+             logging_level="ERROR")
     yield ray
     ray.shutdown()
 
@@ -145,6 +146,42 @@ def test_carla_workers_need_one_server_each(tmp_path, capsys) -> None:
     rc, out = _evaluate(tmp_path, "--backend", "carla", "--workers", "3", "--carla-servers", "h:2000,h:3000")
     assert rc == 2 and not out.exists()
     assert "--workers = 3 but --carla-servers names 2 server(s)" in capsys.readouterr().err
+
+
+def test_carla_servers_as_ray_resources(tmp_path, capsys, local_ray) -> None:
+    """--carla-servers ray: each worker holds one 'carla_server' resource of its node and drives that node's
+    server at 127.0.0.1; Ray places no two workers on one server, and too few servers are refused up front."""
+    import gymnasium as gym
+
+    from genesis_rl.distributed.ray_cluster import ray_session
+    from genesis_rl.training.ray_vec_env import RayVecEnv
+
+    (node,) = parse_servers("ray")
+    assert node == NodeServer("127.0.0.1", 2000, 8000) and parse_servers("ray:3000") == (NodeServer(port=3000,
+                                                                                                   tm_port=9000),)
+    assert servers_for_workers("carla", (node,), 3) == [node] * 3
+    assert node.env_settings() == {"carla_host": "127.0.0.1", "carla_port": 2000, "carla_tm_port": 8000}
+    with pytest.raises(UserInputError, match="has port 'x'"):
+        parse_servers("ray:x")
+    with pytest.raises(UserInputError, match="add --executor ray"):
+        ExecutorSettings("local", 2, servers=(node, node))
+    settings = ExecutorSettings("ray", 2, servers=(node, node))
+    assert settings.ray_resources(1) == {"carla_server": 1.0} and settings.server(1)["carla_host"] == "127.0.0.1"
+
+    # two envs hold both of the local Ray's servers while they live, and step
+    env = RayVecEnv([lambda: gym.make("CartPole-v1")] * 2, None, settings.ray_resources(0))
+    try:
+        env.reset()
+        env.step(env.action_space.sample()[None].repeat(2, 0))
+        assert ray.available_resources().get("carla_server", 0) == 0
+    finally:
+        env.close()
+    # more workers than the cluster has servers: refused with the fix, not a wait forever
+    with pytest.raises(UserInputError, match=r"offers 2; start each node .* ray start --resources"), \
+            ray_session(None, 2, {"carla_server": 1.5}):
+        pass
+    rc, out = _evaluate(tmp_path, "--backend", "carla", "--workers", "2", "--carla-servers", "ray")
+    assert rc == 2 and not out.exists() and "add --executor ray" in capsys.readouterr().err
 
 
 # -- training envs on Ray -------------------------------------------------------------------------------------

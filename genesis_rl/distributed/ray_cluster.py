@@ -70,9 +70,11 @@ def add_driver_paths(paths: list[str]) -> None:
 
 
 @contextmanager
-def ray_session(address: str | None, workers: int) -> Iterator[ModuleType]:
+def ray_session(address: str | None, workers: int, per_worker: dict[str, float] | None = None
+                ) -> Iterator[ModuleType]:
     """Ray, initialised for the duration: a local instance with at least ``workers`` CPUs when ``address`` is
-    None, else the cluster at ``address``; an instance this process already started is reused and kept."""
+    None, else the cluster at ``address``; an instance this process already started is reused and kept. The
+    cluster must offer ``workers`` times each custom resource of ``per_worker`` (a worker's CARLA server)."""
     ray = require_ray()
     started = False
     if not ray.is_initialized():
@@ -92,6 +94,13 @@ def ray_session(address: str | None, workers: int) -> Iterator[ModuleType]:
         if cpus < workers:
             raise UserInputError(f"--workers = {workers} but the Ray cluster has {cpus:g} CPUs; each worker takes "
                                  f"one: allowed --workers 1..{int(cpus)}, or add nodes")
+        for name, amount in (per_worker or {}).items():
+            have = float(ray.cluster_resources().get(name, 0))
+            if have < workers * amount:  # Ray would wait for them forever
+                raise UserInputError(
+                    f"{workers} workers each need a '{name}' resource but the Ray cluster offers {have:g}; start "
+                    f"each node that runs a CARLA server with ray start --resources='{{\"{name}\": 1}}', or use "
+                    f"at most {int(have // amount)} workers")
         yield ray
     finally:
         if started:

@@ -4,6 +4,11 @@ A CARLA server accepts one client that ticks it in synchronous mode and one traf
 so a campaign with ``--workers N`` (or a training run with ``--envs N``) on ``--backend carla`` needs N
 servers, named with ``--carla-servers HOST:PORT[:TM_PORT],...``. Worker i (a pool process, a Ray actor or a
 training env) drives server i. The lite backend needs none and ignores the list.
+
+On a Ray cluster the servers can instead be Ray resources (``--carla-servers ray[:PORT[:TM_PORT]]``): each
+node that runs a CARLA server is started with ``ray start --resources='{"carla_server": 1}'``, every worker
+asks Ray for one ``carla_server`` and drives the server of the node it lands on, at 127.0.0.1:PORT. Ray then
+never places two workers on one server, and a lost node's worker restarts where a server is free.
 """
 
 from __future__ import annotations
@@ -15,7 +20,9 @@ from genesis_rl.errors import UserInputError
 
 #: CARLA's defaults put the traffic manager 6000 above the RPC port (2000 -> 8000)
 TM_PORT_OFFSET = 6000
-FORMAT = "HOST:PORT[:TM_PORT],... (e.g. localhost:2000,localhost:3000)"
+FORMAT = "HOST:PORT[:TM_PORT],... (e.g. localhost:2000,localhost:3000), or ray[:PORT[:TM_PORT]]"
+#: the Ray resource a node offers per CARLA server it runs
+RAY_RESOURCE = "carla_server"
 
 
 @dataclass(frozen=True)
@@ -28,8 +35,27 @@ class CarlaServer:
         """The ``[env]`` keys that point an env at this server."""
         return {"carla_host": self.host, "carla_port": self.port, "carla_tm_port": self.tm_port}
 
+    def ray_resources(self) -> dict[str, float]:
+        return {}
+
     def __str__(self) -> str:
         return f"{self.host}:{self.port}:{self.tm_port}"
+
+
+@dataclass(frozen=True)
+class NodeServer(CarlaServer):
+    """The CARLA server of whichever Ray node the worker lands on: the worker holds one ``carla_server``
+    resource of that node (so no other worker drives the same server) and connects to it locally."""
+
+    host: str = "127.0.0.1"
+    port: int = 2000
+    tm_port: int = 2000 + TM_PORT_OFFSET
+
+    def ray_resources(self) -> dict[str, float]:
+        return {RAY_RESOURCE: 1.0}
+
+    def __str__(self) -> str:
+        return f"ray:{self.port}:{self.tm_port} (one '{RAY_RESOURCE}' resource per worker)"
 
 
 def _port(text: str, item: str, flag: str) -> int:
@@ -42,6 +68,16 @@ def parse_servers(text: str | None, flag: str = "--carla-servers") -> tuple[Carl
     """``HOST:PORT[:TM_PORT],...`` as servers; the traffic-manager port defaults to PORT + 6000."""
     if text is None:
         return ()
+    if text.strip() == "ray" or text.strip().startswith("ray:"):
+        parts = text.strip().split(":")
+        if len(parts) > 3:
+            raise UserInputError(f"{flag}: '{text}' is not a server; allowed: {FORMAT}")
+        port = _port(parts[1], text, flag) if len(parts) > 1 else 2000
+        tm = _port(parts[2], text, flag) if len(parts) > 2 else port + TM_PORT_OFFSET
+        if tm > 65535:
+            raise UserInputError(f"{flag}: '{text}': the default traffic-manager port {tm} (PORT + 6000) is not a "
+                                 "port; give it as ray:PORT:TM_PORT")
+        return (NodeServer(port=port, tm_port=tm),)
     servers: list[CarlaServer] = []
     for item in (s.strip() for s in text.split(",")):
         if not item:
@@ -78,6 +114,8 @@ def servers_for_workers(backend: str, servers: tuple[CarlaServer, ...], workers:
                                  f"processes (a server takes one synchronous client); start {workers} servers "
                                  f"and name them with --carla-servers {FORMAT}, or use {what} 1")
         return [None]
+    if len(servers) == 1 and isinstance(servers[0], NodeServer):
+        return [servers[0]] * workers  # one per node, each held as a Ray resource (ray_session checks the count)
     if len(servers) < workers:
         raise UserInputError(f"{what} = {workers} but --carla-servers names {len(servers)} server(s); each worker "
                              f"needs its own: allowed {what} 1..{len(servers)}, or start more servers")

@@ -29,6 +29,9 @@ class ExecutorSettings:
             raise UserInputError(f"{self.what} = {self.workers} must be >= 1")
         if self.ray_address is not None and self.kind != "ray":
             raise UserInputError("--ray-address needs --executor ray")
+        if self.kind != "ray" and any(s is not None and s.ray_resources() for s in self.servers):
+            raise UserInputError("--carla-servers ray: the servers are Ray resources; add --executor ray (or name "
+                                 "them as HOST:PORT,... for local processes)")
 
     def preflight(self) -> None:
         """Before any folder is touched: Ray installed and its address answering (with ``kind`` ray)."""
@@ -42,5 +45,10 @@ class ExecutorSettings:
     def server(self, i: int) -> dict[str, Any]:
         s = self.servers[i] if i < len(self.servers) else None
         return s.env_settings() if s is not None else {}
+
+    def ray_resources(self, i: int) -> dict[str, float]:
+        """The custom Ray resources worker i holds (its node's CARLA server with ``--carla-servers ray``)."""
+        s = self.servers[i] if i < len(self.servers) else None
+        return s.ray_resources() if s is not None else {}
 
 

@@ -120,14 +120,15 @@ def _run_ray(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettin
     n = min(settings.workers, len(tasks))
     if n == 0:
         return
-    with ray_session(settings.ray_address, n) as ray:
+    with ray_session(settings.ray_address, n, settings.ray_resources(0)) as ray:
         remote = ray.remote(num_cpus=1, max_restarts=retries + 1, max_task_retries=retries + 1)(EpisodeActor)
         # put once and held here for the whole campaign: a restarted actor is built from the same objects (Ray
         # drops inlined constructor arguments from its store, and the restart would fail)
         setup_ref = ray.put(setup)
         catalog_ref = ray.put((setup.folder / "catalog.json").read_bytes())
         paths_ref = ray.put(driver_paths())
-        actors = [remote.remote(setup_ref, catalog_ref, settings.server(i), paths_ref) for i in range(n)]
+        actors = [remote.options(resources=settings.ray_resources(i)).remote(
+            setup_ref, catalog_ref, settings.server(i), paths_ref) for i in range(n)]
         try:
             pool = ActorPool(actors)
             for row, files in pool.map_unordered(lambda a, t: a.run.remote(t), list(tasks)):

@@ -65,11 +65,16 @@ def fits(spec: VehicleSpec, placed: list[VehicleSpec], search_radius: float = 15
     """No overlap with the ``placed`` vehicles within ``search_radius`` metres, with a 1 m margin front and
     back and 0.2 m at the sides."""
     m = MAKES[spec.make]
-    a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
+    r = 0.5 * math.hypot(m.length + 2.0, m.width + 0.4)  # the padded box's bounding circle
+    a: np.ndarray | None = None
     for other in placed:
-        if (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2 > search_radius**2:
-            continue
+        d2 = (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2
         mo = MAKES[other.make]
+        ro = 0.5 * math.hypot(mo.length + 2.0, mo.width + 0.4)
+        if d2 > search_radius**2 or d2 > (r + ro + 1e-6) ** 2:  # apart: the boxes cannot overlap, no SAT needed
+            continue
+        if a is None:
+            a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
         if boxes_overlap(a, box_corners(other.x, other.y, other.yaw, mo.length + 2.0, mo.width + 0.4)):
             return False
     return True

@@ -64,12 +64,14 @@ class EnvActor:
 class RayVecEnv(VecEnv):
     """Sub-envs as Ray actors (one CPU each) on a local Ray (``address`` None) or a cluster."""
 
-    def __init__(self, env_fns: list[Callable[[], gym.Env]], address: str | None = None) -> None:
+    def __init__(self, env_fns: list[Callable[[], gym.Env]], address: str | None = None,
+                 resources: dict[str, float] | None = None) -> None:
+        """``resources``: the custom Ray resources each env holds (its node's CARLA server)."""
         self._stack = ExitStack()
-        ray = self._ray = self._stack.enter_context(ray_session(address, len(env_fns)))
+        ray = self._ray = self._stack.enter_context(ray_session(address, len(env_fns), resources))
         remote = ray.remote(num_cpus=1)(EnvActor)
         paths = driver_paths()
-        self.actors = [remote.remote(fn, paths) for fn in env_fns]
+        self.actors = [remote.options(resources=resources or {}).remote(fn, paths) for fn in env_fns]
         self.closed = False
         observation_space, action_space = ray.get(self.actors[0].spaces.remote())
         super().__init__(len(env_fns), observation_space, action_space)

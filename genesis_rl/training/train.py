@@ -63,7 +63,7 @@ def build_vec_env(cfg: RunConfig, catalog_path: Path, scale: ExecutorSettings | 
     if scale.kind == "ray":
         from genesis_rl.training.ray_vec_env import RayVecEnv
 
-        return RayVecEnv(fns, scale.ray_address)
+        return RayVecEnv(fns, scale.ray_address, scale.ray_resources(0))
     return SubprocVecEnv(fns, start_method="spawn") if n > 1 else DummyVecEnv(fns)
 
 
