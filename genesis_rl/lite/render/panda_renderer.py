@@ -22,6 +22,7 @@ import numpy as np
 from panda3d.core import (
     AmbientLight,
     Camera,
+    CullBinManager,
     DirectionalLight,
     FrameBufferProperties,
     Geom,
@@ -84,6 +85,12 @@ def _pipe() -> GraphicsPipe:
             pipe = sel.make_default_pipe()
         if pipe is None:
             raise RuntimeError("no Panda3D graphics pipe (p3headlessgl) available for offscreen rendering")
+        # Draw opaque geometry in scene-graph order. Panda3D's default opaque bin sorts by render state, and
+        # states compare by their addresses in memory, so the draw order (and with it which of two surfaces
+        # at the same depth wins, e.g. a far car's shadow on the road) depended on what the process had drawn
+        # before: one frame in ~2,000 differed by a few pixels between one campaign worker and two.
+        bins = CullBinManager.get_global_ptr()
+        bins.set_bin_type(bins.find_bin("opaque"), CullBinManager.BT_unsorted)
         _PIPE = pipe
     return _PIPE
 
