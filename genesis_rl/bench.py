@@ -126,6 +126,7 @@ def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_st
     step), and the paper schedule's projected wall time (40,960 steps = 20 updates of 2048) from them."""
     import os
     import tempfile
+    from dataclasses import replace
     from pathlib import Path
 
     import torch
@@ -154,8 +155,7 @@ def bench_train(config: str | None = None, envs: int = 2, updates: int = 2, n_st
         overrides["env"] = {"system": system}
     cfg = load_run_config(config, overrides)
     per_update = cfg.ppo.n_steps
-    cfg = load_run_config(config, {**overrides, "train": {**overrides["train"],
-                                                          "total_timesteps": per_update * updates}})
+    cfg = replace(cfg, train=replace(cfg.train, total_timesteps=per_update * updates))
     threads = torch.get_num_threads()
     with tempfile.TemporaryDirectory(prefix="genesis-rl-bench-") as tmp:
         t0 = time.perf_counter()

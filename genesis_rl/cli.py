@@ -188,7 +188,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
-    from genesis_rl.distributed.settings import ExecutorSettings
 
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
                                                        "campaign": 256}[args.what]
@@ -222,7 +221,6 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         executor = args.executors or "local"
         if executor not in ("local", "ray"):
             raise UserInputError(f"--executors {executor!r}: bench train takes one of local, ray")
-        ExecutorSettings(executor, args.envs, what="--envs").preflight()  # Ray installed, before any work
         print(json.dumps(bench_train(args.config, envs=args.envs, updates=args.updates, n_steps=steps,
                                      system=args.system, executor=executor), indent=2))
         return 0

@@ -42,13 +42,16 @@ class ExecutorSettings:
             if self.ray_address:
                 check_reachable(self.ray_address)
 
+    def _server_at(self, i: int) -> CarlaServer | None:
+        return self.servers[i] if i < len(self.servers) else None
+
     def server(self, i: int) -> dict[str, Any]:
-        s = self.servers[i] if i < len(self.servers) else None
+        s = self._server_at(i)
         return s.env_settings() if s is not None else {}
 
     def ray_resources(self, i: int) -> dict[str, float]:
         """The custom Ray resources worker i holds (its node's CARLA server with ``--carla-servers ray``)."""
-        s = self.servers[i] if i < len(self.servers) else None
+        s = self._server_at(i)
         return s.ray_resources() if s is not None else {}
 
 

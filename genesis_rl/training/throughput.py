@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium as gym
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.torch_layers import NatureCNN
@@ -30,16 +29,10 @@ class ChannelsLastNatureCNN(NatureCNN):
     the first forward pass on (SB3's orthogonal initialisation and a loaded state dict both need them
     contiguous before; the parameters stay the same objects, so the optimizer keeps them)."""
 
-    def __init__(self, observation_space: gym.Space, features_dim: int = 512, normalized_image: bool = False) -> None:
-        super().__init__(observation_space, features_dim, normalized_image)
-        self._laid_out = False
-
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
-        if not self._laid_out:
-            for param in self.cnn.parameters():  # in place, as Module.to(memory_format=...) does
-                if param.dim() == 4:
-                    param.data = param.data.contiguous(memory_format=torch.channels_last)
-            self._laid_out = True
+        for param in self.cnn.parameters():  # in place, as Module.to(memory_format=...) does; once
+            if param.dim() == 4 and not param.is_contiguous(memory_format=torch.channels_last):
+                param.data = param.data.contiguous(memory_format=torch.channels_last)
         return super().forward(observations.contiguous(memory_format=torch.channels_last))
 
 
