@@ -59,6 +59,25 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_map(args: argparse.Namespace) -> int:
+    from genesis_rl.io_utils import atomic_write_text, ensure_writable
+    from genesis_rl.lite.maps import MAP_NAMES, load_map
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+
+    if args.map not in MAP_NAMES:
+        raise UserInputError(f"--map '{args.map}' is not a lite map; allowed: {', '.join(MAP_NAMES)}")
+    out = Path(args.out) if args.out else Path(f"{args.map}.xodr")
+    ensure_writable(out, args.force)
+    t0 = time.perf_counter()
+    road_map = load_map(args.map)
+    text = to_opendrive(road_map)
+    atomic_write_text(out, text)
+    print(json.dumps({"out": str(out), "map": args.map, "format": args.format, "roads": len(road_map.roads),
+                      "junctions": len(road_map.junctions), "lanes": len(road_map.lanes), "bytes": len(text.encode()),
+                      "seconds": round(time.perf_counter() - t0, 2)}))
+    return 0
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from genesis_rl.knobs import parse_weather
     from genesis_rl.render_cmd import render_one, render_sweep
@@ -248,6 +267,17 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
     sc.add_argument("--quiet", action="store_true", help="no progress bar")
     sc.set_defaults(func=_cmd_scenes)
+
+    mp = sub.add_parser("map", help="export a lite map as OpenDRIVE (for CARLA and Scenic)",
+                        description="Write a lite map as OpenDRIVE 1.4: roads, lanes, junctions and traffic lights. "
+                        "CARLA builds a carla.Map from it without a server, a CARLA server drives it with "
+                        "client.generate_opendrive_world, and Scenic loads it as a road network (docs/carla.md).")
+    mp.add_argument("action", choices=["export"], help="what to do: export")
+    mp.add_argument("--map", default="urban", help="lite map: urban or highway (default: urban)")
+    mp.add_argument("--format", default="xodr", choices=["xodr"], help="output format (default: xodr, OpenDRIVE 1.4)")
+    mp.add_argument("--out", default=None, help="output file (default: MAP.xodr in the current folder)")
+    mp.add_argument("--force", action="store_true", help="overwrite an existing output")
+    mp.set_defaults(func=_cmd_map)
 
     rd = sub.add_parser("render", help="render a scene's camera frame (rgb, depth, boxes) or a knob sweep sheet")
     rd.add_argument("--map", default="urban", help="map name: urban or highway (default: urban; scene generated "

@@ -48,6 +48,7 @@ def episode_context(sim: Simulation, backend_name: str, seed: int) -> EpisodeCon
         ego_s=ego.s,
         ego_next_lane=ego.next_lane,
         signal_time_offset=scene.signal_offset,
+        extras=sim.context_extras(),
     )
 
 

@@ -77,6 +77,7 @@ class CarlaBackend(Backend):
         self.client = connect(self.host, self.port, self.timeout)
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
+        self._planner: tuple[str, Any, dict[int, float]] | None = None
         if map is not None:
             self.load_map(map)
 
@@ -113,6 +114,18 @@ class CarlaBackend(Backend):
             self._map_cache = (world.id, self.call("reading the map", world.get_map))
         return self._map_cache[1]
 
+    def route_planner(self, carla_map: Any) -> Any:
+        """The built-in controller's :class:`~genesis_rl.carla_backend.route.RoutePlanner` for ``carla_map``
+        (reading the topology takes a while on a town: built once per map and connection), and the map's
+        speed limits from its OpenDRIVE."""
+        from genesis_rl.carla_backend.route import RoutePlanner, speed_limits
+
+        name = str(carla_map.name)
+        if self._planner is None or self._planner[0] != name:
+            xodr = self.call("reading the OpenDRIVE map", carla_map.to_opendrive)
+            self._planner = (name, RoutePlanner(carla_map), speed_limits(xodr))
+        return self._planner[1], self._planner[2]
+
     def create_simulation(self, scene: Scene, *, seed: int, weather: Weather | None = None,
                           camera: CameraConfig | None = None, render: bool = True) -> CarlaSimulation:
         return CarlaSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
@@ -144,6 +157,7 @@ class CarlaSimulation(Simulation):
         self._hits: list[tuple[int, int]] = []  # (frame, other actor id) from the collision sensor
         self._hits_lock = threading.Lock()
         self._contact: set[int] = set()
+        self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
         self._tm: Any = None
         self._destroyed = False
@@ -351,6 +365,25 @@ class CarlaSimulation(Simulation):
         return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), ego.bounding_box.extent.x,
                             np.array(xy).reshape(-1, 2), np.array(half), np.array(speed), np.array(ids),
                             lane_half_width=wp.lane_width / 2.0)
+
+    def context_extras(self) -> dict[str, Any]:
+        """For the built-in controller: the route planner of this map and the server's light states."""
+        planner, limits = self._backend.route_planner(self.map)
+        return {"signal_state": self.light_state, "route_planner": planner, "speed_limits": limits}
+
+    def light_state(self, landmark: Any, time_s: float) -> str:
+        """The state of the traffic light that ``landmark`` (a signal of the map) belongs to, as the server
+        runs it now: 'red', 'yellow' or 'green' (off or unknown lights read green, as BehaviorAgent treats
+        them). ``time_s`` is unused: the server keeps its own light cycle."""
+        carla = require_carla()
+        if landmark.id not in self._lights:
+            self._lights[landmark.id] = self._backend.call("reading a traffic light", self.world.get_traffic_light,
+                                                           landmark)
+        light = self._lights[landmark.id]
+        if light is None:
+            return "green"
+        states = {carla.TrafficLightState.Red: "red", carla.TrafficLightState.Yellow: "yellow"}
+        return states.get(light.state, "green")
 
     def carla_actor_ids(self) -> list[int]:
         """CARLA ids of everything this episode spawned (vehicles, then sensors), e.g. to check teardown."""

@@ -216,6 +216,11 @@ class Simulation(abc.ABC):
     def ego(self) -> ActorState:
         return self.actors()[0]
 
+    def context_extras(self) -> dict[str, Any]:
+        """What this backend adds to the system's :class:`~genesis_rl.system.protocol.EpisodeContext`
+        ``extras`` (e.g. CARLA's traffic-light states); nothing by default."""
+        return {}
+
 
 @dataclass(frozen=True)
 class ConnectionSettings:

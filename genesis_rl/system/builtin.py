@@ -12,13 +12,28 @@ from typing import Any
 import numpy as np
 
 from genesis_rl import __version__
+from genesis_rl.errors import UserInputError
 from genesis_rl.lite.maps.lane_graph import RoadMap
 from genesis_rl.perception.detector import VehicleDetector
 from genesis_rl.sim.interface import ActorState, SensorFrame
 from genesis_rl.system.controller import ControllerConfig, FollowingController
 from genesis_rl.system.localisation import box_depth, localise
 from genesis_rl.system.protocol import Detection, EpisodeContext, SystemOutput
-from genesis_rl.system.route import LaneRoute
+from genesis_rl.system.route import LaneRoute, PolylineRoute
+
+
+def plan_route(context: EpisodeContext) -> PolylineRoute:
+    """The controller's route on the episode's map: a lite ``RoadMap`` (any backend that drives lite catalogs
+    hands one over) or a ``carla.Map`` (the CARLA backend's, or one built from OpenDRIVE text)."""
+    if isinstance(context.road_map, RoadMap):
+        rng = np.random.default_rng(np.random.SeedSequence([context.seed, 7]))
+        return LaneRoute(context.road_map, context.ego_lane, context.ego_s, context.ego_next_lane, rng)
+    if hasattr(context.road_map, "get_topology"):  # a carla.Map; imported here: the carla client is an extra
+        from genesis_rl.carla_backend.route import route_from_context
+
+        return route_from_context(context)
+    raise UserInputError(f"the built-in controller plans routes on lite maps and carla.Map objects; backend "
+                         f"'{context.backend}' handed over {type(context.road_map).__name__}")
 
 
 class PerceptionDrivenSystem:
@@ -34,12 +49,8 @@ class PerceptionDrivenSystem:
         self.context: EpisodeContext | None = None
 
     def reset(self, context: EpisodeContext) -> None:
-        if not isinstance(context.road_map, RoadMap):  # any backend that drives lite catalogs hands one over
-            raise NotImplementedError("the built-in controller plans its route on lite maps only")
         self.context = context
-        rng = np.random.default_rng(np.random.SeedSequence([context.seed, 7]))
-        route = LaneRoute(context.road_map, context.ego_lane, context.ego_s, context.ego_next_lane, rng)
-        self.controller.reset(route, context.dt, context.signal_time_offset)
+        self.controller.reset(plan_route(context), context.dt, context.signal_time_offset)
 
     def _boxes(self, frame: SensorFrame) -> np.ndarray:
         """(N, 5) x0, y0, x1, y1, score."""

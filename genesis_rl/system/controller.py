@@ -18,7 +18,7 @@ import numpy as np
 from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import ActorState, VehicleControl
 from genesis_rl.system.protocol import Detection
-from genesis_rl.system.route import LaneRoute
+from genesis_rl.system.route import PolylineRoute
 
 
 @dataclass(frozen=True)
@@ -55,13 +55,13 @@ class FollowingController:
 
     def __init__(self, config: ControllerConfig | None = None) -> None:
         self.config = config or ControllerConfig()
-        self.route: LaneRoute | None = None
+        self.route: PolylineRoute | None = None
         self._track: _LeadTrack | None = None
         self._dt = 0.05
         self._signal_offset = 0.0
         self.status = "cruise"
 
-    def reset(self, route: LaneRoute, dt: float, signal_time_offset: float) -> None:
+    def reset(self, route: PolylineRoute, dt: float, signal_time_offset: float) -> None:
         self.route = route
         self._track = None
         self._dt = dt
@@ -152,9 +152,9 @@ class FollowingController:
 
         sig = route.next_signal(max_ahead=80.0)
         if sig is not None:
-            ahead, (junction, group) = sig
+            ahead, light = sig
             dist = ahead - 0.5 * ego.length - 1.0
-            state = route.map.signal_state(junction, group, time_s + self._signal_offset)
+            state = route.signal_state(light, time_s + self._signal_offset)
             can_stop = dist > v * v / (2.0 * c.comfort_decel)
             if dist > -0.5 and (state == "red" or (state == "yellow" and can_stop)):
                 s_star = 0.5 + v * c.time_gap * 0.5 + v * v / (2.0 * math.sqrt(c.max_accel * c.comfort_decel))

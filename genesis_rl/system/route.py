@@ -1,10 +1,17 @@
-"""The ego's route on a lite map: a chain of lanes ahead, chosen at junctions by a seeded draw.
+"""The ego's route: points every DS metres ahead of it, its traffic lights and speed limits.
 
-The controller reads its route and the traffic lights from the map (ground truth, as CARLA's BehaviorAgent
-does through its global route planner); everything about other vehicles comes from perception.
+:class:`PolylineRoute` is what the following controller reads (projection, look-ahead point, curvature,
+the path frame for perceived vehicles, the next light and its state, the speed limit). :class:`LaneRoute`
+fills it on a lite map: a chain of lanes chosen at junctions by a seeded draw.
+:class:`genesis_rl.carla_backend.route.CarlaRoute` fills it on a ``carla.Map``. The controller reads its route
+and the traffic lights from the map (ground truth, as CARLA's BehaviorAgent does through its global route
+planner); everything about other vehicles comes from perception.
 """
 
 from __future__ import annotations
+
+import abc
+from typing import Any
 
 import numpy as np
 
@@ -14,41 +21,29 @@ PLAN_AHEAD = 160.0  # keep at least this much route ahead [m]
 SEARCH_BACK, SEARCH_AHEAD = 20, 80  # projection window around the last index [samples]
 
 
-class LaneRoute:
-    """Route points (N, 2) with the lane each came from and the arc length from the route's start."""
+class PolylineRoute(abc.ABC):
+    """Route points ``xy`` (N, 2) every DS metres and the ego's projection ``index`` on them. Subclasses
+    keep at least PLAN_AHEAD metres ahead (``_extend``) and say where the lights and limits are."""
 
-    def __init__(self, road_map: RoadMap, lane: int, s: float, next_lane: int, rng: np.random.Generator) -> None:
-        self.map = road_map
-        self.rng = rng
-        self.lanes: list[int] = []
-        self._xy: list[np.ndarray] = []
-        self._lane_of: list[np.ndarray] = []
-        self.lane_end_s: list[float] = []  # route arc length at the end of each lane in ``lanes``
-        self._append(lane)
-        if next_lane >= 0:
-            self._append(next_lane)
-        self._rebuild()
-        self.index = int(np.clip(round(s / DS), 0, len(self.xy) - 1))
+    xy: np.ndarray
+    index: int
 
-    def _append(self, lane: int) -> None:
-        xy = self.map.lanes[lane].xy
-        if self._xy:
-            xy = xy[1:]  # a lane starts where its predecessor ends
-        self.lanes.append(lane)
-        self._xy.append(xy)
-        self._lane_of.append(np.full(len(xy), lane))
-        total = sum(len(a) for a in self._xy)
-        self.lane_end_s.append((total - 1) * DS)
-
-    def _rebuild(self) -> None:
-        self.xy = np.concatenate(self._xy)
-        self.lane_of = np.concatenate(self._lane_of)
-
+    @abc.abstractmethod
     def _extend(self) -> None:
-        while (len(self.xy) - 1 - self.index) * DS < PLAN_AHEAD:
-            succ = self.map.lanes[self.lanes[-1]].successors
-            self._append(int(succ[int(self.rng.integers(len(succ)))]))
-            self._rebuild()
+        """Append route points until PLAN_AHEAD metres lie ahead of ``index``."""
+
+    @abc.abstractmethod
+    def next_signal(self, max_ahead: float) -> tuple[float, Any] | None:
+        """Distance along the route to the next signalised stop line within ``max_ahead`` and a reference
+        to its light for :meth:`signal_state`; None when there is none."""
+
+    @abc.abstractmethod
+    def signal_state(self, ref: Any, time_s: float) -> str:
+        """'green', 'yellow' or 'red' for the light ``ref`` at episode time ``time_s`` (plus the scene's offset)."""
+
+    @abc.abstractmethod
+    def speed_limit(self) -> float:
+        """The speed limit where the ego is [m/s]."""
 
     @property
     def s(self) -> float:
@@ -104,9 +99,45 @@ class LaneRoute:
         along = np.where(beyond, np.nan, along)
         return along, np.where(beyond, np.nan, lateral)
 
+
+class LaneRoute(PolylineRoute):
+    """A route on a lite map: points with the lane each came from, lanes drawn at junctions with ``rng``."""
+
+    def __init__(self, road_map: RoadMap, lane: int, s: float, next_lane: int, rng: np.random.Generator) -> None:
+        self.map = road_map
+        self.rng = rng
+        self.lanes: list[int] = []
+        self._xy: list[np.ndarray] = []
+        self._lane_of: list[np.ndarray] = []
+        self.lane_end_s: list[float] = []  # route arc length at the end of each lane in ``lanes``
+        self._append(lane)
+        if next_lane >= 0:
+            self._append(next_lane)
+        self._rebuild()
+        self.index = int(np.clip(round(s / DS), 0, len(self.xy) - 1))
+
+    def _append(self, lane: int) -> None:
+        xy = self.map.lanes[lane].xy
+        if self._xy:
+            xy = xy[1:]  # a lane starts where its predecessor ends
+        self.lanes.append(lane)
+        self._xy.append(xy)
+        self._lane_of.append(np.full(len(xy), lane))
+        total = sum(len(a) for a in self._xy)
+        self.lane_end_s.append((total - 1) * DS)
+
+    def _rebuild(self) -> None:
+        self.xy = np.concatenate(self._xy)
+        self.lane_of = np.concatenate(self._lane_of)
+
+    def _extend(self) -> None:
+        while (len(self.xy) - 1 - self.index) * DS < PLAN_AHEAD:
+            succ = self.map.lanes[self.lanes[-1]].successors
+            self._append(int(succ[int(self.rng.integers(len(succ)))]))
+            self._rebuild()
+
     def next_signal(self, max_ahead: float) -> tuple[float, tuple[int, int]] | None:
-        """Distance along the route to the next signalised stop line within ``max_ahead`` and its
-        (junction, group); None when there is none."""
+        """The next stop line within ``max_ahead`` and its light's (junction, group)."""
         for lane, end_s in zip(self.lanes, self.lane_end_s, strict=True):
             ahead = end_s - self.s
             if ahead < -1.0:
@@ -117,6 +148,10 @@ class LaneRoute:
             if sig is not None:
                 return ahead, sig
         return None
+
+    def signal_state(self, ref: Any, time_s: float) -> str:
+        junction, group = ref
+        return self.map.signal_state(junction, group, time_s)
 
     def speed_limit(self) -> float:
         return self.map.speed_limit(int(self.lane_of[self.index]))

@@ -1,0 +1,353 @@
+"""The built-in controller's route on a ``carla.Map``: a global plan to a destination, as BehaviorAgent's.
+
+CARLA's BehaviorAgent plans with its GlobalRoutePlanner: a graph of the map's topology (lane segments
+joined where one flows into the next, and side by side where a lane change is allowed), A* to a
+destination, and a dense path of waypoints with road options (follow, turn at a junction, change lane).
+:class:`RoutePlanner` builds that graph from ``carla_map.get_topology()`` with networkx, and
+:class:`CarlaRoute` keeps the controller's :class:`~genesis_rl.system.route.PolylineRoute` interface filled
+ahead of the ego: it draws a destination with the episode's seeded generator, plans to it, samples the
+lanes every :data:`~genesis_rl.lite.maps.lane_graph.DS` metres (lane changes blend over
+:data:`LANE_CHANGE_LENGTH`), and draws the next destination when the plan runs short, so the ego roams as
+long as the episode lasts.
+
+Everything here reads only the map (``carla.Map``: it works on a map built from OpenDRIVE text without a
+server). The traffic lights are the map's signal landmarks of type 1000001 on the route's lanes; their
+state comes from a callable (a server's ``carla.TrafficLight`` states, or a fixed plan offline), as the
+lite controller reads its map's signal plan. Speed limits are the OpenDRIVE ``<type><speed>`` of each road.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import networkx as nx
+import numpy as np
+
+from genesis_rl.carla_backend._carla import require_carla
+from genesis_rl.carla_backend.lanes import lane_from_key
+from genesis_rl.errors import UserInputError
+from genesis_rl.lite.maps.lane_graph import DS
+from genesis_rl.system.route import PolylineRoute
+
+LANE_CHANGE_LENGTH = 20.0  # [m] a lane change blends from one lane centre to the next over this distance
+LANE_CHANGE_COST = 30.0  # [m] the planner's extra cost of a lane change (prefers staying in lane)
+DESTINATION_RANGE = (300.0, 1500.0)  # [m] route length to a drawn destination
+DEFAULT_SPEED_LIMIT = 30.0 / 3.6  # [m/s] CARLA's limit where the map gives none
+SIGNAL_TYPE = "1000001"
+
+#: (landmark, time [s]) -> 'red', 'yellow', 'green' (or 'off'/'unknown': treated as green)
+SignalState = Callable[[Any, float], str]
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One lane of one road section, from the topology: entry and exit waypoints, length along the lane."""
+
+    index: int
+    key: tuple[int, int, int]  # road id, section id, lane id
+    entry: Any
+    exit: Any
+    length: float
+    junction: bool
+
+
+def _key(wp: Any) -> tuple[int, int, int]:
+    return (int(wp.road_id), int(wp.section_id), int(wp.lane_id))
+
+
+def speed_limits(xodr: str) -> dict[int, float]:
+    """Road id -> the first ``<type><speed max>`` of the road [m/s] (km/h, mph and m/s units)."""
+    factor = {"km/h": 1 / 3.6, "mph": 0.44704, "m/s": 1.0}
+    out: dict[int, float] = {}
+    for road in ET.fromstring(xodr).iter("road"):
+        speed = road.find("type/speed")
+        if speed is not None and speed.get("max") not in (None, "", "no limit", "undefined"):
+            try:
+                unit = factor.get(speed.get("unit", "m/s"), 1.0)
+                out[int(road.get("id", "-1"))] = float(speed.get("max", "0")) * unit
+            except ValueError:
+                continue
+    return out
+
+
+class RoutePlanner:
+    """The topology graph of a ``carla.Map``: follow edges (one lane flows into the next) and lane-change
+    edges (same road section, same direction, driving lanes side by side)."""
+
+    def __init__(self, carla_map: Any) -> None:
+        carla = require_carla()
+        self.map = carla_map
+        self.segments: list[Segment] = []
+        self.by_key: dict[tuple[int, int, int], int] = {}
+        follows: list[tuple[tuple[int, int, int], tuple[int, int, int]]] = []
+        # get_topology() pairs each lane section's start with the start of each lane it flows into (or with
+        # its own end where it flows nowhere)
+        for entry, nxt in carla_map.get_topology():
+            key = _key(entry)
+            if key not in self.by_key:
+                end = _samples(entry)[-1]
+                self.by_key[key] = len(self.segments)
+                self.segments.append(Segment(len(self.segments), key, entry, end, max(abs(end.s - entry.s), DS),
+                                             bool(entry.is_junction)))
+            if _key(nxt) != key:
+                follows.append((key, _key(nxt)))
+        g = nx.DiGraph()
+        for seg in self.segments:
+            g.add_node(seg.index)
+        for a, b in follows:
+            if b in self.by_key:
+                j = self.by_key[b]
+                g.add_edge(self.by_key[a], j, weight=self.segments[j].length, kind="follow")
+        for seg in self.segments:
+            if seg.junction:
+                continue
+            for side, neighbour in (("left", seg.entry.get_left_lane()), ("right", seg.entry.get_right_lane())):
+                if (neighbour is None or neighbour.lane_type != carla.LaneType.Driving
+                        or neighbour.lane_id * seg.entry.lane_id <= 0):
+                    continue
+                side_seg = self.by_key.get(_key(neighbour))
+                if side_seg is not None:
+                    cost = self.segments[side_seg].length + LANE_CHANGE_COST
+                    g.add_edge(seg.index, side_seg, weight=cost, kind=side)
+        self.graph = g
+
+    def segment_of(self, wp: Any) -> int:
+        key = _key(wp)
+        if key not in self.by_key:
+            raise UserInputError(f"the waypoint on road {key[0]}, section {key[1]}, lane {key[2]} is on no lane of "
+                                 "the map's topology")
+        return self.by_key[key]
+
+    def plan(self, start: int, rng: np.random.Generator) -> list[tuple[int, str]]:
+        """Segments from ``start`` to a destination drawn with ``rng`` among those whose shortest route is
+        within :data:`DESTINATION_RANGE` (the farthest reachable one when none is), each with how it is
+        entered ('start', 'follow', 'left', 'right')."""
+        dist = nx.single_source_dijkstra_path_length(self.graph, start, weight="weight")
+        lo, hi = DESTINATION_RANGE
+        targets = sorted(i for i, d in dist.items() if lo <= d <= hi and not self.segments[i].junction)
+        if targets:
+            goal = targets[int(rng.integers(len(targets)))]
+        else:
+            goal = max(dist, key=lambda i: (dist[i], -i))
+        if goal == start:
+            succ = sorted(self.graph.successors(start))
+            if not succ:
+                raise UserInputError(f"lane {self.segments[start].key} of the CARLA map leads nowhere (a dead end)")
+            goal = succ[int(rng.integers(len(succ)))]
+        path = nx.dijkstra_path(self.graph, start, goal, weight="weight")
+        steps = [(b, self.graph.edges[a, b]["kind"]) for a, b in zip(path, path[1:], strict=False)]
+        return [(path[0], "start"), *steps]
+
+
+def _xy(wp: Any) -> tuple[float, float]:
+    """A waypoint's position in GENESIS-RL's right-handed frame (CARLA's y negated)."""
+    loc = wp.transform.location
+    return (float(loc.x), -float(loc.y))
+
+
+def _samples(wp: Any) -> list[Any]:
+    """Waypoints every DS from ``wp`` to the end of its lane section (``wp`` first)."""
+    out = [wp]
+    try:
+        out.extend(w for w in wp.next_until_lane_end(DS) if _key(w) == _key(wp))
+    except RuntimeError:  # the client refuses when wp already stands at the lane's end
+        pass
+    return out
+
+
+def _next_on_lane(wp: Any) -> Any:
+    """The waypoint DS further on ``wp``'s lane section, or None at its end."""
+    nxt = [w for w in wp.next(DS) if _key(w) == _key(wp)]
+    return nxt[0] if nxt else None
+
+
+@dataclass
+class _Stop:
+    """A traffic light on the route: route arc length of its stop line, and the landmark."""
+
+    s: float
+    landmark: Any
+
+
+class CarlaRoute(PolylineRoute):
+    """The controller's route on a ``carla.Map``, planned as BehaviorAgent plans (see the module doc)."""
+
+    def __init__(self, carla_map: Any, start: Any, rng: np.random.Generator, signal_state: SignalState | None = None,
+                 planner: RoutePlanner | None = None, limits: dict[int, float] | None = None) -> None:
+        self.planner = planner or RoutePlanner(carla_map)
+        self.rng = rng
+        self._signal_state = signal_state
+        self._limits = limits if limits is not None else speed_limits(carla_map.to_opendrive())
+        self._lights = self._index_lights(carla_map)
+        self._points: list[tuple[float, float]] = []  # every DS metres along the route
+        self._road_of: list[int] = []
+        self.options: list[str] = []  # road option per route point: follow, left, right, junction
+        self.stops: list[_Stop] = []
+        self._last_wp = start
+        self._segment = self.planner.segment_of(start)
+        self._pending: Any = start  # where the current segment's samples still start (None: all taken)
+        self.index = 0
+        self.xy = np.zeros((0, 2))
+        self._plan_more()
+
+    # -- planning --------------------------------------------------------------------------------------
+    @staticmethod
+    def _index_lights(carla_map: Any) -> dict[tuple[int, int], list[Any]]:
+        """(road id, lane id) -> the traffic-light landmarks valid for that lane."""
+        out: dict[tuple[int, int], list[Any]] = {}
+        for lm in carla_map.get_all_landmarks_of_type(SIGNAL_TYPE):
+            for lo, hi in lm.get_lane_validities():
+                for lane in range(min(lo, hi), max(lo, hi) + 1):
+                    if lane != 0:
+                        out.setdefault((int(lm.road_id), lane), []).append(lm)
+        return out
+
+    def _add(self, raw: list[tuple[float, float]], roads: list[int], options: list[str],
+             lights: list[tuple[int, Any]] | None = None) -> None:
+        """Append the polyline ``raw`` resampled every DS from the route's last point (lanes end at any s,
+        and a lane's centre is longer than its road's s on the outside of a bend: the route's index times
+        DS stays its arc length). ``lights`` are (raw index, landmark) of stop lines on it."""
+        lights = lights or []
+        pts = np.asarray(raw, dtype=np.float64).reshape(-1, 2)
+        if self._points:
+            pts = np.vstack([self._points[-1], pts])
+            roads, options = [self._road_of[-1], *roads], [self.options[-1], *options]
+            lights = [(k + 1, lm) for k, lm in lights]
+        keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-6])
+        idx = np.flatnonzero(keep)
+        pts = pts[idx]
+        if len(pts) < 2:
+            if not self._points and len(pts) == 1:
+                self._points.append((float(pts[0, 0]), float(pts[0, 1])))
+                self._road_of.append(roads[0])
+                self.options.append(options[0])
+                self._rebuild()
+            return
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+        base = len(self._points) - (1 if self._points else 0)  # route index of pts[0]
+        n = int(round(arc[-1] / DS))
+        if n < 1:
+            return
+        t = np.linspace(0.0, arc[-1], n + 1)
+        x, y = np.interp(t, arc, pts[:, 0]), np.interp(t, arc, pts[:, 1])
+        nearest = idx[np.clip(np.searchsorted(arc, t), 0, len(arc) - 1)]
+        for k in range(1 if self._points else 0, n + 1):
+            self._points.append((float(x[k]), float(y[k])))
+            self._road_of.append(roads[int(nearest[k])])
+            self.options.append(options[int(nearest[k])])
+        for j, lm in lights:
+            m = int(np.clip(np.searchsorted(idx, j), 0, len(idx) - 1))
+            self.stops.append(_Stop(base * DS + float(arc[m]), lm))
+        self._rebuild()
+
+    def _append(self, wps: list[Any], option: str) -> None:
+        """Add lane samples; note the lights of their lane whose s lies within them."""
+        if not wps:
+            return
+        self._last_wp = wps[-1]
+        s0, s1 = wps[0].s, wps[-1].s
+        lights = []
+        for lm in self._lights.get((int(wps[0].road_id), int(wps[0].lane_id)), []):
+            if min(s0, s1) - 1e-6 <= lm.s <= max(s0, s1) + 1e-6:
+                lights.append((int(np.argmin([abs(w.s - lm.s) for w in wps])), lm))
+        self._add([_xy(w) for w in wps], [int(w.road_id) for w in wps],
+                  ["junction" if w.is_junction and option == "follow" else option for w in wps], lights)
+
+    def _rebuild(self) -> None:
+        self.xy = np.asarray(self._points, dtype=np.float64).reshape(-1, 2)
+
+    def _change_lane(self, side: str) -> Any:
+        """Blend from the current lane into its ``side`` neighbour over the next LANE_CHANGE_LENGTH (what is
+        left of the section when less) and return the neighbour's waypoint where the blend ends."""
+        here = self._last_wp
+        n = max(int(LANE_CHANGE_LENGTH / DS), 1)
+        ahead = _samples(here)[1 : n + 1]
+        raw, roads, landed = [], [], None
+        for k, w in enumerate(ahead):
+            nb = w.get_left_lane() if side == "left" else w.get_right_lane()
+            if nb is None:
+                break
+            a = (k + 1) / len(ahead)
+            (x0, y0), (x1, y1) = _xy(w), _xy(nb)
+            raw.append(((1 - a) * x0 + a * x1, (1 - a) * y0 + a * y1))
+            roads.append(int(w.road_id))
+            landed = nb
+        if landed is None:  # at the section's very end: step across at this s
+            landed = here.get_left_lane() if side == "left" else here.get_right_lane()
+            raw, roads = [_xy(landed)], [int(landed.road_id)]
+        self._add(raw, roads, [side] * len(raw))
+        self._last_wp = landed
+        return landed
+
+    def _emit(self, wp: Any, change_next: bool, drop_first: bool) -> None:
+        """Sample the section from ``wp`` on; when a lane change follows, stop LANE_CHANGE_LENGTH before the
+        section's end, where the blend starts."""
+        samples = _samples(wp)[1 if drop_first else 0 :]
+        if change_next:
+            samples = samples[: max(len(samples) - int(LANE_CHANGE_LENGTH / DS), 1)]
+        self._append(samples, "follow")
+
+    def _plan_more(self) -> None:
+        """Plan legs to drawn destinations until PLAN_AHEAD metres lie ahead. The last segment of a leg is
+        left pending, so the next leg can change lanes out of it."""
+        from genesis_rl.system.route import PLAN_AHEAD
+
+        while (len(self._points) - 1 - self.index) * DS < PLAN_AHEAD:
+            before = len(self._points)
+            steps = self.planner.plan(self._segment, self.rng)
+            for k, (seg, kind) in enumerate(steps):
+                last = k == len(steps) - 1
+                change_next = not last and steps[k + 1][1] in ("left", "right")
+                if kind == "start":
+                    wp, drop = self._pending, False
+                elif kind == "follow":
+                    wp, drop = self.planner.segments[seg].entry, False
+                else:
+                    wp, drop = self._change_lane(kind), True
+                self._segment = seg
+                if last:
+                    self._pending = wp if not drop else _next_on_lane(wp)
+                    break
+                self._pending = None
+                if wp is not None:
+                    self._emit(wp, change_next, drop)
+            if len(self._points) == before and self._pending is None:
+                key = self.planner.segments[self._segment].key
+                raise UserInputError(f"the route planner found no way on from lane {key}")
+
+    def _extend(self) -> None:
+        self._plan_more()
+
+    # -- what the controller reads ---------------------------------------------------------------------
+    def next_signal(self, max_ahead: float) -> tuple[float, Any] | None:
+        for stop in self.stops:
+            ahead = stop.s - self.s
+            if ahead < -1.0:
+                continue
+            return (ahead, stop.landmark) if ahead <= max_ahead else None
+        return None
+
+    def signal_state(self, ref: Any, time_s: float) -> str:
+        return "green" if self._signal_state is None else self._signal_state(ref, time_s)
+
+    def speed_limit(self) -> float:
+        road = self._road_of[min(self.index, len(self._road_of) - 1)]
+        return self._limits.get(road, DEFAULT_SPEED_LIMIT)
+
+
+def route_from_context(context: Any) -> CarlaRoute:
+    """The route of an episode on a CARLA map: the ego starts on the catalog's lane key at its s; the
+    context's ``extras`` may hold ``signal_state`` (a server's light states) and ``route_planner`` (a
+    :class:`RoutePlanner` to reuse: building one reads the whole topology)."""
+    carla_map = context.road_map
+    road, lane = lane_from_key(context.ego_lane)
+    start = carla_map.get_waypoint_xodr(road, lane, float(context.ego_s))
+    if start is None:
+        raise UserInputError(f"the ego's lane (road {road}, lane {lane}, s = {context.ego_s:.1f}) is not on the "
+                             f"CARLA map {context.map_name}")
+    rng = np.random.default_rng(np.random.SeedSequence([context.seed, 7]))
+    return CarlaRoute(carla_map, start, rng, context.extras.get("signal_state"), context.extras.get("route_planner"),
+                      context.extras.get("speed_limits"))
