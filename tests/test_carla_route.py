@@ -201,6 +201,6 @@ def test_map_export_command(tmp_path) -> None:
     assert out.read_text() == to_opendrive(load_map("urban"))
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert again.returncode == 2 and "--force" in again.stderr  # never overwritten without --force
-    bad = subprocess.run([*cmd[:5], "town", "--out", str(tmp_path / "t.xodr")], capture_output=True, text=True,
+    bad = subprocess.run([*cmd[:5], "--map", "town", "--out", str(tmp_path / "t.xodr")], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "allowed: urban, highway" in bad.stderr
