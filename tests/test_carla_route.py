@@ -204,3 +204,23 @@ def test_map_export_command(tmp_path) -> None:
     bad = subprocess.run([*cmd[:5], "--map", "town", "--out", str(tmp_path / "t.xodr")], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "allowed: urban, highway" in bad.stderr
+
+
+@pytest.mark.parametrize("spec", ["builtin", "oracle"])
+def test_builtin_systems_reset_and_step_on_a_carla_context(exported, spec) -> None:
+    from genesis_rl.system.protocol import load_system
+
+    lite, _, cmap = exported["highway"]
+    road, lane, start = _start(lite, cmap, 12, 50.0)
+    context = EpisodeContext("carla", "highway", cmap, CameraConfig(), 0.05, seed=0, ego_lane=lane_key(road, lane),
+                             ego_s=50.0, extras={"signal_state": signal_plan(lite)})
+    system = load_system(spec)
+    system.reset(context)
+    make = MAKES["sedan"]
+    loc, yaw = start.transform.location, -math.radians(start.transform.rotation.yaw)
+    ego = ActorState(0, "ego", "sedan", loc.x, -loc.y, 0.0, yaw, 0.0, 10.0, make.length, make.width, make.height)
+    frame = SensorFrame(0, np.full((240, 320, 3), 120, np.uint8), np.full((240, 320), 80.0, np.float32), [])
+    out = system.step(frame, ego, 0.0)
+    assert out.detections == [] and out.lead_distance is None and out.status == "cruise"
+    # on the highway loop at 10 m/s, under its 13.9 m/s cruise cap: it speeds up and steers gently
+    assert out.control.throttle > 0.0 and abs(out.control.steer) < 0.1

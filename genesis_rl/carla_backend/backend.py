@@ -21,6 +21,7 @@ import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.connection import CarlaServerLost, connect, guarded
+from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
 from genesis_rl.carla_backend.lead import lane_path, lead_on_path
 from genesis_rl.carla_backend.projection import ground_truth_boxes
@@ -52,6 +53,28 @@ DEFAULT_TIMEOUT = 10.0  # [s] per client call (a tick with 30 vehicles and two c
 LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold server
 
 
+#: The RGB camera adapts its exposure at once instead of over seconds (CARLA's default, 'histogram' with speeds
+#: of 3 and 1 EV/s): the detector sees a settled image right after a spawn or a sudden change of the knobs,
+#: as a run replayed from any step would.
+EXPOSURE_SPEED = 100.0  # [EV/s]
+CAMERA_ATTRIBUTES = {
+    "sensor.camera.rgb": {"exposure_mode": "histogram", "exposure_speed_up": f"{EXPOSURE_SPEED:g}",
+                          "exposure_speed_down": f"{EXPOSURE_SPEED:g}"},
+}
+
+
+def original_settings(settings: Any, where: str) -> Any:
+    """The settings to restore after an episode. A server found in synchronous mode was left so by a client
+    that died (a live one would still be ticking it, and CARLA takes one): restoring that would freeze it
+    again, so it is restored to asynchronous mode, with a warning."""
+    if settings.synchronous_mode:
+        warnings.warn(f"CARLA server {where} was in synchronous mode (left by a killed client?); it is put back "
+                      "in asynchronous mode after the run", RuntimeWarning, stacklevel=3)
+        settings.synchronous_mode = False
+        settings.fixed_delta_seconds = None
+    return settings
+
+
 def map_basename(path: str) -> str:
     """'/Game/Carla/Maps/Town05' or 'Carla/Maps/Town05' -> 'Town05'."""
     return path.rstrip("/").rsplit("/", 1)[-1]
@@ -78,6 +101,7 @@ class CarlaBackend(Backend):
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
         self._planner: tuple[str, Any, dict[int, float]] | None = None
+        self._tm: Any = None
         if map is not None:
             self.load_map(map)
 
@@ -99,7 +123,7 @@ class CarlaBackend(Backend):
             raise UserInputError(f"CARLA map '{name}' is not on the server {self.host}:{self.port}; "
                                  f"available: {', '.join(names)}")
         world = self.call("reading the world", self.client.get_world)
-        if map_basename(world.get_map().name) != name:
+        if map_basename(self.call("reading the map", world.get_map).name) != name:
             self.client.set_timeout(self.load_timeout)
             try:
                 self.call(f"loading map {name}", self.client.load_world, name)
@@ -130,10 +154,26 @@ class CarlaBackend(Backend):
                           camera: CameraConfig | None = None, render: bool = True) -> CarlaSimulation:
         return CarlaSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
 
+    def traffic_manager(self) -> Any:
+        """This connection's traffic manager (started on ``tm_port`` once, shut down by :meth:`close`)."""
+        if self._tm is None:
+            self._tm = self.call(f"starting the traffic manager on port {self.tm_port}", self.client.get_trafficmanager,
+                                 self.tm_port)
+        return self._tm
+
     def close(self) -> None:
+        """Destroy live episodes and shut the traffic manager down: a reconnect in this process then starts
+        a new one instead of getting this one back, tied to a dead connection."""
         for sim in list(self._live):
             sim.destroy()
         self._live.clear()
+        if self._tm is not None:
+            tm, self._tm = self._tm, None
+            try:
+                tm.shut_down()
+            except RuntimeError as err:
+                warnings.warn(f"CARLA traffic manager on port {self.tm_port}: shutting down failed ({err})",
+                              RuntimeWarning, stacklevel=2)
 
 
 class CarlaSimulation(Simulation):
@@ -156,7 +196,8 @@ class CarlaSimulation(Simulation):
         self._images: dict[str, Any] = {}
         self._hits: list[tuple[int, int]] = []  # (frame, other actor id) from the collision sensor
         self._hits_lock = threading.Lock()
-        self._contact: set[int] = set()
+        self._contacts = ContactTracker()
+        self._blueprints: Any = None
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
         self._tm: Any = None
@@ -176,14 +217,15 @@ class CarlaSimulation(Simulation):
         self.world = b.load_map(scene.map)
         self.map = b.map_of(self.world)
         specs = plan_scene(scene, self.map)  # fails on a foreign catalog before the server is touched
-        self._original_settings = b.call("reading settings", self.world.get_settings)
+        self._original_settings = original_settings(b.call("reading settings", self.world.get_settings),
+                                                    f"{b.host}:{b.port}")
         settings = b.call("reading settings", self.world.get_settings)
         settings.synchronous_mode = True
         settings.fixed_delta_seconds = self.dt
         settings.no_rendering_mode = not self.render
         b.call("switching to synchronous mode", self.world.apply_settings, settings)
         tm_seed = episode_seed(scene, self.seed)
-        self._tm = b.call(f"starting the traffic manager on port {b.tm_port}", b.client.get_trafficmanager, b.tm_port)
+        self._tm = b.traffic_manager()
         self._tm.set_synchronous_mode(True)
         self._tm.set_random_device_seed(tm_seed)
         self._tm.set_hybrid_physics_mode(False)  # full physics for every NPC: the same dynamics near and far
@@ -193,7 +235,7 @@ class CarlaSimulation(Simulation):
         if self.render:
             self._add_camera("rgb", "sensor.camera.rgb", ego)
             self._add_camera("depth", "sensor.camera.depth", ego)
-        library = self.world.get_blueprint_library()
+        library = self._library()
         hit = b.call("spawning the collision sensor", self.world.spawn_actor,
                      library.find("sensor.other.collision"), carla.Transform(), attach_to=ego)
         self._sensors.append(hit)
@@ -203,10 +245,15 @@ class CarlaSimulation(Simulation):
         with self._hits_lock:
             self._hits.clear()
 
+    def _library(self) -> Any:
+        if self._blueprints is None:
+            self._blueprints = self._backend.call("reading the blueprint library", self.world.get_blueprint_library)
+        return self._blueprints
+
     def _spawn(self, specs: list[SpawnSpec], tm_seed: int) -> None:
         carla = require_carla()
         b = self._backend
-        cmds = spawn_commands(specs, self.world.get_blueprint_library(), b.tm_port, tm_seed)
+        cmds = spawn_commands(specs, self._library(), b.tm_port, tm_seed)
         responses = b.call("spawning the scene", b.client.apply_batch_sync, cmds, True)
         errors = {}
         for spec, resp in zip(specs, responses, strict=True):
@@ -225,7 +272,7 @@ class CarlaSimulation(Simulation):
         if self.skipped:
             warnings.warn(f"scene {self.scene.index}: CARLA could not spawn vehicles {self.skipped} (place taken)",
                           RuntimeWarning, stacklevel=3)
-        actors = self.world.get_actors(list(self._index_of))
+        actors = b.call("reading the spawned actors", self.world.get_actors, list(self._index_of))
         self._actors = {self._index_of[a.id]: a for a in actors}
         by_index = {s.index: s for s in specs}
         batch = [carla.command.ApplyTargetVelocity(a.id, initial_velocity(by_index[i]))
@@ -242,11 +289,13 @@ class CarlaSimulation(Simulation):
 
     def _add_camera(self, name: str, blueprint: str, ego: Any) -> None:
         cam = self.camera
-        bp = self.world.get_blueprint_library().find(blueprint)
+        bp = self._library().find(blueprint)
         bp.set_attribute("image_size_x", str(cam.width))
         bp.set_attribute("image_size_y", str(cam.height))
         bp.set_attribute("fov", f"{cam.fov_deg:g}")
         bp.set_attribute("sensor_tick", "0.0")  # every tick
+        for key, value in CAMERA_ATTRIBUTES.get(blueprint, {}).items():
+            bp.set_attribute(key, value)
         mount = camera_mount(cam.mount_x, cam.mount_y, cam.mount_z, cam.pitch_deg)
         sensor = self._backend.call(f"spawning the {name} camera", self.world.spawn_actor, bp, mount, attach_to=ego)
         self._sensors.append(sensor)
@@ -300,14 +349,13 @@ class CarlaSimulation(Simulation):
         return TickResult(self._step, self._step * self.dt, self._collisions(frame, before))
 
     def _collisions(self, frame: int, before: dict[int, np.ndarray]) -> list[Collision]:
-        """The ego's new contacts this tick (the sensor reports every frame of a contact; we report its
-        start, as the lite backend does). Static objects have vehicle id -1."""
+        """The ego's new contacts this tick (the sensor reports every frame of a contact, on its own stream;
+        :class:`~genesis_rl.carla_backend.contacts.ContactTracker` reports each contact's start once, as the lite
+        backend does). Static objects have vehicle id -1."""
         with self._hits_lock:
             now = [h for h in self._hits if h[0] <= frame]
             self._hits = [h for h in self._hits if h[0] > frame]
-        others = {other for _, other in now}
-        new = sorted(others - self._contact)
-        self._contact = others
+        new = self._contacts.update(now)
         zero = np.zeros(3)
         out = []
         for other in new:

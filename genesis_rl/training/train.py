@@ -44,7 +44,13 @@ def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: 
         if torch_threads:
             torch.set_num_threads(torch_threads)
         env = GenesisEnv(EnvConfig(**config_dict))
-        env.reset(seed=seed + rank)
+        try:
+            env.reset(seed=seed + rank)
+        except BaseException:
+            # the first episode failed to set up (e.g. a system that refuses the map): release the simulator
+            # now, or a CARLA server stays in synchronous mode with the scene's actors and the next run fails
+            env.close()
+            raise
         return EpisodeLog(Monitor(env))
 
     return thunk

@@ -1,0 +1,184 @@
+"""The CARLA review's server-handling faults, checked offline: fake client objects for the control flow
+(they record what the backend asks of a server), the real ``carla`` module where it is needed."""
+
+from __future__ import annotations
+
+import warnings
+from types import SimpleNamespace
+
+import pytest
+
+pytest.importorskip("carla")
+
+from genesis_rl.carla_backend import backend as backend_module  # noqa: E402
+from genesis_rl.carla_backend.backend import (  # noqa: E402
+    CAMERA_ATTRIBUTES,
+    CarlaBackend,
+    CarlaSimulation,
+    original_settings,
+)
+from genesis_rl.carla_backend.connection import CarlaServerLost  # noqa: E402
+from genesis_rl.carla_backend.contacts import CONTACT_GAP, ContactTracker  # noqa: E402
+from genesis_rl.sim.interface import CameraConfig  # noqa: E402
+
+TIMEOUT = RuntimeError("time-out of 10000ms while waiting for the simulator, make sure the simulator is ready")
+
+
+class FakeTM:
+    def __init__(self, port: int) -> None:
+        self.port, self.shut = port, 0
+
+    def shut_down(self) -> None:
+        self.shut += 1
+
+
+class FakeBlueprint:
+    def __init__(self, name: str) -> None:
+        self.name, self.attributes = name, {}
+
+    def set_attribute(self, key: str, value: str) -> None:
+        self.attributes[key] = value
+
+
+class FakeSensor:
+    id = 99
+
+    def listen(self, fn) -> None:
+        self.fn = fn
+
+
+class FakeWorld:
+    id = 1
+
+    def __init__(self, fail: str | None = None) -> None:
+        self.fail, self.blueprints, self.spawned = fail, {}, []
+
+    def get_map(self):
+        if self.fail == "map":
+            raise TIMEOUT
+        return SimpleNamespace(name="Carla/Maps/Town05")
+
+    def get_blueprint_library(self):
+        if self.fail == "library":
+            raise TIMEOUT
+        world = self
+        return SimpleNamespace(find=lambda name: world.blueprints.setdefault(name, FakeBlueprint(name)))
+
+    def spawn_actor(self, bp, transform, attach_to=None):
+        self.spawned.append(bp)
+        return FakeSensor()
+
+
+class FakeClient:
+    def __init__(self, world: FakeWorld) -> None:
+        self.world, self.tms = world, []
+
+    def get_available_maps(self):
+        return ["/Game/Carla/Maps/Town05", "/Game/Carla/Maps/Town10HD_Opt"]
+
+    def get_world(self):
+        return self.world
+
+    def get_trafficmanager(self, port: int):
+        tm = FakeTM(port)
+        self.tms.append(tm)
+        return tm
+
+    def set_timeout(self, t: float) -> None:
+        pass
+
+
+@pytest.fixture
+def fake_server(monkeypatch):
+    """CarlaBackend(...) connects to a FakeClient: ``.clients`` made so far, ``.fail`` what the world's
+    next reads time out on."""
+    server = SimpleNamespace(clients=[], fail=None)
+
+    def connect(host, port, timeout):
+        server.clients.append(FakeClient(FakeWorld(server.fail)))
+        return server.clients[-1]
+
+    monkeypatch.setattr(backend_module, "connect", connect)
+    return server
+
+
+def test_close_shuts_the_traffic_manager_down_and_a_reconnect_gets_a_new_one(fake_server) -> None:
+    b = CarlaBackend("localhost", 2000, tm_port=8000)
+    tm = b.traffic_manager()
+    assert b.traffic_manager() is tm and tm.port == 8000  # one per connection
+    b.close()
+    assert tm.shut == 1
+    b.close()
+    assert tm.shut == 1  # closing twice is harmless
+    again = CarlaBackend("localhost", 2000, tm_port=8000)  # the campaign's reconnect after a lost server
+    assert again.traffic_manager() is not tm and fake_server.clients[-1].tms[-1].shut == 0
+
+
+@pytest.mark.parametrize("fail", ["map", "library"])
+def test_map_and_blueprint_reads_are_retried_calls(fake_server, fail) -> None:
+    fake_server.fail = fail
+    b = CarlaBackend("localhost", 2000)
+    if fail == "map":
+        with pytest.raises(CarlaServerLost, match="localhost:2000 stopped answering while reading the map"):
+            b.load_map("Town05")
+    else:
+        sim = object.__new__(CarlaSimulation)
+        sim._backend, sim.world, sim._blueprints = b, b.client.get_world(), None
+        with pytest.raises(CarlaServerLost, match="while reading the blueprint library"):
+            sim._library()
+
+
+def test_a_server_left_in_synchronous_mode_is_restored_to_asynchronous() -> None:
+    left = SimpleNamespace(synchronous_mode=True, fixed_delta_seconds=0.05, no_rendering_mode=False)
+    with pytest.warns(RuntimeWarning, match="was in synchronous mode"):
+        restored = original_settings(left, "localhost:2000")
+    assert (restored.synchronous_mode, restored.fixed_delta_seconds) == (False, None)
+    fine = SimpleNamespace(synchronous_mode=False, fixed_delta_seconds=None, no_rendering_mode=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert original_settings(fine, "localhost:2000") is fine
+
+
+def test_rgb_camera_adapts_its_exposure_at_once(fake_server) -> None:
+    b = CarlaBackend("localhost", 2000)
+    sim = object.__new__(CarlaSimulation)
+    sim._backend, sim.world, sim._blueprints = b, b.client.get_world(), None
+    sim.camera, sim._sensors, sim._queues = CameraConfig(), [], {}
+    sim._add_camera("rgb", "sensor.camera.rgb", ego=None)
+    sim._add_camera("depth", "sensor.camera.depth", ego=None)
+    rgb, depth = (sim.world.blueprints[n].attributes for n in ("sensor.camera.rgb", "sensor.camera.depth"))
+    assert rgb["exposure_speed_up"] == rgb["exposure_speed_down"] == "100" and rgb["exposure_mode"] == "histogram"
+    assert CAMERA_ATTRIBUTES["sensor.camera.rgb"].items() <= rgb.items()
+    assert "exposure_speed_up" not in depth and depth["image_size_x"] == "320"
+
+
+def test_contacts_start_once_and_late_events_of_a_contact_are_not_new() -> None:
+    t = ContactTracker()
+    assert t.update([(10, 5)]) == [5]
+    assert t.update([(11, 5), (12, 5)]) == []  # the same contact, one event per frame
+    assert t.update([(12, 5), (11, 7)]) == [7]  # a late event of contact 5; vehicle 7 is new
+    assert t.update([(12 + CONTACT_GAP, 5)]) == []  # within the gap: still the same contact
+    assert t.update([(13 + 2 * CONTACT_GAP + 1, 5)]) == [5]  # after a gap: a second collision
+    assert t.update([(40, -1), (40, -1), (41, 8)]) == [-1, 8]
+
+
+def test_train_releases_the_simulator_when_the_first_episode_fails(monkeypatch) -> None:
+    from genesis_rl.training import train as train_module
+
+    closed = []
+
+    class Refusing:
+        def __init__(self, config) -> None:
+            pass
+
+        def reset(self, seed=None):
+            raise NotImplementedError("this system refuses the map")
+
+        def close(self) -> None:
+            closed.append(True)
+
+    monkeypatch.setattr(train_module, "GenesisEnv", Refusing)
+    monkeypatch.setattr(train_module, "EnvConfig", lambda **kw: kw)
+    with pytest.raises(NotImplementedError):
+        train_module._make_env({}, 0, 0, 0)()
+    assert closed == [True]
