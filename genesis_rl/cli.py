@@ -51,7 +51,16 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     out = Path(args.out)
     ensure_writable(out, args.force)
     t0 = time.perf_counter()
-    catalog = source.generate(args.map, count, args.seed, settings_from_args(args), progress=not args.quiet)
+    if args.generator == "scenic":
+        from genesis_rl.scenes import scenic_generator
+
+        if backend_class(args.backend).catalog_kind == "carla":
+            catalog = scenic_generator.carla_catalog_from_server(args.map, count, args.seed, settings_from_args(args),
+                                                                 progress=not args.quiet)
+        else:
+            catalog = scenic_generator.lite_catalog(args.map, count, args.seed, progress=not args.quiet)
+    else:
+        catalog = source.generate(args.map, count, args.seed, settings_from_args(args), progress=not args.quiet)
     catalog.save(out)
     backend = {} if catalog.backend == "lite" else {"backend": catalog.backend}  # lite's line as it always was
     print(json.dumps({"out": str(out), "map": args.map, **backend, "scenes": count, "seed": args.seed,
@@ -262,6 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--map", default="urban", help="map name: urban (train) or highway (test); default: urban")
     sc.add_argument("--count", type=int, default=None, help="number of scenes (default: 1202 urban, 1199 highway)")
     sc.add_argument("--seed", type=seed_int, default=0, help="catalog seed: the same seed gives the same catalog")
+    sc.add_argument("--generator", default="builtin", choices=["builtin", "scenic"],
+                    help="builtin (default) or scenic: the paper's Scenic 3 program (pip install -e .[scenic]; "
+                         "lite maps through their OpenDRIVE export, CARLA maps from the server)")
     add_backend_arguments(sc)
     sc.add_argument("--out", required=True, help="output catalog file (.json)")
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
