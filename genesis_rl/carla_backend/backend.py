@@ -118,19 +118,19 @@ class CarlaBackend(Backend):
 
     def load_map(self, name: str) -> Any:
         """The world with map ``name`` (loaded only when the server runs another one)."""
+        world = self.call("reading the world", self.client.get_world)
+        if map_basename(self.call("reading the map", world.get_map).name) == name:
+            return world  # already loaded (also a world made with generate_opendrive_world, which no list holds)
         names = self.map_names()
         if name not in names:
             raise UserInputError(f"CARLA map '{name}' is not on the server {self.host}:{self.port}; "
                                  f"available: {', '.join(names)}")
-        world = self.call("reading the world", self.client.get_world)
-        if map_basename(self.call("reading the map", world.get_map).name) != name:
-            self.client.set_timeout(self.load_timeout)
-            try:
-                self.call(f"loading map {name}", self.client.load_world, name)
-            finally:
-                self.client.set_timeout(self.timeout)
-            world = self.call("reading the world", self.client.get_world)
-        return world
+        self.client.set_timeout(self.load_timeout)
+        try:
+            self.call(f"loading map {name}", self.client.load_world, name)
+        finally:
+            self.client.set_timeout(self.timeout)
+        return self.call("reading the world", self.client.get_world)
 
     def map_of(self, world: Any) -> Any:
         """The world's ``carla.Map`` (fetching it transfers the OpenDRIVE file: cached per world)."""
