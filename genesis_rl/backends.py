@@ -135,21 +135,46 @@ def add_backend_arguments(parser: argparse.ArgumentParser, default: str | None =
     ``env.backend`` decide unless the flag is given."""
     parser.add_argument("--backend", default=default, type=_backend_name, help=backend_help())
     parser.add_argument("--carla-host", default="localhost", help="CARLA server host (--backend carla)")
-    parser.add_argument("--carla-port", type=int, default=2000, help="CARLA server RPC port (--backend carla)")
+    parser.add_argument("--carla-port", type=_ports, default=(2000,), metavar="PORT[,PORT...]",
+                        help="CARLA server RPC port (--backend carla); a list names one server per worker or env "
+                             "process on --carla-host (traffic managers at PORT+6000), as --carla-servers does")
     parser.add_argument("--carla-tm-port", type=int, default=8000, help="CARLA traffic manager port (--backend carla)")
     parser.add_argument("--carla-timeout", type=float, default=10.0,
                         help="seconds to wait for the CARLA server on each call (--backend carla)")
 
 
+def _ports(text: str) -> tuple[int, ...]:
+    """``--carla-port``: one port or a comma list (one server per process)."""
+    items = [t.strip() for t in str(text).split(",") if t.strip()]
+    if not items or not all(t.isdigit() and 1 <= int(t) <= 65535 for t in items):
+        raise argparse.ArgumentTypeError(f"'{text}': allowed: a TCP port 1..65535 or a comma list of them "
+                                         "(e.g. 2000,3000)")
+    if len(set(items)) < len(items):
+        raise argparse.ArgumentTypeError(f"'{text}' names a port twice; each process needs a server of its own")
+    return tuple(int(t) for t in items)
+
+
+def servers_text(args: argparse.Namespace) -> str | None:
+    """The ``--carla-servers`` list, also when ``--carla-port`` names several ports on ``--carla-host``."""
+    ports = tuple(getattr(args, "carla_port", (2000,)))
+    servers = getattr(args, "carla_servers", None)
+    if len(ports) > 1:
+        if servers is not None:
+            raise UserInputError("--carla-port names several servers and --carla-servers names them too; give one")
+        return ",".join(f"{args.carla_host}:{p}" for p in ports)
+    return servers
+
+
 def settings_from_args(args: argparse.Namespace) -> ConnectionSettings:
-    return ConnectionSettings(args.carla_host, args.carla_port, args.carla_tm_port, args.carla_timeout)
+    """The connection of a single process: the first of ``--carla-port``'s servers."""
+    return ConnectionSettings(args.carla_host, args.carla_port[0], args.carla_tm_port, args.carla_timeout)
 
 
 def env_overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The ``[env]`` keys that ``--backend`` and the connection flags set (empty without ``--backend``)."""
     if args.backend is None:
         return {}
-    return {"backend": args.backend, "carla_host": args.carla_host, "carla_port": args.carla_port,
+    return {"backend": args.backend, "carla_host": args.carla_host, "carla_port": args.carla_port[0],
             "carla_tm_port": args.carla_tm_port, "carla_timeout": args.carla_timeout}
 
 

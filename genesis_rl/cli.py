@@ -52,7 +52,7 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     ensure_writable(out, args.force)
     t0 = time.perf_counter()
     if args.generator == "scenic":
-        from genesis_rl.scenes import scenic_generator
+        from genesis_rl.scenic_scenes import generator as scenic_generator
 
         if backend_class(args.backend).catalog_kind == "carla":
             catalog = scenic_generator.carla_catalog_from_server(args.map, count, args.seed, settings_from_args(args),
@@ -202,11 +202,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.resume and (env or extra or ppo or args.config):
         raise UserInputError("--resume continues a run with its own config.toml; only --steps may change")
     cfg = load_run_config(args.config, {"env": env, "train": tr, "ppo": ppo})
+    from genesis_rl.backends import servers_text
     from genesis_rl.distributed.servers import parse_servers
     from genesis_rl.distributed.settings import ExecutorSettings
 
     scale = ExecutorSettings(kind=args.executor, ray_address=args.ray_address,
-                             servers=parse_servers(args.carla_servers))
+                             servers=parse_servers(servers_text(args)))
     result = train(cfg, Path(args.out), force=args.force, resume=args.resume, progress=not args.quiet,
                    argv=sys.argv, total_timesteps=args.steps if args.resume else None, inputs=[args.config],
                    scale=scale)

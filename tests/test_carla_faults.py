@@ -182,3 +182,28 @@ def test_train_releases_the_simulator_when_the_first_episode_fails(monkeypatch) 
     with pytest.raises(NotImplementedError):
         train_module._make_env({}, 0, 0, 0)()
     assert closed == [True]
+
+
+def test_carla_port_takes_one_server_per_process() -> None:
+    import argparse
+
+    from genesis_rl.backends import add_backend_arguments, servers_text, settings_from_args
+    from genesis_rl.cli_args import add_scale_arguments
+    from genesis_rl.distributed.servers import parse_servers, servers_for_workers
+    from genesis_rl.errors import UserInputError
+
+    parser = argparse.ArgumentParser()
+    add_backend_arguments(parser)
+    add_scale_arguments(parser, "--workers")
+    args = parser.parse_args(["--backend", "carla", "--carla-host", "sim", "--carla-port", "2000,3000"])
+    assert servers_text(args) == "sim:2000,sim:3000" and settings_from_args(args).port == 2000
+    servers = servers_for_workers("carla", parse_servers(servers_text(args)), 2)
+    assert [(s.port, s.tm_port) for s in servers] == [(2000, 8000), (3000, 9000)]
+    with pytest.raises(UserInputError, match="--workers = 3 but --carla-servers names 2"):
+        servers_for_workers("carla", parse_servers(servers_text(args)), 3)
+    both = parser.parse_args(["--carla-port", "2000,3000", "--carla-servers", "a:1,b:2"])
+    with pytest.raises(UserInputError, match="give one"):
+        servers_text(both)
+    for bad in ("2000,2000", "0", "http"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--carla-port", bad])

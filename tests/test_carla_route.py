@@ -13,7 +13,7 @@ import pytest
 carla = pytest.importorskip("carla")
 
 from genesis_rl.carla_backend.lanes import lane_key  # noqa: E402
-from genesis_rl.carla_backend.route import CarlaRoute, RoutePlanner, speed_limits  # noqa: E402
+from genesis_rl.carla_backend.route import CarlaRoute, RoutePlanner, route_from_context, speed_limits  # noqa: E402
 from genesis_rl.lite.maps import load_map  # noqa: E402
 from genesis_rl.lite.maps.lane_graph import DS, LANE_WIDTH  # noqa: E402
 from genesis_rl.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive  # noqa: E402
@@ -23,6 +23,7 @@ from genesis_rl.system.builtin import BlindSystem, plan_route  # noqa: E402
 from genesis_rl.system.protocol import EpisodeContext  # noqa: E402
 
 MAPS = ("urban", "highway")
+EXTRAS = {"plan_route": route_from_context}  # what the CARLA backend hands the system
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +169,7 @@ def test_builtin_system_drives_a_carla_map_stops_at_red_and_keeps_its_lane(expor
     lite, _, cmap = exported[name]
     road, lane, start = _start(lite, cmap, 1, 10.0)
     context = EpisodeContext("carla", name, cmap, CameraConfig(), 0.05, seed=3, ego_lane=lane_key(road, lane),
-                             ego_s=10.0, extras={"signal_state": signal_plan(lite)})
+                             ego_s=10.0, extras=EXTRAS | {"signal_state": signal_plan(lite)})
     route = plan_route(context)
     assert isinstance(route, CarlaRoute)
     x, y = start.transform.location.x, -start.transform.location.y
@@ -213,7 +214,7 @@ def test_builtin_systems_reset_and_step_on_a_carla_context(exported, spec) -> No
     lite, _, cmap = exported["highway"]
     road, lane, start = _start(lite, cmap, 12, 50.0)
     context = EpisodeContext("carla", "highway", cmap, CameraConfig(), 0.05, seed=0, ego_lane=lane_key(road, lane),
-                             ego_s=50.0, extras={"signal_state": signal_plan(lite)})
+                             ego_s=50.0, extras=EXTRAS | {"signal_state": signal_plan(lite)})
     system = load_system(spec)
     system.reset(context)
     make = MAKES["sedan"]
@@ -224,3 +225,12 @@ def test_builtin_systems_reset_and_step_on_a_carla_context(exported, spec) -> No
     assert out.detections == [] and out.lead_distance is None and out.status == "cruise"
     # on the highway loop at 10 m/s, under its 13.9 m/s cruise cap: it speeds up and steers gently
     assert out.control.throttle > 0.0 and abs(out.control.steer) < 0.1
+
+
+def test_a_map_without_a_planner_is_refused_by_name(exported) -> None:
+    from genesis_rl.errors import UserInputError
+
+    _, _, cmap = exported["urban"]
+    context = EpisodeContext("mysim", "urban", cmap, CameraConfig(), 0.05, seed=0)
+    with pytest.raises(UserInputError, match=r"backend 'mysim' gave neither \(its map is a Map\)"):
+        BlindSystem().reset(context)

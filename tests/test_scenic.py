@@ -15,7 +15,7 @@ pytest.importorskip("scenic")
 from genesis_rl.backends import catalog_from_json  # noqa: E402
 from genesis_rl.lite.maps import load_map  # noqa: E402
 from genesis_rl.lite.scenes import check_catalog  # noqa: E402
-from genesis_rl.scenes.scenic_generator import N_VEHICLES, carla_catalog, lite_catalog  # noqa: E402
+from genesis_rl.scenic_scenes.generator import N_VEHICLES, carla_catalog, lite_catalog  # noqa: E402
 
 
 def _layout_ok(scene, road_map) -> None:

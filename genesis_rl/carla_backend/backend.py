@@ -415,9 +415,13 @@ class CarlaSimulation(Simulation):
                             lane_half_width=wp.lane_width / 2.0)
 
     def context_extras(self) -> dict[str, Any]:
-        """For the built-in controller: the route planner of this map and the server's light states."""
+        """For the built-in controller: how to plan its route on this map, the planner (built once per map),
+        the map's speed limits and the server's light states."""
+        from genesis_rl.carla_backend.route import route_from_context
+
         planner, limits = self._backend.route_planner(self.map)
-        return {"signal_state": self.light_state, "route_planner": planner, "speed_limits": limits}
+        return {"plan_route": route_from_context, "signal_state": self.light_state, "route_planner": planner,
+                "speed_limits": limits}
 
     def light_state(self, landmark: Any, time_s: float) -> str:
         """The state of the traffic light that ``landmark`` (a signal of the map) belongs to, as the server

@@ -33,10 +33,11 @@ def _constant_action(text: str) -> list[float]:
 
 def executor_from_args(args: argparse.Namespace, backend: str) -> ExecutorSettings:
     """Where the campaign's episodes run, checked before anything is written."""
+    from genesis_rl.backends import servers_text
     from genesis_rl.distributed.servers import parse_servers, servers_for_workers
     from genesis_rl.distributed.settings import ExecutorSettings
 
-    servers = servers_for_workers(backend, parse_servers(args.carla_servers), args.workers)
+    servers = servers_for_workers(backend, parse_servers(servers_text(args)), args.workers)
     return ExecutorSettings(kind=args.executor, workers=args.workers, ray_address=args.ray_address,
                             servers=tuple(servers))
 

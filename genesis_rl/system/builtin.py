@@ -7,7 +7,7 @@ detections, which separates perception failures from control failures in an anal
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -24,16 +24,18 @@ from genesis_rl.system.route import LaneRoute, PolylineRoute
 
 def plan_route(context: EpisodeContext) -> PolylineRoute:
     """The controller's route on the episode's map: a lite ``RoadMap`` (any backend that drives lite catalogs
-    hands one over) or a ``carla.Map`` (the CARLA backend's, or one built from OpenDRIVE text)."""
+    hands one over), or the route the backend plans on its own map, from ``context.extras['plan_route']``
+    (CARLA's: :func:`genesis_rl.carla_backend.route.route_from_context`). The backend brings its planner, so
+    the system depends on no backend."""
     if isinstance(context.road_map, RoadMap):
         rng = np.random.default_rng(np.random.SeedSequence([context.seed, 7]))
         return LaneRoute(context.road_map, context.ego_lane, context.ego_s, context.ego_next_lane, rng)
-    if hasattr(context.road_map, "get_topology"):  # a carla.Map; imported here: the carla client is an extra
-        from genesis_rl.carla_backend.route import route_from_context
-
-        return route_from_context(context)
-    raise UserInputError(f"the built-in controller plans routes on lite maps and carla.Map objects; backend "
-                         f"'{context.backend}' handed over {type(context.road_map).__name__}")
+    planner = context.extras.get("plan_route")
+    if planner is None:
+        raise UserInputError(f"the built-in controller plans routes on lite maps, or with the backend's planner "
+                             f"(EpisodeContext.extras['plan_route']); backend '{context.backend}' gave neither "
+                             f"(its map is a {type(context.road_map).__name__})")
+    return cast(PolylineRoute, planner(context))
 
 
 class PerceptionDrivenSystem:

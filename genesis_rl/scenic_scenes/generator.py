@@ -1,6 +1,6 @@
 """Scenes from the paper's generator, Scenic 3: ``genesis-rl scenes --generator scenic``.
 
-The shipped program (``scenes/scenic/initial_scene.scenic``) places the ego, the lead, the neighbour and
+The shipped program (``scenic_scenes/initial_scene.scenic``) places the ego, the lead, the neighbour and
 candidates for the others on an OpenDRIVE map, with makes and colours from our vocabulary. This module runs
 it and writes the result in the catalog schema every backend reads:
 
@@ -33,7 +33,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
 from genesis_rl.scenes.vehicles import MAKES, PALETTE
 
-PROGRAM = Path(__file__).parent / "scenic" / "initial_scene.scenic"
+PROGRAM = Path(__file__).parent / "initial_scene.scenic"
 N_VEHICLES = 30
 CANDIDATES = 80  # Scenic's candidates for the 27 others
 RADIUS = 90.0  # [m]
