@@ -64,3 +64,18 @@ def test_scenes_command_with_the_scenic_generator(tmp_path) -> None:
                        timeout=300)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["scenes"] == 1 and catalog_from_json(json.loads(out.read_text())).map == "highway"
+
+
+def test_the_export_loads_as_a_scenic_road_network(tmp_path) -> None:
+    from scenic.domains.driving.roads import Network
+
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+
+    lite = load_map("urban")
+    path = tmp_path / "urban.xodr"
+    path.write_text(to_opendrive(lite))
+    net = Network.fromFile(str(path), useCache=False)
+    assert len(net.roads) == len(lite.roads) and len(net.intersections) == len(lite.junctions)
+    assert len(net.lanes) == len(lite.lanes)  # road lanes and junction connectors, one to one
+    with_right = [s for s in net.laneSections if s._laneToRight is not None]
+    assert len(with_right) == sum(1 for ln in lite.lanes if ln.road >= 0 and ln.right >= 0)
