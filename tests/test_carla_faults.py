@@ -207,3 +207,28 @@ def test_carla_port_takes_one_server_per_process() -> None:
     for bad in ("2000,2000", "0", "http"):
         with pytest.raises(SystemExit):
             parser.parse_args(["--carla-port", bad])
+
+
+def test_the_controller_gets_the_servers_light_states_and_one_planner_per_map(fake_server) -> None:
+    import carla
+
+    from genesis_rl.carla_backend.route import RoutePlanner, route_from_context
+    from genesis_rl.lite.maps import load_map
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+
+    b = CarlaBackend("localhost", 2000)
+    sim = object.__new__(CarlaSimulation)
+    sim._backend, sim.world, sim._lights = b, b.client.get_world(), {}
+    sim.map = carla.Map("urban", to_opendrive(load_map("urban")))
+    asked = []
+    lights = {"1": SimpleNamespace(state=carla.TrafficLightState.Red),
+              "2": SimpleNamespace(state=carla.TrafficLightState.Yellow),
+              "3": SimpleNamespace(state=carla.TrafficLightState.Off)}
+    sim.world.get_traffic_light = lambda lm: asked.append(lm.id) or lights.get(lm.id)
+    states = [sim.light_state(SimpleNamespace(id=i), 0.0) for i in ("1", "2", "3", "4", "1")]
+    assert states == ["red", "yellow", "green", "green", "red"]  # off and unknown read green, as BehaviorAgent's
+    assert asked == ["1", "2", "3", "4"]  # each light is looked up once
+    extras = sim.context_extras()
+    assert extras["plan_route"] is route_from_context and isinstance(extras["route_planner"], RoutePlanner)
+    assert sim.context_extras()["route_planner"] is extras["route_planner"]  # built once per map
+    assert extras["speed_limits"][0] == pytest.approx(12.0)
