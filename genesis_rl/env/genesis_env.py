@@ -20,6 +20,7 @@ from gymnasium import spaces
 
 from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.drive import ClosedLoop
+from genesis_rl.env.observation import OBSERVATIONS, FeatureHistory, observation_space, step_features
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.odd.conditions import conditions_model
@@ -59,7 +60,9 @@ class EnvConfig:
     camera_height: int = 240
     obs_width: int = 96  # the policy's image [px] (the paper's 640x480, downscaled; 4:3 as the camera)
     obs_height: int = 72
-    obs_knobs: bool = False  # observe {"image", "knobs"} instead of the image alone
+    obs_knobs: bool = False  # observe {"image", "knobs"} instead of the image alone (= observation "image+knobs")
+    observation: str = "image"  # image (the paper's), image+knobs, features, image+features (env/observation.py)
+    obs_history: int = 4  # feature vectors stacked in the features observations (the last N steps)
     rulebook: str | None = None  # TOML rulebook; None: collision, proximity (5 m), rss_deficit (5 m/s^2), and
     #                              speed_for_visibility when an ODD is declared
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -79,6 +82,13 @@ class EnvConfig:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 36..1024 (CNN policies need >= 36)")
         if self.scenes < 1:
             raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
+        if self.observation not in OBSERVATIONS:
+            raise UserInputError(f"env.observation = '{self.observation}'; allowed: {', '.join(OBSERVATIONS)}")
+        if self.obs_knobs and self.observation not in ("image", "image+knobs"):
+            raise UserInputError(f"env.obs_knobs = true and env.observation = '{self.observation}' disagree; "
+                                 "leave obs_knobs out (observation 'image+knobs' is what it meant)")
+        if not 1 <= self.obs_history <= 16:
+            raise UserInputError(f"env.obs_history = {self.obs_history} must be in 1..16")
         if self.catalog_seed < 0:  # numpy refuses negative seeds, with a traceback
             raise UserInputError(f"env.catalog_seed = {self.catalog_seed}; allowed: an integer >= 0")
         for k in ("camera_width", "camera_height"):
@@ -103,6 +113,11 @@ class EnvConfig:
             except UserInputError as err:
                 raise UserInputError(f"env.odd: {err}") from None
         check_backend_setting(self.backend, self.catalog, "env.backend", "env.catalog")
+
+    @property
+    def observation_mode(self) -> str:
+        """The observation mode, with the older ``obs_knobs = true`` read as 'image+knobs'."""
+        return "image+knobs" if self.obs_knobs else self.observation
 
     @classmethod
     def field_names(cls) -> list[str]:
@@ -186,12 +201,9 @@ class GenesisEnv(gym.Env):
         self.backend = make_backend(c.backend, ConnectionSettings(c.carla_host, c.carla_port, c.carla_tm_port,
                                                                   c.carla_timeout))
 
-        image = spaces.Box(0, 255, (c.obs_height, c.obs_width, 3), np.uint8)
-        if c.obs_knobs:
-            knobs = spaces.Box(0.0, 1.0, (len(c.knobs),), np.float32)
-            self.observation_space = spaces.Dict({"image": image, "knobs": knobs})
-        else:
-            self.observation_space = image
+        self.observation_space = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs),
+                                                   c.obs_history)
+        self._history = FeatureHistory(len(c.knobs), c.obs_history)
         self.action_space = spaces.Box(-1.0, 1.0, (self.mapper.action_dim,), np.float32)
 
         self._sim: Simulation | None = None
@@ -203,14 +215,28 @@ class GenesisEnv(gym.Env):
 
     # -- observation -------------------------------------------------------------------------------------
     def _observation(self) -> Any:
+        """The observation after the loop's latest perception (a reset or a step): it pushes that step's
+        features onto the history, so call it once per reset and per step."""
         assert self._loop is not None and self._loop.frame is not None
-        c = self.config
-        rgb = self._loop.frame.rgb
-        if rgb.shape[:2] != (c.obs_height, c.obs_width):
-            rgb = cv2.resize(rgb, (c.obs_width, c.obs_height), interpolation=cv2.INTER_AREA)
-        if c.obs_knobs:
-            return {"image": rgb, "knobs": self.weather.normalized(c.knobs)}
-        return rgb
+        c, mode = self.config, self.config.observation_mode
+        out: dict[str, Any] = {}
+        if mode != "features":
+            rgb = self._loop.frame.rgb
+            if rgb.shape[:2] != (c.obs_height, c.obs_width):
+                rgb = cv2.resize(rgb, (c.obs_width, c.obs_height), interpolation=cv2.INTER_AREA)
+            out["image"] = rgb
+        if mode == "image+knobs":
+            out["knobs"] = self.weather.normalized(c.knobs)
+        if mode in ("features", "image+features"):
+            loop = self._loop
+            row = step_features(self.weather, tuple(c.knobs), loop.ego.speed, loop.sim.step_count, c.episode_steps,
+                                loop.output)
+            out["features"] = self._history.push(row)
+        if mode == "image":
+            return out["image"]
+        if mode == "features":
+            return out["features"]
+        return out
 
     # -- gymnasium API -----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
@@ -231,6 +257,7 @@ class GenesisEnv(gym.Env):
                                                    camera=self.camera)
         self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.episode_seed)
         self._loop.start(self.weather)
+        self._history.reset()
         self.records = []
         info = {"scene": idx, "episode_seed": self.episode_seed, "knobs": self._knob_info()}
         return self._observation(), info

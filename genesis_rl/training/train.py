@@ -29,6 +29,7 @@ from genesis_rl import __version__, output_folder
 from genesis_rl.backends import catalog_or_generate
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+from genesis_rl.env.observation import sb3_policy
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
 from genesis_rl.provenance import git_commit
@@ -224,7 +225,7 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
     p = cfg.ppo
     env = build_vec_env(cfg, out / "catalog.json", scale)
     try:
-        policy = "MultiInputPolicy" if cfg.env.obs_knobs else "CnnPolicy"
+        policy = sb3_policy(cfg.env.observation_mode)
         sums: dict[int, dict[str, Any]] = {}
         if resume:
             resumed = load_checkpoint(out, env, p.device, max_timesteps(cfg))

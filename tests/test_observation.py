@@ -1,0 +1,103 @@
+"""The agent's observation modes: both env checkers in every mode, the same seed gives the same observations,
+and the features say what the system under test reported (env/observation.py)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from genesis_rl.env.observation import FEATURES, OBSERVATIONS, feature_size, sb3_policy
+from genesis_rl.errors import UserInputError
+
+STEPS = 6
+
+
+def _env(mode: str, **kw):
+    from genesis_rl.env import GenesisEnv
+
+    return GenesisEnv(system="builtin", scenes=2, episode_steps=STEPS, observation=mode, **kw)
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("mode", OBSERVATIONS)
+def test_every_mode_passes_both_env_checkers(mode) -> None:
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = _env(mode)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            check_env(env, skip_render_check=True)
+            sb3_check_env(env, warn=True)
+    finally:
+        env.close()
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("mode", ["features", "image+features"])
+def test_same_seed_same_observations(mode) -> None:
+    def rollout():
+        env = _env(mode)
+        try:
+            obs, _ = env.reset(seed=11)
+            seen = [obs]
+            for k in range(STEPS - 1):
+                obs, *_ = env.step(np.full(5, 1.0 if k % 2 else -0.5, np.float32))
+                seen.append(obs)
+            return seen
+        finally:
+            env.close()
+
+    a, b = rollout(), rollout()
+    for x, y in zip(a, b, strict=True):
+        if isinstance(x, dict):
+            assert x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) for k in x)
+        else:
+            assert np.array_equal(x, y)
+
+
+@pytest.mark.render
+def test_features_are_what_the_system_reported_stacked_oldest_first() -> None:
+    env = _env("features", obs_history=3)
+    try:
+        k, n = len(env.config.knobs), feature_size(len(env.config.knobs))
+        obs, _ = env.reset(seed=2)
+        assert obs.shape == (3 * n,) and obs.dtype == np.float32
+        assert np.all(obs[: 2 * n] == 0.0)  # nothing before the first step
+        first = obs[2 * n :]
+        assert np.allclose(first[:k], env.weather.normalized(env.config.knobs))
+        assert first[k + FEATURES.index("time")] == 0.0
+        out = env._loop.output
+        assert first[k + FEATURES.index("n_detections")] == pytest.approx(min(len(out.detections) / 10, 1.0))
+        assert first[k + FEATURES.index("ego_speed")] == pytest.approx(env._loop.ego.speed / 30.0, abs=1e-6)
+        obs2, *_ = env.step(np.ones(5, np.float32))
+        assert np.array_equal(obs2[n : 2 * n], first)  # the history moved on by one step
+        now = obs2[2 * n :]
+        assert now[k + FEATURES.index("time")] == pytest.approx(1 / STEPS)
+        assert np.allclose(now[:k], env.weather.normalized(env.config.knobs))
+        rec = env.records[-1]
+        assert now[k + FEATURES.index("throttle")] == pytest.approx(rec.ego.throttle)
+        assert now[k + FEATURES.index("brake")] == pytest.approx(rec.ego.brake)
+        follows = np.isfinite(rec.lead.perceived_distance)
+        assert now[k + FEATURES.index("follows")] == float(follows)
+        states = [f for f in FEATURES if f.startswith("state_")]
+        assert sum(now[k + FEATURES.index(s)] for s in states) == (1.0 if rec.ego.status in
+                                                                   [s[6:] for s in states] else 0.0)
+    finally:
+        env.close()
+
+
+def test_observation_settings_are_checked() -> None:
+    from genesis_rl.env.genesis_env import EnvConfig
+
+    with pytest.raises(UserInputError, match="env.observation = 'pixels'; allowed: image, image\\+knobs, features"):
+        EnvConfig(observation="pixels")
+    with pytest.raises(UserInputError, match="obs_knobs = true and env.observation = 'features' disagree"):
+        EnvConfig(obs_knobs=True, observation="features")
+    with pytest.raises(UserInputError, match="env.obs_history = 0 must be in 1..16"):
+        EnvConfig(obs_history=0)
+    assert EnvConfig(obs_knobs=True).observation_mode == "image+knobs"
+    assert [sb3_policy(m) for m in OBSERVATIONS] == ["CnnPolicy", "MultiInputPolicy", "MlpPolicy", "MultiInputPolicy"]
