@@ -87,6 +87,25 @@ def _cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_reactivity(args: argparse.Namespace) -> int:
+    from genesis_rl.evaluation.reactivity import measure_campaign
+    from genesis_rl.io_utils import atomic_write_json, ensure_writable
+
+    out = Path(args.out) if args.out else Path(args.campaign) / f"reactivity_{args.policy}.json"
+    ensure_writable(out, args.force)
+    t0 = time.perf_counter()
+    result = measure_campaign(args.campaign, args.policy, args.scenes, not args.no_other_seeds,
+                              progress=not args.quiet)
+    data = {"campaign": str(args.campaign), "policy": args.policy, **result.to_json(),
+            "seconds": round(time.perf_counter() - t0, 1)}
+    atomic_write_json(out, data, indent=2)
+    short = {kind: {m: {"gap": g["difference"]["mean"], "ci": [g["difference"]["ci_low"], g["difference"]["ci_high"]],
+                        "p": g["p_value"]} for m, g in gaps.items()} for kind, gaps in data["gaps"].items()}
+    print(json.dumps({"out": str(out), "policy": args.policy, "scenes": len(result.rows) // max(len(data["gaps"]), 1),
+                      "gaps": short, "seconds": data["seconds"]}, indent=2))
+    return 0
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from genesis_rl.knobs import parse_weather
     from genesis_rl.render_cmd import render_one, render_sweep
@@ -291,6 +310,22 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--out", default=None, help="output file (default: MAP.xodr in the current folder)")
     mp.add_argument("--force", action="store_true", help="overwrite an existing output")
     mp.set_defaults(func=_cmd_map)
+
+    rx = sub.add_parser("reactivity", help="closed-loop against open-loop: does a policy react to the scene?",
+                        description="Play a campaign's step policy closed-loop on its scenes, then its action "
+                        "sequences open-loop on the next scene (and on the same scene with another episode seed); "
+                        "report the gaps (closed minus open) in return, collisions and collision violation with "
+                        "bootstrap CIs and sign-flip p-values. A fixed schedule has no gap (docs/results.md).")
+    rx.add_argument("--campaign", required=True, help="campaign folder (genesis-rl evaluate --out)")
+    rx.add_argument("--policy", default="agent", help="step policy of the campaign: agent (default), constant, "
+                    "random, sunny or package.module:Class")
+    rx.add_argument("--scenes", type=int, default=None, help="the campaign's first N scenes (default: all)")
+    rx.add_argument("--no-other-seeds", action="store_true", help="skip the same-scene, other-seed comparison "
+                    "(halves the cost: 2 episodes a scene instead of 4)")
+    rx.add_argument("--out", default=None, help="output JSON (default: CAMPAIGN/reactivity_POLICY.json)")
+    rx.add_argument("--force", action="store_true", help="overwrite an existing output")
+    rx.add_argument("--quiet", action="store_true", help="no progress bar")
+    rx.set_defaults(func=_cmd_reactivity)
 
     rd = sub.add_parser("render", help="render a scene's camera frame (rgb, depth, boxes) or a knob sweep sheet")
     rd.add_argument("--map", default="urban", help="map name: urban or highway (default: urban; scene generated "

@@ -1,0 +1,207 @@
+"""Does the adversary react to what it sees? Closed-loop results against the same actions played open-loop.
+
+A policy that reacts to the scene (raises the fog as the lead brakes) does better on the scene it watched
+than its own action sequence does when played blind elsewhere. A policy that plays a fixed schedule (a
+constant corner) does exactly as well either way. For each scene i, with its campaign episode seed s_i:
+
+- **other scene**: the policy plays (i, s_i) closed-loop; its actions from scene i+1 (cyclically) are played
+  open-loop on (i, s_i). The gap is closed-loop minus open-loop, per scene.
+- **other seed**: the policy plays (i, s'_i) closed-loop, and its actions from (i, s_i) are played open-loop
+  on (i, s'_i): the same scene, other traffic randomness.
+
+Open-loop actions go through the same env step (the naturalness limit and the ODD's projection apply), and
+step k plays the k-th recorded action. Metrics per episode: the policy's return (what it maximises), whether
+the ego collided and the collision violation. Gaps come with bootstrap CIs and sign-flip p-values
+(:func:`genesis_rl.evaluation.stats.paired_comparison`). The simulator is deterministic per (scene, episode
+seed), so a constant policy's gap is exactly zero.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from tqdm import tqdm
+
+from genesis_rl.evaluation.stats import paired_comparison
+from genesis_rl.step_record import StepRecord
+
+#: the default metrics of an episode, from its step records
+METRICS: dict[str, Callable[[Sequence[StepRecord]], float]] = {
+    "reward": lambda recs: float(sum(r.reward["reward"] for r in recs)),  # what the adversary maximises
+    "collided": lambda recs: float(any(r.collision.collided for r in recs)),
+    "collision": lambda recs: float(sum(r.rules.get("collision", 0.0) for r in recs)),  # the rule's violation
+}
+Metrics = dict[str, Callable[[Sequence[StepRecord]], float]]
+KINDS = ("other_scene", "other_seed")
+
+
+class ActingPolicy(Protocol):
+    """What the measurement needs of a policy: a reset per episode and an action per observation (the
+    campaign's step policies have both)."""
+
+    def reset(self, scene: int, episode_seed: int) -> None: ...
+
+    def act(self, obs: Any) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class EpisodeScore:
+    """An episode's metrics by name."""
+
+    values: dict[str, float]
+
+    def metric(self, name: str) -> float:
+        return self.values[name]
+
+
+@dataclass(frozen=True)
+class PairRow:
+    """One scene's closed-loop and open-loop episode of one kind."""
+
+    kind: str
+    scene: int
+    episode_seed: int
+    donor_scene: int  # the scene whose actions the open-loop episode played
+    donor_seed: int
+    closed: EpisodeScore
+    open: EpisodeScore
+
+
+def _score(env: Any, metrics: Metrics) -> EpisodeScore:
+    return EpisodeScore({name: float(fn(env.records)) for name, fn in metrics.items()})
+
+
+def play_closed(env: Any, policy: ActingPolicy, scene: int, episode_seed: int,
+                metrics: Metrics = METRICS) -> tuple[EpisodeScore, np.ndarray]:
+    """The policy plays the episode; returns its score and its actions (steps x knobs)."""
+    policy.reset(scene, episode_seed)
+    obs, _ = env.reset(options={"scene": scene, "episode_seed": episode_seed})
+    actions = []
+    for _ in range(env.config.episode_steps):
+        a = np.asarray(policy.act(obs), np.float32)
+        actions.append(a)
+        obs, _, terminated, truncated, _ = env.step(a)
+        if terminated or truncated:
+            break
+    return _score(env, metrics), np.asarray(actions, np.float32)
+
+
+def play_open(env: Any, actions: np.ndarray, scene: int, episode_seed: int, metrics: Metrics = METRICS) -> EpisodeScore:
+    """``actions`` played blind, step k the k-th (the last one held if the episode is longer)."""
+    env.reset(options={"scene": scene, "episode_seed": episode_seed})
+    for k in range(env.config.episode_steps):
+        _, _, terminated, truncated, _ = env.step(actions[min(k, len(actions) - 1)])
+        if terminated or truncated:
+            break
+    return _score(env, metrics)
+
+
+@dataclass
+class ReactivityResult:
+    rows: list[PairRow]
+    seed: int
+    metrics: tuple[str, ...] = tuple(METRICS)
+
+    def gap(self, kind: str, metric: str) -> dict[str, Any]:
+        """Closed-loop minus open-loop over the scenes: mean with CI, wins/ties/losses, p-value."""
+        rows = [r for r in self.rows if r.kind == kind]
+        return paired_comparison([r.closed.metric(metric) for r in rows], [r.open.metric(metric) for r in rows],
+                                 self.seed)
+
+    def summary(self) -> dict[str, Any]:
+        return {kind: {m: self.gap(kind, m) for m in self.metrics} for kind in KINDS
+                if any(r.kind == kind for r in self.rows)}
+
+    def to_json(self) -> dict[str, Any]:
+        return {"seed": self.seed, "gaps": self.summary(), "rows": [asdict(r) for r in self.rows]}
+
+
+def measure(env: Any, policy: ActingPolicy, scenes: Sequence[int], episode_seeds: Sequence[int],
+            other_seeds: Sequence[int] | None = None, seed: int = 0, progress: bool = False,
+            on_row: Callable[[PairRow], None] | None = None, metrics: Metrics = METRICS) -> ReactivityResult:
+    """The reactivity gaps of ``policy`` on ``scenes`` (at least 2) with their campaign ``episode_seeds``;
+    ``other_seeds`` (one per scene) adds the other-seed comparison. 2 episodes per scene, 4 with other seeds.
+    ``metrics``: name -> function of an episode's step records (default :data:`METRICS`)."""
+    scenes, episode_seeds = list(scenes), list(episode_seeds)
+    if len(scenes) < 2 or len(scenes) != len(episode_seeds):
+        raise ValueError("reactivity needs >= 2 scenes, each with its episode seed")
+    n = len(scenes)
+    total = n * (4 if other_seeds is not None else 2)
+    bar = tqdm(total=total, desc="reactivity", unit="episode", disable=not progress)
+    closed: list[tuple[EpisodeScore, np.ndarray]] = []
+    for i in range(n):
+        closed.append(play_closed(env, policy, scenes[i], episode_seeds[i], metrics))
+        bar.update()
+    rows: list[PairRow] = []
+
+    def add(row: PairRow) -> None:
+        rows.append(row)
+        if on_row is not None:
+            on_row(row)
+
+    for i in range(n):
+        j = (i + 1) % n
+        add(PairRow("other_scene", scenes[i], episode_seeds[i], scenes[j], episode_seeds[j], closed[i][0],
+                    play_open(env, closed[j][1], scenes[i], episode_seeds[i], metrics)))
+        bar.update()
+    if other_seeds is not None:
+        for i in range(n):
+            score, _ = play_closed(env, policy, scenes[i], int(other_seeds[i]), metrics)
+            bar.update()
+            add(PairRow("other_seed", scenes[i], int(other_seeds[i]), scenes[i], episode_seeds[i], score,
+                        play_open(env, closed[i][1], scenes[i], int(other_seeds[i]), metrics)))
+            bar.update()
+    bar.close()
+    return ReactivityResult(rows, seed, tuple(metrics))
+
+
+def other_seed(campaign_seed: int, scene: int) -> int:
+    """The other-seed comparison's episode seed of ``scene``: drawn from the campaign seed, never the
+    campaign's own (pick_scenes draws that from [seed, scene])."""
+    return int(np.random.default_rng([campaign_seed, scene, 17]).integers(0, 2**31 - 1))
+
+
+def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, with_other_seeds: bool = True,
+                     progress: bool = True) -> ReactivityResult:
+    """The reactivity gaps of a campaign's step policy (``agent``, ``constant``, ``random``, or a user's) on
+    the campaign's scenes and episode seeds (its first ``scenes`` of them), in the campaign's env."""
+    from pathlib import Path
+
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.evaluation.episodes import CampaignRunner
+    from genesis_rl.evaluation.policies import PolicyContext, StepPolicy, resolve_policy
+    from genesis_rl.io_utils import read_json
+
+    folder = Path(folder)
+    meta = folder / "campaign.json"
+    if not meta.is_file():
+        raise UserInputError(f"--campaign '{folder}' is not a campaign folder (no campaign.json)")
+    saved = read_json(meta, "campaign file")
+    spec_json = dict(saved["spec"])
+    spec_json["policies"] = tuple(spec_json["policies"])
+    spec = CampaignSpec(**spec_json)
+    pairs = [tuple(p) for p in saved["scenes"]]
+    if scenes is not None:
+        if not 2 <= scenes <= len(pairs):
+            raise UserInputError(f"--scenes = {scenes}; allowed: 2..{len(pairs)} (the campaign's scenes)")
+        pairs = pairs[:scenes]
+    cls = resolve_policy(policy_name)
+    if not issubclass(cls, StepPolicy):
+        raise UserInputError(f"--policy '{policy_name}' searches over episodes; reactivity needs a step policy "
+                             "(agent, constant, random, sunny or your own StepPolicy)")
+    runner = CampaignRunner(spec, folder)
+    try:
+        ctx = PolicyContext(action_dim=runner.env.mapper.action_dim, seed=spec.seed,
+                            agent_path=Path(spec.agent) if spec.agent else None,
+                            options={**spec.options, "steps": spec.steps})
+        policy = cls(ctx)
+        idx = [int(s) for s, _ in pairs]
+        seeds = [int(e) for _, e in pairs]
+        others = [other_seed(spec.seed, s) for s in idx] if with_other_seeds else None
+        return measure(runner.env, policy, idx, seeds, others, seed=spec.seed, progress=progress)
+    finally:
+        runner.close()
