@@ -106,10 +106,10 @@ def test_drive_with_a_builtin_system(tmp_path, server_catalog, system):
     out = tmp_path / "drive"
     _cli("drive", "--catalog", str(server_catalog), "--scene", "0", "--system", system, "--steps", "100",
          "--out", str(out))
-    import pandas as pd
+    import pyarrow.parquet as pq
 
-    telemetry = pd.read_parquet(next(out.rglob("*.parquet")))
-    assert len(telemetry) == 100 and telemetry["ego_speed"].max() > 1.0  # the controller drove on its route
+    telemetry = pq.read_table(next(out.rglob("*.parquet"))).to_pydict()
+    assert len(telemetry["ego_speed"]) == 100 and max(telemetry["ego_speed"]) > 1.0  # it drove on its route
 
 
 def test_evaluate_two_episodes(tmp_path, server_catalog):

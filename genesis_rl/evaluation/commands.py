@@ -48,7 +48,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
     if not policies:
-        raise UserInputError("--policies is empty; allowed: sunny, random, constant, agent, cmaes or "
+        raise UserInputError("--policies is empty; allowed: sunny, random, constant, agent, cmaes, cem or "
                              "package.module:Class")
     if len(set(policies)) != len(policies):
         raise UserInputError(f"--policies names a policy twice: {','.join(policies)}")
@@ -203,7 +203,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev = sub.add_parser("evaluate", help="evaluation campaign: weather policies on held-out scenes; summary, report")
     ev.add_argument("--agent", default=None, help="trained run folder (runs/NAME) or agent .zip")
     ev.add_argument("--policies", default="sunny,random,agent",
-                    help="comma list: sunny, random, constant, agent, cmaes (search baseline) or package.module:Class")
+                    help="comma list: sunny, random, constant, agent, cmaes, cem (search baselines) or "
+                         "package.module:Class")
     ev.add_argument("--map", default="highway", help="test map (the agent trains on urban)")
     ev.add_argument("--catalog", default=None, help="test catalog file (default: the map's generated catalog)")
     ev.add_argument("--catalog-seed", type=int, default=0, help="seed of the generated test catalog")

@@ -39,7 +39,8 @@ from genesis_rl.step_record import StepRecord
 from genesis_rl.training.curves import plot_learning_curve
 from genesis_rl.viz.frames import annotate_frame
 
-POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8"}
+POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8", "cem": "#31a354",
+                 "constant": "#756bb1"}
 MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Intermittent detection",
                "delayed_detection": "Delayed detection", "lost_detection": "Lost before impact",
                "detected": "Detected in time (control failure)",
@@ -272,8 +273,8 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
              + f"</tr>{counts}</table>")
     h.append("<p class=meta>Labels come from the detection timeline of the hit vehicle in the 4 s before the "
              "impact (thresholds in summary.json and docs/evaluation.md).</p>")
-    order = [p for p in ("agent", "cmaes", "random", "sunny") if p in rows] + [p for p in rows if p not in
-                                                                              ("agent", "cmaes", "random", "sunny")]
+    preferred = ("agent", "cmaes", "cem", "constant", "random", "sunny")
+    order = [p for p in preferred if p in rows] + [p for p in rows if p not in preferred]
     shown = 0
     for mode in FAILURE_MODES:
         example = next(((p, e) for p in order for e in rows[p] if e["failure_mode"] == mode), None)
