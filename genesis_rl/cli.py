@@ -106,6 +106,36 @@ def _cmd_reactivity(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_corners(args: argparse.Namespace) -> int:
+    from genesis_rl.env import GenesisEnv
+    from genesis_rl.evaluation.campaign_spec import pick_scenes
+    from genesis_rl.evaluation.corners import search_corners
+    from genesis_rl.io_utils import atomic_write_json, ensure_writable
+    from genesis_rl.training.config import load_run_config
+
+    out = Path(args.out)
+    ensure_writable(out, args.force)
+    env_over: dict = {"episode_steps": args.steps} if args.steps is not None else {}
+    if args.map is not None:
+        env_over["map"] = args.map
+    cfg = load_run_config(args.config, {"env": env_over})
+    env = GenesisEnv(cfg.env)
+    try:
+        pairs = pick_scenes(len(env.catalog.scenes), args.scenes, args.seed)
+        t0 = time.perf_counter()
+        rows = search_corners(env, [s for s, _ in pairs], [e for _, e in pairs], progress=not args.quiet)
+    finally:
+        env.close()
+    best = ",".join(f"{v:g}" for v in rows[0]["action"])
+    atomic_write_json(out, {"config": args.config, "map": cfg.env.map, "scenes": pairs, "knobs": list(cfg.env.knobs),
+                            "steps": cfg.env.episode_steps, "best_constant_action": best, "corners": rows,
+                            "seconds": round(time.perf_counter() - t0, 1)}, indent=2)
+    print(json.dumps({"out": str(out), "best_constant_action": best, "mean_return": round(rows[0]["mean_return"], 3),
+                      "collisions": rows[0]["collisions"], "corners": len(rows),
+                      "then": f"genesis-rl evaluate --policies constant --constant-action {best} ..."}, indent=2))
+    return 0
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from genesis_rl.knobs import parse_weather
     from genesis_rl.render_cmd import render_one, render_sweep
@@ -326,6 +356,20 @@ def build_parser() -> argparse.ArgumentParser:
     rx.add_argument("--force", action="store_true", help="overwrite an existing output")
     rx.add_argument("--quiet", action="store_true", help="no progress bar")
     rx.set_defaults(func=_cmd_reactivity)
+
+    cn = sub.add_parser("corners", help="find the best constant schedule: every corner of the action box on "
+                        "training scenes", description="Play every corner of the action box (+-1 on each knob that "
+                        "can move) on the same training scenes and seeds; rank by mean return, then collisions. The "
+                        "winner is the open-loop baseline for evaluate --policies constant --constant-action.")
+    cn.add_argument("--config", default=None, help="TOML config whose [env] is used (e.g. configs/reactive.toml)")
+    cn.add_argument("--map", default=None, help="map of the scenes (default: the config's env.map, the training map)")
+    cn.add_argument("--scenes", type=int, default=10, help="training scenes drawn by --seed (default: 10)")
+    cn.add_argument("--seed", type=seed_int, default=0, help="draws the scenes and their episode seeds")
+    cn.add_argument("--steps", type=int, default=None, help="steps per episode (default: the config's)")
+    cn.add_argument("--out", required=True, help="output JSON")
+    cn.add_argument("--force", action="store_true", help="overwrite an existing output")
+    cn.add_argument("--quiet", action="store_true", help="no progress bar")
+    cn.set_defaults(func=_cmd_corners)
 
     rd = sub.add_parser("render", help="render a scene's camera frame (rgb, depth, boxes) or a knob sweep sheet")
     rd.add_argument("--map", default="urban", help="map name: urban or highway (default: urban; scene generated "

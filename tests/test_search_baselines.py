@@ -30,3 +30,26 @@ def test_cem_keeps_inside_the_odd_and_spends_exactly_its_budget(tmp_path) -> Non
     assert main([*args, "--out", str(again)]) == 0
     assert json.loads(next((again / "episodes" / "cem").glob("*.json")).read_text())["extra"]["search_returns"] == \
         row["extra"]["search_returns"]
+
+
+@pytest.mark.render
+def test_corner_search_plays_every_corner_and_ranks_them() -> None:
+    from genesis_rl.env import GenesisEnv
+    from genesis_rl.evaluation.corners import corner_actions, search_corners
+
+    held = GenesisEnv(map="highway", scenes=2, dynamics="natural")  # the sun moves 0.1 deg an episode: held
+    try:
+        acts = corner_actions(held)
+        assert len(acts) == 8 and all(a[3] == 0.0 and a[4] == 0.0 for a in acts)
+        assert {tuple(a[:3]) for a in acts} == {(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)}
+    finally:
+        held.close()
+    env = GenesisEnv(map="highway", scenes=2, knobs=("fog_density", "precipitation"), episode_steps=6)
+    try:
+        rows = search_corners(env, [0, 1], [5, 6])
+    finally:
+        env.close()
+    assert sorted(tuple(r["action"]) for r in rows) == [(-1, -1), (-1, 1), (1, -1), (1, 1)]
+    means = [r["mean_return"] for r in rows]
+    assert means == sorted(means, reverse=True) and all(len(r["returns"]) == 2 for r in rows)
+    assert rows[0]["mean_return"] == pytest.approx(sum(rows[0]["returns"]) / 2, abs=1e-3)
