@@ -101,3 +101,14 @@ def test_observation_settings_are_checked() -> None:
         EnvConfig(obs_history=0)
     assert EnvConfig(obs_knobs=True).observation_mode == "image+knobs"
     assert [sb3_policy(m) for m in OBSERVATIONS] == ["CnnPolicy", "MultiInputPolicy", "MlpPolicy", "MultiInputPolicy"]
+
+
+def test_shipped_reactive_configs_load_and_log_std_init_is_checked() -> None:
+    from genesis_rl.training.config import PPOConfig, load_run_config
+
+    for path in ("configs/reactive.toml", "configs/reactive_long.toml"):
+        cfg = load_run_config(path, {"env": {"scenes": 2}})
+        assert cfg.env.observation_mode == "features" and cfg.env.dynamics == "natural" and cfg.env.odd
+    assert load_run_config("configs/reactive_long.toml", {"env": {"scenes": 2}}).ppo.log_std_init == -1.0
+    with pytest.raises(UserInputError, match=r"ppo.log_std_init = -9.0 must be in -5..2"):
+        PPOConfig(log_std_init=-9.0)

@@ -27,6 +27,7 @@ class PPOConfig:
     ent_coef: float = 0.0
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
+    log_std_init: float = 0.0  # initial log standard deviation of the Gaussian policy (SB3's default 0: std 1)
     device: str = "auto"  # torch device for the policy: auto, cpu, cuda
 
     def __post_init__(self) -> None:
@@ -36,6 +37,8 @@ class PPOConfig:
             raise UserInputError(f"ppo.learning_rate = {self.learning_rate} must be in (0, 1)")
         if not (0 < self.gamma <= 1 and 0 < self.gae_lambda <= 1):
             raise UserInputError("ppo.gamma and ppo.gae_lambda must be in (0, 1]")
+        if not -5.0 <= self.log_std_init <= 2.0:
+            raise UserInputError(f"ppo.log_std_init = {self.log_std_init} must be in -5..2 (std e^-5..e^2)")
         if self.n_epochs < 1:
             raise UserInputError(f"ppo.n_epochs = {self.n_epochs} must be >= 1")
         for k in ("clip_range", "max_grad_norm"):

@@ -238,7 +238,7 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                         gae_lambda=p.gae_lambda,
                         clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
                         max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device,
-                        policy_kwargs=policy_kwargs(policy), verbose=0)
+                        policy_kwargs={**policy_kwargs(policy), "log_std_init": p.log_std_init}, verbose=0)
             done = 0
         formats = ["csv"]
         try:
