@@ -76,7 +76,7 @@ def test_features_are_what_the_system_reported_stacked_oldest_first() -> None:
         obs2, *_ = env.step(np.ones(5, np.float32))
         assert np.array_equal(obs2[n : 2 * n], first)  # the history moved on by one step
         now = obs2[2 * n :]
-        assert now[k + FEATURES.index("time")] == pytest.approx(1 / STEPS)
+        assert now[k + FEATURES.index("time")] == pytest.approx(0.05 / 25.6)  # seconds over the paper's episode
         assert np.allclose(now[:k], env.weather.normalized(env.config.knobs))
         rec = env.records[-1]
         assert now[k + FEATURES.index("throttle")] == pytest.approx(rec.ego.throttle)

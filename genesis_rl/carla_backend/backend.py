@@ -100,7 +100,7 @@ class CarlaBackend(Backend):
         self.client = connect(self.host, self.port, self.timeout)
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
-        self._planner: tuple[str, Any, dict[int, float]] | None = None
+        self._planner: tuple[tuple[int, str], Any, dict[int, float]] | None = None
         self._tm: Any = None
         if map is not None:
             self.load_map(map)
@@ -119,7 +119,7 @@ class CarlaBackend(Backend):
     def load_map(self, name: str) -> Any:
         """The world with map ``name`` (loaded only when the server runs another one)."""
         world = self.call("reading the world", self.client.get_world)
-        if map_basename(self.call("reading the map", world.get_map).name) == name:
+        if map_basename(self.map_of(world).name) == name:  # cached per world: the map is the whole OpenDRIVE
             return world  # already loaded (also a world made with generate_opendrive_world, which no list holds)
         names = self.map_names()
         if name not in names:
@@ -138,16 +138,16 @@ class CarlaBackend(Backend):
             self._map_cache = (world.id, self.call("reading the map", world.get_map))
         return self._map_cache[1]
 
-    def route_planner(self, carla_map: Any) -> Any:
+    def route_planner(self, carla_map: Any, world_id: int = -1) -> Any:
         """The built-in controller's :class:`~genesis_rl.carla_backend.route.RoutePlanner` for ``carla_map``
         (reading the topology takes a while on a town: built once per map and connection), and the map's
         speed limits from its OpenDRIVE."""
         from genesis_rl.carla_backend.route import RoutePlanner, speed_limits
 
-        name = str(carla_map.name)
-        if self._planner is None or self._planner[0] != name:
+        key = (int(world_id), str(carla_map.name))  # a world generated anew under the same name is another map
+        if self._planner is None or self._planner[0] != key:
             xodr = self.call("reading the OpenDRIVE map", carla_map.to_opendrive)
-            self._planner = (name, RoutePlanner(carla_map), speed_limits(xodr))
+            self._planner = (key, RoutePlanner(carla_map), speed_limits(xodr))
         return self._planner[1], self._planner[2]
 
     def create_simulation(self, scene: Scene, *, seed: int, weather: Weather | None = None,
@@ -419,7 +419,7 @@ class CarlaSimulation(Simulation):
         the map's speed limits and the server's light states."""
         from genesis_rl.carla_backend.route import route_from_context
 
-        planner, limits = self._backend.route_planner(self.map)
+        planner, limits = self._backend.route_planner(self.map, self.world.id)
         return {"plan_route": route_from_context, "signal_state": self.light_state, "route_planner": planner,
                 "speed_limits": limits}
 

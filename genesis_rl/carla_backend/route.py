@@ -75,7 +75,8 @@ def speed_limits(xodr: str) -> dict[int, float]:
 
 class RoutePlanner:
     """The topology graph of a ``carla.Map``: follow edges (one lane flows into the next) and lane-change
-    edges (same road section, same direction, driving lanes side by side)."""
+    edges (same road section, same direction, driving lanes side by side, and the lane's marking at the
+    section's start allows the change: ``waypoint.lane_change``)."""
 
     def __init__(self, carla_map: Any) -> None:
         carla = require_carla()
@@ -104,9 +105,11 @@ class RoutePlanner:
         for seg in self.segments:
             if seg.junction:
                 continue
-            for side, neighbour in (("left", seg.entry.get_left_lane()), ("right", seg.entry.get_right_lane())):
+            allowed = seg.entry.lane_change
+            for side, neighbour, flag in (("left", seg.entry.get_left_lane(), carla.LaneChange.Left),
+                                          ("right", seg.entry.get_right_lane(), carla.LaneChange.Right)):
                 if (neighbour is None or neighbour.lane_type != carla.LaneType.Driving
-                        or neighbour.lane_id * seg.entry.lane_id <= 0):
+                        or neighbour.lane_id * seg.entry.lane_id <= 0 or not (allowed & flag)):
                     continue
                 side_seg = self.by_key.get(_key(neighbour))
                 if side_seg is not None:
@@ -139,6 +142,13 @@ class RoutePlanner:
             goal = succ[int(rng.integers(len(succ)))]
         path = nx.dijkstra_path(self.graph, start, goal, weight="weight")
         steps = [(b, self.graph.edges[a, b]["kind"]) for a, b in zip(path, path[1:], strict=False)]
+        if steps and steps[-1][1] != "follow":
+            # a leg never ends on a lane change: the next leg would start at the section's end, with no road
+            # left to blend over. Go on into a lane that follows.
+            end = path[-1]
+            onward = sorted(b for b in self.graph.successors(end) if self.graph.edges[end, b]["kind"] == "follow")
+            if onward:
+                steps.append((onward[int(rng.integers(len(onward)))], "follow"))
         return [(path[0], "start"), *steps]
 
 
@@ -240,7 +250,9 @@ class CarlaRoute(PolylineRoute):
             self.options.append(options[int(nearest[k])])
         for j, lm in lights:
             m = int(np.clip(np.searchsorted(idx, j), 0, len(idx) - 1))
-            self.stops.append(_Stop(base * DS + float(arc[m]), lm))
+            at = base * DS + float(arc[m])
+            if not any(stop.landmark.id == lm.id and abs(stop.s - at) < 5.0 for stop in self.stops[-2:]):
+                self.stops.append(_Stop(at, lm))  # a lane change and the lane after it can both hold its line
         self._rebuild()
 
     def _append(self, wps: list[Any], option: str) -> None:
@@ -259,13 +271,27 @@ class CarlaRoute(PolylineRoute):
     def _rebuild(self) -> None:
         self.xy = np.asarray(self._points, dtype=np.float64).reshape(-1, 2)
 
+    def _lights_along(self, pairs: list[tuple[Any, Any]]) -> list[tuple[int, Any]]:
+        """(sample index, landmark) of the stop lines within a lane change's samples, on the lane it leaves or
+        the lane it enters (each light once): the change often ends at the section's end, at the stop line."""
+        if not pairs:
+            return []
+        found: dict[Any, tuple[int, Any]] = {}
+        for lane_of in (1, 0):  # the lane entered first: its light is the one the ego meets
+            wps = [p[lane_of] for p in pairs]
+            s0, s1 = wps[0].s, wps[-1].s
+            for lm in self._lights.get((int(wps[0].road_id), int(wps[0].lane_id)), []):
+                if min(s0, s1) - 1e-6 <= lm.s <= max(s0, s1) + 1e-6 and lm.id not in found:
+                    found[lm.id] = (int(np.argmin([abs(w.s - lm.s) for w in wps])), lm)
+        return sorted(found.values(), key=lambda t: t[0])
+
     def _change_lane(self, side: str) -> Any:
         """Blend from the current lane into its ``side`` neighbour over the next LANE_CHANGE_LENGTH (what is
         left of the section when less) and return the neighbour's waypoint where the blend ends."""
         here = self._last_wp
         n = max(int(LANE_CHANGE_LENGTH / DS), 1)
         ahead = _samples(here)[1 : n + 1]
-        raw, roads, landed = [], [], None
+        raw, roads, landed, pairs = [], [], None, []
         for k, w in enumerate(ahead):
             nb = w.get_left_lane() if side == "left" else w.get_right_lane()
             if nb is None:
@@ -274,20 +300,21 @@ class CarlaRoute(PolylineRoute):
             (x0, y0), (x1, y1) = _xy(w), _xy(nb)
             raw.append(((1 - a) * x0 + a * x1, (1 - a) * y0 + a * y1))
             roads.append(int(w.road_id))
+            pairs.append((w, nb))
             landed = nb
         if landed is None:  # at the section's very end: step across at this s
             landed = here.get_left_lane() if side == "left" else here.get_right_lane()
-            raw, roads = [_xy(landed)], [int(landed.road_id)]
-        self._add(raw, roads, [side] * len(raw))
+            raw, roads, pairs = [_xy(landed)], [int(landed.road_id)], [(here, landed)]
+        self._add(raw, roads, [side] * len(raw), self._lights_along(pairs))
         self._last_wp = landed
         return landed
 
-    def _emit(self, wp: Any, change_next: bool, drop_first: bool) -> None:
-        """Sample the section from ``wp`` on; when a lane change follows, stop LANE_CHANGE_LENGTH before the
-        section's end, where the blend starts."""
+    def _emit(self, wp: Any, changes_next: int, drop_first: bool) -> None:
+        """Sample the section from ``wp`` on; when lane changes follow, stop LANE_CHANGE_LENGTH before the
+        section's end for each of them, where the blends start."""
         samples = _samples(wp)[1 if drop_first else 0 :]
-        if change_next:
-            samples = samples[: max(len(samples) - int(LANE_CHANGE_LENGTH / DS), 1)]
+        if changes_next:
+            samples = samples[: max(len(samples) - changes_next * int(LANE_CHANGE_LENGTH / DS), 1)]
         self._append(samples, "follow")
 
     def _plan_more(self) -> None:
@@ -300,7 +327,9 @@ class CarlaRoute(PolylineRoute):
             steps = self.planner.plan(self._segment, self.rng)
             for k, (seg, kind) in enumerate(steps):
                 last = k == len(steps) - 1
-                change_next = not last and steps[k + 1][1] in ("left", "right")
+                changes_next = 0  # lane changes right after this step, all within this section
+                while k + 1 + changes_next < len(steps) and steps[k + 1 + changes_next][1] in ("left", "right"):
+                    changes_next += 1
                 if kind == "start":
                     wp, drop = self._pending, False
                 elif kind == "follow":
@@ -313,7 +342,7 @@ class CarlaRoute(PolylineRoute):
                     break
                 self._pending = None
                 if wp is not None:
-                    self._emit(wp, change_next, drop)
+                    self._emit(wp, changes_next, drop)
             if len(self._points) == before and self._pending is None:
                 key = self.planner.segments[self._segment].key
                 raise UserInputError(f"the route planner found no way on from lane {key}")

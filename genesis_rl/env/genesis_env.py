@@ -229,7 +229,7 @@ class GenesisEnv(gym.Env):
             out["knobs"] = self.weather.normalized(c.knobs)
         if mode in ("features", "image+features"):
             loop = self._loop
-            row = step_features(self.weather, tuple(c.knobs), loop.ego.speed, loop.sim.step_count, c.episode_steps,
+            row = step_features(self.weather, tuple(c.knobs), loop.ego.speed, loop.sim.step_count * loop.sim.dt,
                                 loop.output)
             out["features"] = self._history.push(row)
         if mode == "image":

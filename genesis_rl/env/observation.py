@@ -30,6 +30,7 @@ from genesis_rl.system.protocol import SystemOutput
 
 OBSERVATIONS = ("image", "image+knobs", "features", "image+features")
 SPEED_SCALE = 30.0  # [m/s] speeds are divided by this (and clipped to [0, 1])
+TIME_SCALE = 25.6  # [s] time is divided by this, the paper's episode (clipped): a campaign's --steps leaves it be
 GAP_SCALE = 60.0  # [m] perceived gaps likewise (the built-in controller ignores detections farther away)
 DETECTIONS_SCALE = 10.0
 STATES = ("cruise", "follow", "red_light", "emergency")
@@ -42,14 +43,14 @@ def feature_size(n_knobs: int) -> int:
     return n_knobs + len(FEATURES)
 
 
-def step_features(weather: Weather, knobs: tuple[str, ...], ego_speed: float, step: int, episode_steps: int,
+def step_features(weather: Weather, knobs: tuple[str, ...], ego_speed: float, time_s: float,
                   output: SystemOutput | None) -> np.ndarray:
     """One step's features in [0, 1] (see the module doc); ``output`` None: the system has not answered."""
     out = np.zeros(feature_size(len(knobs)), np.float32)
     k = len(knobs)
     out[:k] = weather.normalized(knobs)
     out[k] = min(max(ego_speed / SPEED_SCALE, 0.0), 1.0)
-    out[k + 1] = min(step / max(episode_steps, 1), 1.0)
+    out[k + 1] = min(max(time_s / TIME_SCALE, 0.0), 1.0)
     if output is not None:
         out[k + 2] = min(len(output.detections) / DETECTIONS_SCALE, 1.0)
         gap = output.lead_distance

@@ -256,7 +256,7 @@ class CMAESSearch(WeatherPolicy):
 class CrossEntropySearch(CMAESSearch):
     """The cross-entropy method, as VerifAI's cross-entropy sampler, over the same piecewise-constant schedules
     as ``cmaes``: a Gaussian per schedule entry, sampled (clipped to [-1, 1]) a generation at a time; the best
-    quarter of each generation (by the episode's total reward) gives the next mean and spread. It spends
+    quarter of each generation, at least 2 (by the episode's total reward), gives the next mean and spread. It spends
     exactly ``search_budget`` episodes per scene (the last generation takes what is left) and reports its best.
     """
 
@@ -284,7 +284,8 @@ class CrossEntropySearch(CMAESSearch):
                 history.append(round(outcome.total_reward, 3))
                 if best is None or outcome.total_reward > best.total_reward:
                     best = outcome
-            elite = xs[np.argsort(returns)[::-1][: max(1, int(round(self.ELITE_FRACTION * n)))]]
+            # at least 2 elites: one has no spread, and the search would collapse to MIN_SIGMA at once
+            elite = xs[np.argsort(returns)[::-1][: max(2, int(np.ceil(self.ELITE_FRACTION * n)))]]
             mean, sigma = elite.mean(axis=0), np.maximum(elite.std(axis=0), self.MIN_SIGMA)
         assert best is not None
         best.sim_steps = spent
