@@ -106,7 +106,7 @@ def test_observation_settings_are_checked() -> None:
 def test_shipped_reactive_configs_load_and_log_std_init_is_checked() -> None:
     from genesis_rl.training.config import PPOConfig, load_run_config
 
-    for path in ("configs/reactive.toml", "configs/reactive_long.toml"):
+    for path in ("configs/reactive.toml", "configs/reactive_long.toml", "configs/reactive_night.toml"):
         cfg = load_run_config(path, {"env": {"scenes": 2}})
         assert cfg.env.observation_mode == "features" and cfg.env.dynamics == "natural" and cfg.env.odd
     assert load_run_config("configs/reactive_long.toml", {"env": {"scenes": 2}}).ppo.log_std_init == -1.0
