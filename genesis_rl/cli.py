@@ -70,11 +70,11 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
 
 def _cmd_map(args: argparse.Namespace) -> int:
     from genesis_rl.io_utils import atomic_write_text, ensure_writable
-    from genesis_rl.lite.maps import MAP_NAMES, load_map
+    from genesis_rl.lite.maps import load_map
     from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.lite.scenes import check_map
 
-    if args.map not in MAP_NAMES:
-        raise UserInputError(f"--map '{args.map}' is not a lite map; allowed: {', '.join(MAP_NAMES)}")
+    check_map(args.map, "--map")
     out = Path(args.out) if args.out else Path(f"{args.map}.xodr")
     ensure_writable(out, args.force)
     t0 = time.perf_counter()

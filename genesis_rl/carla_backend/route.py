@@ -30,7 +30,7 @@ from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.lanes import lane_from_key
 from genesis_rl.errors import UserInputError
 from genesis_rl.lite.maps.lane_graph import DS
-from genesis_rl.system.route import PolylineRoute
+from genesis_rl.system.route import PLAN_AHEAD, PolylineRoute
 
 LANE_CHANGE_LENGTH = 20.0  # [m] a lane change blends from one lane centre to the next over this distance
 LANE_CHANGE_COST = 30.0  # [m] the planner's extra cost of a lane change (prefers staying in lane)
@@ -255,18 +255,20 @@ class CarlaRoute(PolylineRoute):
                 self.stops.append(_Stop(at, lm))  # a lane change and the lane after it can both hold its line
         self._rebuild()
 
+    def _lights_on(self, wps: list[Any]) -> list[tuple[int, Any]]:
+        """(index of the nearest sample, landmark) of the lights of ``wps``' lane whose s lies within them."""
+        s0, s1 = wps[0].s, wps[-1].s
+        return [(int(np.argmin([abs(w.s - lm.s) for w in wps])), lm)
+                for lm in self._lights.get((int(wps[0].road_id), int(wps[0].lane_id)), [])
+                if min(s0, s1) - 1e-6 <= lm.s <= max(s0, s1) + 1e-6]
+
     def _append(self, wps: list[Any], option: str) -> None:
         """Add lane samples; note the lights of their lane whose s lies within them."""
         if not wps:
             return
         self._last_wp = wps[-1]
-        s0, s1 = wps[0].s, wps[-1].s
-        lights = []
-        for lm in self._lights.get((int(wps[0].road_id), int(wps[0].lane_id)), []):
-            if min(s0, s1) - 1e-6 <= lm.s <= max(s0, s1) + 1e-6:
-                lights.append((int(np.argmin([abs(w.s - lm.s) for w in wps])), lm))
         self._add([_xy(w) for w in wps], [int(w.road_id) for w in wps],
-                  ["junction" if w.is_junction and option == "follow" else option for w in wps], lights)
+                  ["junction" if w.is_junction and option == "follow" else option for w in wps], self._lights_on(wps))
 
     def _rebuild(self) -> None:
         self.xy = np.asarray(self._points, dtype=np.float64).reshape(-1, 2)
@@ -278,11 +280,8 @@ class CarlaRoute(PolylineRoute):
             return []
         found: dict[Any, tuple[int, Any]] = {}
         for lane_of in (1, 0):  # the lane entered first: its light is the one the ego meets
-            wps = [p[lane_of] for p in pairs]
-            s0, s1 = wps[0].s, wps[-1].s
-            for lm in self._lights.get((int(wps[0].road_id), int(wps[0].lane_id)), []):
-                if min(s0, s1) - 1e-6 <= lm.s <= max(s0, s1) + 1e-6 and lm.id not in found:
-                    found[lm.id] = (int(np.argmin([abs(w.s - lm.s) for w in wps])), lm)
+            for k, lm in self._lights_on([p[lane_of] for p in pairs]):
+                found.setdefault(lm.id, (k, lm))
         return sorted(found.values(), key=lambda t: t[0])
 
     def _change_lane(self, side: str) -> Any:
@@ -320,8 +319,6 @@ class CarlaRoute(PolylineRoute):
     def _plan_more(self) -> None:
         """Plan legs to drawn destinations until PLAN_AHEAD metres lie ahead. The last segment of a leg is
         left pending, so the next leg can change lanes out of it."""
-        from genesis_rl.system.route import PLAN_AHEAD
-
         while (len(self._points) - 1 - self.index) * DS < PLAN_AHEAD:
             before = len(self._points)
             steps = self.planner.plan(self._segment, self.rng)

@@ -43,6 +43,16 @@ class CampaignSpec:
         d["policies"] = list(self.policies)
         return d
 
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> CampaignSpec:
+        """The spec that :meth:`to_json` wrote (campaign.json's ``spec``)."""
+        return cls(**{**d, "policies": tuple(d["policies"])})
+
+    def policy_context(self, action_dim: int) -> PolicyContext:
+        """What this campaign's policies are built from."""
+        return PolicyContext(action_dim=action_dim, seed=self.seed, agent_path=Path(self.agent) if self.agent else None,
+                             options={**self.options, "steps": self.steps})
+
 
 def pick_scenes(n_catalog: int, count: int, seed: int) -> list[tuple[int, int]]:
     """(scene index, episode seed) pairs: ``count`` distinct scenes drawn by ``seed``, in catalog order."""
@@ -95,6 +105,6 @@ def check_spec(spec: CampaignSpec) -> None:
             raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
         if not cls.needs_agent:
             action_dim = len(spec.env.get("knobs") or PAPER_KNOBS)
-            cls(PolicyContext(action_dim=action_dim, seed=spec.seed, options={**spec.options, "steps": spec.steps}))
+            cls(spec.policy_context(action_dim))
     if any(resolve_policy(p).needs_agent for p in spec.policies):
         load_agent(Path(spec.agent) if spec.agent else None)

@@ -171,19 +171,14 @@ def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, w
     from pathlib import Path
 
     from genesis_rl.errors import UserInputError
+    from genesis_rl.evaluation.campaign_files import read_campaign_meta
     from genesis_rl.evaluation.campaign_spec import CampaignSpec
     from genesis_rl.evaluation.episodes import CampaignRunner
-    from genesis_rl.evaluation.policies import PolicyContext, StepPolicy, resolve_policy
-    from genesis_rl.io_utils import read_json
+    from genesis_rl.evaluation.policies import StepPolicy, resolve_policy
 
     folder = Path(folder)
-    meta = folder / "campaign.json"
-    if not meta.is_file():
-        raise UserInputError(f"--campaign '{folder}' is not a campaign folder (no campaign.json)")
-    saved = read_json(meta, "campaign file")
-    spec_json = dict(saved["spec"])
-    spec_json["policies"] = tuple(spec_json["policies"])
-    spec = CampaignSpec(**spec_json)
+    saved = read_campaign_meta(folder)  # checked: a damaged campaign.json is named, not a traceback
+    spec = CampaignSpec.from_json(saved["spec"])
     pairs = [tuple(p) for p in saved["scenes"]]
     if scenes is not None:
         if not 2 <= scenes <= len(pairs):
@@ -195,10 +190,7 @@ def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, w
                              "(agent, constant, random, sunny or your own StepPolicy)")
     runner = CampaignRunner(spec, folder)
     try:
-        ctx = PolicyContext(action_dim=runner.env.mapper.action_dim, seed=spec.seed,
-                            agent_path=Path(spec.agent) if spec.agent else None,
-                            options={**spec.options, "steps": spec.steps})
-        policy = cls(ctx)
+        policy = cls(spec.policy_context(runner.env.mapper.action_dim))
         idx = [int(s) for s, _ in pairs]
         seeds = [int(e) for _, e in pairs]
         others = [other_seed(spec.seed, s) for s in idx] if with_other_seeds else None

@@ -19,7 +19,7 @@ from genesis_rl.errors import SimulatorLost
 from genesis_rl.evaluation.campaign_folder import Task
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.evaluation.episodes import CampaignRunner, write_episode
-from genesis_rl.evaluation.policies import POLICIES, PolicyContext, WeatherPolicy, resolve_policy
+from genesis_rl.evaluation.policies import POLICIES, WeatherPolicy, resolve_policy
 from genesis_rl.knobs import KNOB_MODULES
 from genesis_rl.plugins import import_modules, user_modules
 from genesis_rl.rules.rulebook import RULES
@@ -39,10 +39,8 @@ def init_worker(spec_json: dict[str, Any], folder: str, torch_threads: int, plug
     CARLA server)."""
     import_modules(plugins)
     torch.set_num_threads(torch_threads)
-    spec_json = dict(spec_json)
-    spec_json["policies"] = tuple(spec_json["policies"])
     _WORKER.clear()
-    _WORKER.update(spec=CampaignSpec(**spec_json), folder=Path(folder), runner=None, policies={},
+    _WORKER.update(spec=CampaignSpec.from_json(spec_json), folder=Path(folder), runner=None, policies={},
                    env_settings=dict(env_settings or {}))
 
 
@@ -61,10 +59,7 @@ def _runner() -> CampaignRunner:
 def _policy(name: str) -> WeatherPolicy:
     spec: CampaignSpec = _WORKER["spec"]
     if name not in _WORKER["policies"]:
-        ctx = PolicyContext(action_dim=_runner().env.mapper.action_dim, seed=spec.seed,
-                            agent_path=Path(spec.agent) if spec.agent else None,
-                            options={**spec.options, "steps": spec.steps})
-        _WORKER["policies"][name] = resolve_policy(name)(ctx)
+        _WORKER["policies"][name] = resolve_policy(name)(spec.policy_context(_runner().env.mapper.action_dim))
     return _WORKER["policies"][name]
 
 
