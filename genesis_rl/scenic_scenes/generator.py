@@ -98,8 +98,9 @@ def _place(objects: list[tuple[float, float, float, str, str, str]], snap: Snap,
 
 
 def iter_scenes(scenario: Any, map_name: str, count: int, seed: int, snap: Snap, fits: Callable[..., bool],
-                signal_cycle: float) -> Iterator[Scene]:
-    """Scenes 0..count-1; scene i depends only on (map, seed, i)."""
+                signal_cycle: float | None) -> Iterator[Scene]:
+    """Scenes 0..count-1; scene i depends only on (map, seed, i). ``signal_cycle`` None: the signal offset is
+    0 (CARLA runs its own lights)."""
     for i, ss in enumerate(np.random.SeedSequence(seed).spawn(count)):
         scene_seed = int(ss.generate_state(1)[0])
         rng = np.random.default_rng(scene_seed)
@@ -112,7 +113,22 @@ def iter_scenes(scenario: Any, map_name: str, count: int, seed: int, snap: Snap,
         else:
             raise RuntimeError(f"scene {i}: {MAX_DRAWS} Scenic scenes on {map_name} left fewer than {N_VEHICLES} "
                                "vehicles that fit")
-        yield Scene(i, map_name, int(rng.integers(2**31)), float(rng.uniform(0.0, signal_cycle)), tuple(placed))
+        sim_seed = int(rng.integers(2**31))
+        offset = 0.0 if signal_cycle is None else float(rng.uniform(0.0, signal_cycle))
+        yield Scene(i, map_name, sim_seed, offset, tuple(placed))
+
+
+def _catalog(xodr_text: str, backend: str, map_name: str, count: int, seed: int, snap: Snap,
+             fits: Callable[..., bool], signal_cycle: float | None, progress: bool) -> Catalog:
+    """Run the shipped program on the OpenDRIVE ``xodr_text`` (written to a temporary file for Scenic)."""
+    with tempfile.TemporaryDirectory(prefix="genesis-scenic-") as tmp:
+        xodr = Path(tmp) / f"{map_name}.xodr"
+        xodr.write_text(xodr_text)
+        scenario = compile_program(xodr)
+        scenes: Iterator[Scene] = iter_scenes(scenario, map_name, count, seed, snap, fits, signal_cycle)
+        if progress:
+            scenes = tqdm(scenes, total=count, desc=f"scenic {map_name}", unit="scene")
+        return Catalog(map_name, seed, backend, tuple(scenes))
 
 
 # -- lite maps -------------------------------------------------------------------------------------------------
@@ -148,19 +164,12 @@ def lite_catalog(map_name: str, count: int, seed: int, progress: bool = False) -
 
     check_map(map_name, "--map")
     road_map = load_map(map_name)
-    with tempfile.TemporaryDirectory(prefix="genesis-scenic-") as tmp:
-        xodr = Path(tmp) / f"{map_name}.xodr"
-        xodr.write_text(to_opendrive(road_map))
-        scenario = compile_program(xodr)
 
-        def fit(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
-            return fits(spec, placed) and (spec.role != "other" or _safe_headway(spec, placed))
+    def fit(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
+        return fits(spec, placed) and (spec.role != "other" or _safe_headway(spec, placed))
 
-        scenes: Iterator[Scene] = iter_scenes(scenario, map_name, count, seed, lite_snap(road_map), fit,
-                                              road_map.timing.cycle)
-        if progress:
-            scenes = tqdm(scenes, total=count, desc=f"scenic {map_name}", unit="scene")
-        return Catalog(map_name, seed, "lite", tuple(scenes))
+    return _catalog(to_opendrive(road_map), "lite", map_name, count, seed, lite_snap(road_map), fit,
+                    road_map.timing.cycle, progress)
 
 
 # -- CARLA maps ------------------------------------------------------------------------------------------------
@@ -195,16 +204,8 @@ def carla_catalog(carla_map: Any, map_name: str, count: int, seed: int, progress
     from genesis_rl.carla_backend.scenes import CARLA_FIT_RADIUS
     from genesis_rl.lite.scenes import fits
 
-    with tempfile.TemporaryDirectory(prefix="genesis-scenic-") as tmp:
-        xodr = Path(tmp) / f"{map_name}.xodr"
-        xodr.write_text(carla_map.to_opendrive())
-        scenario = compile_program(xodr)
-        scenes: Iterator[Scene] = iter_scenes(scenario, map_name, count, seed, carla_snap(carla_map),
-                                              lambda spec, placed: fits(spec, placed, CARLA_FIT_RADIUS), 1.0)
-        if progress:
-            scenes = tqdm(scenes, total=count, desc=f"scenic {map_name}", unit="scene")
-        scenes_list = [Scene(s.index, s.map, s.seed, 0.0, s.vehicles) for s in scenes]  # CARLA runs its own lights
-        return Catalog(map_name, seed, "carla", tuple(scenes_list))
+    return _catalog(carla_map.to_opendrive(), "carla", map_name, count, seed, carla_snap(carla_map),
+                    lambda spec, placed: fits(spec, placed, CARLA_FIT_RADIUS), None, progress)  # CARLA runs its lights
 
 
 def carla_catalog_from_server(map_name: str, count: int, seed: int, settings: Any, progress: bool = False) -> Catalog:
