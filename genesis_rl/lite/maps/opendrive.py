@@ -40,7 +40,6 @@ ARC_STEP = 2.0  # [m] spacing of the planView's arc joints along a reference lin
 MIN_CURVATURE = 1e-4  # [1/m]
 SIGNAL_TYPE = "1000001"  # OpenDRIVE's dynamic traffic light, as CARLA's towns name theirs
 SIGNAL_SETBACK = 0.1  # [m] the signal stands this far before the road's end (inside its s range)
-FORMATS = ("xodr",)
 
 
 @dataclass(frozen=True)
