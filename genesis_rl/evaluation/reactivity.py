@@ -121,7 +121,7 @@ class ReactivityResult:
 
 def measure(env: Any, policy: ActingPolicy, scenes: Sequence[int], episode_seeds: Sequence[int],
             other_seeds: Sequence[int] | None = None, seed: int = 0, progress: bool = False,
-            on_row: Callable[[PairRow], None] | None = None, metrics: Metrics = METRICS) -> ReactivityResult:
+            metrics: Metrics = METRICS) -> ReactivityResult:
     """The reactivity gaps of ``policy`` on ``scenes`` (at least 2) with their campaign ``episode_seeds``;
     ``other_seeds`` (one per scene) adds the other-seed comparison. 2 episodes per scene, 4 with other seeds.
     ``metrics``: name -> function of an episode's step records (default :data:`METRICS`)."""
@@ -136,23 +136,17 @@ def measure(env: Any, policy: ActingPolicy, scenes: Sequence[int], episode_seeds
         closed.append(play_closed(env, policy, scenes[i], episode_seeds[i], metrics))
         bar.update()
     rows: list[PairRow] = []
-
-    def add(row: PairRow) -> None:
-        rows.append(row)
-        if on_row is not None:
-            on_row(row)
-
     for i in range(n):
         j = (i + 1) % n
-        add(PairRow("other_scene", scenes[i], episode_seeds[i], scenes[j], episode_seeds[j], closed[i][0],
-                    play_open(env, closed[j][1], scenes[i], episode_seeds[i], metrics)))
+        rows.append(PairRow("other_scene", scenes[i], episode_seeds[i], scenes[j], episode_seeds[j], closed[i][0],
+                             play_open(env, closed[j][1], scenes[i], episode_seeds[i], metrics)))
         bar.update()
     if other_seeds is not None:
         for i in range(n):
             score, _ = play_closed(env, policy, scenes[i], int(other_seeds[i]), metrics)
             bar.update()
-            add(PairRow("other_seed", scenes[i], int(other_seeds[i]), scenes[i], episode_seeds[i], score,
-                        play_open(env, closed[i][1], scenes[i], int(other_seeds[i]), metrics)))
+            rows.append(PairRow("other_seed", scenes[i], int(other_seeds[i]), scenes[i], episode_seeds[i], score,
+                                play_open(env, closed[i][1], scenes[i], int(other_seeds[i]), metrics)))
             bar.update()
     bar.close()
     return ReactivityResult(rows, seed, tuple(metrics))
