@@ -241,7 +241,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     env.update(env_overrides_from_args(args))  # --backend carla --carla-host H ... override the config's [env]
     env.update(odd_overrides_from_args(args))
     tr: dict = {}
-    for flag, key in (("envs", "envs"), ("steps", "total_timesteps"), ("seed", "seed")):
+    for flag, key in (("envs", "envs"), ("steps", "total_timesteps"), ("seed", "seed"), ("algorithm", "algorithm")):
         if getattr(args, flag) is not None:
             tr[key] = getattr(args, flag)
     ppo = {"n_steps": args.n_steps} if args.n_steps is not None else {}
@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_backend_arguments(dr)
     dr.set_defaults(func=_cmd_drive)
 
-    tr = sub.add_parser("train", help="train the weather agent (SB3 PPO) against the system under test")
+    tr = sub.add_parser("train", help="train the weather agent (SB3 PPO or SAC) against the system under test")
     tr.add_argument("--config", default=None, help="TOML config (default: the paper's values, configs/paper.toml)")
     tr.add_argument("--out", required=True, help="run folder (runs/NAME)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
@@ -424,6 +424,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--envs", type=int, default=None,
                     help="parallel environments (subprocesses, or Ray actors with --executor ray)")
     tr.add_argument("--steps", type=int, default=None, help="total env steps (train.total_timesteps)")
+    tr.add_argument("--algorithm", choices=("ppo", "sac"), default=None,
+                    help="the learner (train.algorithm): ppo (the paper's, [ppo]) or sac ([sac])")
     tr.add_argument("--n-steps", type=int, default=None, help="steps per PPO update (ppo.n_steps)")
     tr.add_argument("--episode-steps", type=int, default=None, help="steps per episode (env.episode_steps)")
     tr.add_argument("--seed", type=seed_int, default=None, help="training seed (train.seed)")

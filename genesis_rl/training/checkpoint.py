@@ -5,8 +5,9 @@ rollout depends on: the policy and its optimizer state (``step_N.zip``, SB3's ow
 the last observation and the step counters), and in ``step_N.state.json`` the trainer's random generators
 (torch, numpy, Python), every env's generator, the scene, episode seed and actions of the episode each env is
 in (the lite simulator rebuilds an episode exactly from them), the per-episode sums of the episode-metrics
-callback and the number of rows in ``episodes.csv``. ``last.json`` names the newest complete checkpoint and
-is written last, so a crash while checkpointing leaves the previous one in charge.
+callback and the number of rows in ``episodes.csv``. An off-policy learner (SAC) also keeps its replay buffer
+(``step_N.replay.pkl``; only the newest is kept, it is the largest file). ``last.json`` names the newest
+complete checkpoint and is written last, so a crash while checkpointing leaves the previous one in charge.
 """
 
 from __future__ import annotations
@@ -143,11 +144,21 @@ def save_checkpoint(run: Path, model: Any, steps: int, episode_sums: dict[int, d
              "episode_sums": {str(i): a for i, a in episode_sums.items()},
              "episodes_csv_rows": csv_rows(run / "episodes.csv")}
     atomic_write(ck / f"step_{steps:08d}.zip", lambda p: model.save(p))
+    replay = replay_path(ck, steps)
+    if hasattr(model, "replay_buffer"):
+        atomic_write(replay, lambda p: model.save_replay_buffer(p))
     atomic_write_json(ck / f"step_{steps:08d}.state.json", state)
     atomic_write(ck / "last.zip", lambda p: model.save(p))
     atomic_write_json(ck / "last.json", {"timesteps": int(steps), "time": time.time(),
                                          "checkpoint": f"step_{steps:08d}.zip",
                                          "state": f"step_{steps:08d}.state.json"})
+    for old in ck.glob("step_*.replay.pkl"):  # last.json names the new one now: the older buffers can go
+        if old != replay:
+            old.unlink(missing_ok=True)
+
+
+def replay_path(ck: Path, steps: int) -> Path:
+    return ck / f"step_{steps:08d}.replay.pkl"
 
 
 @dataclass
@@ -197,9 +208,10 @@ def read_last(run: Path, max_steps: int) -> tuple[int, Path, Path | None]:
     return steps, ck / names[0], ck / names[1]
 
 
-def load_checkpoint(run: Path, env: Any, device: str, max_steps: int) -> Resumed:
-    """Reload the newest checkpoint into ``env``: model, optimizer, random generators and each env's episode."""
-    from stable_baselines3 import PPO
+def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, algorithm: str = "ppo") -> Resumed:
+    """Reload the newest checkpoint into ``env``: model, optimizer, replay buffer (SAC), random generators and
+    each env's episode."""
+    from stable_baselines3 import PPO, SAC
 
     steps, model_path, state_path = read_last(run, max_steps)
     state = None
@@ -211,7 +223,18 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int) -> Resumed
             raise _damaged(state_path, f"expected the state of {env.num_envs} env(s)")
     try:
         # force_reset=False keeps the checkpoint's last observation: the envs are rebuilt below, not reset
-        model = PPO.load(model_path, env=env, device=device, force_reset=state is None)
+        if algorithm == "sac":
+            replay = replay_path(model_path.parent, steps)
+            if not replay.is_file():
+                raise UserInputError(f"--resume: run '{run}' has no complete checkpoint ({replay} missing); start "
+                                     "it again with --force")
+            sac = SAC.load(model_path, env=env, device=device, force_reset=state is None)
+            sac.load_replay_buffer(replay)
+            model: Any = sac
+        else:
+            model = PPO.load(model_path, env=env, device=device, force_reset=state is None)
+    except UserInputError:
+        raise
     except Exception as err:  # noqa: BLE001 - a corrupt checkpoint is the user's to see, clearly
         raise UserInputError(f"--resume: checkpoint '{model_path}' cannot be loaded: {err}") from None
     model.num_timesteps = steps

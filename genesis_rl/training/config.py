@@ -1,5 +1,5 @@
-"""The training configuration: [env], [ppo] and [train] tables; ``configs/paper.toml`` spells out the
-paper's values with units."""
+"""The training configuration: [env], [ppo], [sac] and [train] tables; ``configs/paper.toml`` spells out the
+paper's values with units. ``train.algorithm`` picks the learner: PPO (the paper's) or SAC."""
 
 from __future__ import annotations
 
@@ -47,32 +47,85 @@ class PPOConfig:
         for k in ("vf_coef", "ent_coef"):
             if not getattr(self, k) >= 0:
                 raise UserInputError(f"ppo.{k} = {getattr(self, k)} must be >= 0")
-        kind, _, index = self.device.partition(":")
-        if kind not in ("auto", "cpu", "cuda", "mps") or (index and not (kind == "cuda" and index.isdigit())):
-            raise UserInputError(f"ppo.device = '{self.device}'; allowed: auto, cpu, cuda, cuda:N, mps")
+        check_device("ppo", self.device)
 
     def check_device_present(self) -> None:
-        """Refuse a device this machine lacks: SB3 would fall back to the CPU without a word, and a run meant
-        for a GPU would take hours instead of minutes. ("auto" takes the GPU when there is one.)"""
-        import torch  # local: start-up cost; checked only when training starts
+        check_device_present("ppo", self.device)
 
-        kind, _, index = self.device.partition(":")
-        fix = 'set ppo.device = "auto" (the GPU when there is one) or "cpu"'
-        if kind == "cuda":
-            if not torch.cuda.is_available():
-                raise UserInputError(f"ppo.device = '{self.device}' but torch.cuda.is_available() = False on this "
-                                     f"machine (torch {torch.__version__}, built for CUDA {torch.version.cuda}); "
-                                     f"{fix}")
-            if index and int(index) >= torch.cuda.device_count():
-                raise UserInputError(f"ppo.device = '{self.device}' but this machine has "
-                                     f"{torch.cuda.device_count()} CUDA device(s), 0..{torch.cuda.device_count() - 1}"
-                                     f"; {fix}")
-        if kind == "mps" and not torch.backends.mps.is_available():
-            raise UserInputError(f"ppo.device = 'mps' but torch.backends.mps.is_available() = False; {fix}")
+
+def check_device(section: str, device: str) -> None:
+    kind, _, index = device.partition(":")
+    if kind not in ("auto", "cpu", "cuda", "mps") or (index and not (kind == "cuda" and index.isdigit())):
+        raise UserInputError(f"{section}.device = '{device}'; allowed: auto, cpu, cuda, cuda:N, mps")
+
+
+def check_device_present(section: str, device: str) -> None:
+    """Refuse a device this machine lacks: SB3 would fall back to the CPU without a word, and a run meant
+    for a GPU would take hours instead of minutes. ("auto" takes the GPU when there is one.)"""
+    import torch  # local: start-up cost; checked only when training starts
+
+    kind, _, index = device.partition(":")
+    fix = f'set {section}.device = "auto" (the GPU when there is one) or "cpu"'
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            raise UserInputError(f"{section}.device = '{device}' but torch.cuda.is_available() = False on this "
+                                 f"machine (torch {torch.__version__}, built for CUDA {torch.version.cuda}); {fix}")
+        if index and int(index) >= torch.cuda.device_count():
+            raise UserInputError(f"{section}.device = '{device}' but this machine has {torch.cuda.device_count()} "
+                                 f"CUDA device(s), 0..{torch.cuda.device_count() - 1}; {fix}")
+    if kind == "mps" and not torch.backends.mps.is_available():
+        raise UserInputError(f"{section}.device = 'mps' but torch.backends.mps.is_available() = False; {fix}")
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """Stable-Baselines3 SAC settings (SB3's defaults but a shorter warm-up and a buffer that holds the
+    paper's whole budget). SAC's policy is a tanh-squashed Gaussian: its mean never sits beyond the action
+    bounds, and a critic that values each action reuses every step many times (issue 17's item 2)."""
+
+    learning_rate: float = 3e-4
+    buffer_size: int = 100_000  # transitions kept (40,960 feature transitions take ~25 MB; images ~0.6 GB)
+    learning_starts: int = 1024  # env steps of the random policy before the first update
+    batch_size: int = 256
+    tau: float = 0.005
+    gamma: float = 0.99
+    train_freq: int = 1  # env steps (per env) between updates
+    gradient_steps: int = 1  # updates each time
+    ent_coef: str = "auto"  # "auto" (learned, from 1), "auto_X" (learned, from X) or a fixed number
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        if not 0 < self.learning_rate < 1:
+            raise UserInputError(f"sac.learning_rate = {self.learning_rate} must be in (0, 1)")
+        if not 0 < self.gamma <= 1 or not 0 < self.tau <= 1:
+            raise UserInputError("sac.gamma and sac.tau must be in (0, 1]")
+        for k in ("buffer_size", "batch_size", "train_freq", "gradient_steps"):
+            if getattr(self, k) < 1:
+                raise UserInputError(f"sac.{k} = {getattr(self, k)} must be >= 1")
+        if self.learning_starts < 0:
+            raise UserInputError(f"sac.learning_starts = {self.learning_starts} must be >= 0")
+        if self.ent_coef != "auto":
+            number = self.ent_coef.removeprefix("auto_")
+            try:
+                ok = float(number) > 0
+            except ValueError:
+                ok = False
+        else:
+            ok = True
+        if not ok:
+            raise UserInputError(f"sac.ent_coef = '{self.ent_coef}'; allowed: 'auto', 'auto_X' or 'X' with X > 0")
+        check_device("sac", self.device)
+
+    def sb3_ent_coef(self) -> str | float:
+        return self.ent_coef if self.ent_coef.startswith("auto") else float(self.ent_coef)
+
+
+ALGORITHMS = ("ppo", "sac")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
+    algorithm: str = "ppo"  # the learner: ppo (the paper's; the [ppo] table) or sac (the [sac] table)
     total_timesteps: int = 40960  # env steps (the paper: 40,960 = 20 updates of 2048)
     envs: int = 1  # parallel environments, each in its own process when > 1
     seed: int = 0  # seeds the envs' scene draws, the policy's initialisation and its sampling
@@ -80,6 +133,8 @@ class TrainConfig:
     torch_threads: int = 0  # torch threads in the trainer (0: torch's default)
 
     def __post_init__(self) -> None:
+        if self.algorithm not in ALGORITHMS:
+            raise UserInputError(f"train.algorithm = '{self.algorithm}'; allowed: {', '.join(ALGORITHMS)}")
         if self.total_timesteps < 1:
             raise UserInputError(f"train.total_timesteps = {self.total_timesteps} must be >= 1")
         limits.TIMESTEPS.check(self.total_timesteps, "train.total_timesteps")
@@ -97,27 +152,36 @@ class TrainConfig:
 class RunConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    sac: SACConfig = field(default_factory=SACConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
-        if self.ppo.n_steps % self.train.envs:  # each env collects the same share of an update's rollout
+        # each env collects the same share of a PPO update's rollout
+        if self.train.algorithm == "ppo" and self.ppo.n_steps % self.train.envs:
             raise UserInputError(f"ppo.n_steps = {self.ppo.n_steps} must be a multiple of train.envs = "
                                  f"{self.train.envs}")
 
     def to_toml(self) -> str:
-        return dump_toml({"env": to_mapping(self.env), "ppo": to_mapping(self.ppo), "train": to_mapping(self.train)})
+        return dump_toml({"env": to_mapping(self.env), "ppo": to_mapping(self.ppo), "sac": to_mapping(self.sac),
+                          "train": to_mapping(self.train)})
+
+    @property
+    def device(self) -> str:
+        """The torch device of the chosen learner."""
+        return self.sac.device if self.train.algorithm == "sac" else self.ppo.device
 
 
 def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None) -> RunConfig:
     """Read a config file (None: all defaults) and apply per-section overrides from the command line."""
     data = read_toml(path) if path is not None else {}
-    unknown = sorted(set(data) - {"env", "ppo", "train"})
+    unknown = sorted(set(data) - {"env", "ppo", "sac", "train"})
     if unknown:
-        raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, train")
+        raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, sac, train")
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
     return RunConfig(
         env=from_mapping(EnvConfig, data.get("env"), "env"),
         ppo=from_mapping(PPOConfig, data.get("ppo"), "ppo"),
+        sac=from_mapping(SACConfig, data.get("sac"), "sac"),
         train=from_mapping(TrainConfig, data.get("train"), "train"),
     )

@@ -1,4 +1,5 @@
-"""``genesis-rl train``: SB3 PPO against GenesisEnv, with checkpoints, resume, TensorBoard and a progress bar.
+"""``genesis-rl train``: SB3 PPO (or SAC) against GenesisEnv, with checkpoints, resume, TensorBoard and a progress
+bar.
 
 The run folder keeps everything needed to trust and reuse the agent: the resolved config, the scene
 catalog it trained on, seeds, package version and git commit (``run.json``), checkpoints with their step
@@ -18,7 +19,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from stable_baselines3 import PPO
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
@@ -35,7 +37,7 @@ from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_te
 from genesis_rl.provenance import git_commit
 from genesis_rl.rules.reward import RewardConfig
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
-from genesis_rl.training.config import RunConfig, load_run_config
+from genesis_rl.training.config import RunConfig, check_device_present, load_run_config
 from genesis_rl.training.throughput import RolloutThreads, policy_kwargs
 
 
@@ -155,9 +157,27 @@ class _Callbacks:
 
 
 def max_timesteps(cfg: RunConfig) -> int:
-    """The steps a run of ``cfg`` ends at: SB3 collects whole rollouts, so total_timesteps rounds up."""
-    n = cfg.ppo.n_steps
+    """The steps a run of ``cfg`` ends at: SB3 collects whole rollouts (PPO: ppo.n_steps over all envs; SAC:
+    sac.train_freq steps of every env), so total_timesteps rounds up."""
+    n = cfg.ppo.n_steps if cfg.train.algorithm == "ppo" else cfg.sac.train_freq * cfg.train.envs
     return -(-cfg.train.total_timesteps // n) * n
+
+
+def new_model(cfg: RunConfig, env: Any, policy: str) -> BaseAlgorithm:
+    """A fresh learner of ``train.algorithm`` for ``env``, seeded with ``train.seed``."""
+    kwargs = policy_kwargs(policy)
+    if cfg.train.algorithm == "sac":
+        s = cfg.sac
+        return SAC(policy, env, learning_rate=s.learning_rate, buffer_size=s.buffer_size,
+                   learning_starts=s.learning_starts, batch_size=s.batch_size, tau=s.tau, gamma=s.gamma,
+                   train_freq=s.train_freq, gradient_steps=s.gradient_steps, ent_coef=s.sb3_ent_coef(),
+                   seed=cfg.train.seed, device=s.device, policy_kwargs=kwargs, verbose=0)
+    p = cfg.ppo
+    return PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
+               batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
+               gae_lambda=p.gae_lambda, clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
+               max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device,
+               policy_kwargs={**kwargs, "log_std_init": p.log_std_init}, verbose=0)
 
 
 def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
@@ -219,26 +239,20 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
 def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                     scale: ExecutorSettings | None = None, extra: Sequence[BaseCallback] = ()) -> dict[str, Any]:
 
-    cfg.ppo.check_device_present()
+    check_device_present(cfg.train.algorithm, cfg.device)
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
-    p = cfg.ppo
     env = build_vec_env(cfg, out / "catalog.json", scale)
     try:
         policy = sb3_policy(cfg.env.observation_mode)
         sums: dict[int, dict[str, Any]] = {}
         if resume:
-            resumed = load_checkpoint(out, env, p.device, max_timesteps(cfg))
+            resumed = load_checkpoint(out, env, cfg.device, max_timesteps(cfg), cfg.train.algorithm)
             model, done, sums = resumed.model, resumed.steps, resumed.episode_sums
             if load_run_config(out / "config.toml") != cfg:  # --steps raised the target
                 atomic_write_text(out / "config.toml", cfg.to_toml())
         else:
-            model = PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
-                        batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
-                        gae_lambda=p.gae_lambda,
-                        clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
-                        max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device,
-                        policy_kwargs={**policy_kwargs(policy), "log_std_init": p.log_std_init}, verbose=0)
+            model = new_model(cfg, env, policy)
             done = 0
         formats = ["csv"]
         try:
