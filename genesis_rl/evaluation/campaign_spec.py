@@ -70,9 +70,11 @@ def run_folder_of(agent: Path) -> Path:
     return agent.parent.parent if agent.parent.name == "checkpoints" else agent.parent
 
 
-def env_settings_for(agent: str | None, config: str | None, system: str | None) -> dict[str, Any]:
+def env_settings_for(agent: str | None, config: str | None, system: str | None,
+                     weights: str | None = None) -> dict[str, Any]:
     """The env settings policies play under: the trained agent's own (so its observation matches), else a
-    config file's [env], else the defaults; ``system`` overrides the system under test."""
+    config file's [env], else the defaults; ``system`` overrides the system under test (and drops the
+    settings of the one it replaces), ``weights`` its detector's weights."""
     env: dict[str, Any] = {}
     if agent:
         run = Path(agent)
@@ -85,8 +87,16 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None) 
         env = dict(read_toml(cfg_path).get("env", {}))
     elif config:
         env = dict(read_toml(config).get("env", {}))
-    if system:
+    if system and system != env.get("system", "builtin"):
         env["system"] = system
+        env.pop("system_kwargs", None)
+    if weights is not None:
+        if env.get("system", "builtin") not in ("builtin", "yolo"):
+            raise UserInputError(f"--weights applies to --system builtin or yolo only, not "
+                                 f"'{env.get('system')}'")
+        if not Path(weights).is_file():
+            raise UserInputError(f"--weights '{weights}' is not a file")
+        env["system_kwargs"] = {**env.get("system_kwargs", {}), "weights": str(weights)}
     for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps"):
         env.pop(key, None)  # the campaign decides these
     env["terminate_on_collision"] = False  # the protocol drives every episode for its full length

@@ -67,7 +67,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.search_budget < 2:
         raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
     agent = str(Path(args.agent)) if args.agent else None
-    env = env_settings_for(agent, args.config, args.system)
+    env = env_settings_for(agent, args.config, args.system, args.weights)
     env.update(env_overrides_from_args(args))
     env.update(odd_overrides_from_args(args))
     executor = executor_from_args(args, env.get("backend", "lite"))
@@ -212,6 +212,9 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--seed", type=int, default=0, help="campaign seed: scene choice and episode seeds")
     ev.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
     ev.add_argument("--system", default=None, help="system under test (default: the agent's)")
+    ev.add_argument("--weights", default=None,
+                    help="detector weights of the system under test (builtin or yolo; default: the shipped ones): "
+                         "an agent against a detector it never trained with")
     ev.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
     ev.add_argument("--search-budget", type=int, default=8, help="episodes per scene a search baseline may spend")
     ev.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
