@@ -106,9 +106,21 @@ def test_observation_settings_are_checked() -> None:
 def test_shipped_reactive_configs_load_and_log_std_init_is_checked() -> None:
     from genesis_rl.training.config import PPOConfig, load_run_config
 
-    for path in ("configs/reactive.toml", "configs/reactive_long.toml", "configs/reactive_night.toml"):
+    for path in ("configs/reactive.toml", "configs/reactive_long.toml", "configs/reactive_night.toml",
+                 "configs/reactive_sac.toml"):
         cfg = load_run_config(path, {"env": {"scenes": 2}})
         assert cfg.env.observation_mode == "features" and cfg.env.dynamics == "natural" and cfg.env.odd
+    sac = load_run_config("configs/reactive_sac.toml", {"env": {"scenes": 2}})
+    assert sac.train.algorithm == "sac" and sac.device == sac.sac.device and sac.sac.buffer_size >= 40960
     assert load_run_config("configs/reactive_long.toml", {"env": {"scenes": 2}}).ppo.log_std_init == -1.0
     with pytest.raises(UserInputError, match=r"ppo.log_std_init = -9.0 must be in -5..2"):
         PPOConfig(log_std_init=-9.0)
+    from genesis_rl.training.config import SACConfig, TrainConfig
+
+    for bad in ("autoo", "auto_", "-0.1", "fast"):
+        with pytest.raises(UserInputError, match=rf"sac.ent_coef = '{bad}'; allowed: 'auto', 'auto_X' or 'X'"):
+            SACConfig(ent_coef=bad)
+    assert SACConfig(ent_coef="auto_0.1").sb3_ent_coef() == "auto_0.1"
+    assert SACConfig(ent_coef="0.2").sb3_ent_coef() == 0.2
+    with pytest.raises(UserInputError, match="train.algorithm = 'a2c'; allowed: ppo, sac"):
+        TrainConfig(algorithm="a2c")
