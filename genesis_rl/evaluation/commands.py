@@ -117,6 +117,20 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from genesis_rl.evaluation.compare import compare, compare_markdown, parse_series
+    from genesis_rl.io_utils import atomic_write_json
+
+    result = compare([parse_series(s) for s in args.series], seed=args.seed)
+    if args.json:
+        out = Path(args.json)
+        if out.exists() and not args.force:
+            raise UserInputError(f"--json '{out}' exists; pass --force to overwrite it")
+        atomic_write_json(out, result, indent=1)
+    print(compare_markdown(result), end="")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from genesis_rl.drive import write_telemetry
     from genesis_rl.evaluation.records import load_record, replay_record
@@ -245,6 +259,19 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--force", action="store_true", help="overwrite an existing report")
     rp.add_argument("--markdown", action="store_true", help="print the summary tables as Markdown instead")
     rp.set_defaults(func=_cmd_report)
+
+    cp = sub.add_parser("compare", help="policies from different campaigns, paired scene by scene (Markdown)",
+                        description="Compare policies evaluated in different campaigns (e.g. an agent in its own, the "
+                                    "baselines in another) on the scenes they share: every policy's collisions, "
+                                    "in-ODD collisions, distinct in-ODD failures, proximity violations and return, "
+                                    "and the first policy's paired differences to each other one. The campaigns "
+                                    "must share map, episode length, system, ODD, dynamics and episode seeds.")
+    cp.add_argument("series", nargs="+", help="LABEL=CAMPAIGN:POLICY, e.g. agent=runs/sac_s0/eval:agent; the first "
+                                              "is compared with each other")
+    cp.add_argument("--seed", type=int, default=0, help="seed of the bootstrap resampling")
+    cp.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    cp.add_argument("--force", action="store_true", help="overwrite an existing --json file")
+    cp.set_defaults(func=_cmd_compare)
 
     rl = sub.add_parser("replay", help="re-run an edge-case record; check its violations; write a GIF")
     rl.add_argument("record", help="edge-case record (CAMPAIGN/records/*.json)")
