@@ -60,7 +60,8 @@ def parse_series(text: str) -> Series:
 
 
 def _in_odd_collision(row: dict[str, Any]) -> float:
-    failure = row.get("failure")
+    """1 for a collision inside the campaign's ODD (or any collision when it has none), else 0."""
+    failure = row.get("failure") or {}
     return float(bool(failure) and failure.get("odd_status", "no ODD") in (*IN_ODD, "no ODD"))
 
 
