@@ -112,6 +112,7 @@ def test_shipped_reactive_configs_load_and_log_std_init_is_checked() -> None:
         assert cfg.env.observation_mode == "features" and cfg.env.dynamics == "natural" and cfg.env.odd
     sac = load_run_config("configs/reactive_sac.toml", {"env": {"scenes": 2}})
     assert sac.train.algorithm == "sac" and sac.device == sac.sac.device and sac.sac.buffer_size >= 40960
+    assert sac.sac.net_arch == (64, 64) and sac.env.start_spread == 1.0
     assert load_run_config("configs/reactive_long.toml", {"env": {"scenes": 2}}).ppo.log_std_init == -1.0
     with pytest.raises(UserInputError, match=r"ppo.log_std_init = -9.0 must be in -5..2"):
         PPOConfig(log_std_init=-9.0)
@@ -122,5 +123,36 @@ def test_shipped_reactive_configs_load_and_log_std_init_is_checked() -> None:
             SACConfig(ent_coef=bad)
     assert SACConfig(ent_coef="auto_0.1").sb3_ent_coef() == "auto_0.1"
     assert SACConfig(ent_coef="0.2").sb3_ent_coef() == 0.2
+    with pytest.raises(UserInputError, match=r"sac.net_arch = \[64, 0\]: expected 1 or more layer widths"):
+        SACConfig(net_arch=(64, 0))
     with pytest.raises(UserInputError, match="train.algorithm = 'a2c'; allowed: ppo, sac"):
         TrainConfig(algorithm="a2c")
+
+
+def test_exploring_starts_spread_within_reach_stay_inside_the_odd_and_replay_from_the_episode_seed() -> None:
+    """env.start_spread: each training episode starts at a random weather (drawn from its episode seed) that
+    the knobs could reach in an episode, inside the ODD; campaigns drop the setting, so tests start at
+    start_weather."""
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.evaluation.campaign_spec import env_settings_for
+
+    env = GenesisEnv(system="blind", scenes=2, episode_steps=512, odd="configs/odd/urban_all_day.toml",
+                     dynamics="natural", start_spread=1.0, observation="features")
+    try:
+        starts = [env.exploring_start(s) for s in range(40)]
+        fog = np.array([w["fog_density"] for w in starts])
+        deposits = np.array([w["precipitation_deposits"] for w in starts])
+        sun = np.array([w["sun_altitude_angle"] for w in starts])
+        assert fog.max() > 40 and fog.min() < 10  # fog can reach its densest in an episode: spread widely
+        assert deposits.max() <= 0.2 * 25.6 + 1e-9  # water builds at 0.2 %/s: at most 5.1 % in 25.6 s
+        assert np.ptp(sun) <= 2 * 0.25 / 60 * 25.6 + 1e-9  # the sun moves 0.1 deg in an episode
+        assert all(env.odd.contains(env.conditions_model.conditions(w)) for w in starts)
+        assert min(env.conditions_model.conditions(w).visibility_m for w in starts) == pytest.approx(50, abs=1)
+        assert env.exploring_start(7) == env.exploring_start(7) != env.exploring_start(8)
+        env.reset(options={"scene": 0, "episode_seed": 7})
+        assert env.weather == env.exploring_start(7)
+    finally:
+        env.close()
+    with pytest.raises(UserInputError, match="env.start_spread = 1.5 must be in 0..1"):
+        EnvConfig(start_spread=1.5)
+    assert "start_spread" not in env_settings_for(None, "configs/reactive_sac.toml", None)

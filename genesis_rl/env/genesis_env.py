@@ -22,7 +22,7 @@ from genesis_rl.backends import catalog_or_generate, check_backend_setting, make
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.env.observation import OBSERVATIONS, FeatureHistory, observation_space, step_features
 from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
+from genesis_rl.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.odd.conditions import conditions_model
 from genesis_rl.odd.domain import ODD, check_start, load_odd
 from genesis_rl.odd.dynamics import DYNAMICS, WeatherModel, max_deltas
@@ -55,6 +55,9 @@ class EnvConfig:
     odd: str | None = None  # operational design domain file (configs/odd/*.toml): steps are labelled against it
     odd_keep_inside: bool = True  # and policies are kept inside it (false: label only, e.g. to audit old runs)
     start_weather: str = "clear_noon"  # preset and/or KNOB=VALUE list
+    start_spread: float = 0.0  # training only (exploring starts): each knob the agent turns starts at a random
+    #                            point up to this fraction of what it can move in an episode away from
+    #                            start_weather, inside the ODD; drawn from the episode seed. 0: start_weather
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
     camera_height: int = 240
@@ -105,6 +108,8 @@ class EnvConfig:
         KnobActionMapper(self.knobs, self.max_step_fraction, self.disabled_knobs)  # names, limits checked
         if self.dynamics not in DYNAMICS:
             raise UserInputError(f"env.dynamics = '{self.dynamics}' is unknown; allowed: {', '.join(DYNAMICS)}")
+        if not 0.0 <= self.start_spread <= 1.0:
+            raise UserInputError(f"env.start_spread = {self.start_spread} must be in 0..1 (0: start_weather)")
         start = parse_weather(self.start_weather)
         if self.odd is not None:
             odd = self.load_odd()
@@ -251,7 +256,7 @@ class GenesisEnv(gym.Env):
             raise UserInputError(f"reset option scene = {idx} is out of range; the catalog has {n} scenes")
         self.scene_index = idx
         self.episode_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
-        self.weather = options.get("weather", self.start_weather)
+        self.weather = options.get("weather", self.exploring_start(self.episode_seed))
         scene = self.catalog.scene(idx)
         self._sim = self.backend.create_simulation(scene, seed=self.episode_seed, weather=self.weather,
                                                    camera=self.camera)
@@ -261,6 +266,33 @@ class GenesisEnv(gym.Env):
         self.records = []
         info = {"scene": idx, "episode_seed": self.episode_seed, "knobs": self._knob_info()}
         return self._observation(), info
+
+    def exploring_start(self, episode_seed: int) -> Weather:
+        """The episode's start weather: ``start_weather``, or with ``env.start_spread`` > 0 each knob the agent
+        turns drawn uniformly within ``start_spread`` of its reach in an episode (its largest change per step
+        times the steps) around it, then kept inside the ODD. Why: under natural dynamics a policy that
+        starts every episode in clear air never sees dense fog within the paper's budget, so it cannot learn
+        what fog is worth (docs/results.md section 7). Drawn from the episode seed, so a checkpoint's
+        episode is rebuilt exactly."""
+        c = self.config
+        if c.start_spread <= 0:
+            return self.start_weather
+        rng = np.random.default_rng([int(episode_seed), 0x57A27])
+        moved = dict(self.start_weather.values)
+        for name, delta in zip(self.mapper.knobs, self.mapper.max_delta, strict=True):
+            if name in c.disabled_knobs:
+                continue
+            spec = KNOBS[name]
+            reach = min(spec.span, float(delta) * c.episode_steps) * c.start_spread
+            base = moved[name]
+            lo, hi = (base - reach, base + reach) if spec.wraps else \
+                (max(spec.low, base - reach), min(spec.high, base + reach))
+            value = float(rng.uniform(lo, hi))
+            moved[name] = (value - spec.low) % spec.span + spec.low if spec.wraps else value
+        drawn = Weather(moved)
+        if self.odd is not None and c.odd_keep_inside:
+            drawn = self.odd.keep_inside(self.start_weather, drawn, self.conditions_model)
+        return drawn
 
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         if self._loop is None:

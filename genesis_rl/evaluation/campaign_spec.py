@@ -97,8 +97,8 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None,
         if not Path(weights).is_file():
             raise UserInputError(f"--weights '{weights}' is not a file")
         env["system_kwargs"] = {**env.get("system_kwargs", {}), "weights": str(weights)}
-    for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps"):
-        env.pop(key, None)  # the campaign decides these
+    for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps", "start_spread"):
+        env.pop(key, None)  # the campaign decides these (and every test episode starts at start_weather)
     env["terminate_on_collision"] = False  # the protocol drives every episode for its full length
     return env
 

@@ -92,6 +92,7 @@ class SACConfig:
     train_freq: int = 1  # env steps (per env) between updates
     gradient_steps: int = 1  # updates each time
     ent_coef: str = "auto"  # "auto" (learned, from 1), "auto_X" (learned, from X) or a fixed number
+    net_arch: tuple[int, ...] = (256, 256)  # hidden layers of the actor and of each critic (SB3's default)
     device: str = "auto"
 
     def __post_init__(self) -> None:
@@ -102,6 +103,8 @@ class SACConfig:
         for k in ("buffer_size", "batch_size", "train_freq", "gradient_steps"):
             if getattr(self, k) < 1:
                 raise UserInputError(f"sac.{k} = {getattr(self, k)} must be >= 1")
+        if not self.net_arch or not all(1 <= n <= 4096 for n in self.net_arch):
+            raise UserInputError(f"sac.net_arch = {list(self.net_arch)}: expected 1 or more layer widths in 1..4096")
         if self.learning_starts < 0:
             raise UserInputError(f"sac.learning_starts = {self.learning_starts} must be >= 0")
         if self.ent_coef != "auto":

@@ -171,7 +171,8 @@ def new_model(cfg: RunConfig, env: Any, policy: str) -> BaseAlgorithm:
         return SAC(policy, env, learning_rate=s.learning_rate, buffer_size=s.buffer_size,
                    learning_starts=s.learning_starts, batch_size=s.batch_size, tau=s.tau, gamma=s.gamma,
                    train_freq=s.train_freq, gradient_steps=s.gradient_steps, ent_coef=s.sb3_ent_coef(),
-                   seed=cfg.train.seed, device=s.device, policy_kwargs=kwargs, verbose=0)
+                   seed=cfg.train.seed, device=s.device, policy_kwargs={**kwargs, "net_arch": list(s.net_arch)},
+                   verbose=0)
     p = cfg.ppo
     return PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
                batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
