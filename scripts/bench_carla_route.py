@@ -67,8 +67,8 @@ def main() -> None:
     carla_ctx = EpisodeContext("carla", args.map, cmap, ego_lane=lane_key(road, lane),
                                extras={"plan_route": route_from_context, "route_planner": planner,
                                        "signal_state": signal_plan(lite)}, **common)
-    lite_ctx = EpisodeContext("lite", args.map, lite, ego_lane=lite_lane, ego_next_lane=lite.lanes[lite_lane].successors[0],
-                              **common)
+    lite_ctx = EpisodeContext("lite", args.map, lite, ego_lane=lite_lane,
+                              ego_next_lane=lite.lanes[lite_lane].successors[0], **common)
     x, y, _, yaw = lite.pose(lite_lane, s0)
     out = {
         "map": args.map,

@@ -119,6 +119,7 @@ def compare(series: Sequence[Series], seed: int = 0) -> dict[str, Any]:
             "distinct_in_odd_failures": natural["distinct_in_odd_failures"] if natural else None,
             "proximity_episodes": sum(1 for e in eps if e["proximity"] > 0),
             "return": bootstrap_mean_ci([e["return"] for e in eps], seed + j),
+            "returns": [round(float(e["return"]), 3) for e in eps],  # per shared scene, in scene order
             "mean_iou": round(float(np.mean([e["mean_iou"] for e in eps])), 4),
             "knobs_final": {k: round(float(np.mean([e["knobs_final"][k] for e in eps])), 2)
                             for k in eps[0]["knobs_final"]},
