@@ -161,7 +161,8 @@ def compare_markdown(result: dict[str, Any]) -> str:
         for key in ("return", "collision", "in_odd_collision"):
             x = c[key]
             digits = 1 if key == "return" else 2
-            p = "-" if x["p_value"] is None else f"{x['p_value']:.3f}"
+            p = "-" if x["p_value"] is None else f"{x['p_value']:.4f}" if x["p_value"] < 0.001 else \
+                f"{x['p_value']:.3f}"
             cells.append(f"{_ci(x['difference'], digits)}, {x['wins']}/{x['ties']}/{x['losses']}, p {p}")
         lines.append(f"| {name.replace('_vs_', ' - ')} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
