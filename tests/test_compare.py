@@ -66,3 +66,13 @@ def test_compare_refuses_what_cannot_be_paired(campaigns, tmp_path, capsys) -> N
     (c / "campaign.json").write_text(json.dumps(meta))
     assert main(["compare", f"{a}:sunny", f"{c}:random"]) == 2
     assert "differ in steps (80 against 40)" in capsys.readouterr().err
+
+
+def test_a_policys_interval_does_not_depend_on_the_order_of_the_series(campaigns, capsys) -> None:
+    a, b = campaigns
+    from genesis_rl.evaluation.compare import compare, parse_series
+
+    one = compare([parse_series(f"fog={a}:constant"), parse_series(f"rnd={b}:random")])
+    two = compare([parse_series(f"rnd={b}:random"), parse_series(f"fog={a}:constant")])
+    assert one["policies"]["fog"]["return"] == two["policies"]["fog"]["return"]
+    assert one["policies"]["rnd"]["return"] == two["policies"]["rnd"]["return"]
