@@ -132,7 +132,9 @@ def compare(series: Sequence[Series], seed: int = 0) -> dict[str, Any]:
                                                          [read(rows[s.label][sc]) for sc in shared], seed + 7)
                                   for key, _, read in PAIRED}
         for s in series[1:]}
+    odd = SAME[3][1](first_meta) if first_meta else None
     return {"scenes": shared, "map": SAME[0][1](first_meta) if first_meta else None,
+            "odd": odd.get("name") if isinstance(odd, dict) else None,
             "policies": policies, "comparisons": comparisons}
 
 
@@ -143,7 +145,9 @@ def _ci(stats: dict[str, Any], digits: int = 1) -> str:
 def compare_markdown(result: dict[str, Any]) -> str:
     n = len(result["scenes"])
     knobs = next(iter(result["policies"].values()))["knobs_final"]
-    lines = [f"{n} shared scenes on `{result['map']}`; final knobs: the mean at the episode's end of "
+    domain = f"inside the ODD `{result['odd']}`" if result.get("odd") else \
+        "no ODD declared, so every collision counts as in-ODD"
+    lines = [f"{n} shared scenes on `{result['map']}`, {domain}; final knobs: the mean at the episode's end of "
              f"{' / '.join(knobs)}.", "",
              "| policy | sim steps | episodes with a collision | in-ODD collisions [95% CI of the rate] | "
              "distinct in-ODD failures | episodes with a proximity violation | return [95% CI] | mean IoU | "
