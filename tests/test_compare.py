@@ -66,6 +66,17 @@ def test_compare_refuses_what_cannot_be_paired(campaigns, tmp_path, capsys) -> N
     (c / "campaign.json").write_text(json.dumps(meta))
     assert main(["compare", f"{a}:sunny", f"{c}:random"]) == 2
     assert "differ in steps (80 against 40)" in capsys.readouterr().err
+    # another package version with the same weights and settings pairs (and is named); other weights do not
+    meta["spec"]["steps"] = 40
+    meta["package_version"] = "0.0.1"
+    meta["identity"]["system"]["version"] = "0.0.1"
+    (c / "campaign.json").write_text(json.dumps(meta))
+    assert main(["compare", f"{a}:sunny", f"{c}:random"]) == 0
+    assert "ran with genesis-rl 0.0.1, " in capsys.readouterr().out
+    meta["identity"]["system"]["weights_sha256"] = "0" * 64
+    (c / "campaign.json").write_text(json.dumps(meta))
+    assert main(["compare", f"{a}:sunny", f"{c}:random"]) == 2
+    assert "differ in system" in capsys.readouterr().err
 
 
 def test_a_policys_interval_does_not_depend_on_the_order_of_the_series(campaigns, capsys) -> None:

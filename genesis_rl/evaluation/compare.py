@@ -27,9 +27,18 @@ from genesis_rl.evaluation.summary import load_campaign
 #: what two campaigns must share to be compared, read from campaign.json
 SAME = (("map", lambda m: m.get("catalog", {}).get("map", m["spec"]["map"])),
         ("steps", lambda m: m["spec"]["steps"]),
-        ("system", lambda m: m.get("identity", {}).get("system")),
+        ("system", lambda m: _system_key(m.get("identity", {}).get("system"))),
         ("odd", lambda m: m.get("identity", {}).get("odd")),
         ("dynamics", lambda m: m["spec"]["env"].get("dynamics", "paper")))
+
+
+def _system_key(identity: Any) -> Any:
+    """The system under test as it decides: its class, weights (by hash: a path differs between machines) and
+    settings; not the package version that ran it (``compare`` lists the versions instead)."""
+    if not isinstance(identity, dict):
+        return identity
+    return {k: v for k, v in identity.items() if k != "version" and not (k == "weights" and "weights_sha256"
+                                                                         in identity)}
 
 
 def _brief(value: Any) -> str:
@@ -38,7 +47,7 @@ def _brief(value: Any) -> str:
         if "name" in value:
             return str(value["name"])
         if "class" in value:
-            return " ".join(str(value[k]) for k in ("class", "weights") if k in value)
+            return " ".join(str(value[k]) for k in ("class", "weights", "weights_sha256") if k in value)
     return json.dumps(value, default=str)[:120]
 
 
@@ -133,8 +142,9 @@ def compare(series: Sequence[Series], seed: int = 0) -> dict[str, Any]:
                                   for key, _, read in PAIRED}
         for s in series[1:]}
     odd = SAME[3][1](first_meta) if first_meta else None
+    versions = sorted({str(meta.get("package_version")) for meta, _ in cache.values()})
     return {"scenes": shared, "map": SAME[0][1](first_meta) if first_meta else None,
-            "odd": odd.get("name") if isinstance(odd, dict) else None,
+            "odd": odd.get("name") if isinstance(odd, dict) else None, "package_versions": versions,
             "policies": policies, "comparisons": comparisons}
 
 
@@ -148,7 +158,11 @@ def compare_markdown(result: dict[str, Any]) -> str:
     domain = f"inside the ODD `{result['odd']}`" if result.get("odd") else \
         "no ODD declared, so every collision counts as in-ODD"
     lines = [f"{n} shared scenes on `{result['map']}`, {domain}; final knobs: the mean at the episode's end of "
-             f"{' / '.join(knobs)}.", "",
+             f"{' / '.join(knobs)}."]
+    if len(result.get("package_versions", ())) > 1:
+        lines.append(f"The campaigns ran with genesis-rl {', '.join(result['package_versions'])} (the same system "
+                     "class, weights and settings).")
+    lines += ["",
              "| policy | sim steps | episodes with a collision | in-ODD collisions [95% CI of the rate] | "
              "distinct in-ODD failures | episodes with a proximity violation | return [95% CI] | mean IoU | "
              "final knobs |",
