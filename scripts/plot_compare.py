@@ -38,7 +38,7 @@ def main() -> None:
                       color="black", capsize=5, zorder=3)
         if "returns" in p:
             ax_r.scatter(i + np.linspace(-0.25, 0.25, len(p["returns"])), p["returns"], s=8, alpha=0.4)
-    ax_r.set_xticks(x, [f"{lb}\n{policies[lb]['sim_steps'] / n:,.0f} steps/scene" for lb in labels], fontsize=8)
+    ax_r.set_xticks(x, [f"{lb}\n{policies[lb]['sim_steps'] / n:,.0f}\nsteps/scene" for lb in labels], fontsize=8)
     ax_r.set_ylabel("episode return (mean, 95% CI)")
     ax_r.set_title("the agents' objective")
     width = 0.38
