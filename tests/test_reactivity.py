@@ -100,7 +100,8 @@ def test_reactivity_command_on_a_campaign(tmp_path) -> None:
     again = subprocess.run([*run, "reactivity", "--campaign", str(camp), "--policy", "constant", "--quiet"],
                            capture_output=True, text=True, timeout=600)
     assert again.returncode == 2 and "--force" in again.stderr
-    for bad, message in ((["--policy", "cmaes"], "needs a step policy"), (["--scenes", "1"], "allowed: 2..2")):
+    for bad, message in ((["--policy", "cmaes"], "needs a step policy"), (["--scenes", "1"], "allowed: 2..2"),
+                         (["--policy", "agent"], "was evaluated without an agent")):
         r = subprocess.run([*run, "reactivity", "--campaign", str(camp), "--force", *bad], capture_output=True,
                            text=True, timeout=600)
         assert r.returncode == 2 and message in r.stderr

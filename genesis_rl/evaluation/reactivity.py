@@ -182,6 +182,9 @@ def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, w
     if not issubclass(cls, StepPolicy):
         raise UserInputError(f"--policy '{policy_name}' searches over episodes; reactivity needs a step policy "
                              "(agent, constant, random, sunny or your own StepPolicy)")
+    if cls.needs_agent and not spec.agent:  # reactivity has no --agent: the campaign names the agent
+        raise UserInputError(f"--policy '{policy_name}': campaign '{folder}' was evaluated without an agent; "
+                             "choose a campaign made with `genesis-rl evaluate --agent runs/NAME`")
     runner = CampaignRunner(spec, folder)
     try:
         policy = cls(spec.policy_context(runner.env.mapper.action_dim))
