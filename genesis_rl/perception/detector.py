@@ -67,6 +67,17 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def _first_mismatch(err: Exception) -> str:
+    """One line from a load error: torch's first line only says "Error(s) in loading state_dict"; the first
+    mismatched or missing tensor is on the next, so name it (and count the rest)."""
+    lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
+    if len(lines) <= 1:
+        return lines[0] if lines else type(err).__name__
+    details = [part.strip() for line in lines[1:] for part in line.split("\t") if part.strip()]
+    more = f" (and {len(details) - 1} more)" if len(details) > 1 else ""
+    return f"{details[0]}{more}"
+
+
 def load_checkpoint(path: Path) -> dict:
     """Read and check a detector checkpoint; any problem raises :class:`UserInputError` naming the file."""
     import torch
@@ -122,7 +133,7 @@ class VehicleDetector:
             net = VehicleDetectorNet(self.model_config)
             net.load_state_dict(ckpt["state_dict"])
         except (ValueError, TypeError, RuntimeError) as e:
-            msg = str(e).strip().splitlines()[0]
+            msg = _first_mismatch(e)
             raise UserInputError(f"weights file {self.weights_path} does not match the detector network: "
                                  f"{msg}") from None
         thr = float(ckpt["score_threshold"]) if score_threshold is None else float(score_threshold)
