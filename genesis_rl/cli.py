@@ -107,19 +107,19 @@ def _cmd_reactivity(args: argparse.Namespace) -> int:
 
 
 def _cmd_corners(args: argparse.Namespace) -> int:
-    from genesis_rl.env import GenesisEnv
-    from genesis_rl.evaluation.campaign_spec import pick_scenes
-    from genesis_rl.evaluation.corners import search_corners
-    from genesis_rl.io_utils import atomic_write_json, ensure_writable
-    from genesis_rl.training.config import load_run_config
-
-    if args.steps is not None:  # before the env is built: --steps 1000000000000 would run for years
+    if args.steps is not None:  # before anything is imported or built: --steps 1000000000000 would run for years
         if args.steps < 1:
             raise UserInputError(f"--steps must be >= 1, got {args.steps}")
         limits.SIM_STEPS.check(args.steps, "--steps")
     if args.scenes < 1:
         raise UserInputError(f"--scenes must be >= 1, got {args.scenes}")
     limits.SCENES.check(args.scenes, "--scenes")
+    from genesis_rl.env import GenesisEnv
+    from genesis_rl.evaluation.campaign_spec import pick_scenes
+    from genesis_rl.evaluation.corners import search_corners
+    from genesis_rl.io_utils import atomic_write_json, ensure_writable
+    from genesis_rl.training.config import load_run_config
+
     out = Path(args.out)
     ensure_writable(out, args.force)
     env_over: dict = {"episode_steps": args.steps} if args.steps is not None else {}
@@ -273,8 +273,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
-
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
                                                        "campaign": 256}[args.what]
     least = 2 if args.what == "train" else 1  # a PPO update needs two steps
@@ -284,6 +282,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise UserInputError(f"--frames = {args.frames} must be >= 1")
     limits.SIM_STEPS.check(steps, "--steps")
     limits.FRAMES.check(args.frames, "--frames")  # bench system --frames 1000000000 would run for years
+    from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
+
     if args.what == "campaign":
         executors = tuple(_csv_list(args.executors or "local,ray") or [])
         bad = [e for e in executors if e not in ("local", "ray")]

@@ -44,9 +44,10 @@ def start_hint(host: str, port: int) -> str:
 MAX_TIMEOUT_S = 3600.0
 #: seconds the probe may take to find and connect to the server (the answer gets --carla-timeout)
 PROBE_CONNECT_S = 5.0
-#: CARLA's RPC is msgpack-rpc (rpclib): the request [0, msgid 0, "version", []], hand-encoded (fixarray of 4,
-#: fixint 0, fixint 0, fixstr of 7, an empty fixarray); the client's get_server_version() sends the same call
-VERSION_REQUEST = bytes([0x94, 0x00, 0x00, 0xA7]) + b"version" + bytes([0x90])
+#: CARLA's RPC is msgpack-rpc (rpclib): the request [0, msgid 0, "version", [[false]]], hand-encoded (fixarray
+#: of 4, fixint 0, fixint 0, fixstr of 7, then the arguments: CARLA's call metadata [asynchronous = false]).
+#: It is the call the client's get_server_version() sends, byte for byte but the msgid (client 0.9.16).
+VERSION_REQUEST = bytes([0x94, 0x00, 0x00, 0xA7]) + b"version" + bytes([0x91, 0x91, 0xC2])
 #: a msgpack-rpc answer to it: [1 (response), msgid 0, error, result], error nil when the call exists
 _RESPONSE_HEAD = bytes([0x94, 0x01, 0x00])
 _NIL = 0xC0

@@ -26,7 +26,8 @@ def read_episodes(run: Path) -> list[dict[str, float]]:
             from genesis_rl.errors import UserInputError
             from genesis_rl.parsing import csv_error_reason
 
-            raise UserInputError(f"episode log '{path}' line {reader.line_num}: {csv_error_reason(err)}") from None
+            raise UserInputError(f"episode log '{path}' line {reader.reader.line_num}: {csv_error_reason(err)}"
+                                 ) from None
     return rows
 
 
