@@ -44,9 +44,9 @@ class CampaignSpec:
 
         for name, limit in (("steps", limits.SIM_STEPS), ("scenes", limits.SCENES)):
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            if not isinstance(value, int) or isinstance(value, bool):
                 raise UserInputError(f"campaign spec.{name} = {value!r}; allowed: an integer >= 1")
-            limit.check(value, f"campaign spec.{name}")
+            limit.check(value, f"campaign spec.{name}")  # the lower bound: where the scenes are picked and run
         for name, limit in (("search_budget", limits.SEARCH_BUDGET), ("retries", limits.RETRIES)):
             value = self.options.get(name)
             if isinstance(value, int) and not isinstance(value, bool):
