@@ -57,6 +57,8 @@ FRAMES = Limit("FRAMES", 100_000, "frames", "rendering and detecting that many t
 EPOCHS = Limit("EPOCHS", 1_000, "epochs", "the shipped detector trains 20")
 WORKERS = Limit("WORKERS", 256, "processes", "each runs a simulator and takes a CPU core and about 1 GB of memory")
 THREADS = Limit("THREADS", 256, "threads", "more threads than cores only slow a run down")
+BUFFER = Limit("BUFFER", 1_000_000, "transitions", "held in memory: 1,000,000 camera observations of 72x96 take "
+                                                   "21 GB; the paper's PPO holds 2,048")
 RETRIES = Limit("RETRIES", 100, "retries", "each reconnects to the simulator and plays the episode again")
 
 

@@ -175,6 +175,16 @@ def test_a_search_budget_of_1e9_refuses_at_once(tmp_path, capsys, monkeypatch, p
     assert "GENESIS_RL_MAX_SEARCH_BUDGET" in err
 
 
+def test_a_replay_buffer_of_a_trillion_transitions_is_refused_not_allocated(tmp_path, capsys, monkeypatch) -> None:
+    """numpy's _ArrayMemoryError (18.4 PiB) was a traceback after the envs had started."""
+    _must_not_start(monkeypatch, "genesis_rl.training.train", "train")
+    config = tmp_path / "sac.toml"
+    config.write_text('[train]\nalgorithm = "sac"\n[sac]\nbuffer_size = 1000000000000\n')
+    assert main(["train", "--config", str(config), "--out", str(tmp_path / "run")]) == 2
+    assert "sac.buffer_size = 1,000,000,000,000, over the limit of 1,000,000 transitions" in \
+        _one_line_error(capsys, "train")
+
+
 def test_a_campaign_file_cannot_set_a_budget_the_command_line_may_not() -> None:
     from genesis_rl.evaluation.campaign_spec import CampaignSpec
 
@@ -203,6 +213,8 @@ def test_a_campaign_file_cannot_set_a_budget_the_command_line_may_not() -> None:
      "env.episode_steps = 1,000,000,000,000, over the limit of 100,000"),
     (["train", "--scenes", "1000000000"], "genesis_rl.training.train", "train",
      "env.scenes = 1,000,000,000, over the limit of 100,000 scenes"),
+    (["train", "--n-steps", "1000000000000"], "genesis_rl.training.train", "train",
+     "ppo.n_steps = 1,000,000,000,000, over the limit of 1,000,000 transitions"),
 ])
 def test_every_count_that_sets_work_has_a_ceiling(tmp_path, capsys, monkeypatch, argv, module, name,
                                                   message) -> None:
