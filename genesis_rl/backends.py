@@ -167,6 +167,7 @@ def servers_text(args: argparse.Namespace) -> str | None:
 
 def settings_from_args(args: argparse.Namespace) -> ConnectionSettings:
     """The connection of a single process: the first of ``--carla-port``'s servers."""
+    _check_connection_flags(args)
     return ConnectionSettings(args.carla_host, args.carla_port[0], args.carla_tm_port, args.carla_timeout)
 
 
@@ -174,8 +175,16 @@ def env_overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The ``[env]`` keys that ``--backend`` and the connection flags set (empty without ``--backend``)."""
     if args.backend is None:
         return {}
+    _check_connection_flags(args)
     return {"backend": args.backend, "carla_host": args.carla_host, "carla_port": args.carla_port[0],
             "carla_tm_port": args.carla_tm_port, "carla_timeout": args.carla_timeout}
+
+
+def _check_connection_flags(args: argparse.Namespace) -> None:
+    """``--carla-tm-port`` and ``--carla-timeout`` (inf became 0 s), by the one check the CARLA connection uses."""
+    from genesis_rl.carla_backend.connection import check_numbers  # imports no carla: the client is optional
+
+    check_numbers(args.carla_port[0], args.carla_timeout, args.carla_tm_port)
 
 
 def backend_from_args(args: argparse.Namespace) -> Backend:

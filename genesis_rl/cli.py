@@ -107,6 +107,13 @@ def _cmd_reactivity(args: argparse.Namespace) -> int:
 
 
 def _cmd_corners(args: argparse.Namespace) -> int:
+    if args.steps is not None:  # before anything is imported or built: --steps 1000000000000 would run for years
+        if args.steps < 1:
+            raise UserInputError(f"--steps must be >= 1, got {args.steps}")
+        limits.SIM_STEPS.check(args.steps, "--steps")
+    if args.scenes < 1:
+        raise UserInputError(f"--scenes must be >= 1, got {args.scenes}")
+    limits.SCENES.check(args.scenes, "--scenes")
     from genesis_rl.env import GenesisEnv
     from genesis_rl.evaluation.campaign_spec import pick_scenes
     from genesis_rl.evaluation.corners import search_corners
@@ -182,6 +189,7 @@ def _cmd_drive(args: argparse.Namespace) -> int:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
     if args.threads < 1:
         raise UserInputError(f"--threads must be >= 1, got {args.threads}")
+    limits.THREADS.check(args.threads, "--threads")
     if args.gif_from < 0 or args.gif_from >= args.steps:
         raise UserInputError(f"--gif-from must be a step in 0..{args.steps - 1} (--steps {args.steps}), "
                              f"got {args.gif_from}")
@@ -265,8 +273,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
-
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
                                                        "campaign": 256}[args.what]
     least = 2 if args.what == "train" else 1  # a PPO update needs two steps
@@ -275,17 +281,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise UserInputError(f"--frames = {args.frames} must be >= 1")
     limits.SIM_STEPS.check(steps, "--steps")
+    limits.FRAMES.check(args.frames, "--frames")  # bench system --frames 1000000000 would run for years
+    from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
+
     if args.what == "campaign":
         executors = tuple(_csv_list(args.executors or "local,ray") or [])
         bad = [e for e in executors if e not in ("local", "ray")]
         if bad or not executors:
             raise UserInputError(f"--executors {args.executors!r}; allowed: a comma list of local, ray")
-        try:
-            counts = tuple(int(w) for w in _csv_list(args.workers) or [])
-        except ValueError:
-            counts = ()
-        if not counts or min(counts) < 1:
-            raise UserInputError(f"--workers {args.workers!r}; allowed: a comma list of integers >= 1, e.g. 1,2")
+        counts = limits.count_list(args.workers, "--workers", limits.WORKERS)  # 1,,2 is refused
         if not 1 <= args.scenes <= 500:
             raise UserInputError(f"--scenes = {args.scenes} must be in 1..500")
         print(json.dumps(bench_campaign(scenes=args.scenes, steps=steps, executors=executors, workers=counts,

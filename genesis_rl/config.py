@@ -4,7 +4,6 @@ with the key's dotted path and what is allowed."""
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 import types
 import typing
 from collections.abc import Mapping
@@ -12,7 +11,6 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import read_utf8
 
 T = TypeVar("T")
 
@@ -100,11 +98,9 @@ def read_toml(path: str | Path, what: str = "config", hint: str = "") -> dict[st
         raise UserInputError(f"{what} '{path}' is a folder; expected a TOML file")
     if not path.is_file():
         raise UserInputError(f"{what} file '{path}' does not exist{hint}")
-    text = read_utf8(path, what)
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise UserInputError(f"{what} '{path}' is not valid TOML: {err}") from None
+    from genesis_rl.parsing import loads_toml, read_toml_text  # size and depth limits: a hostile file is one line
+
+    return loads_toml(read_toml_text(path, what), f"{what} '{path}'")
 
 
 def dump_toml(data: Mapping[str, Any]) -> str:

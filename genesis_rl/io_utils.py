@@ -10,9 +10,12 @@ import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from genesis_rl.errors import UserInputError
+
+if TYPE_CHECKING:
+    from genesis_rl.limits import Limit
 
 
 def ensure_writable(path: Path, force: bool) -> None:
@@ -149,10 +152,9 @@ def read_utf8(path: Path, what: str = "file") -> str:
         raise UserInputError(f"{what} '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
 
 
-def read_json(path: Path, what: str = "file") -> Any:
-    """A JSON file's content; a damaged file is a user error that names it, not a traceback."""
-    text = read_utf8(path, what)
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise UserInputError(f"{what} '{path}' is not valid JSON: {err}") from None
+def read_json(path: Path, what: str = "file", limit: Limit | None = None) -> Any:
+    """A JSON file's content; a damaged file, one over ``limit`` (default ``parsing.FILE_MB``) or one nested
+    deeper than ``parsing.NESTING`` is a user error that names it, not a traceback."""
+    from genesis_rl import parsing
+
+    return parsing.read_json(path, what, limit or parsing.FILE_MB)

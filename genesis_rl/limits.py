@@ -50,3 +50,29 @@ SCENES = Limit("SCENES", 100_000, "scenes", "generating that many takes about 80
 SIM_STEPS = Limit("SIM_STEPS", 100_000, "simulation steps", "83 simulated minutes, about 6 minutes to run")
 TIMESTEPS = Limit("TIMESTEPS", 100_000_000, "env steps", "the paper trains 40,960; this many takes over a year "
                                                           "at 3 steps/s")
+SEARCH_BUDGET = Limit("SEARCH_BUDGET", 1_000, "episodes a scene", "the paper's searches spend 8; 1,000 on 50 scenes "
+                                                                  "of 512 steps is 50,000 episodes, about 5 days")
+FRAMES = Limit("FRAMES", 100_000, "frames", "rendering and detecting that many takes about half an hour; a detector "
+                                            "training set of that many 320x240 frames holds 23 GB")
+EPOCHS = Limit("EPOCHS", 1_000, "epochs", "the shipped detector trains 20")
+WORKERS = Limit("WORKERS", 256, "processes", "each runs a simulator and takes a CPU core and about 1 GB of memory")
+THREADS = Limit("THREADS", 256, "threads", "more threads than cores only slow a run down")
+BUFFER = Limit("BUFFER", 1_000_000, "transitions", "held in memory: 1,000,000 camera observations of 72x96 take "
+                                                   "21 GB; the paper's PPO holds 2,048")
+RETRIES = Limit("RETRIES", 100, "retries", "each reconnects to the simulator and plays the episode again")
+
+
+def count_list(text: str | None, flag: str, limit: Limit, least: int = 1) -> tuple[int, ...]:
+    """A comma list of counts (``--workers 1,2,4``): every item an integer in ``least``..the limit, none empty
+    (``1,,2`` is a typo, not the list 1,2)."""
+    items = [t.strip() for t in (text or "").split(",")]
+    try:
+        counts = tuple(int(t) for t in items)
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < least:
+        raise UserInputError(f"{flag} {text!r}; allowed: a comma list of integers >= {least}, e.g. 1,2 (no empty "
+                             "items)")
+    for c in counts:
+        limit.check(c, flag, text)
+    return counts

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import json
 import os
 import re
 from collections.abc import Iterator, Sequence
@@ -42,8 +41,10 @@ _FILE_PATTERNS = {
 
 def _json_object(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        from genesis_rl.io_utils import read_json
+
+        data = read_json(path, "marker")
+    except (OSError, ValueError):  # a UserInputError (too big, too deep, not JSON) is a ValueError too
         return {}
     return data if isinstance(data, dict) else {}
 

@@ -20,12 +20,11 @@ def load_schedule(path: str | Path, base: Weather, steps: int) -> list[Weather]:
         raise UserInputError(f"schedule '{path}' is a folder; expected a CSV file")
     if not path.is_file():
         raise UserInputError(f"schedule file '{path}' does not exist")
-    try:
-        # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
-        with path.open(newline="", encoding="utf-8-sig") as fh:
-            table = [cells for cells in csv.reader(fh) if cells]  # blank lines are not rows
-    except UnicodeDecodeError as err:
-        raise UserInputError(f"schedule '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
+    from genesis_rl.parsing import csv_rows
+
+    # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name; size and cell length
+    # are checked (a cell over the csv module's 131,072 characters is one line naming the file and line)
+    table = [cells for cells in csv_rows(path, "schedule", encoding="utf-8-sig") if cells]  # blank lines: no rows
     if not table:
         raise UserInputError(f"schedule '{path}' is empty; expected a header row: step, {', '.join(KNOBS)}")
     columns = [c.strip() for c in table[0]]

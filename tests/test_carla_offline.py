@@ -266,8 +266,8 @@ def test_no_server_gives_clear_error_after_the_timeout():
     msg = str(info.value)
     assert isinstance(info.value, UserInputError)  # the CLI prints it and exits with status 2
     assert f"127.0.0.1:{port}" in msg and "CarlaUE4.sh -RenderOffScreen" in msg and "docs/carla.md" in msg
-    assert "time-out" in msg  # the client's own words are kept
-    assert 0.5 <= elapsed < 5.0
+    assert "nothing listens" in msg and "(connection refused)" in msg  # the probe says so without waiting
+    assert elapsed < 5.0
 
 
 def test_server_lost_mid_episode_is_named():

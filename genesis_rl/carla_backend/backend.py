@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
-from genesis_rl.carla_backend.connection import CarlaServerLost, connect, guarded
+from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, connect, guarded
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
 from genesis_rl.carla_backend.lead import lane_path, lead_on_path
@@ -97,6 +97,7 @@ class CarlaBackend(Backend):
                  tm_port: int = DEFAULT_TM_PORT, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
         self.host, self.port, self.tm_port = str(host), int(port), int(tm_port)
         self.timeout, self.load_timeout = float(timeout), float(load_timeout)
+        check_numbers(self.port, self.timeout, self.tm_port)  # --carla-tm-port 70000, --carla-timeout inf
         self.client = connect(self.host, self.port, self.timeout)
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None

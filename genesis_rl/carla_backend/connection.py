@@ -8,6 +8,7 @@ mid-episode raises :class:`CarlaServerLost`, which a campaign can catch to recon
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -39,13 +40,71 @@ def start_hint(host: str, port: int) -> str:
     )
 
 
-def connect(host: str, port: int, timeout: float) -> Any:
-    """A ``carla.Client`` that has answered once (``get_server_version``), with ``timeout`` on every call."""
+#: the longest --carla-timeout taken: a map loads in about a minute; an hour means something else is wrong
+MAX_TIMEOUT_S = 3600.0
+#: seconds the probe may take to find and connect to the server (the answer gets --carla-timeout)
+PROBE_CONNECT_S = 5.0
+#: CARLA's RPC is msgpack-rpc (rpclib): the request [0, msgid 0, "version", [[false]]], hand-encoded (fixarray
+#: of 4, fixint 0, fixint 0, fixstr of 7, then the arguments: CARLA's call metadata [asynchronous = false]).
+#: It is the call the client's get_server_version() sends, byte for byte but the msgid (client 0.9.16).
+VERSION_REQUEST = bytes([0x94, 0x00, 0x00, 0xA7]) + b"version" + bytes([0x91, 0x91, 0xC2])
+#: a msgpack-rpc answer to it: [1 (response), msgid 0, error, result], error nil when the call exists
+_RESPONSE_HEAD = bytes([0x94, 0x01, 0x00])
+_NIL = 0xC0
+
+
+def check_numbers(port: int, timeout: float, tm_port: int | None = None) -> None:
+    """The connection's numbers, checked before any socket is opened: ports 1..65535, a timeout of finite
+    seconds in (0, MAX_TIMEOUT_S] (the client turns inf into 0 s, which fails every call at once)."""
+    for flag, value in (("--carla-port", port), ("--carla-tm-port", tm_port)):
+        if value is not None and not (isinstance(value, int) and 1 <= value <= 65535):
+            raise UserInputError(f"{flag} (env.{flag[2:].replace('-', '_')}) = {value} is not a TCP port; allowed: "
+                                 "1..65535")
+    if not (isinstance(timeout, int | float) and math.isfinite(timeout) and 0 < timeout <= MAX_TIMEOUT_S):
+        raise UserInputError(f"--carla-timeout (env.carla_timeout) = {timeout} s; allowed: seconds in "
+                             f"(0, {MAX_TIMEOUT_S:g}]")
+
+
+def probe(host: str, port: int, timeout: float) -> None:
+    """Ask ``host:port`` for CARLA's version over msgpack-rpc before a ``carla.Client`` is made: the client
+    library aborts the whole process (exit 134) when the port answers with anything else, and reports a host
+    that does not resolve as a bare RuntimeError. Each way of failing is one :class:`CarlaConnectionError`."""
+    from genesis_rl.netprobe import ProbeError, ask
+
+    where = f"{host}:{port}"
+    try:
+        answer = ask(host, port, VERSION_REQUEST, 4, min(timeout, PROBE_CONNECT_S), answer_timeout=timeout)
+    except ProbeError as err:
+        message = {
+            "unresolvable": f"--carla-host '{host}' does not resolve ({err.detail}); check the name or give the "
+                            "server's IP address",
+            "refused": f"nothing listens at {where} (connection refused); " + start_hint(host, port),
+            "unreachable": f"{where} cannot be reached ({err.detail}); check --carla-host and the network",
+            "timeout": f"{where} did not accept a connection within {err.waited:.1f} s (no machine at that "
+                       "address, or a firewall drops the connection); check --carla-host and --carla-port",
+            "silent": f"{where} accepted the connection but did not answer CARLA's version call within "
+                      f"{timeout:g} s (--carla-timeout): a server still starting or loading a map, or another "
+                      "service on that port; wait and try again, or check --carla-port (CARLA's RPC port, 2000 by "
+                      "default)",
+            "closed": f"{where} closed the connection without answering CARLA's version call: not a CARLA server; "
+                      "check --carla-port (CARLA's RPC port, 2000 by default)",
+        }[err.kind]
+        raise CarlaConnectionError(message) from None
+    if not answer.data.startswith(_RESPONSE_HEAD):
+        raise CarlaConnectionError(f"{where} answers, but not as a CARLA server (not msgpack-rpc: it sent "
+                                   f"{answer.data[:32]!r}); check --carla-port (CARLA's RPC port, 2000 by default; "
+                                   "the traffic manager's and the streaming port are others)")
+    if answer.data[3] != _NIL:
+        raise CarlaConnectionError(f"{where} is an RPC server without CARLA's 'version' call: not a CARLA server; "
+                                   "check --carla-port (CARLA's RPC port, 2000 by default)")
+
+
+def connect(host: str, port: int, timeout: float, tm_port: int | None = None) -> Any:
+    """A ``carla.Client`` that has answered once (``get_server_version``), with ``timeout`` on every call; the
+    port is probed first (:func:`probe`), so that the client library only ever meets a CARLA server."""
     carla = require_carla()
-    if not 1 <= int(port) <= 65535:
-        raise UserInputError(f"--carla-port {port} is not a TCP port (1..65535)")
-    if not timeout > 0:
-        raise UserInputError(f"CARLA timeout must be > 0 s, got {timeout}")
+    check_numbers(port, timeout, tm_port)
+    probe(str(host), int(port), float(timeout))
     client = carla.Client(str(host), int(port))
     client.set_timeout(float(timeout))
     t0 = time.monotonic()

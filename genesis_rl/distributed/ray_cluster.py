@@ -9,7 +9,6 @@ workers asked for) is a :class:`UserInputError` raised *before* any output folde
 from __future__ import annotations
 
 import os
-import socket
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -18,8 +17,13 @@ from typing import Any
 
 from genesis_rl.errors import UserInputError
 
-#: seconds to wait for a TCP answer from --ray-address before ray.init (which retries for minutes)
-CONNECT_TIMEOUT_S = 5.0
+#: seconds the --ray-address check may take (name lookup, connect, the server's first bytes) before ray.init,
+#: which retries for 20 s and more against an address that does not answer as Ray
+CONNECT_TIMEOUT_S = 3.0
+#: an HTTP/2 client's opening (preface and an empty SETTINGS frame): Ray's GCS and client server speak gRPC,
+#: whose servers answer it with a SETTINGS frame at once
+_HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_checked: set[str] = set()  # addresses that answered as gRPC in this process (preflight, then ray_session)
 INSTALL_HINT = "install the extra: pip install -e .[ray] (or pip install ray)"
 
 
@@ -45,16 +49,29 @@ def _host_port(address: str) -> tuple[str, int] | None:
 
 
 def check_reachable(address: str) -> None:
-    """Refuse an address that does not answer within CONNECT_TIMEOUT_S (``ray.init`` would retry for minutes)."""
+    """Refuse, within about CONNECT_TIMEOUT_S, an address that does not resolve, refuses, cannot be reached or
+    answers but not as a gRPC server (Ray's GCS is one): ``ray.init`` would retry for 20 s and more."""
     hp = _host_port(address)
-    if hp is None:
+    if hp is None or address in _checked:
         return
+    from genesis_rl.netprobe import ProbeError, ask
+
+    fix = "start the cluster's head (ray start --head) or leave --ray-address out for a local Ray"
     try:
-        with socket.create_connection(hp, timeout=CONNECT_TIMEOUT_S):
-            pass
-    except OSError as err:
-        raise UserInputError(f"--ray-address = '{address}': nothing answers at {hp[0]}:{hp[1]} ({err}); start the "
-                             "cluster's head (ray start --head) or leave --ray-address out for a local Ray") from None
+        answer = ask(hp[0], hp[1], _HTTP2_HELLO, 9, CONNECT_TIMEOUT_S)
+    except ProbeError as err:
+        what = {"unresolvable": f"'{hp[0]}' does not resolve ({err.detail})",
+                "silent": f"{hp[0]}:{hp[1]} accepts connections but does not answer as Ray's GCS within "
+                          f"{CONNECT_TIMEOUT_S:g} s (another service, or a firewall that holds the connection)",
+                "closed": f"{hp[0]}:{hp[1]} closed the connection without answering: not Ray's GCS"
+                }.get(err.kind, f"nothing answers at {hp[0]}:{hp[1]} ({err.detail})")
+        raise UserInputError(f"--ray-address = '{address}': {what}; {fix}") from None
+    frame = answer.data[:9]
+    if len(frame) < 9 or frame[3] != 0x04:  # an HTTP/2 frame header whose type is SETTINGS
+        raise UserInputError(f"--ray-address = '{address}': {hp[0]}:{hp[1]} answers, but not as Ray's GCS (a gRPC "
+                             f"server; it sent {answer.data[:24]!r}); check the port (the head's GCS port, 6379 by "
+                             f"default, or 10001 for ray://) or {fix}")
+    _checked.add(address)
 
 
 def driver_paths() -> list[str]:

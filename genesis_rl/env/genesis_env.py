@@ -80,11 +80,15 @@ class EnvConfig:
         import_modules(self.plugins, "env.plugins")  # before the knob checks below
         if self.episode_steps < 1:
             raise UserInputError(f"env.episode_steps = {self.episode_steps} must be >= 1")
+        from genesis_rl import limits
+
+        limits.SIM_STEPS.check(self.episode_steps, "env.episode_steps")  # corners/train --steps 10**12: years
         for k in ("obs_width", "obs_height"):
             if not 36 <= getattr(self, k) <= 1024:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 36..1024 (CNN policies need >= 36)")
         if self.scenes < 1:
             raise UserInputError(f"env.scenes = {self.scenes} must be >= 1")
+        limits.SCENES.check(self.scenes, "env.scenes")
         if self.observation not in OBSERVATIONS:
             raise UserInputError(f"env.observation = '{self.observation}'; allowed: {', '.join(OBSERVATIONS)}")
         if self.obs_knobs and self.observation not in ("image", "image+knobs"):

@@ -38,6 +38,20 @@ class CampaignSpec:
     frames_after: int = 6
     frame_stride: int = 2
 
+    def __post_init__(self) -> None:
+        """The counts that set a campaign's work, bounded also when they come from a campaign.json."""
+        from genesis_rl import limits
+
+        for name, limit in (("steps", limits.SIM_STEPS), ("scenes", limits.SCENES)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise UserInputError(f"campaign spec.{name} = {value!r}; allowed: an integer >= 1")
+            limit.check(value, f"campaign spec.{name}")  # the lower bound: where the scenes are picked and run
+        for name, limit in (("search_budget", limits.SEARCH_BUDGET), ("retries", limits.RETRIES)):
+            value = self.options.get(name)
+            if isinstance(value, int) and not isinstance(value, bool):
+                limit.check(value, f"campaign spec.options.{name}")
+
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["policies"] = list(self.policies)

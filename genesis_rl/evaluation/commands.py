@@ -43,6 +43,28 @@ def executor_from_args(args: argparse.Namespace, backend: str) -> ExecutorSettin
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    # counts first, before any policy is imported: a refused budget answers at once
+    for flag in ("seed", "catalog_seed"):
+        if getattr(args, flag) < 0:
+            raise UserInputError(f"--{flag.replace('_', '-')} = {getattr(args, flag)} must be >= 0")
+    if args.retries < 0:
+        raise UserInputError(f"--retries = {args.retries} must be >= 0")
+    limits.RETRIES.check(args.retries, "--retries")
+    if args.workers < 1:
+        raise UserInputError(f"--workers = {args.workers} must be >= 1")
+    limits.WORKERS.check(args.workers, "--workers")
+    limits.SCENES.check(args.scenes, "--scenes")
+    if args.steps < 1:
+        raise UserInputError(f"--steps = {args.steps} must be >= 1")
+    limits.SIM_STEPS.check(args.steps, "--steps")  # as drive --steps: 999999999 ran for days
+    if args.search_segments < 1:
+        raise UserInputError(f"--search-segments = {args.search_segments} must be >= 1")
+    if args.search_budget < 2:
+        raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
+    limits.SEARCH_BUDGET.check(args.search_budget, "--search-budget")  # 1000000000 would search for years
+    if args.search_segments > args.steps:
+        raise UserInputError(f"--search-segments = {args.search_segments} must be at most --steps = {args.steps} "
+                             "(a segment is at least one step)")
     from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
     from genesis_rl.evaluation.policies import resolve_policy
 
@@ -56,16 +78,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         resolve_policy(p)
     if any(resolve_policy(p).needs_agent for p in policies) and not args.agent:
         raise UserInputError("policy 'agent' needs --agent runs/NAME (a run folder of genesis-rl train)")
-    for flag in ("seed", "catalog_seed"):
-        if getattr(args, flag) < 0:
-            raise UserInputError(f"--{flag.replace('_', '-')} = {getattr(args, flag)} must be >= 0")
-    if args.retries < 0:
-        raise UserInputError(f"--retries = {args.retries} must be >= 0")
-    limits.SIM_STEPS.check(args.steps, "--steps")  # as drive --steps: 999999999 ran for days
-    if args.search_segments < 1:
-        raise UserInputError(f"--search-segments = {args.search_segments} must be >= 1")
-    if args.search_budget < 2:
-        raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
     agent = str(Path(args.agent)) if args.agent else None
     env = env_settings_for(agent, args.config, args.system, args.weights)
     env.update(env_overrides_from_args(args))

@@ -227,6 +227,9 @@ class CMAESSearch(WeatherPolicy):
         if self.budget < 2 or self.segments < 1:
             raise UserInputError(f"search_budget = {self.budget} must be >= 2 and search_segments = "
                                  f"{self.segments} >= 1")
+        from genesis_rl import limits
+
+        limits.SEARCH_BUDGET.check(self.budget, "search_budget")  # also when a campaign.json sets it
 
     @classmethod
     def episodes_per_scene(cls, options: dict[str, Any]) -> int:

@@ -12,6 +12,7 @@ import math
 import time
 from pathlib import Path
 
+from genesis_rl import limits
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
 
@@ -24,11 +25,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.frames is not None:
         if args.frames < 1:
             raise UserInputError(f"--frames must be >= 1, got {args.frames}")
+        limits.FRAMES.check(args.frames, "--frames")
         changes["train_scenes"] = max(1, math.ceil(args.frames / defaults.frames_per_scene))
         changes["val_scenes"] = max(1, min(defaults.val_scenes, math.ceil(changes["train_scenes"] / 6)))
     if args.epochs is not None:
         if args.epochs < 1:
             raise UserInputError(f"--epochs must be >= 1, got {args.epochs}")
+        limits.EPOCHS.check(args.epochs, "--epochs")
         changes["epochs"] = args.epochs
     cfg = dataclasses.replace(defaults, **changes)
     metrics = train_detector(cfg, Path(args.out), progress=not args.quiet, force=args.force,
@@ -57,6 +60,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                              f"allowed: {', '.join(CONDITIONS)}")
     if args.frames_per_condition < 1:
         raise UserInputError(f"--frames-per-condition must be >= 1, got {args.frames_per_condition}")
+    limits.FRAMES.check(args.frames_per_condition * len(maps) * len(conds), "--frames-per-condition",
+                        f"{args.frames_per_condition} x {len(maps)} maps x {len(conds)} conditions")
     out = Path(args.out)
     for ext in ("md", "png", "json"):
         ensure_writable(out / f"detector_eval.{ext}", args.force)

@@ -184,9 +184,11 @@ class DetectionDataset:
     @classmethod
     def load(cls, path: Path) -> DetectionDataset:
         path = Path(path)
+        from genesis_rl.parsing import loads_json
+
         try:
             with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
+                meta = loads_json(str(z["meta"]), f"dataset file {path}'s meta")
                 images, boxes, weather = z["images"], z["boxes"], z["weather"]
         except FileNotFoundError:
             raise UserInputError(f"dataset file {path} does not exist") from None

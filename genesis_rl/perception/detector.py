@@ -7,7 +7,6 @@ arrays ``x0, y0, x1, y1, score`` in the frame's pixels, best first.
 from __future__ import annotations
 
 import hashlib
-import json
 import warnings
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -270,6 +269,10 @@ def read_weights_json(weights: Path) -> dict:
     if not p.is_file():
         return {}
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
+        from genesis_rl.parsing import loads_json
+
+        return loads_json(p.read_text(encoding="utf-8"), f"weights metadata '{p}'")
+    except UserInputError:
+        raise
     except (OSError, ValueError) as e:
         raise UserInputError(f"weights metadata {p} is not valid JSON: {e}") from None

@@ -197,4 +197,6 @@ def read_catalog(path: Path | str) -> Catalog:
         raise UserInputError(f"catalog '{path}' is a folder; expected a catalog file (.json)")
     if not path.is_file():
         raise UserInputError(f"catalog file '{path}' does not exist")
-    return parse_catalog(read_json(path, "catalog file"))
+    from genesis_rl.parsing import CATALOG_MB
+
+    return parse_catalog(read_json(path, "catalog file", CATALOG_MB))

@@ -113,8 +113,9 @@ def csv_rows(path: Path) -> int:
     """Data rows of ``episodes.csv`` (0 when it is missing)."""
     if not path.is_file():
         return 0
-    with path.open(newline="") as fh:
-        return max(0, sum(1 for _ in csv.reader(fh)) - 1)
+    from genesis_rl.parsing import csv_rows as rows_of
+
+    return max(0, sum(1 for _ in rows_of(path, "episode log", encoding="utf-8", limit=None)) - 1)
 
 
 def truncate_csv(path: Path, rows: int) -> None:

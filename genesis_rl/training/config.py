@@ -33,6 +33,7 @@ class PPOConfig:
     def __post_init__(self) -> None:
         if self.n_steps < 2 or self.batch_size < 2:
             raise UserInputError(f"ppo.n_steps = {self.n_steps} and ppo.batch_size = {self.batch_size} must be >= 2")
+        limits.BUFFER.check(self.n_steps, "ppo.n_steps")  # the rollout buffer is allocated whole, at once
         if not 0 < self.learning_rate < 1:
             raise UserInputError(f"ppo.learning_rate = {self.learning_rate} must be in (0, 1)")
         if not (0 < self.gamma <= 1 and 0 < self.gae_lambda <= 1):
@@ -103,6 +104,7 @@ class SACConfig:
         for k in ("buffer_size", "batch_size", "train_freq", "gradient_steps"):
             if getattr(self, k) < 1:
                 raise UserInputError(f"sac.{k} = {getattr(self, k)} must be >= 1")
+        limits.BUFFER.check(self.buffer_size, "sac.buffer_size")  # the replay buffer is allocated whole, at once
         if not self.net_arch or not all(1 <= n <= 4096 for n in self.net_arch):
             raise UserInputError(f"sac.net_arch = {list(self.net_arch)}: expected 1 or more layer widths in 1..4096")
         if self.learning_starts < 0:

@@ -15,11 +15,19 @@ def read_episodes(run: Path) -> list[dict[str, float]]:
         return []
     rows = []
     with path.open() as f:
-        for row in csv.DictReader(f):
-            try:  # a run killed mid-write may leave a truncated last line
-                rows.append({k: float(v) for k, v in row.items() if k is not None})
-            except (TypeError, ValueError):
-                continue
+        reader = csv.DictReader(f)
+        try:
+            for row in reader:
+                try:  # a run killed mid-write may leave a truncated last line
+                    rows.append({k: float(v) for k, v in row.items() if k is not None})
+                except (TypeError, ValueError):
+                    continue
+        except csv.Error as err:  # a cell over the csv module's limit: a damaged or foreign file
+            from genesis_rl.errors import UserInputError
+            from genesis_rl.parsing import csv_error_reason
+
+            raise UserInputError(f"episode log '{path}' line {reader.reader.line_num}: {csv_error_reason(err)}"
+                                 ) from None
     return rows
 
 
