@@ -302,3 +302,22 @@ def test_bool_versions_in_campaign_record_and_checkpoint_files_are_refused(made,
     state.write_text(json.dumps(data))
     assert main(["train", "--out", str(run), "--resume", "--steps", "80", "--quiet"]) == 2
     assert f"checkpoint file '{state}' is damaged" in capsys.readouterr().err
+
+
+def test_a_campaigns_swapped_catalog_is_refused_on_resume(made, tmp_path, capsys) -> None:
+    """A resumed campaign plays its remaining scenes from its catalog.json: another file would mix scenes."""
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--policies", "sunny,random", "--system", "blind", "--catalog", str(made["highway"]),
+            "--scenes", "2", "--steps", "5", "--out", str(out), "--quiet", "--no-report"]
+    assert main(argv) == 0
+    pinned = json.loads((out / "campaign.json").read_text())["catalog"]["sha256"]
+    assert pinned == _sha(out / "catalog.json")
+    shutil.rmtree(out / "episodes" / "random")  # interrupted before the random policy ran
+    data = json.loads((out / "catalog.json").read_text())
+    data["scenes"] = data["scenes"][::-1]  # the same scenes, in another order: scene i is another scene
+    (out / "catalog.json").write_text(json.dumps(data))
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert f"'{out / 'catalog.json'}' changed since the campaign began (campaign.json pins sha256 {pinned[:16]}" in err
+    assert not (out / "episodes" / "random").exists()
