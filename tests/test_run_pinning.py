@@ -321,3 +321,15 @@ def test_a_campaigns_swapped_catalog_is_refused_on_resume(made, tmp_path, capsys
     err = capsys.readouterr().err
     assert f"'{out / 'catalog.json'}' changed since the campaign began (campaign.json pins sha256 {pinned[:16]}" in err
     assert not (out / "episodes" / "random").exists()
+
+
+def test_a_run_json_that_is_not_a_regular_file_is_refused_not_read(made, tmp_path, capsys) -> None:
+    """A FIFO in run.json's place would block a reader for ever."""
+    import os
+
+    run = _copy(made, tmp_path)
+    (run / "run.json").unlink()
+    os.mkfifo(run / "run.json")
+    capsys.readouterr()
+    assert _evaluate(run, made, tmp_path / "eval") == 2
+    assert f"run file '{run / 'run.json'}' is not a regular file" in capsys.readouterr().err

@@ -106,8 +106,9 @@ def checked_run(agent: Path, system: str | None, weights: str | None) -> dict[st
         found = agent_file(agent)
         at = (f"its last checkpoint is {last[1]} (step {last[0]})" if last is not None
               else "it has no checkpoint yet")
-        print(f"genesis-rl: warning: run '{run_dir}' is still being trained (pid {pid} holds it): {at}; evaluating "
-              f"'{found}', not the finished agent", file=sys.stderr, flush=True)
+        what_runs = f"evaluating '{found}', not the finished agent" if found else "no agent file to evaluate yet"
+        print(f"genesis-rl: warning: run '{run_dir}' is still being trained (pid {pid} holds it): {at}; {what_runs}",
+              file=sys.stderr, flush=True)
     return data
 
 

@@ -111,6 +111,9 @@ def read_run_meta(run: Path) -> dict[str, Any] | None:
     path = Path(run) / "run.json"
     if not path.exists():
         return None
+    if not path.is_file():  # a FIFO or a device would block or never end
+        raise UserInputError(f"run file '{path}' is not a regular file; genesis-rl train writes it: restore it, or "
+                             "train the run again")
     meta = read_json(path, "run file")
     if not isinstance(meta, dict):
         raise UserInputError(f"run file '{path}' is damaged: expected a JSON object, found {type(meta).__name__}")
@@ -225,7 +228,8 @@ def writer_pid(folder: Path) -> str | None:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except OSError as err:
             if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                return os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+                pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+                return pid if pid.isdigit() else "unknown"  # the holder writes its pid; anything else is not shown
             return None
         fcntl.flock(fd, fcntl.LOCK_UN)
         return None
