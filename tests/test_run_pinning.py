@@ -333,3 +333,13 @@ def test_a_run_json_that_is_not_a_regular_file_is_refused_not_read(made, tmp_pat
     capsys.readouterr()
     assert _evaluate(run, made, tmp_path / "eval") == 2
     assert f"run file '{run / 'run.json'}' is not a regular file" in capsys.readouterr().err
+
+
+def test_train_refuses_a_catalog_of_another_map_under_map(made, tmp_path, capsys) -> None:
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_RUN)
+    capsys.readouterr()
+    assert main(["train", "--config", str(config), "--map", "highway", "--catalog", str(made["urban"]),
+                 "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    assert "the catalog's scenes are on map 'urban'" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
