@@ -246,6 +246,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for flag in ("system", "scenes", "catalog", "map"):
         if getattr(args, flag) is not None:
             env[flag] = getattr(args, flag)
+    if args.map is not None and args.catalog is not None:  # the run would record a map its scenes are not on
+        from genesis_rl.evaluation.campaign_spec import campaign_map
+
+        campaign_map(args.map, args.catalog)
     env.update(env_overrides_from_args(args))  # --backend carla --carla-host H ... override the config's [env]
     env.update(odd_overrides_from_args(args))
     tr: dict = {}

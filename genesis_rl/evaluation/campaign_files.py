@@ -52,7 +52,7 @@ def read_campaign_meta(folder: Path) -> dict[str, Any]:
     meta = read_json(path, "campaign file")
     if not isinstance(meta, dict):
         raise _damaged(path, f"expected a JSON object, found {type(meta).__name__}")
-    if meta.get("schema") != CAMPAIGN_SCHEMA or meta.get("version") != CAMPAIGN_VERSION:
+    if meta.get("schema") != CAMPAIGN_SCHEMA or not _is_int(meta.get("version")) or meta["version"] != CAMPAIGN_VERSION:
         raise UserInputError(f"'{path}' has schema {meta.get('schema')} version {meta.get('version')}; "
                              f"this genesis-rl reads {CAMPAIGN_SCHEMA} version {CAMPAIGN_VERSION}")
     spec = meta.get("spec")

@@ -12,7 +12,8 @@ Layout::
     summary.json, episodes.csv            written by ``summary.summarize_campaign``
 
 Resuming checks that nothing deciding the results changed (spec, package version, agent and weights
-hashes, the rulebook's content) and runs again every episode that is missing or whose files are damaged.
+hashes, the rulebook's content, catalog.json's hash) and runs again every episode that is missing or whose
+files are damaged.
 Reading the files is ``campaign_files``' job.
 """
 
@@ -92,12 +93,16 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         if diff:
             raise UserInputError(f"--resume: the campaign in '{folder}' was run with other settings "
                                  f"({', '.join(diff)}); pass the same arguments, or --force to start over")
+        _check_catalog_pin(folder, saved.get("catalog"))
         pairs = [tuple(p) for p in saved["scenes"]]
     else:
         output_folder.check_inputs(folder, [spec.catalog, spec.agent], nested_ok=True)  # RUN/eval is the default
         output_folder.check_target(folder, "campaign", force, resume_hint=True)
         count = DEFAULT_COUNTS.get(spec.map, 1)
         catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)
+        if catalog.map != spec.map:  # the campaign records spec.map: it must be the map its scenes are on
+            raise UserInputError(f"map '{spec.map}' and catalog '{spec.catalog}' disagree: the catalog's scenes are on "
+                                 f"map '{catalog.map}'; pass --map {catalog.map}, or a catalog made for '{spec.map}'")
         pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
         output_folder.replace(folder, "campaign")
         catalog.save(folder / "catalog.json")
@@ -105,9 +110,24 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
                                  "git_commit": git_commit(), "spec": spec.to_json(), "scenes": pairs,
                                  "identity": identity,
                                  "catalog": {"map": catalog.map, "seed": catalog.seed,
-                                             "scenes": len(catalog.scenes)},
+                                             "scenes": len(catalog.scenes),
+                                             "sha256": file_sha256(folder / "catalog.json")},
                                  "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
     return [(p, s, e) for p in spec.policies for s, e in pairs if not episode_done(folder, p, s, resume)]
+
+
+def _check_catalog_pin(folder: Path, saved: Any) -> None:
+    """The scenes of a resumed campaign come from its catalog.json: it must be the file the campaign began
+    with (campaigns of genesis-rl 0.10.0 and earlier recorded no hash: not checked)."""
+    pinned = saved.get("sha256") if isinstance(saved, dict) else None
+    if pinned is None:
+        return
+    path = folder / "catalog.json"
+    found = file_sha256(path) if path.is_file() else None
+    if found != pinned:
+        raise UserInputError(f"--resume: '{path}' {'changed' if found else 'is missing'} since the campaign began "
+                             f"(campaign.json pins sha256 {str(pinned)[:16]}, found {(found or 'none')[:16]}): the "
+                             "remaining episodes would play other scenes; restore it, or pass --force to start over")
 
 
 def episode_done(folder: Path, policy: str, scene: int, resume: bool) -> bool:

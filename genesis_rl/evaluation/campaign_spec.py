@@ -7,6 +7,7 @@ Everything here is checked before a folder is touched.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ import numpy as np
 
 from genesis_rl.config import read_toml
 from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.policies import PolicyContext, load_agent, resolve_policy
+from genesis_rl.evaluation.policies import PolicyContext, agent_file, load_agent, resolve_policy
 from genesis_rl.knobs import PAPER_KNOBS
 
 
@@ -77,11 +78,52 @@ def pick_scenes(n_catalog: int, count: int, seed: int) -> list[tuple[int, int]]:
     return [(i, int(np.random.default_rng([seed, i]).integers(0, 2**31 - 1))) for i in indices]
 
 
+def campaign_map(map_flag: str | None, catalog: str | None) -> str:
+    """The campaign's map: the test catalog's (``--map``, when given as well, must name it: a campaign records
+    its map, and a catalog of one map run under another's name would record the wrong one), else ``--map``,
+    else highway."""
+    if not catalog:
+        return map_flag or "highway"
+    from genesis_rl.scenes.catalog import read_catalog
+
+    found = read_catalog(catalog).map
+    if map_flag is not None and map_flag != found:
+        raise UserInputError(f"--map {map_flag} and --catalog '{catalog}' disagree: the catalog's scenes are on map "
+                             f"'{found}'; pass --map {found} (or leave --map out), or a catalog made for map "
+                             f"'{map_flag}' (genesis-rl scenes --map {map_flag})")
+    return found
+
+
 def run_folder_of(agent: Path) -> Path:
     """The training run folder of ``--agent``: a folder, its agent.zip, or a checkpoint inside it."""
     if agent.suffix != ".zip":
         return agent
     return agent.parent.parent if agent.parent.name == "checkpoints" else agent.parent
+
+
+def checked_run(agent: Path, system: str | None, weights: str | None) -> dict[str, Any]:
+    """The run's config tables, once its files match the pins in its run.json (training/pinning.py): the
+    agent is evaluated under the config, catalog, rulebook, ODD and detector it trained with. ``--weights``, or
+    ``--system`` naming another system, replaces the run's weights on purpose: those are not checked. A run
+    still being trained (its folder's lock held) is evaluated with a warning naming its last checkpoint."""
+    from genesis_rl.training.pinning import check_run, last_checkpoint, read_run_config, writer_pid
+
+    run_dir, what = run_folder_of(agent), f"--agent '{agent}'"
+    run_system = read_run_config(run_dir, what)["env"].get("system", "builtin")
+    replaced = weights is not None or (system is not None and system != run_system)
+    data = check_run(run_dir, what, "restore it: an agent is evaluated under the files it trained with",
+                     skip=("weights",) if replaced else (),
+                     hints={"weights": "pass --weights FILE to evaluate the agent against other weights on purpose"})
+    pid = writer_pid(run_dir)
+    if pid is not None:
+        last = last_checkpoint(run_dir)
+        found = agent_file(agent)
+        at = (f"its last checkpoint is {last[1]} (step {last[0]})" if last is not None
+              else "it has no checkpoint yet")
+        what_runs = f"evaluating '{found}', not the finished agent" if found else "no agent file to evaluate yet"
+        print(f"genesis-rl: warning: run '{run_dir}' is still being trained (pid {pid} holds it): {at}; {what_runs}",
+              file=sys.stderr, flush=True)
+    return data
 
 
 def env_settings_for(agent: str | None, config: str | None, system: str | None,
@@ -98,7 +140,7 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None,
             raise UserInputError(f"--agent '{agent}' does not exist")
         if not cfg_path.is_file():
             raise UserInputError(f"--agent '{agent}': no config.toml in '{run_dir}', so its env settings are unknown")
-        env = dict(read_toml(cfg_path).get("env", {}))
+        env = dict(checked_run(run, system, weights)["env"])
     elif config:
         env = dict(read_toml(config).get("env", {}))
     if system and system != env.get("system", "builtin"):

@@ -66,6 +66,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise UserInputError(f"--search-segments = {args.search_segments} must be at most --steps = {args.steps} "
                              "(a segment is at least one step)")
     from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
+    from genesis_rl.evaluation.campaign_spec import campaign_map
     from genesis_rl.evaluation.policies import resolve_policy
 
     policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
@@ -84,7 +85,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     env.update(odd_overrides_from_args(args))
     executor = executor_from_args(args, env.get("backend", "lite"))
     check_backend_setting(env.get("backend", "lite"), args.catalog, "--backend", "--catalog")
-    spec = CampaignSpec(policies=policies, map=args.map, catalog=args.catalog, catalog_seed=args.catalog_seed,
+    map_name = campaign_map(args.map, args.catalog)  # a catalog of one map is not run under another's name
+    spec = CampaignSpec(policies=policies, map=map_name, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
                         records=args.records,
                         options={"search_budget": args.search_budget, "search_segments": args.search_segments,
@@ -231,7 +233,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--policies", default="sunny,random,agent",
                     help="comma list: sunny, random, constant, agent, cmaes, cem (search baselines) or "
                          "package.module:Class")
-    ev.add_argument("--map", default="highway", help="test map (the agent trains on urban)")
+    ev.add_argument("--map", default=None, help="test map (default: the --catalog's map, else highway; the agent "
+                                                "trains on urban)")
     ev.add_argument("--catalog", default=None, help="test catalog file (default: the map's generated catalog)")
     ev.add_argument("--catalog-seed", type=int, default=0, help="seed of the generated test catalog")
     ev.add_argument("--scenes", type=int, default=50, help="scenes picked from the catalog by --seed")

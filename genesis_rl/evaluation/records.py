@@ -97,7 +97,7 @@ def load_record(path: Path | str) -> dict[str, Any]:
     rec = read_json(path, "record")
     if not isinstance(rec, dict) or rec.get("schema") != RECORD_SCHEMA:
         raise UserInputError(f"'{path}' is not a GENESIS-RL edge-case record (schema {RECORD_SCHEMA})")
-    if rec.get("version") != RECORD_VERSION:
+    if type(rec.get("version")) is not int or rec["version"] != RECORD_VERSION:  # JSON's true == 1 in Python
         raise UserInputError(f"record '{path}' has schema version {rec.get('version')}; this genesis-rl "
                              f"{__version__} replays version {RECORD_VERSION}")
     missing = [k for k in ("scene", "episode_seed", "schedule", "knobs", "start_weather", "system", "rulebook",

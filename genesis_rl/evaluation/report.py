@@ -307,8 +307,13 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
 
     # training curve of the agent, when its run folder is at hand
     if spec.get("agent"):
+        run = run_folder_of(Path(spec["agent"]))
+        if (run / "config.toml").is_file():  # the run is at hand: it is read only as it was trained
+            from genesis_rl.training.pinning import IN_FOLDER, check_run
 
-        curve = plot_learning_curve(run_folder_of(Path(spec["agent"])))
+            check_run(run, f"the campaign's agent run '{run}'", "restore it, or move the run away to report "
+                      "without its training curve", only=IN_FOLDER)
+        curve = plot_learning_curve(run)
         if curve is not None:
             h.append(f"<h2>Training of the agent</h2><img src='{_png(curve)}'>")
 

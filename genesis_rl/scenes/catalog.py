@@ -160,11 +160,16 @@ def parse_catalog(data: Any) -> Catalog:
     if not isinstance(data, dict) or data.get("schema") != SCHEMA_NAME:
         raise UserInputError(f"not a scene catalog: field 'schema' must be '{SCHEMA_NAME}'")
     version = data.get("version")
-    if version != SCHEMA_VERSION:
-        raise UserInputError(f"catalog field 'version' = {version!r}; this genesis-rl reads version {SCHEMA_VERSION}")
+    if type(version) is not int or version != SCHEMA_VERSION:  # not `!=` alone: JSON's true == 1 in Python
+        raise UserInputError(f"catalog field 'version' = {version!r}; this genesis-rl reads version {SCHEMA_VERSION} "
+                             "(an integer)")
     backend = _req(data, "backend", str, "catalog")
     map_name = _req(data, "map", str, "catalog")
+    if not map_name:
+        raise UserInputError("catalog field 'map' is empty; expected the map's name (e.g. urban, highway)")
     seed = _req(data, "seed", int, "catalog")
+    if seed < 0:
+        raise UserInputError(f"catalog field 'seed' = {seed}; expected an integer >= 0")
     scene_list = _req(data, "scenes", list, "catalog")
     if not scene_list:
         raise UserInputError("catalog field 'scenes' is empty: the catalog has no scenes")
@@ -172,6 +177,8 @@ def parse_catalog(data: Any) -> Catalog:
     for i, sd in enumerate(scene_list):
         where = f"scenes[{i}]"
         index = _req(sd, "index", int, where)  # a subset (e.g. replay's one scene) keeps its scenes' indices
+        if index < 0:
+            raise UserInputError(f"catalog: '{where}.index' = {index}; expected an integer >= 0")
         scene_map = _req(sd, "map", str, where)
         if scene_map != map_name:
             raise UserInputError(f"catalog: '{where}.map' = '{scene_map}'; allowed: '{map_name}' (the catalog's map)")

@@ -218,7 +218,8 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, algorithm:
     state = None
     if state_path is not None:
         state = read_json(state_path, "checkpoint state")
-        if not isinstance(state, dict) or state.get("timesteps") != steps or state.get("format") != STATE_FORMAT:
+        if not isinstance(state, dict) or type(state.get("timesteps")) is not int or state["timesteps"] != steps \
+                or type(state.get("format")) is not int or state["format"] != STATE_FORMAT:  # JSON's true == 1
             raise _damaged(state_path, f"expected format {STATE_FORMAT} for timesteps = {steps}")
         if not isinstance(state.get("envs"), list) or len(state["envs"]) != env.num_envs:
             raise _damaged(state_path, f"expected the state of {env.num_envs} env(s)")

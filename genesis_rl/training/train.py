@@ -38,6 +38,7 @@ from genesis_rl.provenance import git_commit
 from genesis_rl.rules.reward import RewardConfig
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, check_device_present, load_run_config
+from genesis_rl.training.pinning import adopt_pins, check_run, current_pins, write_pins
 from genesis_rl.training.throughput import RolloutThreads, policy_kwargs
 
 
@@ -189,6 +190,11 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
     if resume:
         if not (out / "config.toml").is_file():
             raise UserInputError(f"--resume: '{out}' is not a run folder (no config.toml)")
+        # a run continues with the files it began with: an edited config would mix two setups in episodes.csv
+        check_run(out, "--resume", "restore it, or train a new run (another --out, or --force to replace this one)",
+                  hints={"config.toml": "--resume continues a run with the settings it began with (only --steps "
+                                        "may change)"})
+        adopt_pins(out)  # a run from before the pins: checked from now on
         if total_timesteps is None:
             return load_run_config(out / "config.toml")
         cfg = load_run_config(out / "config.toml", {"train": {"total_timesteps": total_timesteps}})
@@ -209,6 +215,7 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
         "python": sys.version.split()[0], "command": argv, "seed": cfg.train.seed,
         "catalog": {"map": catalog.map, "seed": catalog.seed, "scenes": len(catalog.scenes)},
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "pins": current_pins(out, asdict(cfg.env)),  # training/pinning.py: checked whenever the run is reopened
     }, indent=2)
     return cfg
 
@@ -252,6 +259,7 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
             model, done, sums = resumed.model, resumed.steps, resumed.episode_sums
             if load_run_config(out / "config.toml") != cfg:  # --steps raised the target
                 atomic_write_text(out / "config.toml", cfg.to_toml())
+                write_pins(out, asdict(cfg.env))  # genesis-rl changed it: re-pinned
         else:
             model = new_model(cfg, env, policy)
             done = 0
