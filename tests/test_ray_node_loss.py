@@ -23,7 +23,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -54,7 +54,6 @@ class Cluster:
     env: dict[str, str]
     marker: str
     address: str = ""
-    second_ports: list[int] = field(default_factory=list)
 
     def pids(self, needle: str = "") -> list[int]:
         """This cluster's processes (by the marker in their environment), those whose command line holds
@@ -72,7 +71,8 @@ class Cluster:
                 found.append(int(entry.name))
         return found
 
-    def start_node(self, *args: str) -> None:
+    def start_node(self, *args: str) -> int:
+        """Start a node of one CPU; returns its raylet's pid."""
         ports = _free_ports(7)
         cmd = [RAY, "start", "--num-cpus", "1", "--disable-usage-stats", "--node-ip-address", "127.0.0.1",
                "--node-manager-port", str(ports[0]), "--object-manager-port", str(ports[1]),
@@ -83,7 +83,9 @@ class Cluster:
                "--object-store-memory", str(100 * 2**20), *args]
         r = subprocess.run(cmd, env=self.env, capture_output=True, text=True, timeout=180)
         assert r.returncode == 0, f"{' '.join(cmd)}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
-        self.second_ports = ports
+        (raylet,) = [p for p in self.pids("raylet") if f"--node_manager_port={ports[0]} " in
+                     Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode()]
+        return raylet
 
     def run(self, *args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
         return subprocess.run(["nice", sys.executable, "-m", "genesis_rl", *args], env=self.env, text=True,
@@ -122,14 +124,14 @@ def cluster() -> Iterator[Cluster]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _running_episode(raylet: int) -> bool:
-    """Whether a worker of the node whose raylet is ``raylet`` (its parent) is running an episode."""
+def _running(raylet: int, method: str) -> bool:
+    """Whether a worker of the node whose raylet is ``raylet`` (its parent) runs ``method`` now."""
     for entry in Path("/proc").iterdir():
         try:
             if entry.name.isdigit():
                 stat = (entry / "stat").read_text()
                 ppid = int(stat.rsplit(")", 1)[1].split()[1])
-                if ppid == raylet and (entry / "cmdline").read_bytes().startswith(b"ray::EpisodeActor.run"):
+                if ppid == raylet and (entry / "cmdline").read_bytes().startswith(f"ray::{method}".encode()):
                     return True
         except (OSError, ValueError, IndexError):
             continue
@@ -156,10 +158,7 @@ def test_a_lost_node_costs_its_episodes_not_the_campaign(cluster, tmp_path) -> N
     r = cluster.run("evaluate", *CAMPAIGN, "--out", str(local))
     assert r.returncode == 0, r.stderr[-2000:]
 
-    cluster.start_node("--address", cluster.address)
-    raylet = [p for p in cluster.pids("raylet") if f"--node_manager_port={cluster.second_ports[0]}" in
-              Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode()]
-    assert len(raylet) == 1, "the second node's raylet"
+    raylet = cluster.start_node("--address", cluster.address)
     out = tmp_path / "ray"
     proc = subprocess.Popen(["nice", sys.executable, "-m", "genesis_rl", "evaluate", *CAMPAIGN, "--executor", "ray",
                              "--ray-address", cluster.address, "--workers", "2", "--out", str(out)],
@@ -171,10 +170,10 @@ def test_a_lost_node_costs_its_episodes_not_the_campaign(cluster, tmp_path) -> N
     try:
         # kill the node while its worker runs an episode (Ray titles a worker ray::Class.method while it runs one)
         deadline = time.monotonic() + 150
-        while not _running_episode(raylet[0]) and time.monotonic() < deadline and proc.poll() is None:
+        while not _running(raylet, 'EpisodeActor.run') and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.2)
-        assert proc.poll() is None and _running_episode(raylet[0]), "".join(ln for _, ln in lines)
-        os.kill(raylet[0], signal.SIGKILL)
+        assert proc.poll() is None and _running(raylet, 'EpisodeActor.run'), "".join(ln for _, ln in lines)
+        os.kill(raylet, signal.SIGKILL)
         killed = time.monotonic()
         rc = proc.wait(timeout=180)
         done = time.monotonic()
@@ -194,3 +193,56 @@ def test_a_lost_node_costs_its_episodes_not_the_campaign(cluster, tmp_path) -> N
     # every episode is there once, and the summary is the local run's
     assert _summary(out) == _summary(local)
     assert _summary(local)["policies"]["random"]["episodes"] == 4
+
+
+TRAIN_CONFIG = """
+[env]
+map = "urban"
+scenes = 4
+episode_steps = 32
+obs_width = 48
+obs_height = 36
+system = "blind"
+[ppo]
+n_steps = 32
+batch_size = 32
+n_epochs = 1
+device = "cpu"
+[train]
+total_timesteps = 1000000
+envs = 2
+seed = 3
+checkpoint_every = 64
+"""
+
+
+def test_training_that_loses_a_node_stops_at_its_checkpoint_naming_resume(cluster, tmp_path) -> None:
+    """No exact continuation exists for a lost env (its simulator and random stream are gone), so the run stops
+    at its last whole checkpoint: one line naming train --resume, exit 3, no traceback, the checkpoint kept."""
+    raylet = cluster.start_node("--address", cluster.address)  # the killed node of the test above is dead
+    (tmp_path / "cfg.toml").write_text(TRAIN_CONFIG)
+    run = tmp_path / "run"
+    cfg = str(tmp_path / "cfg.toml")
+    proc = subprocess.Popen(["nice", sys.executable, "-m", "genesis_rl", "train", "--config", cfg,
+                             "--out", str(run), "--quiet", "--executor", "ray", "--ray-address", cluster.address],
+                            env=cluster.env, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not ((run / "checkpoints" / "last.json").is_file() and _running(raylet, "EnvActor")) \
+                and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        assert proc.poll() is None and (run / "checkpoints" / "last.json").is_file()
+        ckpt = json.loads((run / "checkpoints" / "last.json").read_text())
+        os.kill(raylet, signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    print("\n" + err.strip().splitlines()[-1])
+    assert proc.returncode == 3, err[-3000:]
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert re.match(r"genesis-rl train: error: lost Ray node [0-9a-f]{16,} \(.*\) with training env\(s\) [01] at step "
+                    r"\d+; the run stops at its checkpoint at step \d+: continue with genesis-rl train --resume "
+                    f"--out {re.escape(str(run))}$", line), line
+    assert (run / "checkpoints" / "last.json").is_file() and ckpt
