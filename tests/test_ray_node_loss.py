@@ -234,7 +234,9 @@ def test_training_that_loses_a_node_stops_at_its_checkpoint_naming_resume(cluste
         assert proc.poll() is None and (run / "checkpoints" / "last.json").is_file()
         ckpt = json.loads((run / "checkpoints" / "last.json").read_text())
         os.kill(raylet, signal.SIGKILL)
+        killed = time.monotonic()
         _, err = proc.communicate(timeout=120)
+        print(f"\ntraining stopped {time.monotonic() - killed:.1f} s after the kill")
     finally:
         if proc.poll() is None:
             proc.kill()
