@@ -25,17 +25,134 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 pytest.importorskip("ray", reason="scripts/test.sh installs the ray extra; CI runs these")
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the cluster's processes in /proc")]
+LINUX_ONLY = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the cluster's processes in /proc")
 
 RAY = str(Path(sys.executable).with_name("ray"))
 ROOT = Path(__file__).resolve().parents[1]
 CAMPAIGN = ["--policies", "sunny,random", "--map", "highway", "--scenes", "4", "--steps", "60", "--system", "blind",
             "--quiet", "--no-report"]
+
+
+# -- the scheduler against a stand-in Ray: fast, no cluster --------------------------------------------------
+class _Ref:
+    """A call's result; the oldest call that is ready finishes first."""
+
+    made = 0
+
+    def __init__(self, value: object = None, error: BaseException | None = None, ready: bool = True) -> None:
+        self.value, self.error, self.ready = value, error, ready
+        _Ref.made += 1
+        self.seq = _Ref.made
+
+
+class _Actor:
+    """An actor on ``node``; ``fail(task)`` says whether its call for ``task`` is lost; ``placed`` whether it
+    ever comes up."""
+
+    def __init__(self, fake: _FakeRay, node: tuple[str, str], placed: bool = True, fail=lambda task: False) -> None:
+        self.fake, self.node, self.placed, self.fail = fake, node, placed, fail
+        self.where = SimpleNamespace(remote=lambda: _Ref(node, ready=placed))
+        self.run = SimpleNamespace(remote=self._run)
+        self.close = SimpleNamespace(remote=lambda: _Ref(None))
+
+    def _run(self, task):  # noqa: ANN001, ANN202
+        self.fake.calls.append((self.node[0], task))
+        if self.fail(task):
+            return _Ref(error=ray_exceptions().ActorDiedError())
+        return _Ref(({"policy": task[0], "scene": task[1]}, {}))
+
+
+class _FakeRay:
+    """What RayEpisodeScheduler uses of Ray: wait, get, kill, nodes, exceptions."""
+
+    def __init__(self, dead: set[str] = frozenset()) -> None:
+        self.dead, self.calls, self.killed = set(dead), [], []
+        self.exceptions = ray_exceptions()
+
+    def wait(self, refs, num_returns, timeout):  # noqa: ANN001, ANN201
+        ready = sorted((r for r in refs if r.ready), key=lambda r: r.seq)[:num_returns]
+        assert ready or timeout is not None, "would wait forever"
+        return ready, [r for r in refs if r not in ready]
+
+    def get(self, ref):  # noqa: ANN001, ANN201
+        if ref.error is not None:
+            raise ref.error
+        return ref.value
+
+    def kill(self, actor) -> None:  # noqa: ANN001
+        self.killed.append(actor.node[0])
+
+    def nodes(self) -> list[dict]:
+        return [{"NodeID": n, "Alive": n not in self.dead, "NodeManagerAddress": f"10.0.0.{n[-1]}"}
+                for n in ("node1", "node2")]
+
+
+def ray_exceptions():  # noqa: ANN201
+    import ray.exceptions
+
+    return ray.exceptions
+
+
+TASKS = [(policy, scene, scene + 100) for policy in ("sunny", "random") for scene in range(3)]
+
+
+def test_a_lost_nodes_episode_runs_again_on_the_surviving_worker(capsys) -> None:
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay(dead={"node2"})
+    made: list[int] = []
+
+    def make(i: int) -> _Actor:
+        made.append(i)
+        if len(made) == 1:
+            return _Actor(fake, ("node1", "10.0.0.1"))
+        if len(made) == 2:  # on node 2, which dies during its first episode
+            return _Actor(fake, ("node2", "10.0.0.2"), fail=lambda task: True)
+        return _Actor(fake, ("node2", "?"), placed=False)  # the replacement: no room anywhere
+
+    rows = [row for row, _files in RayEpisodeScheduler(fake, make, 2, TASKS, max_losses=3).run()]
+    assert sorted((r["policy"], r["scene"]) for r in rows) == sorted((t[0], t[1]) for t in TASKS)  # each once
+    assert made == [0, 1, 1] and fake.killed == ["node2"]
+    lost_task = next(t for node, t in fake.calls if node == "node2")
+    assert ("node1", lost_task) in fake.calls  # re-run on the survivor
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["genesis-rl: lost Ray node node2 (10.0.0.2): 1 worker(s); 1 episode(s) go back to the queue and "
+                   "run again on the 1 worker(s) left or on replacements where the cluster has room"]
+
+
+def test_a_campaign_with_no_worker_left_stops_naming_resume() -> None:
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay(dead={"node1", "node2"})
+    actors = iter([_Actor(fake, (node, "?"), fail=lambda t: True) for node in ("node1", "node2")])
+
+    def make(i: int) -> _Actor:
+        return next(actors, None) or _Actor(fake, ("node1", "?"), placed=False)
+
+    with pytest.raises(RayWorkersLost, match=r"every Ray worker of the campaign is lost \(lost nodes: node1 "
+                       r"\(10.0.0.1\), node2 \(10.0.0.2\)\) .* 6 episode\(s\) are not run.*evaluate --resume") as e:
+        list(RayEpisodeScheduler(fake, make, 2, TASKS, max_losses=3, wait_s=0).run())
+    assert e.value.exit_code == 3
+
+
+def test_an_episode_that_kills_its_worker_every_time_stops_the_campaign(capsys) -> None:
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay()
+
+    def make(i: int) -> _Actor:
+        return _Actor(fake, ("node1", "10.0.0.1"), fail=lambda task: task == TASKS[0])
+
+    with pytest.raises(RayWorkersLost, match="policy 'sunny' on scene 0 lost its Ray worker 3 times"):
+        list(RayEpisodeScheduler(fake, make, 1, TASKS, max_losses=2).run())
+    assert capsys.readouterr().err.count("genesis-rl: a Ray worker on Ray node node1 (10.0.0.1) died") == 2
 
 
 def _free_ports(n: int) -> list[int]:
@@ -143,6 +260,8 @@ def _summary(folder: Path) -> dict:
     return {k: v for k, v in s.items() if k not in ("campaign", "run_seconds", "workers", "executor")}
 
 
+@pytest.mark.slow
+@LINUX_ONLY
 def test_without_an_address_the_command_starts_its_own_ray_beside_a_running_cluster(cluster, tmp_path) -> None:
     """`ray start --head` left its address file in RAY_TMPDIR: ray.init(num_cpus=...) joined it and failed with
     'When connecting to an existing cluster, num_cpus and num_gpus must not be provided' (exit 1)."""
@@ -153,6 +272,8 @@ def test_without_an_address_the_command_starts_its_own_ray_beside_a_running_clus
     assert json.loads((tmp_path / "own" / "run_time.json").read_text())["executor"] == "ray"
 
 
+@pytest.mark.slow
+@LINUX_ONLY
 def test_a_lost_node_costs_its_episodes_not_the_campaign(cluster, tmp_path) -> None:
     local = tmp_path / "local"
     r = cluster.run("evaluate", *CAMPAIGN, "--out", str(local))
@@ -216,6 +337,8 @@ checkpoint_every = 64
 """
 
 
+@pytest.mark.slow
+@LINUX_ONLY
 def test_training_that_loses_a_node_stops_at_its_checkpoint_naming_resume(cluster, tmp_path) -> None:
     """No exact continuation exists for a lost env (its simulator and random stream are gone), so the run stops
     at its last whole checkpoint: one line naming train --resume, exit 3, no traceback, the checkpoint kept."""
