@@ -155,6 +155,37 @@ def test_an_episode_that_kills_its_worker_every_time_stops_the_campaign(capsys) 
     assert capsys.readouterr().err.count("genesis-rl: a Ray worker on Ray node node1 (10.0.0.1) died") == 2
 
 
+def test_an_actor_that_dies_before_it_is_up_is_replaced_quietly(capsys) -> None:
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay()
+    made: list[int] = []
+
+    def make(i: int) -> _Actor:
+        made.append(i)
+        actor = _Actor(fake, ("node1", "10.0.0.1"))
+        if len(made) == 1:  # its worker dies while it starts
+            actor.where = SimpleNamespace(remote=lambda: _Ref(error=ray_exceptions().ActorDiedError()))
+        return actor
+
+    rows = [row for row, _files in RayEpisodeScheduler(fake, make, 1, TASKS, max_losses=2).run()]
+    assert len(rows) == len(TASKS) and made == [0, 0] and capsys.readouterr().err == ""
+
+
+def test_a_lost_training_env_is_one_error_naming_its_node() -> None:
+    """RayVecEnv turns Ray's 'gone' errors into RayWorkersLost (exit 3), naming the env and its node."""
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost, lost_errors
+    from genesis_rl.training.ray_vec_env import RayVecEnv
+
+    fake = _FakeRay(dead={"node2"})
+    env = object.__new__(RayVecEnv)
+    env._ray, env._lost, env.nodes = fake, lost_errors(fake), [("node1", "10.0.0.1"), ("node2", "10.0.0.2")]
+    assert env._get(_Ref([1, 2])) == [1, 2]
+    with pytest.raises(RayWorkersLost, match=r"^lost Ray node node2 \(10.0.0.2\) with training env\(s\) 1$") as e:
+        env._get(_Ref(error=ray_exceptions().ActorUnavailableError("gone", b"0" * 16)))
+    assert e.value.exit_code == 3
+
+
 def _free_ports(n: int) -> list[int]:
     socks = [socket.socket() for _ in range(n)]
     try:

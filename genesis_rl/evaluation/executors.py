@@ -24,7 +24,7 @@ import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -143,16 +143,6 @@ class _Slot:
     failed_starts: int = 0  # actors of this slot in a row that died before they were up
 
 
-@dataclass
-class _Lost:
-    """What one lost node (or worker) cost, for its line on stderr."""
-
-    label: str
-    episodes: int = 0
-    actors: int = 0
-    details: list[str] = field(default_factory=list)
-
-
 class RayEpisodeScheduler:
     """Hands tasks to actors one at a time and gives a lost actor's episode to another (module docstring)."""
 
@@ -237,6 +227,8 @@ class RayEpisodeScheduler:
                 self.slots[self.slots.index(s)] = self._new_slot(s.index, failed)
         self.queue.extendleft(reversed(episodes))  # the lost episodes first, in their order
         self.rerun += len(episodes)
+        if not node_gone and not episodes and slot.node is None:
+            return  # an actor that never came up (e.g. placed on a node going down) cost nothing to report
         where = f"Ray node {node_id or '?'} ({ip or 'unknown IP'})"
         live = sum(s.node is not None for s in self.slots)
         if node_gone:
