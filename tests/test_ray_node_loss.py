@@ -296,11 +296,14 @@ def _summary(folder: Path) -> dict:
 def test_without_an_address_the_command_starts_its_own_ray_beside_a_running_cluster(cluster, tmp_path) -> None:
     """`ray start --head` left its address file in RAY_TMPDIR: ray.init(num_cpus=...) joined it and failed with
     'When connecting to an existing cluster, num_cpus and num_gpus must not be provided' (exit 1)."""
-    assert (Path(cluster.env["RAY_TMPDIR"]) / "ray" / "ray_current_cluster").is_file()
+    ray_dir = Path(cluster.env["RAY_TMPDIR"]) / "ray"
+    assert (ray_dir / "ray_current_cluster").is_file()
+    sessions = set(ray_dir.glob("session_2*"))
     r = cluster.run("evaluate", *CAMPAIGN[:6], "--scenes", "1", "--steps", "5", "--executor", "ray", "--workers", "1",
                     "--out", str(tmp_path / "own"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads((tmp_path / "own" / "run_time.json").read_text())["executor"] == "ray"
+    assert len(set(ray_dir.glob("session_2*")) - sessions) == 1  # a Ray of its own, not the cluster's
 
 
 @pytest.mark.slow
