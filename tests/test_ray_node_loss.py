@@ -2,7 +2,8 @@
 (``ray start --head`` and ``ray start --address``, one CPU each) the second node's raylet is killed mid-run;
 the campaign re-runs that node's episode on the surviving node and ends with exit 0 and the local run's
 summary; training stops with one line naming ``train --resume`` (exit 3, no traceback). And ``--executor ray``
-without ``--ray-address`` starts a Ray of its own while a ``ray start`` cluster runs on the machine.
+without ``--ray-address`` starts a Ray of its own while a ``ray start`` cluster runs on the machine. Those three
+are slow (a cluster on 2 cores); the scheduler's rules are also tested fast against a stand-in Ray.
 
 The cluster is this module's own: a private RAY_TMPDIR (so its address file is seen only by these tests), free
 ports, and a marker in its processes' environment by which teardown kills exactly its processes (``ray stop``
