@@ -4,6 +4,13 @@ Ray is an optional extra (``pip install -e .[ray]``). Everything that can go wro
 training run starts (Ray not installed, an address nobody answers, a cluster with fewer CPUs than the
 workers asked for) is a :class:`UserInputError` raised *before* any output folder is touched, so a bad
 ``--ray-address`` writes nothing.
+
+Without an address the command starts a Ray of its own (``address="local"``), whatever clusters run on the
+machine: ``ray.init()`` would otherwise join the cluster a ``ray start --head`` left in
+``/tmp/ray/ray_current_cluster`` (or ``RAY_ADDRESS``) and refuse the CPU count.
+
+A node or worker lost mid-run raises one of :data:`LOST_ERROR_NAMES`; campaigns re-run that worker's episode
+elsewhere (``evaluation/executors.py``), training stops at its last checkpoint (:class:`RayWorkersLost`).
 """
 
 from __future__ import annotations
@@ -25,6 +32,65 @@ CONNECT_TIMEOUT_S = 3.0
 _HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
 _checked: set[str] = set()  # addresses that answered as gRPC in this process (preflight, then ray_session)
 INSTALL_HINT = "install the extra: pip install -e .[ray] (or pip install ray)"
+#: the ``ray.exceptions`` that mean "the actor, its worker process, its node or an object it held is gone"
+#: (ActorDiedError and ActorUnavailableError are RayActorErrors; OwnerDiedError is an ObjectLostError). Not
+#: LocalRayletDiedError: this process's own node is gone, and nothing here can go on.
+LOST_ERROR_NAMES = ("RayActorError", "ActorDiedError", "ActorUnavailableError", "NodeDiedError", "WorkerCrashedError",
+                    "ObjectLostError", "OwnerDiedError")
+
+
+class RayWorkersLost(UserInputError):
+    """Ray lost workers (or their nodes) and the run cannot go on; what is written is kept. The CLI prints the
+    message (which names ``--resume``) as one line and exits with status 3, no traceback."""
+
+    exit_code = 3
+
+
+def lost_errors(ray: ModuleType) -> tuple[type[BaseException], ...]:
+    """The classes of :data:`LOST_ERROR_NAMES` this Ray version has."""
+    found = (getattr(ray.exceptions, name, None) for name in LOST_ERROR_NAMES)
+    return tuple(c for c in found if isinstance(c, type) and issubclass(c, BaseException))
+
+
+def where_am_i() -> tuple[str, str]:
+    """(node id, node IP) of the calling Ray worker."""
+    import ray
+
+    return ray.get_runtime_context().get_node_id(), ray.util.get_node_ip_address()
+
+
+def _node(ray: ModuleType, node_id: str) -> dict[str, Any] | None:
+    try:
+        return next((n for n in ray.nodes() if n.get("NodeID") == node_id), None)
+    except Exception:  # noqa: BLE001 - the GCS is busy or gone: nothing known about the node
+        return None
+
+
+def node_address(ray: ModuleType, node_id: str, fallback: str) -> str:
+    """The IP the cluster knows ``node_id`` by (its raylet's, as `ray start --node-ip-address` set it)."""
+    node = _node(ray, node_id)
+    return str(node.get("NodeManagerAddress") or fallback) if node else fallback
+
+
+def node_alive(ray: ModuleType, node_id: str | None, probe_s: float = 2.0) -> bool:
+    """Whether ``node_id`` is still up: the cluster counts it alive *and* its raylet takes a TCP connection
+    within ``probe_s`` (the cluster marks a node dead only after its health checks fail, ~15 s by default,
+    while its actors' calls fail at once). True when nothing is known (a worker died, not a node)."""
+    if not node_id:
+        return True
+    node = _node(ray, node_id)
+    if node is None:
+        return True
+    if not node.get("Alive", True):
+        return False
+    host, port = node.get("NodeManagerAddress"), node.get("NodeManagerPort")
+    if not host or not port:
+        return True
+    try:
+        with socket.create_connection((str(host), int(port)), timeout=probe_s):
+            return True
+    except OSError:
+        return False
 
 
 def require_ray(flag: str = "--executor ray") -> ModuleType:
@@ -104,7 +170,8 @@ def ray_session(address: str | None, workers: int, per_worker: dict[str, float] 
             except (ConnectionError, RuntimeError, ValueError) as err:
                 raise UserInputError(f"--ray-address = '{address}': Ray could not connect ({err})") from None
         else:
-            ray.init(num_cpus=max(workers, os.cpu_count() or 1), **kwargs)
+            # "local": a new instance even where a `ray start` cluster (or a stale address file) exists
+            ray.init(address="local", num_cpus=max(workers, os.cpu_count() or 1), **kwargs)
         started = True
     try:
         cpus = float(ray.cluster_resources().get("CPU", 0))

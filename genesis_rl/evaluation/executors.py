@@ -5,16 +5,25 @@ Every executor runs :func:`worker.run_task` on the same (policy, scene, episode 
 are the same whatever the executor and the number of workers. A Ray actor writes an episode into a staging
 folder of its own and sends the files back with its summary row; the driver writes them into the campaign
 folder, the row last (it marks the episode done), so a cluster needs no shared filesystem for results and a
-resumed campaign reads the same folder whichever executor wrote it. An actor that dies (a node lost, a
-worker killed) is restarted by Ray and its episode run again: nothing of that episode was written yet.
+resumed campaign reads the same folder whichever executor wrote it.
+
+An actor that is lost (its worker process killed, its node gone) costs only its episode: the episode goes back
+to the queue and runs again on the other actors (nothing of it was written yet, and an episode is seeded by its
+task, so the re-run is the same episode), a replacement actor is asked for in its place (it starts where the
+cluster has room), and one line on stderr names the node and the episodes re-run. The campaign stops, keeping
+what it wrote, only when no actor is left and none can be placed within ``REPLACEMENT_WAIT_S``, or when one
+episode has lost its worker more than ``retries + 1`` times (an episode that kills its worker).
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
 import shutil
+import sys
 import tempfile
-from collections.abc import Iterator, Sequence
+import time
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,6 +93,12 @@ class EpisodeActor:
         (self.stage / "catalog.json").write_bytes(catalog_json)
         init_worker(setup.spec_json, str(self.stage), 1, setup.plugins, env_settings)
 
+    def where(self) -> tuple[str, str]:
+        """(node id, node IP): answered once the actor is up, which is when it takes episodes."""
+        from genesis_rl.distributed.ray_cluster import where_am_i
+
+        return where_am_i()
+
     def run(self, task: Task) -> tuple[dict[str, Any], dict[str, bytes]]:
         row = run_task(task)
         files: dict[str, bytes] = {}
@@ -111,9 +126,150 @@ def write_files(folder: Path, files: dict[str, bytes]) -> None:
         atomic_write(target, _bytes_writer(files[rel]))
 
 
-def _run_ray(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettings) -> Iterator[dict[str, Any]]:
-    from ray.util import ActorPool
+#: seconds a campaign that has lost every actor waits for a replacement to be placed before it stops
+REPLACEMENT_WAIT_S = 120.0
 
+
+@dataclass
+class _Slot:
+    """Worker slot i (its CARLA server, its Ray resources) and the actor that fills it now."""
+
+    index: int
+    actor: Any
+    ready_ref: Any  # the actor's where(): resolves once it is up
+    node: tuple[str, str] | None = None  # (node id, IP), once up
+    task: int | None = None  # the task it runs now (index into tasks)
+    ref: Any = None
+    failed_starts: int = 0  # actors of this slot in a row that died before they were up
+
+
+class RayEpisodeScheduler:
+    """Hands tasks to actors one at a time and gives a lost actor's episode to another (module docstring)."""
+
+    def __init__(self, ray: Any, make_actor: Callable[[int], Any], slots: int, tasks: Sequence[Task],
+                 max_losses: int, wait_s: float = REPLACEMENT_WAIT_S) -> None:
+        from genesis_rl.distributed.ray_cluster import lost_errors
+
+        self.ray, self.make_actor, self.tasks, self.max_losses, self.wait_s = ray, make_actor, tasks, max_losses, wait_s
+        self.lost_errors = lost_errors(ray)
+        self.queue: deque[int] = deque(range(len(tasks)))
+        self.losses: dict[int, int] = {}
+        self.slots = [self._new_slot(i) for i in range(slots)]
+        self.rerun = 0  # episodes that went back to the queue
+        self.lost_nodes: list[str] = []
+
+    def _new_slot(self, i: int, failed_starts: int = 0) -> _Slot:
+        actor = self.make_actor(i)
+        return _Slot(i, actor, actor.where.remote(), failed_starts=failed_starts)
+
+    def run(self) -> Iterator[tuple[dict[str, Any], dict[str, bytes]]]:
+        from genesis_rl.distributed.ray_cluster import node_address
+
+        stranded_since: float | None = None
+        while self.queue or any(s.task is not None for s in self.slots):
+            for slot in self.slots:  # every idle actor that is up takes the next episode
+                if slot.node is not None and slot.task is None and self.queue:
+                    slot.task = self.queue.popleft()
+                    slot.ref = slot.actor.run.remote(self.tasks[slot.task])
+            waiting = {s.ref if s.task is not None else s.ready_ref: s for s in self.slots
+                       if s.task is not None or s.node is None}
+            if not waiting:
+                raise self._stranded()
+            working = any(s.node is not None for s in self.slots)
+            if working:
+                stranded_since = None
+            elif stranded_since is None:
+                stranded_since = time.monotonic()
+            timeout = None if working else max(0.0, self.wait_s - (time.monotonic() - (stranded_since or 0.0)))
+            ready, _ = self.ray.wait(list(waiting), num_returns=1, timeout=timeout)
+            if not ready:
+                raise self._stranded()
+            slot = waiting[ready[0]]
+            try:
+                value = self.ray.get(ready[0])
+            except self.lost_errors as err:
+                if getattr(err, "actor_init_failed", False):
+                    raise  # the actor's set-up failed (a plug-in, a setting): a replacement would fail the same way
+                self._lose(slot, err)
+                continue
+            if slot.task is None:
+                slot.node = (value[0], node_address(self.ray, value[0], value[1]))
+            else:
+                slot.task, slot.ref = None, None
+                yield value
+
+    def _lose(self, slot: _Slot, err: BaseException) -> None:
+        """``slot``'s actor is gone: its episode (and those of every actor on the same node, if the node is gone)
+        back to the queue, replacements asked for, one line on stderr."""
+        from genesis_rl.distributed.ray_cluster import node_alive
+
+        node_id, ip = slot.node or ("", "")
+        node_gone = bool(node_id) and not node_alive(self.ray, node_id)
+        victims = [s for s in self.slots if node_gone and s.node is not None and s.node[0] == node_id]
+        victims = victims or [slot]
+        episodes = []
+        for s in victims:
+            if s.task is not None:
+                episodes.append(s.task)
+                self.losses[s.task] = self.losses.get(s.task, 0) + 1
+                if self.losses[s.task] > self.max_losses:
+                    policy, scene = self.tasks[s.task][0], self.tasks[s.task][1]
+                    raise _workers_lost(f"the episode of policy '{policy}' on scene {scene} lost its Ray worker "
+                                        f"{self.losses[s.task]} times (it may kill its worker: {_short(err)})")
+            try:
+                self.ray.kill(s.actor)
+            except Exception:  # noqa: BLE001 - a dead actor is killed already
+                pass
+            failed = s.failed_starts + 1 if s.node is None else 0
+            if failed > self.max_losses:  # its actors die as they start: no more of them
+                self.slots.remove(s)
+            else:  # placed where the cluster has room
+                self.slots[self.slots.index(s)] = self._new_slot(s.index, failed)
+        self.queue.extendleft(reversed(episodes))  # the lost episodes first, in their order
+        self.rerun += len(episodes)
+        if not node_gone and not episodes and slot.node is None:
+            return  # an actor that never came up (e.g. placed on a node going down) cost nothing to report
+        where = f"Ray node {node_id or '?'} ({ip or 'unknown IP'})"
+        live = sum(s.node is not None for s in self.slots)
+        if node_gone:
+            self.lost_nodes.append(f"{node_id} ({ip})")
+            what = f"genesis-rl: lost {where}: {len(victims)} worker(s)"
+        else:
+            what = f"genesis-rl: a Ray worker on {where} died ({_short(err)})"
+        print(f"{what}; {len(episodes)} episode(s) go back to the queue and run again on the {live} worker(s) "
+              f"left or on replacements where the cluster has room", file=sys.stderr, flush=True)
+
+    def _stranded(self) -> Exception:
+        lost = f" (lost nodes: {', '.join(self.lost_nodes)})" if self.lost_nodes else ""
+        return _workers_lost(f"every Ray worker of the campaign is lost{lost} and no replacement could be placed "
+                             f"within {self.wait_s:g} s; {len(self.queue)} episode(s) are not run")
+
+    def close(self) -> None:
+        for s in self.slots:
+            if s.node is not None:
+                try:
+                    self.ray.get(s.actor.close.remote(), timeout=30)
+                except Exception:  # noqa: BLE001 - a dead actor has nothing left to close
+                    pass
+            try:
+                self.ray.kill(s.actor)  # and one still waiting for room gives up its request
+            except Exception:  # noqa: BLE001
+                pass
+
+
+def _short(err: BaseException) -> str:
+    first = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {first[0][:160]}" if first else type(err).__name__
+
+
+def _workers_lost(reason: str) -> Exception:
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost
+
+    return RayWorkersLost(f"{reason}; the finished episodes are kept: continue with genesis-rl evaluate --resume "
+                          "(on Ray or locally) once the cluster has room")
+
+
+def _run_ray(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettings) -> Iterator[dict[str, Any]]:
     from genesis_rl.distributed.ray_cluster import driver_paths, ray_session
 
     retries = int(setup.spec_json.get("options", {}).get("retries", 2))
@@ -121,22 +277,21 @@ def _run_ray(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettin
     if n == 0:
         return
     with ray_session(settings.ray_address, n, settings.ray_resources(0)) as ray:
-        remote = ray.remote(num_cpus=1, max_restarts=retries + 1, max_task_retries=retries + 1)(EpisodeActor)
-        # put once and held here for the whole campaign: a restarted actor is built from the same objects (Ray
-        # drops inlined constructor arguments from its store, and the restart would fail)
+        # no restarts by Ray: a lost actor is replaced by the scheduler, which knows its episode and its node
+        remote = ray.remote(num_cpus=1, max_restarts=0, max_task_retries=0)(EpisodeActor)
+        # put once and held here for the whole campaign: replacement actors are built from the same objects
         setup_ref = ray.put(setup)
         catalog_ref = ray.put((setup.folder / "catalog.json").read_bytes())
         paths_ref = ray.put(driver_paths())
-        actors = [remote.options(resources=settings.ray_resources(i)).remote(
-            setup_ref, catalog_ref, settings.server(i), paths_ref) for i in range(n)]
+
+        def make(i: int) -> Any:
+            return remote.options(resources=settings.ray_resources(i)).remote(setup_ref, catalog_ref,
+                                                                              settings.server(i), paths_ref)
+
+        scheduler = RayEpisodeScheduler(ray, make, n, tasks, max_losses=retries + 1)
         try:
-            pool = ActorPool(actors)
-            for row, files in pool.map_unordered(lambda a, t: a.run.remote(t), list(tasks)):
+            for row, files in scheduler.run():
                 write_files(setup.folder, files)
                 yield row
         finally:
-            for a in actors:
-                try:
-                    ray.get(a.close.remote(), timeout=30)
-                except Exception:  # noqa: BLE001 - a dead actor has nothing left to close
-                    pass
+            scheduler.close()

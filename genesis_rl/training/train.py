@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from genesis_rl import __version__, output_folder
 from genesis_rl.backends import catalog_or_generate
+from genesis_rl.distributed.ray_cluster import RayWorkersLost
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.env.observation import sb3_policy
@@ -288,6 +289,13 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                     print(f"genesis-rl train: interrupted at step {model.num_timesteps}; --resume continues from "
                           f"the checkpoint at step {cb.last_ckpt}", file=sys.stderr, flush=True)
                 raise
+            except RayWorkersLost as err:  # a lost Ray env or node: stop at the last whole checkpoint (exit 3)
+                if (out / CHECKPOINTS / "last.json").exists():
+                    raise RayWorkersLost(f"{err} at step {model.num_timesteps}; the run stops at its checkpoint at "
+                                         f"step {cb.last_ckpt}: continue with genesis-rl train --resume --out {out}"
+                                         ) from None
+                raise RayWorkersLost(f"{err} at step {model.num_timesteps}, before the run's first checkpoint; "
+                                     "nothing is kept: run the command again") from None
             cb.checkpoint()
         atomic_write(out / "agent.zip", lambda q: model.save(q))
         seconds = time.perf_counter() - t0

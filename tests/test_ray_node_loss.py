@@ -1,0 +1,408 @@
+"""A lost Ray node costs its episodes, not the campaign (issue 38, family 6): on a two-node local cluster
+(``ray start --head`` and ``ray start --address``, one CPU each) the second node's raylet is killed mid-run;
+the campaign re-runs that node's episode on the surviving node and ends with exit 0 and the local run's
+summary; training stops with one line naming ``train --resume`` (exit 3, no traceback). And ``--executor ray``
+without ``--ray-address`` starts a Ray of its own while a ``ray start`` cluster runs on the machine. Those three
+are slow (a cluster on 2 cores); the scheduler's rules are also tested fast against a stand-in Ray.
+
+The cluster is this module's own: a private RAY_TMPDIR (so its address file is seen only by these tests), free
+ports, and a marker in its processes' environment by which teardown kills exactly its processes (``ray stop``
+would stop every Ray of the user on the machine)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+pytest.importorskip("ray", reason="scripts/test.sh installs the ray extra; CI runs these")
+LINUX_ONLY = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the cluster's processes in /proc")
+
+RAY = str(Path(sys.executable).with_name("ray"))
+ROOT = Path(__file__).resolve().parents[1]
+CAMPAIGN = ["--policies", "sunny,random", "--map", "highway", "--scenes", "4", "--steps", "60", "--system", "blind",
+            "--quiet", "--no-report"]
+
+
+# -- the scheduler against a stand-in Ray: fast, no cluster --------------------------------------------------
+class _Ref:
+    """A call's result; the oldest call that is ready finishes first."""
+
+    made = 0
+
+    def __init__(self, value: object = None, error: BaseException | None = None, ready: bool = True) -> None:
+        self.value, self.error, self.ready = value, error, ready
+        _Ref.made += 1
+        self.seq = _Ref.made
+
+
+class _Actor:
+    """An actor on ``node``; ``fail(task)`` says whether its call for ``task`` is lost; ``placed`` whether it
+    ever comes up."""
+
+    def __init__(self, fake: _FakeRay, node: tuple[str, str], placed: bool = True, fail=lambda task: False) -> None:
+        self.fake, self.node, self.placed, self.fail = fake, node, placed, fail
+        self.where = SimpleNamespace(remote=lambda: _Ref(node, ready=placed))
+        self.run = SimpleNamespace(remote=self._run)
+        self.close = SimpleNamespace(remote=lambda: _Ref(None))
+
+    def _run(self, task):  # noqa: ANN001, ANN202
+        self.fake.calls.append((self.node[0], task))
+        if self.fail(task):
+            return _Ref(error=ray_exceptions().ActorDiedError())
+        return _Ref(({"policy": task[0], "scene": task[1]}, {}))
+
+
+class _FakeRay:
+    """What RayEpisodeScheduler uses of Ray: wait, get, kill, nodes, exceptions."""
+
+    def __init__(self, dead: set[str] = frozenset()) -> None:
+        self.dead, self.calls, self.killed = set(dead), [], []
+        self.exceptions = ray_exceptions()
+
+    def wait(self, refs, num_returns, timeout):  # noqa: ANN001, ANN201
+        ready = sorted((r for r in refs if r.ready), key=lambda r: r.seq)[:num_returns]
+        assert ready or timeout is not None, "would wait forever"
+        return ready, [r for r in refs if r not in ready]
+
+    def get(self, ref):  # noqa: ANN001, ANN201
+        if ref.error is not None:
+            raise ref.error
+        return ref.value
+
+    def kill(self, actor) -> None:  # noqa: ANN001
+        self.killed.append(actor.node[0])
+
+    def nodes(self) -> list[dict]:
+        return [{"NodeID": n, "Alive": n not in self.dead, "NodeManagerAddress": f"10.0.0.{n[-1]}"}
+                for n in ("node1", "node2")]
+
+
+def ray_exceptions():  # noqa: ANN201
+    import ray.exceptions
+
+    return ray.exceptions
+
+
+TASKS = [(policy, scene, scene + 100) for policy in ("sunny", "random") for scene in range(3)]
+
+
+def test_a_lost_nodes_episode_runs_again_on_the_surviving_worker(capsys) -> None:
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay(dead={"node2"})
+    made: list[int] = []
+
+    def make(i: int) -> _Actor:
+        made.append(i)
+        if len(made) == 1:
+            return _Actor(fake, ("node1", "10.0.0.1"))
+        if len(made) == 2:  # on node 2, which dies during its first episode
+            return _Actor(fake, ("node2", "10.0.0.2"), fail=lambda task: True)
+        return _Actor(fake, ("node2", "?"), placed=False)  # the replacement: no room anywhere
+
+    rows = [row for row, _files in RayEpisodeScheduler(fake, make, 2, TASKS, max_losses=3).run()]
+    assert sorted((r["policy"], r["scene"]) for r in rows) == sorted((t[0], t[1]) for t in TASKS)  # each once
+    assert made == [0, 1, 1] and fake.killed == ["node2"]
+    lost_task = next(t for node, t in fake.calls if node == "node2")
+    assert ("node1", lost_task) in fake.calls  # re-run on the survivor
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["genesis-rl: lost Ray node node2 (10.0.0.2): 1 worker(s); 1 episode(s) go back to the queue and "
+                   "run again on the 1 worker(s) left or on replacements where the cluster has room"]
+
+
+def test_a_campaign_with_no_worker_left_stops_naming_resume() -> None:
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay(dead={"node1", "node2"})
+    actors = iter([_Actor(fake, (node, "?"), fail=lambda t: True) for node in ("node1", "node2")])
+
+    def make(i: int) -> _Actor:
+        return next(actors, None) or _Actor(fake, ("node1", "?"), placed=False)
+
+    with pytest.raises(RayWorkersLost, match=r"every Ray worker of the campaign is lost \(lost nodes: node1 "
+                       r"\(10.0.0.1\), node2 \(10.0.0.2\)\) .* 6 episode\(s\) are not run.*evaluate --resume") as e:
+        list(RayEpisodeScheduler(fake, make, 2, TASKS, max_losses=3, wait_s=0).run())
+    assert e.value.exit_code == 3
+
+
+def test_an_episode_that_kills_its_worker_every_time_stops_the_campaign(capsys) -> None:
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay()
+
+    def make(i: int) -> _Actor:
+        return _Actor(fake, ("node1", "10.0.0.1"), fail=lambda task: task == TASKS[0])
+
+    with pytest.raises(RayWorkersLost, match="policy 'sunny' on scene 0 lost its Ray worker 3 times"):
+        list(RayEpisodeScheduler(fake, make, 1, TASKS, max_losses=2).run())
+    assert capsys.readouterr().err.count("genesis-rl: a Ray worker on Ray node node1 (10.0.0.1) died") == 2
+
+
+def test_an_actor_that_dies_before_it_is_up_is_replaced_quietly(capsys) -> None:
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    fake = _FakeRay()
+    made: list[int] = []
+
+    def make(i: int) -> _Actor:
+        made.append(i)
+        actor = _Actor(fake, ("node1", "10.0.0.1"))
+        if len(made) == 1:  # its worker dies while it starts
+            actor.where = SimpleNamespace(remote=lambda: _Ref(error=ray_exceptions().ActorDiedError()))
+        return actor
+
+    rows = [row for row, _files in RayEpisodeScheduler(fake, make, 1, TASKS, max_losses=2).run()]
+    assert len(rows) == len(TASKS) and made == [0, 0] and capsys.readouterr().err == ""
+
+
+def test_a_lost_training_env_is_one_error_naming_its_node() -> None:
+    """RayVecEnv turns Ray's 'gone' errors into RayWorkersLost (exit 3), naming the env and its node."""
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost, lost_errors
+    from genesis_rl.training.ray_vec_env import RayVecEnv
+
+    fake = _FakeRay(dead={"node2"})
+    env = object.__new__(RayVecEnv)
+    env._ray, env._lost, env.nodes = fake, lost_errors(fake), [("node1", "10.0.0.1"), ("node2", "10.0.0.2")]
+    assert env._get(_Ref([1, 2])) == [1, 2]
+    with pytest.raises(RayWorkersLost, match=r"^lost Ray node node2 \(10.0.0.2\) with training env\(s\) 1$") as e:
+        env._get(_Ref(error=ray_exceptions().ActorUnavailableError("gone", b"0" * 16)))
+    assert e.value.exit_code == 3
+
+
+def _free_ports(n: int) -> list[int]:
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+@dataclass
+class Cluster:
+    env: dict[str, str]
+    marker: str
+    address: str = ""
+
+    def pids(self, needle: str = "") -> list[int]:
+        """This cluster's processes (by the marker in their environment), those whose command line holds
+        ``needle`` if given."""
+        found = []
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit() or int(entry.name) == os.getpid():
+                continue
+            try:
+                environ = (entry / "environ").read_bytes()
+                cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                continue
+            if f"GENESIS_RL_TEST_CLUSTER={self.marker}".encode() in environ.split(b"\0") and needle in cmdline:
+                found.append(int(entry.name))
+        return found
+
+    def start_node(self, *args: str) -> int:
+        """Start a node of one CPU; returns its raylet's pid."""
+        ports = _free_ports(7)
+        cmd = [RAY, "start", "--num-cpus", "1", "--disable-usage-stats", "--node-ip-address", "127.0.0.1",
+               "--node-manager-port", str(ports[0]), "--object-manager-port", str(ports[1]),
+               "--dashboard-agent-listen-port", str(ports[2]), "--dashboard-agent-grpc-port", str(ports[3]),
+               "--metrics-export-port", str(ports[4]), "--runtime-env-agent-port", str(ports[5]),
+               "--min-worker-port", str(20000 + ports[6] % 20000),
+               "--max-worker-port", str(20000 + ports[6] % 20000 + 40),
+               "--object-store-memory", str(100 * 2**20), *args]
+        r = subprocess.run(cmd, env=self.env, capture_output=True, text=True, timeout=180)
+        assert r.returncode == 0, f"{' '.join(cmd)}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
+        (raylet,) = [p for p in self.pids("raylet") if f"--node_manager_port={ports[0]} " in
+                     Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode()]
+        return raylet
+
+    def run(self, *args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["nice", sys.executable, "-m", "genesis_rl", *args], env=self.env, text=True,
+                              capture_output=True, timeout=timeout, cwd=ROOT)
+
+    def stop(self) -> None:
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            for pid in self.pids():
+                try:
+                    os.kill(pid, sig)
+                except OSError:
+                    pass
+            deadline = time.monotonic() + 10
+            while self.pids() and time.monotonic() < deadline:
+                time.sleep(0.2)
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[Cluster]:
+    tmp = tempfile.mkdtemp(prefix="grl-", dir="/tmp")  # short: Ray's unix sockets live under it
+    marker = uuid.uuid4().hex
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "TMPDIR")}
+    # RAY_AUTH_MODE: Ray 2.5x turns token auth on for a head when ~/.ray/auth_token exists but not for a node
+    # joining it (refused with InvalidAuthToken); a loopback test cluster needs none, and touches no ~/.ray
+    env.update(RAY_TMPDIR=tmp, GENESIS_RL_TEST_CLUSTER=marker, RAY_USAGE_STATS_ENABLED="0", RAY_AUTH_MODE="disabled",
+               PYTHONPATH=os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    c = Cluster(env, marker)
+    try:
+        (port,) = _free_ports(1)
+        c.start_node("--head", "--port", str(port), "--include-dashboard", "false",
+                     "--ray-client-server-port", str(_free_ports(1)[0]))
+        c.address = f"127.0.0.1:{port}"
+        yield c
+    finally:
+        c.stop()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _running(raylet: int, method: str) -> bool:
+    """Whether a worker of the node whose raylet is ``raylet`` (its parent) runs ``method`` now."""
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit():
+                stat = (entry / "stat").read_text()
+                ppid = int(stat.rsplit(")", 1)[1].split()[1])
+                if ppid == raylet and (entry / "cmdline").read_bytes().startswith(f"ray::{method}".encode()):
+                    return True
+        except (OSError, ValueError, IndexError):
+            continue
+    return False
+
+
+def _summary(folder: Path) -> dict:
+    s = json.loads((folder / "summary.json").read_text())
+    return {k: v for k, v in s.items() if k not in ("campaign", "run_seconds", "workers", "executor")}
+
+
+@pytest.mark.slow
+@LINUX_ONLY
+def test_without_an_address_the_command_starts_its_own_ray_beside_a_running_cluster(cluster, tmp_path) -> None:
+    """`ray start --head` left its address file in RAY_TMPDIR: ray.init(num_cpus=...) joined it and failed with
+    'When connecting to an existing cluster, num_cpus and num_gpus must not be provided' (exit 1)."""
+    ray_dir = Path(cluster.env["RAY_TMPDIR"]) / "ray"
+    assert (ray_dir / "ray_current_cluster").is_file()
+    sessions = set(ray_dir.glob("session_2*"))
+    r = cluster.run("evaluate", *CAMPAIGN[:6], "--scenes", "1", "--steps", "5", "--executor", "ray", "--workers", "1",
+                    "--out", str(tmp_path / "own"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tmp_path / "own" / "run_time.json").read_text())["executor"] == "ray"
+    assert len(set(ray_dir.glob("session_2*")) - sessions) == 1  # a Ray of its own, not the cluster's
+
+
+@pytest.mark.slow
+@LINUX_ONLY
+def test_a_lost_node_costs_its_episodes_not_the_campaign(cluster, tmp_path) -> None:
+    local = tmp_path / "local"
+    r = cluster.run("evaluate", *CAMPAIGN, "--out", str(local))
+    assert r.returncode == 0, r.stderr[-2000:]
+
+    raylet = cluster.start_node("--address", cluster.address)
+    out = tmp_path / "ray"
+    proc = subprocess.Popen(["nice", sys.executable, "-m", "genesis_rl", "evaluate", *CAMPAIGN, "--executor", "ray",
+                             "--ray-address", cluster.address, "--workers", "2", "--out", str(out)],
+                            env=cluster.env, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    lines: list[tuple[float, str]] = []
+    reader = threading.Thread(target=lambda: lines.extend((time.monotonic(), ln) for ln in proc.stderr or ()),
+                              daemon=True)
+    reader.start()
+    try:
+        # kill the node while its worker runs an episode (Ray titles a worker ray::Class.method while it runs one)
+        deadline = time.monotonic() + 150
+        while not _running(raylet, 'EpisodeActor.run') and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        assert proc.poll() is None and _running(raylet, 'EpisodeActor.run'), "".join(ln for _, ln in lines)
+        os.kill(raylet, signal.SIGKILL)
+        killed = time.monotonic()
+        rc = proc.wait(timeout=180)
+        done = time.monotonic()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    reader.join(timeout=10)
+    err = "".join(ln for _, ln in lines)
+    assert rc == 0, err[-3000:]
+    assert "Traceback" not in err
+    lost = [(t, ln) for t, ln in lines if ln.startswith("genesis-rl: lost Ray node")]
+    assert len(lost) == 1, err
+    print(f"\nlost node noticed {lost[0][0] - killed:.1f} s after the kill, campaign done {done - killed:.1f} s "
+          f"after it: {lost[0][1].strip()}")
+    assert re.match(r"genesis-rl: lost Ray node [0-9a-f]{16,} \(\d+\.\d+\.\d+\.\d+\): 1 worker\(s\); 1 episode\(s\) "
+                    "go back to the queue", lost[0][1]), lost[0][1]
+    # every episode is there once, and the summary is the local run's
+    assert _summary(out) == _summary(local)
+    assert _summary(local)["policies"]["random"]["episodes"] == 4
+
+
+TRAIN_CONFIG = """
+[env]
+map = "urban"
+scenes = 4
+episode_steps = 32
+obs_width = 48
+obs_height = 36
+system = "blind"
+[ppo]
+n_steps = 32
+batch_size = 32
+n_epochs = 1
+device = "cpu"
+[train]
+total_timesteps = 1000000
+envs = 2
+seed = 3
+checkpoint_every = 64
+"""
+
+
+@pytest.mark.slow
+@LINUX_ONLY
+def test_training_that_loses_a_node_stops_at_its_checkpoint_naming_resume(cluster, tmp_path) -> None:
+    """No exact continuation exists for a lost env (its simulator and random stream are gone), so the run stops
+    at its last whole checkpoint: one line naming train --resume, exit 3, no traceback, the checkpoint kept."""
+    raylet = cluster.start_node("--address", cluster.address)  # the killed node of the test above is dead
+    (tmp_path / "cfg.toml").write_text(TRAIN_CONFIG)
+    run = tmp_path / "run"
+    cfg = str(tmp_path / "cfg.toml")
+    proc = subprocess.Popen(["nice", sys.executable, "-m", "genesis_rl", "train", "--config", cfg,
+                             "--out", str(run), "--quiet", "--executor", "ray", "--ray-address", cluster.address],
+                            env=cluster.env, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not ((run / "checkpoints" / "last.json").is_file() and _running(raylet, "EnvActor")) \
+                and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        assert proc.poll() is None and (run / "checkpoints" / "last.json").is_file()
+        ckpt = json.loads((run / "checkpoints" / "last.json").read_text())
+        os.kill(raylet, signal.SIGKILL)
+        killed = time.monotonic()
+        _, err = proc.communicate(timeout=120)
+        print(f"\ntraining stopped {time.monotonic() - killed:.1f} s after the kill")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    print("\n" + err.strip().splitlines()[-1])
+    assert proc.returncode == 3, err[-3000:]
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert re.match(r"genesis-rl train: error: lost Ray node [0-9a-f]{16,} \(.*\) with training env\(s\) [01] at step "
+                    r"\d+; the run stops at its checkpoint at step \d+: continue with genesis-rl train --resume "
+                    f"--out {re.escape(str(run))}$", line), line
+    assert (run / "checkpoints" / "last.json").is_file() and ckpt
