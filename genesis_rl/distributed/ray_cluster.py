@@ -16,6 +16,7 @@ elsewhere (``evaluation/executors.py``), training stops at its last checkpoint (
 from __future__ import annotations
 
 import os
+import socket
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
