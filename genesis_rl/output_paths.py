@@ -12,7 +12,8 @@ Every command checks each output before it starts any work:
   refused, while ``report CAMP`` (``CAMP/report.html``) is not.
 * **Standard output.** ``-`` (and ``/dev/stdout``, ``/dev/fd/1``, ``/proc/self/fd/1``) writes a text output
   (JSON, HTML, OpenDRIVE) to standard output; the command's own status line then goes to standard error, so
-  the output can be piped. A command that writes a folder or binary files refuses ``-``.
+  the output can be piped (``/dev/stderr`` writes to standard error). A command that writes a folder or binary
+  files refuses ``-``.
 * **Regular files** are written to a temporary file beside them that is renamed onto them (atomic); an existing
   one is replaced only with ``--force``.
 * **A FIFO** (named pipe) and ``/dev/null`` are written in place (opened and written, nothing renamed onto them);
@@ -41,8 +42,9 @@ from typing import Any, TextIO
 
 from genesis_rl.errors import UserInputError
 
-#: names that mean standard output
+#: names that mean standard output, and standard error
 STDOUT_NAMES = ("-", "/dev/stdout", "/dev/fd/1", "/proc/self/fd/1")
+STDERR_NAMES = ("/dev/stderr", "/dev/fd/2", "/proc/self/fd/2")
 #: the one device written in place
 DISCARD = "/dev/null"
 
@@ -50,7 +52,8 @@ Inputs = Sequence["str | Path | None"]
 
 
 def is_stdout(given: str | Path | None) -> bool:
-    return given is not None and str(given) in STDOUT_NAMES
+    """Whether a path names a standard stream (standard output, or standard error), written in place."""
+    return given is not None and str(given) in (*STDOUT_NAMES, *STDERR_NAMES)
 
 
 def special_kind(path: Path) -> str | None:
@@ -141,7 +144,7 @@ class OutputFile:
 
     @property
     def to_stdout(self) -> bool:
-        return self.path is None
+        return self.path is None and self.given not in STDERR_NAMES
 
     @property
     def status(self) -> TextIO:
@@ -149,23 +152,24 @@ class OutputFile:
         return sys.stderr if self.to_stdout else sys.stdout
 
     def __str__(self) -> str:
-        return "-" if self.path is None else str(self.path)
+        return self.given if self.path is None else str(self.path)
 
     def write_text(self, text: str) -> None:
         from genesis_rl.io_utils import atomic_write_text
 
         if self.path is None:
+            stream = sys.stdout if self.to_stdout else sys.stderr
             try:
-                sys.stdout.write(text)
-                sys.stdout.flush()
+                stream.write(text)
+                stream.flush()
             except BrokenPipeError:  # the reader left (| head): say so once, without Python's exit-time noise
                 devnull = os.open(os.devnull, os.O_WRONLY)
                 try:
-                    os.dup2(devnull, sys.stdout.fileno())
+                    os.dup2(devnull, stream.fileno())
                 except (OSError, ValueError):
                     pass
                 os.close(devnull)
-                raise OSError(errno.EPIPE, os.strerror(errno.EPIPE), "standard output") from None
+                raise OSError(errno.EPIPE, os.strerror(errno.EPIPE), self.given) from None
             return
         if self.in_place:
             with open(self.path, "w", encoding="utf-8") as f:
