@@ -37,7 +37,7 @@ def _weather_help() -> str:
 
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
-    from genesis_rl.io_utils import ensure_writable
+    from genesis_rl.output_paths import output_file
 
     source = scene_source(backend_class(args.backend).catalog_kind)
     source.check_map(args.map, "--map")
@@ -48,8 +48,7 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     if count < 1:
         raise UserInputError(f"--count must be >= 1, got {count}")
     limits.SCENES.check(count, "--count")
-    out = Path(args.out)
-    ensure_writable(out, args.force)
+    out = output_file(args.out, args.force)
     t0 = time.perf_counter()
     if args.generator == "scenic":
         from genesis_rl.scenic_scenes import generator as scenic_generator
@@ -61,48 +60,47 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
             catalog = scenic_generator.lite_catalog(args.map, count, args.seed, progress=not args.quiet)
     else:
         catalog = source.generate(args.map, count, args.seed, settings_from_args(args), progress=not args.quiet)
-    catalog.save(out)
+    out.write_json(catalog.to_json())
     backend = {} if catalog.backend == "lite" else {"backend": catalog.backend}  # lite's line as it always was
     print(json.dumps({"out": str(out), "map": args.map, **backend, "scenes": count, "seed": args.seed,
-                      "seconds": round(time.perf_counter() - t0, 2)}))
+                      "seconds": round(time.perf_counter() - t0, 2)}), file=out.status)
     return 0
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
-    from genesis_rl.io_utils import atomic_write_text, ensure_writable
     from genesis_rl.lite.maps import load_map
     from genesis_rl.lite.maps.opendrive import to_opendrive
     from genesis_rl.lite.scenes import check_map
+    from genesis_rl.output_paths import output_file
 
     check_map(args.map, "--map")
-    out = Path(args.out) if args.out else Path(f"{args.map}.xodr")
-    ensure_writable(out, args.force)
+    out = output_file(args.out if args.out else f"{args.map}.xodr", args.force)
     t0 = time.perf_counter()
     road_map = load_map(args.map)
     text = to_opendrive(road_map)
-    atomic_write_text(out, text)
+    out.write_text(text)
     print(json.dumps({"out": str(out), "map": args.map, "format": args.format, "roads": len(road_map.roads),
                       "junctions": len(road_map.junctions), "lanes": len(road_map.lanes), "bytes": len(text.encode()),
-                      "seconds": round(time.perf_counter() - t0, 2)}))
+                      "seconds": round(time.perf_counter() - t0, 2)}), file=out.status)
     return 0
 
 
 def _cmd_reactivity(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.reactivity import measure_campaign
-    from genesis_rl.io_utils import atomic_write_json, ensure_writable
+    from genesis_rl.output_paths import output_file
 
-    out = Path(args.out) if args.out else Path(args.campaign) / f"reactivity_{args.policy}.json"
-    ensure_writable(out, args.force)
+    out = output_file(args.out if args.out else Path(args.campaign) / f"reactivity_{args.policy}.json", args.force,
+                      inputs=[args.campaign], products=[r"reactivity_[\w.-]*\.json"])
     t0 = time.perf_counter()
     result = measure_campaign(args.campaign, args.policy, args.scenes, not args.no_other_seeds,
                               progress=not args.quiet)
     data = {"campaign": str(args.campaign), "policy": args.policy, **result.to_json(),
             "seconds": round(time.perf_counter() - t0, 1)}
-    atomic_write_json(out, data, indent=2)
+    out.write_json(data, indent=2)
     short = {kind: {m: {"gap": g["difference"]["mean"], "ci": [g["difference"]["ci_low"], g["difference"]["ci_high"]],
                         "p": g["p_value"]} for m, g in gaps.items()} for kind, gaps in data["gaps"].items()}
     print(json.dumps({"out": str(out), "policy": args.policy, "scenes": len(result.rows) // max(len(data["gaps"]), 1),
-                      "gaps": short, "seconds": data["seconds"]}, indent=2))
+                      "gaps": short, "seconds": data["seconds"]}, indent=2), file=out.status)
     return 0
 
 
@@ -117,15 +115,15 @@ def _cmd_corners(args: argparse.Namespace) -> int:
     from genesis_rl.env import GenesisEnv
     from genesis_rl.evaluation.campaign_spec import pick_scenes
     from genesis_rl.evaluation.corners import search_corners
-    from genesis_rl.io_utils import atomic_write_json, ensure_writable
+    from genesis_rl.output_paths import check_inputs, output_file
     from genesis_rl.training.config import load_run_config
 
-    out = Path(args.out)
-    ensure_writable(out, args.force)
+    out = output_file(args.out, args.force, inputs=[args.config])
     env_over: dict = {"episode_steps": args.steps} if args.steps is not None else {}
     if args.map is not None:
         env_over["map"] = args.map
     cfg = load_run_config(args.config, {"env": env_over})
+    check_inputs(args.out, [cfg.env.catalog, cfg.env.odd, cfg.env.rulebook])  # the files the config names
     env = GenesisEnv(cfg.env)
     try:
         pairs = pick_scenes(len(env.catalog.scenes), args.scenes, args.seed)
@@ -134,12 +132,13 @@ def _cmd_corners(args: argparse.Namespace) -> int:
     finally:
         env.close()
     best = ",".join(f"{v:g}" for v in rows[0]["action"])
-    atomic_write_json(out, {"config": args.config, "map": cfg.env.map, "scenes": pairs, "knobs": list(cfg.env.knobs),
+    out.write_json({"config": args.config, "map": cfg.env.map, "scenes": pairs, "knobs": list(cfg.env.knobs),
                             "steps": cfg.env.episode_steps, "best_constant_action": best, "corners": rows,
                             "seconds": round(time.perf_counter() - t0, 1)}, indent=2)
     print(json.dumps({"out": str(out), "best_constant_action": best, "mean_return": round(rows[0]["mean_return"], 3),
                       "collisions": rows[0]["collisions"], "corners": len(rows),
-                      "then": f"genesis-rl evaluate --policies constant --constant-action {best} ..."}, indent=2))
+                      "then": f"genesis-rl evaluate --policies constant --constant-action {best} ..."}, indent=2),
+          file=out.status)
     return 0
 
 

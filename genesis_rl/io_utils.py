@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.output_paths import refuse_special
 
 if TYPE_CHECKING:
     from genesis_rl.limits import Limit
@@ -27,6 +28,7 @@ def ensure_writable(path: Path, force: bool) -> None:
     ensure_folder_path(path.parent, flag="output folder")
     if (path.exists() or path.is_symlink()) and not force:  # a dangling link is the user's too
         raise UserInputError(f"output '{path}' already exists; pass --force to overwrite it")
+    refuse_special(path)  # --force replaces a file, never a link, a device or a pipe (output_paths)
 
 
 def ensure_folder_path(path: Path, flag: str = "--out") -> None:
@@ -44,6 +46,7 @@ def atomic_write(path: Path, writer: Callable[[Path], object]) -> None:
     leaves no temporary file behind; one that the machine caused (permission, read-only, disk full, ...)
     is raised as an ``OSError`` naming ``path``, whatever library the writer used (pyarrow, torch, PIL)."""
     path = Path(path)
+    refuse_special(path)  # a rename would replace a link, a FIFO or a device with a regular file
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
@@ -55,6 +58,7 @@ def atomic_write(path: Path, writer: Callable[[Path], object]) -> None:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give results the usual permissions
+        refuse_special(path)  # again: one may have been put there while the writer ran
         os.replace(tmp, path)
     except Exception as err:
         Path(tmp).unlink(missing_ok=True)
@@ -121,6 +125,7 @@ OS_ERROR_HINTS: dict[int, str] = {
     errno.ENFILE: "close other programs or raise the system's limit of open files",
     errno.EXDEV: "keep the input and output on one file system",
     errno.ETXTBSY: "wait for the program using it to finish",
+    errno.EPIPE: "the program reading the output (a pipe) ended before it was written",
 }
 
 

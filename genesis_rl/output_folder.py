@@ -22,7 +22,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from genesis_rl import __version__
+from genesis_rl import __version__, output_paths
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_message, remove_tree
 
@@ -31,6 +31,37 @@ MARKER_SCHEMA = "genesis-rl/output-folder"
 KINDS = ("run", "campaign", "export", "drive", "render")
 #: kinds whose folder is one unit that --force replaces whole; drive and render write named files into theirs
 WHOLE_FOLDER = ("run", "campaign", "export")
+
+#: what genesis-rl itself writes at the top of a run, campaign or export folder (regular expressions on the
+#: entry's name; a folder named here, e.g. checkpoints/, is the tool's as a whole). ``--force`` replaces a folder
+#: only when it holds nothing else, and removes only these: a user's notes, or a campaign kept in a run folder
+#: (RUN/eval), are named and kept. Temporaries of the atomic writes (".NAME.XXXXXXXX...") are the tool's too.
+OWN_ENTRIES: dict[str, tuple[str, ...]] = {
+    "run": (r"\.genesis-rl\.json", r"agent\.zip", r"catalog\.json", r"checkpoints", r"config\.toml",
+            r"episodes\.csv", r"run\.json", r"tb", r"train_result\.json"),
+    "campaign": (r"\.genesis-rl\.json", r"campaign\.json", r"catalog\.json", r"episodes", r"steps", r"frames",
+                 r"records", r"damaged", r"episodes\.csv", r"summary\.json", r"run_time\.json",
+                 r"report[\w.-]*\.html", r"reactivity_[\w.-]*\.json"),
+    "export": (r"\.genesis-rl\.json", r"images", r"labels", r"data\.yaml", r"annotations\.json",
+               r"metadata\.jsonl", r"export\.json"),
+}
+
+
+def _own(kind: str, name: str) -> bool:
+    """Whether a top-level entry of a ``kind`` folder is one genesis-rl writes (or a temporary of one)."""
+    patterns = OWN_ENTRIES.get(kind, ())
+    temporary = re.fullmatch(r"\.(.+)\.[A-Za-z0-9_]{8}.*", name)
+    return any(re.fullmatch(p, name) or (temporary and re.fullmatch(p, temporary.group(1))) for p in patterns)
+
+
+def foreign_entries(folder: Path, kind: str) -> list[str]:
+    """The top-level entries of a run, campaign or export folder that genesis-rl did not write (folders end
+    in '/'), sorted; empty for other kinds."""
+    if kind not in OWN_ENTRIES:
+        return []
+    return sorted(p.name + ("/" if p.is_dir() and not p.is_symlink() else "") for p in Path(folder).iterdir()
+                  if not _own(kind, p.name))
+
 
 #: the files that drive and render write: a marker-less folder holding only these is one of theirs (0.4.0)
 _FILE_PATTERNS = {
@@ -80,32 +111,14 @@ def _entries(folder: Path, shown: int = 4) -> str:
     return ", ".join(names[:shown]) + more
 
 
-def _inside(path: Path, folder: Path) -> bool:
-    return path == folder or folder in path.parents
-
-
 def check_inputs(folder: Path, inputs: Sequence[str | Path | None], nested_ok: bool = False,
                  files: Sequence[str] | None = None) -> None:
     """Refuse an output folder that is an input of the same command, holds one, or (unless ``nested_ok``:
     ``evaluate`` writes RUN/eval by default) lies inside one. With ``files`` (drive, render: the folder gets
-    these files added) only an input that is the folder or one of those files is refused."""
-    out = Path(folder).resolve()
-    for given in inputs:
-        if given is None:
-            continue
-        path = Path(given).resolve()
-        if files is not None:
-            if path == out or path in {out / f for f in files}:
-                raise UserInputError(f"--out '{folder}' would overwrite this command's input '{given}'; write the "
-                                     "output somewhere else")
-            continue
-        if _inside(path, out):
-            what = "is" if path == out else "holds"
-            raise UserInputError(f"--out '{folder}' {what} this command's input '{given}'; write the output "
-                                 "somewhere else")
-        if not nested_ok and _inside(out, path):
-            raise UserInputError(f"--out '{folder}' lies inside this command's input '{given}'; write the output "
-                                 "somewhere else")
+    these files added) only an input that is the folder or one of those files is refused. The one rule of
+    every output (``output_paths``): paths are compared with their links resolved."""
+    output_paths.check_folder_output(folder)
+    output_paths.check_inputs(folder, inputs, folder=True, nested_ok=nested_ok, files=files)
 
 
 def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | None = None,
@@ -128,6 +141,12 @@ def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | No
         raise UserInputError(f"{label} '{folder}' exists; pass {hint}")
     found = folder_kind(folder)
     if found == kind:
+        foreign = foreign_entries(folder, kind)
+        if foreign:
+            shown = ", ".join(foreign[:6]) + (f" and {len(foreign) - 6} more" if len(foreign) > 6 else "")
+            raise UserInputError(f"--force: {kind} folder '{folder}' also holds what genesis-rl did not write there: "
+                                 f"{shown}; refusing to delete it; move it out of the folder, or choose another "
+                                 "--out")
         return
     why = (f"it holds a genesis-rl {found} output" if found else f"no {MARKER}") + f": {_entries(folder)}"
     action = "delete it" if kind in WHOLE_FOLDER else "overwrite files in it"
@@ -142,10 +161,13 @@ def write_marker(folder: Path, kind: str) -> None:
 
 
 def replace(folder: Path, kind: str) -> None:
-    """Empty (or create) the folder and mark it as this kind's. Call it under ``hold`` after ``check_target``."""
+    """Empty (or create) the folder and mark it as this kind's. Call it under ``hold`` after ``check_target``.
+    Of a run, campaign or export folder only genesis-rl's own entries are removed (``OWN_ENTRIES``)."""
     folder = Path(folder)
     if folder.is_dir():
         for entry in folder.iterdir():
+            if kind in OWN_ENTRIES and not _own(kind, entry.name):
+                continue  # check_target refused such a folder; one that appeared since is kept
             if entry.is_dir() and not entry.is_symlink():
                 remove_tree(entry)
             else:

@@ -96,7 +96,9 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         _check_catalog_pin(folder, saved.get("catalog"))
         pairs = [tuple(p) for p in saved["scenes"]]
     else:
-        output_folder.check_inputs(folder, [spec.catalog, spec.agent], nested_ok=True)  # RUN/eval is the default
+        read = [v for k in ("odd", "rulebook", "catalog", "weights")  # files the env reads
+                if isinstance(v := spec.env.get(k), str)]
+        output_folder.check_inputs(folder, [spec.catalog, spec.agent, *read], nested_ok=True)  # RUN/eval: default
         output_folder.check_target(folder, "campaign", force, resume_hint=True)
         count = DEFAULT_COUNTS.get(spec.map, 1)
         catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)

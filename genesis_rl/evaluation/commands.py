@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -126,22 +127,24 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if args.markdown:
         print(summary_markdown(summarize_campaign(Path(args.campaign), write=False)), end="")
         return 0
-    path = build_report(Path(args.campaign), Path(args.out) if args.out else None, force=args.force)
-    print(f"report: {path}")
+    from genesis_rl.output_paths import is_stdout
+
+    path = build_report(Path(args.campaign), args.out, force=args.force)
+    print(f"report: {path}", file=sys.stderr if is_stdout(args.out) else sys.stdout)
     return 0
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.compare import compare, compare_markdown, parse_series
-    from genesis_rl.io_utils import atomic_write_json
+    from genesis_rl.output_paths import output_file
 
-    result = compare([parse_series(s) for s in args.series], seed=args.seed)
-    if args.json:
-        out = Path(args.json)
-        if out.exists() and not args.force:
-            raise UserInputError(f"--json '{out}' exists; pass --force to overwrite it")
-        atomic_write_json(out, result, indent=1)
-    print(compare_markdown(result), end="")
+    series = [parse_series(s) for s in args.series]
+    # checked before the campaigns are read: --json CAMP/campaign.json --force replaced a campaign's description
+    out = output_file(args.json, args.force, flag="--json", inputs=[s.folder for s in series]) if args.json else None
+    result = compare(series, seed=args.seed)
+    if out is not None:
+        out.write_json(result, indent=1)
+    print(compare_markdown(result), end="", file=out.status if out is not None else sys.stdout)
     return 0
 
 
@@ -158,8 +161,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.weights and spec in ("blind", "oracle"):  # they read no weights; a plug-in may
         raise UserInputError(f"--weights applies to records of --system builtin, yolo or a plug-in that takes "
                              f"weights; this record's system is '{spec}'")
+    from genesis_rl.output_paths import check_folder_output, check_inputs
+
     out = Path(args.out)
-    for name in ("replay.json", "telemetry.parquet", "replay.gif"):
+    check_folder_output(args.out)
+    names = ("replay.json", "telemetry.parquet", "replay.gif")
+    check_inputs(out, [args.record, args.weights], folder=True, files=names)
+    for name in names:
         ensure_writable(out / name, args.force)
     result = replay_record(rec, weights=args.weights, progress=not args.quiet, keep_frames=not args.no_gif)
     write_telemetry(out / "telemetry.parquet", result["records"])

@@ -32,7 +32,7 @@ from genesis_rl.evaluation.campaign_spec import run_folder_of
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.evaluation.report_natural import section as natural_section
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
-from genesis_rl.io_utils import atomic_write_text, os_error_message
+from genesis_rl.io_utils import os_error_message
 from genesis_rl.knobs import PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
 from genesis_rl.step_record import StepRecord
@@ -204,13 +204,24 @@ def _fmt_ci(s: dict[str, Any]) -> str:
     return f"{s['mean']:.2f} <span class=meta>[{s['ci_low']:.2f}, {s['ci_high']:.2f}]</span>"
 
 
-def build_report(folder: Path, out: Path | None = None, force: bool = False, max_examples: int = 5) -> Path:
-    """Write ``report.html`` in the campaign folder (or ``out``); returns its path."""
+#: what report writes inside its campaign folder (output_paths): beside the files it reads, never onto them
+REPORT_PRODUCTS = (r"report[\w.-]*\.html",)
+
+
+def build_report(folder: Path, out: Path | str | None = None, force: bool = False,
+                 max_examples: int = 5) -> Path | str:
+    """Write ``report.html`` in the campaign folder (or ``out``: a file, or '-' for standard output); returns
+    where it went. ``out`` may not be, or lie inside, the campaign (but for ``report*.html``)."""
+    from genesis_rl.output_paths import check_inputs, is_stdout, output_file
+
     folder = Path(folder)
+    given = out if out else folder / "report.html"
+    check_inputs(given, [folder], products=REPORT_PRODUCTS)  # before "pass --force", which would not help
+    if not is_stdout(given) and Path(given).exists() and not Path(given).is_symlink() and not force:
+        raise UserInputError(f"report '{given}' exists; pass --force to rebuild it")
+    target = output_file(given, force, inputs=[folder], products=REPORT_PRODUCTS)
     meta, rows = load_campaign(folder)
-    out = Path(out) if out else folder / "report.html"
-    if out.exists() and not force:
-        raise UserInputError(f"report '{out}' exists; pass --force to rebuild it")
+    out = target.path if target.path is not None else Path(str(given))
     if not any(rows.values()):
         raise UserInputError(f"campaign '{folder}' has no finished episodes yet; nothing to report")
     summary = summarize_campaign(folder, write=False, loaded=(meta, rows))
@@ -336,13 +347,13 @@ def build_report(folder: Path, out: Path | None = None, force: bool = False, max
     h.append("</table>")
     h.append(f"<h2>Campaign settings</h2><pre>{html.escape(json.dumps(spec, indent=1))}</pre></body></html>")
     try:
-        atomic_write_text(out, "\n".join(h))
+        target.write_text("\n".join(h))
     except OSError as err:
         message = os_error_message(err, hint=False)
-        if message is None or out.parent.resolve() != folder.resolve():
+        if message is None or target.path is None or out.parent.resolve() != folder.resolve():
             raise
         raise UserInputError(f"{message}; pass --out FILE to write the report elsewhere") from None
-    return out
+    return out if target.path is not None else str(target)
 
 
 def _update_summary_files(folder: Path, out: Path, summary: dict[str, Any], rows: dict[str, list[dict[str, Any]]],

@@ -34,6 +34,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
         limits.EPOCHS.check(args.epochs, "--epochs")
         changes["epochs"] = args.epochs
     cfg = dataclasses.replace(defaults, **changes)
+    from genesis_rl.output_paths import check_folder_output
+
+    check_folder_output(args.out)
     metrics = train_detector(cfg, Path(args.out), progress=not args.quiet, force=args.force,
                              log=(lambda *_: None) if args.quiet else print)
     print(json.dumps({"out": args.out, "score_threshold": metrics["score_threshold"],
@@ -62,9 +65,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise UserInputError(f"--frames-per-condition must be >= 1, got {args.frames_per_condition}")
     limits.FRAMES.check(args.frames_per_condition * len(maps) * len(conds), "--frames-per-condition",
                         f"{args.frames_per_condition} x {len(maps)} maps x {len(conds)} conditions")
+    from genesis_rl.output_paths import check_folder_output, check_inputs
+
     out = Path(args.out)
-    for ext in ("md", "png", "json"):
-        ensure_writable(out / f"detector_eval.{ext}", args.force)
+    check_folder_output(args.out)
+    names = [f"detector_eval.{ext}" for ext in ("md", "png", "json")]
+    check_inputs(out, [args.weights], folder=True, files=names)
+    for name in names:
+        ensure_writable(out / name, args.force)
     weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
     det = VehicleDetector(weights)
     t0 = time.perf_counter()

@@ -232,7 +232,8 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
     out = Path(out)
     if not resume:
         scale = check_scale(cfg, scale)
-    with output_folder.claim(out, "run", force, resume=resume, inputs=[cfg.env.catalog, *inputs]):
+    read = [cfg.env.catalog, cfg.env.odd, cfg.env.rulebook]  # the files the run's env reads
+    with output_folder.claim(out, "run", force, resume=resume, inputs=[*read, *inputs]):
         cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
         try:
             return _train_prepared(cfg, out, resume, progress, check_scale(cfg, scale) if resume else scale,
