@@ -89,6 +89,7 @@ class Case:
     raw: list[str] | None = None  # run this command instead of genesis-rl (the harness's own test)
     from_issue: bool = False  # an example the issue text gives (not counted as new)
     ray: bool = False  # runs Ray: no memory limit, its own RAY_TMPDIR, its leftover processes ended by pid
+    core: bool = True  # in the default sweep (~10 min on 2 cores); the rest of a value grid runs with --all
 
 
 CASES: list[Case] = []
@@ -624,10 +625,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="cases run at once (default: 2)")
     ap.add_argument("--work", default=None, help="work folder (fixtures are kept and reused there); default: a "
                                                  "new temporary folder, removed afterwards")
+    ap.add_argument("--all", action="store_true", help="every case, the whole value grids too (about twice as long)")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     args = ap.parse_args(argv)
     build_cases()
-    todo = [c for c in CASES if (not args.family or c.family in args.family)
+    todo = [c for c in CASES if (args.all or c.core or args.ids) and (not args.family or c.family in args.family)
             and (not args.ids or any(c.id == i or c.id.startswith(i) for i in args.ids.split(",")))]
     todo = todo[: args.limit] if args.limit else todo
     if args.list:
@@ -752,11 +754,12 @@ def family1() -> None:
     case(1, "report-onto-campaign-json", "report --out the campaign's campaign.json --force", f"{R} --out camp/campaign.json --force", setup=CAMP, from_issue=True)
     for rel in ("summary.json", "episodes.csv", "catalog.json", "run_time.json", "@GLOB:camp/episodes/sunny/*.json@", "@GLOB:camp/records/*.json@", "@GLOB:camp/steps/agent/*.parquet@"):
         slug = re.sub(r"\W+", "-", rel.replace("@GLOB:camp/", "").rstrip("@").replace("*", "x")).strip("-")
-        case(1, f"report-onto-{slug}", f"report --out onto the campaign's own {rel} --force", f"{R} --out {rel if rel.startswith('@') else 'camp/' + rel} --force", setup=CAMP)
+        case(1, f"report-onto-{slug}", f"report --out onto the campaign's own {rel} --force", f"{R} --out {rel if rel.startswith('@') else 'camp/' + rel} --force", setup=CAMP,
+             core=rel in ("summary.json", "episodes.csv", "@GLOB:camp/records/*.json@", "@GLOB:camp/steps/agent/*.parquet@"))
     case(1, "report-onto-campaign-folder", "report --out the campaign folder itself --force", f"{R} --out camp --force", setup=CAMP)
     case(1, "report-into-records", "report --out the campaign's records folder --force", f"{R} --out camp/records --force", setup=CAMP)
     case(1, "report-onto-link-to-input", "report --out a symlink to the campaign's campaign.json --force", f"{R} --out link.html --force", setup=chain(CAMP, symlink("link.html", "camp/campaign.json")))
-    case(1, "report-onto-hardlink", "report --out a hard link of campaign.json --force (the campaign's file itself)", f"{R} --out hard.html --force", setup=chain(CAMP, hardlink("hard.html", "camp/campaign.json")))
+    case(1, "report-onto-hardlink", "report --out a hard link of campaign.json --force (the campaign's file itself)", f"{R} --out hard.html --force", setup=chain(CAMP, hardlink("hard.html", "camp/campaign.json")), may_change=("hard.html",))
     case(1, "report-onto-fifo", "report --out a FIFO nobody reads --force", f"{R} --out pipe --force", setup=chain(CAMP, fifo("pipe")), timeout=30)
     case(1, "report-onto-device", "report --out a character device (a null device node) --force", f"{R} --out nulldev --force", setup=chain(CAMP, devnull("nulldev")), expect=EITHER)
     case(1, "report-onto-stdout-link", "report --out a symlink to /proc/self/fd/1 --force", f"{R} --out so --force", setup=chain(CAMP, symlink("so", "/proc/self/fd/1")), expect=EITHER)
@@ -843,7 +846,7 @@ def family2() -> None:
     case(2, "catalog-backend-drive", "a catalog's backend is 'evil:Backend'; drive", DRIVE, setup=chain(cp("cat.json"), ev, edit_json("cat.json", lambda c: set_path(c, ["backend"], "evil:Backend"))))
 
 
-MAGNITUDE = {"neg"}  # values refused for a magnitude (speed, acceleration, distance, weight)
+CORE_VALUES = ("neg", "huge", "nan", "str")  # the default sweep's share of each value grid; --all runs all nine
 
 
 def expect_for(value: str, signed: bool) -> tuple[int, ...]:
@@ -866,7 +869,8 @@ def family3() -> None:
     for name, path, signed in cat_fields:
         for vname, js, _ in iter_values():
             case(3, f"catalog-{name}-{vname}", f"catalog scene 0 {'.'.join(map(str, path[3:]))} = {js}; drive", DRIVE,
-                 setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(path, js))), expect=expect_for(vname, signed))
+                 setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(path, js))), expect=expect_for(vname, signed),
+                 core=vname in CORE_VALUES or (name in ("ego-speed", "lead-comfort-decel") and vname in ("tiny", "inf")))
     case(3, "catalog-ego-speed-1000", "catalog ego speed 1000 m/s; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "1000"))), from_issue=True)
     case(3, "catalog-ego-speed-1e200", "catalog ego speed 1e200; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "1e200"))), from_issue=True)
     for vname, js in (("true", "true"), ("float", "1.0"), ("str", '"1"'), ("big", "2"), ("null", "null")):
@@ -879,7 +883,8 @@ def family3() -> None:
     for key, vname in (("distance", "prox"), ("decel", "rss")):
         for v, _, tl in iter_values():
             case(3, f"rulebook-{vname}-{key}-{v}", f"rulebook {key} = {tl}; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e",
-                 setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", _toml_param(key, tl))), expect=expect_for(v, False), from_issue=(key, v) == ("decel", "tiny"))
+                 setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", _toml_param(key, tl))), expect=expect_for(v, False), from_issue=(key, v) == ("decel", "tiny"),
+                 core=v in CORE_VALUES or key == "decel")
     for v, lit in (("str", '"high"'), ("neg", "-1"), ("huge", "1e308")):
         case(3, f"rulebook-priority-{v}", f"rulebook priority = {lit}; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e",
              setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", lambda t, lit=lit: t.replace("priority = 2", f"priority = {lit}", 1))))
@@ -887,14 +892,16 @@ def family3() -> None:
     for name, table, key in odd_fields:
         for v, _, tl in iter_values():
             case(3, f"odd-{name}-{v}", f"ODD {table + '.' if table else ''}{key} = {tl}; evaluate --odd", f"{EVAL_HW} --odd odd.toml --out e",
-                 setup=chain(cp("hw.json", "odd.toml"), edit_text("odd.toml", _toml_key(table, key, tl))), expect=expect_for(v, True))
+                 setup=chain(cp("hw.json", "odd.toml"), edit_text("odd.toml", _toml_key(table, key, tl))), expect=expect_for(v, True),
+                 core=v in CORE_VALUES)
     cfg_fields = [("env", "max_step_fraction"), ("env", "start_spread"), ("env.reward", "collision_weight"), ("ppo", "learning_rate"), ("ppo", "gamma"), ("ppo", "clip_range")]
     for table, key in cfg_fields:
         for v, _, tl in iter_values():
             if v in ("zero", "bool", "list"):
                 continue
             case(3, f"config-{table.replace('.', '-')}-{key.replace('_', '-')}-{v}", f"config [{table}] {key} = {tl}; train", TRAIN,
-                 setup=config(table, key, tl), expect=expect_for(v, False), from_issue=(key, v) in (("max_step_fraction", "tiny"), ("collision_weight", "huge")))
+                 setup=config(table, key, tl), expect=expect_for(v, False), from_issue=(key, v) in (("max_step_fraction", "tiny"), ("collision_weight", "huge")),
+                 core=v in ("tiny", "huge", "nan"))
     for v, cell in (("nan", "nan"), ("inf", "inf"), ("neg", "-1"), ("huge", "1e308"), ("str", "heavy"), ("empty", ""), ("tiny", "1e-320")):
         case(3, f"schedule-cell-{v}", f"schedule CSV fog_density cell = '{cell}'; drive --schedule", DRIVE + " --schedule s.csv",
              setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t, cell=cell: t.replace("2,20,10", f"2,{cell},10"))), expect=EITHER if v == "tiny" else REJECT)
@@ -988,12 +995,12 @@ def family4() -> None:
     for lname, rel, argv, base in loaders:
         for dname, make in damaged.items():
             case(4, f"{dname}-{lname}", f"{lname} file {rel} {dname}", argv, setup=chain(base, make(rel)),
-                 expect=EITHER if (lname, dname) in (("episodes-csv", "latin1"),) else REJECT)
+                 expect=EITHER if (lname, dname) in (("episodes-csv", "latin1"),) else REJECT, core=dname in ("zero", "binary"))
     for lname, rel, argv, base in [("agent-zip", "run/agent.zip", EVAL_AGENT, chain(RUN, cp("hw.json"))),
                                    ("checkpoint-zip", "run/checkpoints/step_00000032.zip", RESUME, RUN),
                                    ("replay-buffer", "sacrun/checkpoints/step_00000024.replay.pkl", "train --out sacrun --resume --steps 36 --quiet", cp("sacrun"))]:
         for dname in ("zero", "trunc", "binary"):
-            case(4, f"{dname}-{lname}", f"{lname} {rel} {dname}", argv, setup=chain(base, damaged[dname](rel)))
+            case(4, f"{dname}-{lname}", f"{lname} {rel} {dname}", argv, setup=chain(base, damaged[dname](rel)), core=dname != "trunc")
     case(4, "agent-zip-missing-data", "agent.zip without its 'data' member; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), lambda d, fx: _drop_member(d / "run/agent.zip", "data")))
     case(4, "agent-zip-policy-garbage", "agent.zip's policy.pth is garbage bytes; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), zip_member("run/agent.zip", "policy.pth", lambda d, old: BIN)))
     # unusual but structurally valid scenes
@@ -1015,20 +1022,21 @@ def family4() -> None:
     case(4, "carla-train-echo", "train --backend carla --carla-port an echo server", f"{TRAIN} --backend carla --carla-host 127.0.0.1 --carla-port @PORT_echo@ --carla-timeout 2", setup=cp("tiny.toml", to="c.toml"), timeout=45)
     case(4, "carla-drive-http", "drive --backend carla --carla-port an HTTP server", f"{DRIVE} --backend carla --carla-host 127.0.0.1 --carla-port @PORT_http@ --carla-timeout 2", setup=cp("cat.json"), timeout=45)
     for name, host in (("bad-ip", "256.256.256.256"), ("empty", ""), ("label-too-long", "a" * 300), ("dots", ".."), ("with-port", "127.0.0.1:2000"), ("spaces", "127.0.0.1 ; touch PWNED"), ("dash", "-h")):
-        case(4, f"carla-host-{name}", f"--carla-host {host[:30]!r}", [*CARLA.split(), "--carla-host", host, "--carla-port", "@PORT_closed@", "--carla-timeout", "2"], timeout=45)
+        case(4, f"carla-host-{name}", f"--carla-host {host[:30]!r}", [*CARLA.split(), "--carla-host", host, "--carla-port", "@PORT_closed@", "--carla-timeout", "2"], timeout=45, core=name in ("bad-ip", "empty", "label-too-long", "with-port"))
     for name, port in (("zero", "0"), ("neg", "-1"), ("70000", "70000"), ("str", "abc"), ("empty-item", "2000,,2001"), ("float", "2000.5")):
-        case(4, f"carla-port-value-{name}", f"--carla-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port {port} --carla-timeout 2", timeout=45)
+        case(4, f"carla-port-value-{name}", f"--carla-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port {port} --carla-timeout 2", timeout=45, core=name in ("70000", "str", "empty-item"))
     for name, port in (("70000", "70000"), ("zero", "0"), ("neg", "-1"), ("str", "x")):
-        case(4, f"carla-tm-port-{name}", f"--carla-tm-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_closed@ --carla-tm-port {port} --carla-timeout 2", timeout=45, from_issue=name == "70000")
+        case(4, f"carla-tm-port-{name}", f"--carla-tm-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_closed@ --carla-tm-port {port} --carla-timeout 2", timeout=45, from_issue=name == "70000", core=name in ("70000", "str"))
     for name, t in (("inf", "inf"), ("nan", "nan"), ("neg", "-1"), ("zero", "0"), ("huge", "1e308"), ("tiny", "1e-320"), ("str", "soon")):
-        case(4, f"carla-timeout-{name}", f"--carla-timeout {t} against a silent server", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_silent@ --carla-timeout {t}", timeout=45, from_issue=name == "inf")
+        case(4, f"carla-timeout-{name}", f"--carla-timeout {t} against a silent server", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_silent@ --carla-timeout {t}", timeout=45, from_issue=name == "inf", core=name in ("inf", "nan", "neg", "huge"))
     case(4, "carla-servers-garbage", "--carla-servers pointing at a garbage server; evaluate --backend carla", f"{EVAL} --backend carla --carla-servers 127.0.0.1:@PORT_garbage@ --carla-timeout 2 --out e", setup=cp("cat.json"), timeout=45)
     case(4, "carla-servers-malformed", "--carla-servers '127.0.0.1:x:y:z'", f"{EVAL} --backend carla --carla-servers 127.0.0.1:x:y:z --out e", setup=cp("cat.json"), timeout=45)
     # interrupts: signal the whole process group at a few points; the next --resume must finish
     for sig, sname in ((signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")):
-        for at in (3.0, 5.5, 8.0):
+        for at in (3.0, 5.5, 8.0):  # 8 s: in the second half of the run, past its first checkpoint
             case(4, f"train-{sname}-{at:g}s", f"{sname.upper()} {at:g} s into a 96-step training, then train --resume", "train --config tiny64.toml --out r --quiet", setup=cp("tiny64.toml"),
-                 signal_at=at, signal_num=sig, expect=(0, 130, 143), then=["train", "--out", "r", "--resume", "--quiet"], timeout=120)
+                 signal_at=at, signal_num=sig, expect=(0, 130, 143), then=["train", "--out", "r", "--resume", "--quiet"], timeout=120,
+                 core=at != 5.5)
     case(4, "evaluate-sigint", "SIGINT 5 s into a campaign, then evaluate --resume", f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e", setup=cp("hw.json"), signal_at=5.0, expect=(0, 130, 143), then=["evaluate", "--out", "e", "--resume", "--quiet", "--no-report"], timeout=120)
     case(4, "evaluate-sigterm", "SIGTERM 5 s into a campaign, then evaluate --resume", f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e", setup=cp("hw.json"), signal_at=5.0, signal_num=signal.SIGTERM, expect=(0, 130, 143), then=["evaluate", "--out", "e", "--resume", "--quiet", "--no-report"], timeout=120)
 
@@ -1103,7 +1111,8 @@ def family6() -> None:
                  ("colon", ":"), ("empty", ""), ("list", "127.0.0.1:@PORT_closed@,127.0.0.1:1"),
                  ("auto-none", "auto"), ("bad-ip", "256.1.1.1:6379")]
     for name, addr in addresses:
-        case(6, f"ray-address-{name}", f"evaluate --executor ray --ray-address {addr!r}", [*RAY_EVAL.split(), "--ray-address", addr], setup=cp("cat.json"), timeout=T, ray=True)
+        case(6, f"ray-address-{name}", f"evaluate --executor ray --ray-address {addr!r}", [*RAY_EVAL.split(), "--ray-address", addr], setup=cp("cat.json"), timeout=T, ray=True,
+             core=name in ("closed", "ray-closed", "http", "silent", "garbage", "ray-silent", "port-70000", "port-str", "empty", "auto-none"))
     for name, addr in (("closed", "127.0.0.1:@PORT_closed@"), ("silent", "ray://127.0.0.1:@PORT_silent@"), ("http", "127.0.0.1:@PORT_http@")):
         case(6, f"train-ray-address-{name}", f"train --envs 2 --executor ray --ray-address {addr!r}", [*TRAIN.split(), "--envs", "2", "--executor", "ray", "--ray-address", addr], setup=cp("tiny.toml", to="c.toml"), timeout=T, ray=True)
     for name, w in (("zero", "0"), ("neg", "-1"), ("empty-item", "1,,2"), ("str", "two"), ("float", "1.5"), ("huge", "1000000000000")):
