@@ -96,7 +96,10 @@ CASES: list[Case] = []
 
 
 def case(family: int, cid: str, what: str, argv: str | list[str], **kw: Any) -> None:
-    CASES.append(Case(f"f{family}-{cid}", family, what, argv.split() if isinstance(argv, str) else argv, **kw))
+    args = argv.split() if isinstance(argv, str) else argv
+    if "--resume" in args and "--out" in args:  # resuming continues the folder: its own files change
+        kw["may_change"] = (*kw.get("may_change", ()), args[args.index("--out") + 1])
+    CASES.append(Case(f"f{family}-{cid}", family, what, args, **kw))
 
 
 # -- setup helpers ---------------------------------------------------------------------------------------------
@@ -331,18 +334,19 @@ def make_fixtures(fx: Path, log: Callable[[str], None]) -> None:
     shutil.copy(ROOT / "configs" / "rulebook.toml", fx / "rules.toml")
     (fx / "rcfg.toml").write_text(TINY.replace("[ppo]", "rulebook = \"rules.toml\"\n\n[ppo]"))
     grl("scenes", "--count", "2", "--out", "cat.json", "--quiet")
-    grl("scenes", "--map", "highway", "--count", "4", "--out", "hw.json", "--quiet")
+    grl("scenes", "--map", "highway", "--count", "12", "--out", "hw.json", "--quiet")
     log(f"fixtures: catalogs ({time.time() - t0:.0f} s)")
     grl("train", "--config", "tiny.toml", "--out", "run", "--quiet")
     grl("train", "--config", "sac.toml", "--out", "sacrun", "--quiet")
     log(f"fixtures: runs ({time.time() - t0:.0f} s)")
-    # blind system on highway scenes 0, 1, 3 (seed 1): scene 1 is a proximity failure, so a record is written
+    # the blind system never sees a vehicle: one of these highway scenes ends in a collision (frames are kept,
+    # so export has work), another in a proximity failure; each failure writes a record
     grl("evaluate", "--agent", "run", "--catalog", "hw.json", "--policies", "sunny,agent", "--scenes", "3",
         "--seed", "1", "--steps", "70", "--system", "blind", "--out", "camp", "--quiet", "--records", "failures",
         "--no-counterfactual")
     records = sorted((fx / "camp" / "records").glob("*.json"))
-    if not records:
-        raise SystemExit("fixture campaign wrote no record")
+    if not records or not (fx / "camp" / "frames").is_dir():
+        raise SystemExit("fixture campaign wrote no record or no failure frames")
     shutil.copy(records[0], fx / "rec.json")
     log(f"fixtures: campaign ({time.time() - t0:.0f} s)")
     (fx / "done").write_text("ok")
@@ -788,7 +792,7 @@ def family1() -> None:
     case(1, "compare-onto-fifo", "compare --json a FIFO nobody reads", f"{C} --json pipe --force", setup=chain(CAMP, fifo("pipe")), timeout=30)
     case(1, "compare-dash", "compare --json - writes to stdout", f"{C} --json -", setup=CAMP, expect=OK, absent=("-",))
     case(1, "compare-onto-folder", "compare --json the campaign folder --force", f"{C} --json camp --force", setup=CAMP)
-    RX = "reactivity --campaign camp --policy sunny --scenes 1 --no-other-seeds --quiet"
+    RX = "reactivity --campaign camp --policy sunny --scenes 2 --no-other-seeds --quiet"
     case(1, "reactivity-onto-campaign-json", "reactivity --out the campaign's campaign.json --force", f"{RX} --out camp/campaign.json --force", setup=CAMP)
     case(1, "reactivity-onto-episodes-csv", "reactivity --out the campaign's episodes.csv --force", f"{RX} --out camp/episodes.csv --force", setup=CAMP)
     case(1, "export-onto-campaign", "export --out the campaign folder itself --force", "export camp --out camp --force", setup=CAMP)
@@ -852,7 +856,7 @@ def family2() -> None:
     case(2, "campaign-system", "campaign.json's spec names env.system = 'evil:Sys'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
     case(2, "campaign-plugins", "campaign.json's spec names env.plugins = ['evil']; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "plugins"], ["evil"]))))
     case(2, "campaign-policy", "campaign.json's spec names a policy 'evil:Pol'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "policies"], ["sunny", "evil:Pol"]))))
-    case(2, "campaign-system-reactivity", "campaign.json's spec names env.system = 'evil:Sys'; reactivity", "reactivity --campaign camp --policy sunny --scenes 1 --no-other-seeds --quiet --out rx.json", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
+    case(2, "campaign-system-reactivity", "campaign.json's spec names env.system = 'evil:Sys'; reactivity", "reactivity --campaign camp --policy sunny --scenes 2 --no-other-seeds --quiet --out rx.json", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
     case(2, "campaign-system-report", "campaign.json's spec names env.system = 'evil:Sys'; report", "report camp --out rep.html", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))), expect=EITHER)
     case(2, "record-system", "a record's system spec is 'evil:Sys'; replay", REPLAY, setup=chain(cp("rec.json"), ev, edit_json("rec.json", lambda r: set_path(r, ["system", "spec"], "evil:Sys"))))
     case(2, "record-backend", "a record's backend is 'evil:Backend'; replay", REPLAY, setup=chain(cp("rec.json"), ev, edit_json("rec.json", lambda r: set_path(r, ["backend"], "evil:Backend"))))
@@ -983,7 +987,7 @@ def family4() -> None:
     case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))))
     case(4, "deep-record", f"record nested {deep} deep; replay", REPLAY, setup=write("rec.json", deep_json(deep)))
     case(4, "deep-run-config", f"the run's config.toml nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", deep_toml("env", deep))))
-    case(4, "deep-run-json", f"the run's run.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/run.json", deep_json(deep))))
+    case(4, "deep-run-json", f"the run's run.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/run.json", deep_json(deep))), expect=EITHER)
     case(4, "deep-last-json", f"checkpoints/last.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/checkpoints/last.json", deep_json(deep))))
     case(4, "deep-state-json", f"the checkpoint's state.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/checkpoints/step_00000032.state.json", deep_json(deep))))
     case(4, "deep-marker", f"the campaign's .genesis-rl.json nested {deep} deep; evaluate --force onto it", f"{EVAL_HW} --out camp --force", setup=chain(CAMP, cp("hw.json"), write("camp/.genesis-rl.json", deep_json(deep))))
