@@ -831,9 +831,9 @@ def family1() -> None:
     case(1, "scenes-onto-device", "scenes --out a character device --force", "scenes --count 1 --out nulldev --force --quiet", setup=devnull("nulldev"), expect=EITHER)
     case(1, "scenes-onto-user-link", "scenes --out a symlink to the user's file --force: written through or refused, the link kept", "scenes --count 1 --out l.json --force --quiet", setup=chain(write("mine.json", "{}"), symlink("l.json", "mine.json")), expect=EITHER, may_change=("mine.json",))
     case(1, "scenes-dash", "scenes --out - writes to stdout", "scenes --count 1 --out - --quiet", expect=OK, absent=("-",))
-    case(1, "map-onto-fifo", "map --out a FIFO", "map --out pipe --force", setup=fifo("pipe"), timeout=30)
-    case(1, "map-onto-run-folder", "map --out a run folder --force", "map --out run --force", setup=RUN)
-    case(1, "map-dash", "map --out - writes to stdout", "map --out -", expect=OK, absent=("-",))
+    case(1, "map-onto-fifo", "map --out a FIFO", "map export --out pipe --force", setup=fifo("pipe"), timeout=30)
+    case(1, "map-onto-run-folder", "map --out a run folder --force", "map export --out run --force", setup=RUN)
+    case(1, "map-dash", "map --out - writes to stdout", "map export --out -", expect=OK, absent=("-",))
 
 
 def family2() -> None:
