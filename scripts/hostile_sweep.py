@@ -95,6 +95,7 @@ class Case:
     raw: list[str] | None = None  # run this command instead of genesis-rl (the harness's own test)
     from_issue: bool = False  # an example the issue text gives (not counted as new)
     ray: bool = False  # runs Ray: no memory limit, its own RAY_TMPDIR, its leftover processes ended by pid
+    names: tuple[str, ...] = ()  # a refusal (exit 2) must name one of these (the file or field at fault)
     core: bool = True  # in the default sweep (~10 min on 2 cores); the rest of a value grid runs with --all
 
 
@@ -550,6 +551,8 @@ def judge(c: Case, d: Path, code: int | None, out: str, err: str, lost: list[str
         return "wrong-exit", f"exit {code}, expected {' or '.join(map(str, c.expect))}"
     if code == 2 and not message(err):
         return "wrong-exit", "exit 2 without a message"
+    if code == 2 and c.names and not any(n.lower() in message(err).lower() for n in c.names):
+        return "wrong-exit", f"refused, but not naming {' or '.join(c.names)}"
     if problems:
         return "wrong-exit", "; ".join(problems)[:300]
     bad = [a for a in c.absent if os.path.lexists(d / a)]
@@ -909,7 +912,7 @@ def family3() -> None:
     for name, path, signed in cat_fields:
         for vname, js, _ in iter_values():
             case(3, f"catalog-{name}-{vname}", f"catalog scene 0 {'.'.join(map(str, path[3:]))} = {js}; drive", DRIVE,
-                 setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(path, js))), expect=expect_for(vname, signed),
+                 setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(path, js))), expect=expect_for(vname, signed), names=(str(path[-1]),),
                  core=vname in CORE_VALUES or (name in ("ego-speed", "lead-comfort-decel") and vname in ("tiny", "inf")))
     case(3, "catalog-ego-speed-1000", "catalog ego speed 1000 m/s; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "1000"))), from_issue=True)
     case(3, "catalog-ego-speed-1e200", "catalog ego speed 1e200; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "1e200"))), from_issue=True)
@@ -923,7 +926,7 @@ def family3() -> None:
     for key, vname in (("distance", "prox"), ("decel", "rss")):
         for v, _, tl in iter_values():
             case(3, f"rulebook-{vname}-{key}-{v}", f"rulebook {key} = {tl}; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e",
-                 setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", _toml_param(key, tl))), expect=expect_for(v, False), from_issue=(key, v) == ("decel", "tiny"),
+                 setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", _toml_param(key, tl))), expect=expect_for(v, False), from_issue=(key, v) == ("decel", "tiny"), names=(key,),
                  core=v in CORE_VALUES or key == "decel")
     for v, lit in (("str", '"high"'), ("neg", "-1"), ("huge", "1e308")):
         case(3, f"rulebook-priority-{v}", f"rulebook priority = {lit}; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e",
@@ -932,7 +935,7 @@ def family3() -> None:
     for name, table, key in odd_fields:
         for v, _, tl in iter_values():
             case(3, f"odd-{name}-{v}", f"ODD {table + '.' if table else ''}{key} = {tl}; evaluate --odd", f"{EVAL_HW} --odd odd.toml --out e",
-                 setup=chain(cp("hw.json", "odd.toml"), edit_text("odd.toml", _toml_key(table, key, tl))), expect=expect_for(v, True),
+                 setup=chain(cp("hw.json", "odd.toml"), edit_text("odd.toml", _toml_key(table, key, tl))), expect=expect_for(v, True), names=(table or key,),
                  core=v in CORE_VALUES)
     cfg_fields = [("env", "max_step_fraction"), ("env", "start_spread"), ("env.reward", "collision_weight"), ("ppo", "learning_rate"), ("ppo", "gamma"), ("ppo", "clip_range")]
     for table, key in cfg_fields:
@@ -940,7 +943,7 @@ def family3() -> None:
             if v in ("zero", "bool", "list"):
                 continue
             case(3, f"config-{table.replace('.', '-')}-{key.replace('_', '-')}-{v}", f"config [{table}] {key} = {tl}; train", TRAIN,
-                 setup=config(table, key, tl), expect=expect_for(v, False), from_issue=(key, v) in (("max_step_fraction", "tiny"), ("collision_weight", "huge")),
+                 setup=config(table, key, tl), expect=expect_for(v, False), names=(key,), from_issue=(key, v) in (("max_step_fraction", "tiny"), ("collision_weight", "huge")),
                  core=v in ("tiny", "huge", "nan"))
     for v, cell in (("nan", "nan"), ("inf", "inf"), ("neg", "-1"), ("huge", "1e308"), ("str", "heavy"), ("empty", ""), ("tiny", "1e-320")):
         case(3, f"schedule-cell-{v}", f"schedule CSV fog_density cell = '{cell}'; drive --schedule", DRIVE + " --schedule s.csv",
