@@ -48,6 +48,14 @@ def test_oracle_classifies_synthetic_commands(sweep: ModuleType, tmp_path: Path,
         assert row["seconds"] < 10  # the process group was killed, not waited for
 
 
+def test_a_refusal_must_name_the_field(sweep: ModuleType, tmp_path: Path) -> None:
+    """A swept field refused for another reason (a campaign blaming its own output file) is not a clean refusal."""
+    blames = "import sys; print('x: error: episode.json is damaged', file=sys.stderr); sys.exit(2)"
+    assert _raw(sweep, tmp_path / "a", blames, names=("decel",))["outcome"] == "wrong-exit"
+    names = "import sys; print('x: error: rules.toml: decel = 1e-320 must be >= 0.1', file=sys.stderr); sys.exit(2)"
+    assert _raw(sweep, tmp_path / "b", names, names=("decel",))["outcome"] == "pass"
+
+
 def test_oracle_sees_data_loss_and_code_execution(sweep: ModuleType, tmp_path: Path) -> None:
     def setup(d: Path, fx: Path) -> None:
         (d / "input.json").write_text("{}")
