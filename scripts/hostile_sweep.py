@@ -72,7 +72,7 @@ FAMILIES = {
 OUTCOMES = ("pass", "code-exec", "data-loss", "abort", "traceback", "timeout", "wrong-exit")
 REJECT, OK, EITHER = (2,), (0,), (0, 2)
 MARKER = "PWNED"  # what a payload creates, in the case folder
-MEMORY_LIMIT = 12 * 2**30  # address space of one command (not Ray's): a runaway allocation fails, the box lives
+MEMORY_LIMIT = 8 * 2**30  # address space of one command (not Ray's): a runaway allocation fails, the box lives
 
 Setup = Callable[[Path, Path], object]  # (case folder, fixtures folder); what it returns is ignored
 
