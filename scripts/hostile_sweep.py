@@ -1085,7 +1085,8 @@ def family4() -> None:
     case(4, "carla-servers-malformed", "--carla-servers '127.0.0.1:x:y:z'", f"{EVAL} --backend carla --carla-servers 127.0.0.1:x:y:z --out e", setup=cp("cat.json"), timeout=45)
     # interrupts: signal the whole process group at a few moments (after the first checkpoint, while a checkpoint
     # is being written, later); the next --resume must finish the run from what was kept
-    moments = [("after-checkpoint", "r/checkpoints/last.json", 0.0), ("during-save", "r/checkpoints/.*.zip.*", 0.0),
+    # (before the first checkpoint is complete there is nothing to resume: refusing then is right)
+    moments = [("after-checkpoint", "r/checkpoints/last.json", 0.0), ("during-save", "r/checkpoints/.step_00000032.zip.*", 0.0),
                ("mid-run", "r/checkpoints/last.json", 1.5)]
     for sig, sname in ((signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")):
         for mname, when, delay in moments:
@@ -1093,8 +1094,8 @@ def family4() -> None:
                  "train --config tiny64.toml --out r --quiet", setup=cp("tiny64.toml"), signal_when=when, signal_at=delay, signal_num=sig,
                  expect=(0, 130, 143), then=["train", "--out", "r", "--resume", "--quiet"], timeout=150, from_issue=mname == "during-save")
     for sig, sname in ((signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")):
-        case(4, f"evaluate-{sname}", f"{sname.upper()} 1 s after a campaign starts writing, then evaluate --resume", f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e",
-             setup=cp("hw.json"), signal_when="e/campaign.json", signal_at=1.0, signal_num=sig, expect=(0, 130, 143),
+        case(4, f"evaluate-{sname}", f"{sname.upper()} after a campaign's first episode, then evaluate --resume", f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e",
+             setup=cp("hw.json"), signal_when="e/episodes/sunny/*.json", signal_at=0.2, signal_num=sig, expect=(0, 130, 143),
              then=["evaluate", "--out", "e", "--resume", "--quiet", "--no-report"], timeout=150)
 
 
