@@ -1013,7 +1013,7 @@ def family4() -> None:
     case(4, "deep-campaign", f"campaign.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/campaign.json", deep_json(deep))))
     case(4, "deep-campaign-resume", f"campaign.json nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, write("camp/campaign.json", deep_json(deep))))
     case(4, "deep-summary", f"summary.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/summary.json", deep_json(deep))),
-         may_change=("camp/summary.json",))  # report writes summary.json again from the episodes
+         may_change=("camp/summary.json",), expect=EITHER)  # report may rebuild summary.json from the episodes
     case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))))
     case(4, "deep-record", f"record nested {deep} deep; replay", REPLAY, setup=write("rec.json", deep_json(deep)))
     case(4, "deep-run-config", f"the run's config.toml nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", deep_toml("env", deep))))
@@ -1026,7 +1026,7 @@ def family4() -> None:
     case(4, "schedule-huge-cell", f"schedule CSV cell of {big:,} characters; drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t: t.replace("2,20,10", f"2,{'9' * big},10"))), from_issue=True)
     case(4, "schedule-huge-header", f"schedule CSV header cell of {big:,} characters; drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t: t.replace("precipitation", "p" * big, 1))))
     case(4, "schedule-unclosed-quote", "schedule CSV with an unclosed quote running to the end of the file; drive", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), write("s.csv", 'step,fog_density\n0,"' + "1" * 300_000 + "\n")))
-    case(4, "campaign-csv-huge-cell", f"the campaign's episodes.csv holds a cell of {big:,} characters; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", "sunny" + "x" * big + ",", 1))))
+    case(4, "campaign-csv-huge-cell", f"the campaign's episodes.csv holds a cell of {big:,} characters; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", "sunny" + "x" * big + ",", 1))), expect=EITHER)
     case(4, "campaign-csv-huge-cell-resume", f"the campaign's episodes.csv holds a cell of {big:,} characters; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", '"' + "x" * big + '",', 1))))
     case(4, "run-csv-huge-cell", f"the run's episodes.csv holds a cell of {big:,} characters; train --resume", RESUME, setup=chain(RUN, lambda d, fx: (d / "run/episodes.csv").write_text((d / "run/episodes.csv").read_text() + '"' + "9" * big + '"\n')))
     case(4, "catalog-64mb", "a 64 MB catalog (one huge string field); render", RENDER, setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["pad"], "x" * (64 << 20)))), expect=EITHER)
@@ -1043,11 +1043,11 @@ def family4() -> None:
                ("run-config", "run/config.toml", EVAL_AGENT, chain(RUN, cp("hw.json"))),
                ("schedule", "s.csv", DRIVE + " --schedule s.csv", chain(cp("cat.json"), cp("sched.csv", to="s.csv"))),
                ("state-json", "run/checkpoints/step_00000032.state.json", RESUME, RUN),
-               ("episodes-csv", "camp/episodes.csv", "report camp --out rep.html", CAMP)]
+               ("episodes-csv", "camp/episodes.csv", "report camp --out rep.html", CAMP)]  # report may rebuild this index
     for lname, rel, argv, base in loaders:
         for dname, make in damaged.items():
             case(4, f"{dname}-{lname}", f"{lname} file {rel} {dname}", argv, setup=chain(base, make(rel)),
-                 expect=EITHER if (lname, dname) in (("episodes-csv", "latin1"), ("config", "zero")) else REJECT,
+                 expect=EITHER if lname == "episodes-csv" or (lname, dname) == ("config", "zero") else REJECT,
                  core=dname in ("zero", "binary"))  # an empty --config the user gives means the defaults
     for lname, rel, argv, base in [("agent-zip", "run/agent.zip", EVAL_AGENT, chain(RUN, cp("hw.json"))),
                                    ("checkpoint-zip", "run/checkpoints/step_00000032.zip", RESUME, RUN),
