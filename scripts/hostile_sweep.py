@@ -1094,10 +1094,11 @@ def family4() -> None:
             case(4, f"train-{sname}-{mname}", f"{sname.upper()} {mname.replace('-', ' ')} of a 96-step training, then train --resume",
                  "train --config tiny64.toml --out r --quiet", setup=cp("tiny64.toml"), signal_when=when, signal_at=delay, signal_num=sig,
                  expect=(0, 130, 143), then=["train", "--out", "r", "--resume", "--quiet"], timeout=150, from_issue=mname == "during-save")
+    campaign = f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e"
     for sig, sname in ((signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")):
-        case(4, f"evaluate-{sname}", f"{sname.upper()} after a campaign's first episode, then evaluate --resume", f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e",
+        case(4, f"evaluate-{sname}", f"{sname.upper()} after a campaign's first episode, then the same command with --resume", campaign,
              setup=cp("hw.json"), signal_when="e/episodes/sunny/*.json", signal_at=0.2, signal_num=sig, expect=(0, 130, 143),
-             then=["evaluate", "--out", "e", "--resume", "--quiet", "--no-report"], timeout=150)
+             then=[*campaign.split(), "--resume"], timeout=150)
 
 
 def _touch(p: Path) -> Path:
