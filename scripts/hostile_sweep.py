@@ -764,7 +764,9 @@ TRAIN = "train --config c.toml --out r --steps 8 --n-steps 8 --quiet"
 RESUME = "train --out run --resume --steps 48 --quiet"
 REPLAY = "replay rec.json --out rp --no-gif --quiet"
 CAMP = cp("camp")
-RESUME_CAMP = "evaluate --agent run --out camp --resume --quiet --no-report"  # the campaign ran policy 'agent'
+# the fixture campaign's own command, resumed (a campaign resumes only with the settings it was run with)
+RESUME_CAMP = ("evaluate --agent run --catalog hw.json --policies sunny,agent --scenes 3 --seed 1 --steps 70 --system blind "
+               "--records failures --no-counterfactual --out camp --resume --quiet --no-report")
 RUN = cp("run")
 CARLA = "scenes --backend carla --count 1 --out c.json --quiet"
 
@@ -867,7 +869,7 @@ def family2() -> None:
     case(2, "checkpoint-data-lr-schedule", "the last checkpoint's 'data' holds a pickled payload; train --resume", RESUME, setup=chain(RUN, zip_member("run/checkpoints/step_00000032.zip", "data", serialized("lr_schedule"))), expect=EITHER)
     case(2, "checkpoint-policy-pth", "the last checkpoint's policy.pth is a torch pickle with a payload; train --resume", RESUME, setup=chain(RUN, zip_member("run/checkpoints/step_00000032.zip", "policy.pth", lambda d, old: torch_payload(d))), expect=EITHER)
     case(2, "checkpoint-optimizer-pth", "the last checkpoint's policy.optimizer.pth holds a payload; train --resume", RESUME, setup=chain(RUN, zip_member("run/checkpoints/step_00000032.zip", "policy.optimizer.pth", lambda d, old: torch_payload(d))), expect=EITHER)
-    case(2, "evaluate-agent-no-agent-zip", "no agent.zip: evaluate --agent falls back to a checkpoint holding a payload", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), lambda d, fx: (d / "run/agent.zip").unlink(), zip_member("run/checkpoints/step_00000032.zip", "data", serialized("clip_range"))), expect=EITHER)
+    case(2, "evaluate-agent-no-agent-zip", "no agent.zip: evaluate --agent falls back to a checkpoint holding a payload", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), lambda d, fx: (d / "run/agent.zip").unlink(), zip_member("run/checkpoints/last.zip", "data", serialized("clip_range"))), expect=EITHER)
     case(2, "sac-replay-buffer", "a SAC run's replay buffer (.pkl) holds a payload; train --resume", "train --out sacrun --resume --steps 36 --quiet", setup=chain(cp("sacrun"), write("sacrun/checkpoints/step_00000024.replay.pkl", b""), lambda d, fx: (d / "sacrun/checkpoints/step_00000024.replay.pkl").write_bytes(payload(d))), expect=EITHER)
     case(2, "sac-agent-data", "a SAC run's agent.zip 'data' holds a payload; evaluate --agent", EVAL_AGENT.replace("--agent run", "--agent sacrun"), setup=chain(cp("sacrun"), cp("hw.json"), zip_member("sacrun/agent.zip", "data", serialized("lr_schedule"))), expect=EITHER)
     case(2, "detector-weights-pickle", "--weights: a detector checkpoint that is a torch pickle with a payload", "drive --catalog cat.json --steps 2 --system builtin --weights w.pt --no-gif --quiet --width 64 --height 48 --out dv", setup=chain(cp("cat.json"), lambda d, fx: (d / "w.pt").write_bytes(torch_payload(d))))
@@ -878,9 +880,9 @@ def family2() -> None:
     case(2, "run-config-rulebook-rule", "the run's config.toml names a rulebook whose rule is 'evil:Rule'", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), ev, write("run/rules.toml", '[[rules]]\nname = "evil:Rule"\npriority = 1\n'), edit_text("run/config.toml", lambda t: toml_set(t, "env", "rulebook", '"run/rules.toml"'))))
     case(2, "resume-config-plugins", "the run's config.toml names env.plugins = ['evil']; train --resume", RESUME, setup=chain(RUN, ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "plugins", '["evil"]'))))
     case(2, "resume-config-system", "the run's config.toml names env.system = 'evil:Sys'; train --resume", RESUME, setup=chain(RUN, ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "system", '"evil:Sys"'))))
-    case(2, "campaign-system", "campaign.json's spec names env.system = 'evil:Sys'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
-    case(2, "campaign-plugins", "campaign.json's spec names env.plugins = ['evil']; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "plugins"], ["evil"]))))
-    case(2, "campaign-policy", "campaign.json's spec names a policy 'evil:Pol'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "policies"], ["sunny", "evil:Pol"]))))
+    case(2, "campaign-system", "campaign.json's spec names env.system = 'evil:Sys'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
+    case(2, "campaign-plugins", "campaign.json's spec names env.plugins = ['evil']; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "plugins"], ["evil"]))))
+    case(2, "campaign-policy", "campaign.json's spec names a policy 'evil:Pol'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "policies"], ["sunny", "evil:Pol"]))))
     case(2, "campaign-system-reactivity", "campaign.json's spec names env.system = 'evil:Sys'; reactivity", "reactivity --campaign camp --policy sunny --scenes 2 --no-other-seeds --quiet --out rx.json", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
     case(2, "campaign-system-report", "campaign.json's spec names env.system = 'evil:Sys'; report", "report camp --out rep.html", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))), expect=EITHER)
     case(2, "record-system", "a record's system spec is 'evil:Sys'; replay", REPLAY, setup=chain(cp("rec.json"), ev, edit_json("rec.json", lambda r: set_path(r, ["system", "spec"], "evil:Sys"))))
@@ -964,7 +966,7 @@ def family3() -> None:
     case(3, "run-edited-knobs-resume", "the run's config.toml edited (a knob removed); train --resume", RESUME, setup=chain(RUN, edit_text("run/config.toml", lambda t: t.replace(', "sun_azimuth_angle"', ""))))
     case(3, "run-config-only-comment", "the run's config.toml holds only a comment; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", "# nothing\n")))
     case(3, "run-still-locked", "evaluate --agent on a run whose lock is held (still training) warns or refuses", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/.genesis-rl.lock", str(os.getpid()))), expect=EITHER)
-    case(3, "campaign-edited-seeds-resume", "campaign.json's episode seeds edited; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, edit_json("camp/campaign.json", lambda c: set_path(c, ["scenes", 0, 1], 12345))))
+    case(3, "campaign-edited-seeds-resume", "campaign.json's episode seeds edited; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), edit_json("camp/campaign.json", lambda c: set_path(c, ["scenes", 0, 1], 12345))))
     case(3, "campaign-steps-nan", "campaign.json's spec steps = NaN; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/campaign.json", _json_setter(["spec", "steps"], "NaN"))))
     case(3, "campaign-summary-inf", "summary.json holds Infinity; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/summary.json", lambda t: re.sub(r'("collision": )[-0-9.e]+', r"\1Infinity", t, count=1))), expect=EITHER,
          may_change=("camp/summary.json",))
@@ -1011,10 +1013,10 @@ def family4() -> None:
     case(4, "deep-config-train", "config [env] value nested 100,000 deep; train --config", TRAIN, setup=write("c.toml", "[env]\n" + deep_toml("knobs", deep)))
     case(4, "deep-rulebook", f"rulebook TOML nested {deep} deep; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e", setup=chain(cp("rcfg.toml", "cat.json"), write("rules.toml", deep_toml("rules", deep))))
     case(4, "deep-campaign", f"campaign.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/campaign.json", deep_json(deep))))
-    case(4, "deep-campaign-resume", f"campaign.json nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, write("camp/campaign.json", deep_json(deep))))
+    case(4, "deep-campaign-resume", f"campaign.json nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), write("camp/campaign.json", deep_json(deep))))
     case(4, "deep-summary", f"summary.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/summary.json", deep_json(deep))),
          may_change=("camp/summary.json",), expect=EITHER)  # report may rebuild summary.json from the episodes
-    case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))))
+    case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))))
     case(4, "deep-record", f"record nested {deep} deep; replay", REPLAY, setup=write("rec.json", deep_json(deep)))
     case(4, "deep-run-config", f"the run's config.toml nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", deep_toml("env", deep))))
     case(4, "deep-run-json", f"the run's run.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/run.json", deep_json(deep))), expect=EITHER)
@@ -1027,7 +1029,7 @@ def family4() -> None:
     case(4, "schedule-huge-header", f"schedule CSV header cell of {big:,} characters; drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t: t.replace("precipitation", "p" * big, 1))))
     case(4, "schedule-unclosed-quote", "schedule CSV with an unclosed quote running to the end of the file; drive", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), write("s.csv", 'step,fog_density\n0,"' + "1" * 300_000 + "\n")))
     case(4, "campaign-csv-huge-cell", f"the campaign's episodes.csv holds a cell of {big:,} characters; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", "sunny" + "x" * big + ",", 1))), expect=EITHER)
-    case(4, "campaign-csv-huge-cell-resume", f"the campaign's episodes.csv holds a cell of {big:,} characters; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", '"' + "x" * big + '",', 1))))
+    case(4, "campaign-csv-huge-cell-resume", f"the campaign's episodes.csv holds a cell of {big:,} characters; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", '"' + "x" * big + '",', 1))))
     case(4, "run-csv-huge-cell", f"the run's episodes.csv holds a cell of {big:,} characters; train --resume", RESUME, setup=chain(RUN, lambda d, fx: (d / "run/episodes.csv").write_text((d / "run/episodes.csv").read_text() + '"' + "9" * big + '"\n')))
     case(4, "catalog-64mb", "a 64 MB catalog (one huge string field); render", RENDER, setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["pad"], "x" * (64 << 20)))), expect=EITHER)
     case(4, "catalog-1gib-sparse", "a 1 GiB catalog (sparse, all NUL bytes); render", RENDER, setup=lambda d, fx: os.truncate(_touch(d / "cat.json"), 1 << 30), timeout=60)
@@ -1077,11 +1079,14 @@ def family4() -> None:
     for name, host in (("bad-ip", "256.256.256.256"), ("empty", ""), ("label-too-long", "a" * 300), ("dots", ".."), ("with-port", "127.0.0.1:2000"), ("spaces", "127.0.0.1 ; touch PWNED"), ("dash", "-h")):
         case(4, f"carla-host-{name}", f"--carla-host {host[:30]!r}", [*CARLA.split(), "--carla-host", host, "--carla-port", "@PORT_closed@", "--carla-timeout", "2"], timeout=45, core=name in ("bad-ip", "empty", "label-too-long", "with-port"))
     for name, port in (("zero", "0"), ("neg", "-1"), ("70000", "70000"), ("str", "abc"), ("empty-item", "2000,,2001"), ("float", "2000.5")):
-        case(4, f"carla-port-value-{name}", f"--carla-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port {port} --carla-timeout 2", timeout=45, core=name in ("70000", "str", "empty-item"))
+        case(4, f"carla-port-value-{name}", f"--carla-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port {port} --carla-timeout 2", timeout=45, core=name in ("70000", "str", "empty-item"),
+             names=("carla-port",))
     for name, port in (("70000", "70000"), ("zero", "0"), ("neg", "-1"), ("str", "x")):
-        case(4, f"carla-tm-port-{name}", f"--carla-tm-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_closed@ --carla-tm-port {port} --carla-timeout 2", timeout=45, from_issue=name == "70000", core=name in ("70000", "str"))
+        case(4, f"carla-tm-port-{name}", f"--carla-tm-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_closed@ --carla-tm-port {port} --carla-timeout 2", timeout=45, from_issue=name == "70000", core=name in ("70000", "str"),
+             names=("tm-port", "tm_port"))
     for name, t in (("inf", "inf"), ("nan", "nan"), ("neg", "-1"), ("zero", "0"), ("huge", "1e308"), ("tiny", "1e-320"), ("str", "soon")):
-        case(4, f"carla-timeout-{name}", f"--carla-timeout {t} against a silent server", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_silent@ --carla-timeout {t}", timeout=45, from_issue=name == "inf", core=name in ("inf", "nan", "neg", "huge"))
+        case(4, f"carla-timeout-{name}", f"--carla-timeout {t} against a silent server", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_silent@ --carla-timeout {t}", timeout=45, from_issue=name == "inf", core=name in ("inf", "nan", "neg", "huge"),
+             names=("timeout",) if name != "zero" else ())
     case(4, "carla-servers-garbage", "--carla-servers pointing at a garbage server; evaluate --backend carla", f"{EVAL} --backend carla --carla-servers 127.0.0.1:@PORT_garbage@ --carla-timeout 2 --out e", setup=cp("cat.json"), timeout=45)
     case(4, "carla-servers-malformed", "--carla-servers '127.0.0.1:x:y:z'", f"{EVAL} --backend carla --carla-servers 127.0.0.1:x:y:z --out e", setup=cp("cat.json"), timeout=45)
     # interrupts: signal the whole process group at a few moments (after the first checkpoint, while a checkpoint
