@@ -96,6 +96,7 @@ class Case:
     from_issue: bool = False  # an example the issue text gives (not counted as new)
     ray: bool = False  # runs Ray: no memory limit, its own RAY_TMPDIR, its leftover processes ended by pid
     names: tuple[str, ...] = ()  # a refusal (exit 2) must name one of these (the file or field at fault)
+    warns: tuple[str, ...] = ()  # a success (exit 0) must say one of these on stderr (a warning)
     core: bool = True  # in the default sweep (~10 min on 2 cores); the rest of a value grid runs with --all
 
 
@@ -186,6 +187,21 @@ def devnull(rel: str) -> Setup:
             os.mknod(d / rel, stat.S_IFCHR | 0o666, os.makedev(1, 3))
         except OSError:  # not root: a FIFO stands in for the special file
             os.mkfifo(d / rel)
+    return setup
+
+
+_LOCKS: dict[Path, list[int]] = {}  # case folder -> lock file descriptors this harness holds while it runs
+
+
+def hold_lock(rel: str) -> Setup:
+    """Hold ``rel`` locked (flock, as genesis-rl's output lock) while the command runs: a run still training."""
+    import fcntl
+
+    def setup(d: Path, fx: Path) -> None:
+        fd = os.open(d / rel, os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        _LOCKS.setdefault(d, []).append(fd)
     return setup
 
 
@@ -553,6 +569,8 @@ def judge(c: Case, d: Path, code: int | None, out: str, err: str, lost: list[str
         return "wrong-exit", "exit 2 without a message"
     if code == 2 and c.names and not any(n.lower() in message(err).lower() for n in c.names):
         return "wrong-exit", f"refused, but not naming {' or '.join(c.names)}"
+    if code == 0 and c.warns and not any(w.lower() in err.lower() for w in c.warns):
+        return "wrong-exit", f"exit 0 without a warning ({' or '.join(c.warns)})"
     if problems:
         return "wrong-exit", "; ".join(problems)[:300]
     bad = [a for a in c.absent if os.path.lexists(d / a)]
@@ -571,6 +589,8 @@ def run_case(c: Case, work: Path, fx: Path, ports: dict[str, int]) -> dict[str, 
         if c.setup:
             c.setup(d, fx)
     except Exception as exc:  # noqa: BLE001 - a setup that cannot run here is reported, not fatal
+        for fd in _LOCKS.pop(d, []):
+            os.close(fd)
         return {**row, "command": "", "exit": None, "outcome": "skipped", "detail": f"setup: {exc!r}"[:300],
                 "stderr": "", "seconds": 0.0}
     argv = [fill(a, d, ports) for a in c.argv]
@@ -597,6 +617,8 @@ def run_case(c: Case, work: Path, fx: Path, ports: dict[str, int]) -> dict[str, 
             code = code2
         elif code2 != 0:
             problems.append(f"the follow-up 'genesis-rl {' '.join(c.then)}' exited {code2}: {message(err2)}")
+    for fd in _LOCKS.pop(d, []):
+        os.close(fd)
     if tag:
         _end_ray(tag)
         shutil.rmtree(tag, ignore_errors=True)
@@ -965,7 +987,8 @@ def family3() -> None:
     case(3, "run-swapped-agent", "the run's agent.zip swapped for another run's; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), cp("sacrun/agent.zip", to="run/agent.zip")))
     case(3, "run-edited-knobs-resume", "the run's config.toml edited (a knob removed); train --resume", RESUME, setup=chain(RUN, edit_text("run/config.toml", lambda t: t.replace(', "sun_azimuth_angle"', ""))))
     case(3, "run-config-only-comment", "the run's config.toml holds only a comment; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", "# nothing\n")))
-    case(3, "run-still-locked", "evaluate --agent on a run whose lock is held (still training) warns or refuses", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/.genesis-rl.lock", str(os.getpid()))), expect=EITHER)
+    case(3, "run-still-locked", "evaluate --agent on a run whose lock is held (still training) warns or refuses", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), hold_lock(".run.genesis-rl.lock")), expect=EITHER,
+         warns=("checkpoint",), names=("checkpoint", "being written", "still"))
     case(3, "campaign-edited-seeds-resume", "campaign.json's episode seeds edited; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), edit_json("camp/campaign.json", lambda c: set_path(c, ["scenes", 0, 1], 12345))))
     case(3, "campaign-steps-nan", "campaign.json's spec steps = NaN; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/campaign.json", _json_setter(["spec", "steps"], "NaN"))))
     case(3, "campaign-summary-inf", "summary.json holds Infinity; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/summary.json", lambda t: re.sub(r'("collision": )[-0-9.e]+', r"\1Infinity", t, count=1))), expect=EITHER,
