@@ -98,3 +98,17 @@ def test_sweep_runs_real_cases_and_writes_its_reports(sweep: ModuleType, tmp_pat
     assert all(r["exit"] == 2 and r["stderr"].startswith("genesis-rl") for r in report["results"])
     text = md.read_text()
     assert "| 5. no bound on work | 1 | 1 | 1 |" in text and "f6-bench-workers-bad" in text
+
+
+def test_interrupt_cases_signal_at_the_moment_and_find_leftovers(sweep: ModuleType, tmp_path: Path) -> None:
+    """SIGTERM once a file appears: ending by the signal is fine, a temporary left beside the output is not."""
+    import signal
+
+    clean = "import pathlib, time; pathlib.Path('go').touch(); time.sleep(30)"
+    row = _raw(sweep, tmp_path / "a", clean, signal_when="go", signal_at=0.1, signal_num=signal.SIGTERM,
+               expect=(0, 130, 143), timeout=20.0)
+    assert row["outcome"] == "pass" and row["exit"] == -signal.SIGTERM and row["seconds"] < 15, row
+    dirty = "import pathlib, time; pathlib.Path('.out.zip.k3j4h5g6.zip').touch(); time.sleep(30)"
+    row = _raw(sweep, tmp_path / "b", dirty, signal_when=".out.zip.*", signal_at=0.1, signal_num=signal.SIGTERM,
+               expect=(0, 130, 143), timeout=20.0)
+    assert row["outcome"] == "wrong-exit" and ".out.zip.k3j4h5g6.zip" in row["detail"], row
