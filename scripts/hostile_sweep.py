@@ -3,8 +3,8 @@
     PYTHONPATH=$PWD .venv/bin/python scripts/hostile_sweep.py --out sweep.json [--family N] [--jobs 2]
         [--markdown docs/reliability_sweep.md] [--work DIR] [--limit N] [--ids ID,ID] [--all] [--list]
 
-The default set (364 cases, 339 of them new relative to the issue's examples) takes about 10 minutes on two idle
-cores once the fixes refuse early; ``--all`` adds the rest of each value grid (478 cases). ``--work DIR`` keeps
+The default set (368 cases, 341 of them new relative to the issue's examples) takes about 10 minutes on two idle
+cores once the fixes refuse early; ``--all`` adds the rest of each value grid (478 cases, 451 new). ``--work DIR`` keeps
 the fixtures and each case's folder for inspection; ``--render JSON --markdown MD`` re-renders a table. The exit
 status is 1 when any case fails.
 
