@@ -1,66 +1,141 @@
-"""Hostile-input sweep of the ``genesis-rl`` command line (issue 21).
+"""Hostile-input sweep for issue 38 ("Trust nothing a file says"), organised by the issue's six families.
 
-Runs each case as a careless user or a damaged disk would produce it, in its own folder, and records the
-command, its exit status, whether a Python traceback appeared, whether a file that existed before it ran was
-lost or changed (other than the outputs it was asked to replace), and whether it left temporary files behind
-(``.NAME.*`` of an atomic write, ``.OUT.partial/``, a lock file). Sizes are tiny (5 steps, 64x48 cameras, one
-or two scenes).
+    PYTHONPATH=$PWD .venv/bin/python scripts/hostile_sweep.py --out sweep.json [--family N] [--jobs 2]
+        [--markdown docs/reliability_sweep.md] [--work DIR] [--limit N] [--ids ID,ID] [--all] [--list]
 
-Some cases need root: a read-only folder is a read-only bind mount and a full disk a tiny tmpfs, both made in
-a private mount namespace (``unshare -m``); "permission denied" drops root's override capabilities
-(``capsh --drop=cap_dac_override,...``) on a ``chmod 555`` folder; "operation not permitted" is ``chattr +i``.
-Where these are not possible the case is reported as skipped.
+The default set (368 cases, 341 of them new relative to the issue's examples) takes about 10 minutes on two idle
+cores once the fixes refuse early; ``--all`` adds the rest of each value grid (478 cases, 451 new). ``--work DIR`` keeps
+the fixtures and each case's folder for inspection; ``--render JSON --markdown MD`` re-renders a table. The exit
+status is 1 when any case fails.
 
-    PYTHONPATH=$PWD .venv/bin/python scripts/hostile_sweep.py --work /tmp/sweep [--only report] [--md out.md]
+It builds tiny fixtures once (a scene catalog per map, a tiny PPO run and a tiny SAC run with system blind, a
+tiny campaign with records, an ODD, a rulebook, a config, a schedule CSV), then runs each case as a
+subprocess ``python -m genesis_rl ...`` in a folder of its own holding copies of the fixtures it needs, mutated
+the way a careless user, a colleague sharing a run folder or a damaged disk would. Every case is judged by the
+same oracle, strictest finding first:
 
-Writes ``WORK/results.json`` and prints a Markdown table (``--md`` writes it to a file).
+* ``code-exec``: a crafted pickle or a module named by a file created the marker file ``PWNED``;
+* ``data-loss``: a file, link, FIFO or device that was in the case folder before the command is gone or
+  changed (outputs the case asked to replace are listed in ``may_change``);
+* ``abort``: killed by a signal, exit 134/139, or "Fatal Python error"/"terminate called" on stderr;
+* ``traceback``: "Traceback (most recent call last)" on stdout or stderr;
+* ``timeout``: still running after the case's limit (the whole process group is killed);
+* ``wrong-exit``: an exit status the case does not allow (2 with a message for rejected input, 0 where
+  the input is valid), or temporaries/locks left after an interrupt, or a file the case forbids (``-``);
+* ``pass`` otherwise.
+
+Only loopback addresses are used: CARLA and Ray addresses point at listeners this script starts on 127.0.0.1
+(a closed port, an HTTP-like server, a silent one, one sending garbage, an echo server). Writes its JSON to
+``--out`` and a Markdown table grouped by family to ``--markdown``. Seeded: the same code gives the same cases.
 """
 
 # ruff: noqa: E501 - the cases are a table, one a line
 from __future__ import annotations
 
 import argparse
-import hashlib
+import base64
+import io
 import json
 import os
+import pickle
+import random
 import re
+import resource
 import shutil
 import signal
+import socket
+import socketserver
+import stat
 import subprocess
 import sys
+import tempfile
+import threading
 import time
-from collections.abc import Callable
+import zipfile
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
 GRL = [PY, "-m", "genesis_rl"]
-SMALL = ["--width", "64", "--height", "48"]
-DROP = "cap_dac_override,cap_dac_read_search,cap_fowner"
+FAMILIES = {
+    1: "an output lands on its own input",
+    2: "opening a shared run runs its code",
+    3: "files trusted, numbers unchecked",
+    4: "tracebacks and aborts (parsing, CARLA, interrupts)",
+    5: "no bound on work",
+    6: "Ray cluster, addresses and workers",
+}
+OUTCOMES = ("pass", "code-exec", "data-loss", "abort", "traceback", "timeout", "wrong-exit")
+REJECT, OK, EITHER = (2,), (0,), (0, 2)
+MARKER = "PWNED"  # what a payload creates, in the case folder
+MEMORY_LIMIT = 8 * 2**30  # address space of one command (not Ray's): a runaway allocation fails, the box lives
+
+Setup = Callable[[Path, Path], object]  # (case folder, fixtures folder); what it returns is ignored
 
 
 @dataclass
 class Case:
-    group: str
-    argv: list[str]
-    note: str = ""
-    setup: Callable[[Path, Path], None] | None = None
-    may_change: tuple[str, ...] = ()  # paths (relative to the case folder) the command is meant to replace
-    mode: str = ""  # "", "ro:DIR", "full:DIR", "perm:DIR", "immutable:DIR", "sigint:SECONDS", "twice"
-    timeout: float = 240.0
-    expect_ok: bool = False  # exit 0 is the right answer
-    result: dict = field(default_factory=dict)
+    id: str
+    family: int
+    what: str
+    argv: list[str]  # after "genesis-rl"; @GLOB:pattern@ and @PORT_name@ are filled in when it runs
+    setup: Setup | None = None
+    expect: tuple[int, ...] = REJECT
+    may_change: tuple[str, ...] = ()  # paths (relative to the case folder) the command may replace
+    absent: tuple[str, ...] = ()  # paths that must not exist afterwards (a file named '-')
+    timeout: float = 60.0
+    signal_at: float | None = None  # send SIGINT/SIGTERM (signal_num) to the process group this many s after
+    signal_when: str = ""  # ... a path matching this glob (relative to the case folder) appears ("": the start)
+    signal_num: int = signal.SIGINT
+    then: list[str] | None = None  # a follow-up command (e.g. --resume) that must exit 0
+    raw: list[str] | None = None  # run this command instead of genesis-rl (the harness's own test)
+    from_issue: bool = False  # an example the issue text gives (not counted as new)
+    ray: bool = False  # runs Ray: no memory limit, its own RAY_TMPDIR, its leftover processes ended by pid
+    names: tuple[str, ...] = ()  # a refusal (exit 2) must name one of these (the file or field at fault)
+    warns: tuple[str, ...] = ()  # a success (exit 0) must say one of these on stderr (a warning)
+    core: bool = True  # in the default sweep (~10 min on 2 cores); the rest of a value grid runs with --all
 
 
 CASES: list[Case] = []
 
 
-def case(group: str, argv: list[str] | str, note: str = "", **kw) -> None:
-    CASES.append(Case(group, argv.split() if isinstance(argv, str) else argv, note, **kw))
+def case(family: int, cid: str, what: str, argv: str | list[str], **kw: Any) -> None:
+    args = argv.split() if isinstance(argv, str) else argv
+    if "--resume" in args and "--out" in args:  # resuming continues the folder: its own files change
+        kw["may_change"] = (*kw.get("may_change", ()), args[args.index("--out") + 1])
+    if args[:2] == ["report", "camp"] and family != 1:  # report rebuilds a damaged summary from the episodes
+        kw["may_change"] = (*kw.get("may_change", ()), "camp/summary.json", "camp/episodes.csv")
+    CASES.append(Case(f"f{family}-{cid}", family, what, args, **kw))
 
 
-def write(rel: str, data: bytes | str) -> Callable[[Path, Path], None]:
+# -- setup helpers ---------------------------------------------------------------------------------------------
+def chain(*steps: Setup | None) -> Setup:
+    def setup(d: Path, fx: Path) -> None:
+        for s in steps:
+            if s is not None:
+                s(d, fx)
+    return setup
+
+
+def cp(*names: str, to: str | None = None) -> Setup:
+    """Copy fixtures into the case folder (``to``: under this name or folder)."""
+    def setup(d: Path, fx: Path) -> None:
+        for name in names:
+            src = fx / name
+            dst = d / (to if to and len(names) == 1 and not to.endswith("/") else (to or "") + name)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if src.is_dir():
+                shutil.copytree(src, dst, symlinks=True)
+            else:
+                shutil.copy2(src, dst)
+    return setup
+
+
+def write(rel: str, data: bytes | str) -> Setup:
     def setup(d: Path, fx: Path) -> None:
         p = d / rel
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -68,590 +143,1085 @@ def write(rel: str, data: bytes | str) -> Callable[[Path, Path], None]:
     return setup
 
 
-def copy(src: str, dst: str | None = None) -> Callable[[Path, Path], None]:
+def edit_text(rel: str, fn: Callable[[str], str]) -> Setup:
     def setup(d: Path, fx: Path) -> None:
-        s, t = fx / src, d / (dst or src)
-        t.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copytree(s, t, symlinks=True) if s.is_dir() else shutil.copy2(s, t)
-    return setup
-
-
-def chain(*steps: Callable[[Path, Path], None]) -> Callable[[Path, Path], None]:
-    def setup(d: Path, fx: Path) -> None:
-        for s in steps:
-            s(d, fx)
-    return setup
-
-
-def edit_json(rel: str, fn: Callable[[object], object], raw: bool = False) -> Callable[[Path, Path], None]:
-    """Apply ``fn`` to a copied JSON file (its parsed content, or its text with ``raw``)."""
-    def setup(d: Path, fx: Path) -> None:
-        p = d / rel
-        if raw:
-            p.write_text(fn(p.read_text()))  # type: ignore[arg-type]
-        else:
-            p.write_text(json.dumps(fn(json.loads(p.read_text()))))
-    return setup
-
-
-def put(key: str, value: str) -> Callable[[str], str]:
-    """Set the first ``"key": number`` in a JSON text to ``value`` (NaN, Infinity: not expressible in json.dumps)."""
-    return lambda text: re.sub(rf'"{key}":\s*[-+0-9.eE]+', f'"{key}": {value}', text, count=1)
-
-
-def first(d: Path, pattern: str) -> Path:
-    return sorted(d.glob(pattern))[0]
-
-
-def edit_first(pattern: str, fn: Callable[[str], str]) -> Callable[[Path, Path], None]:
-    def setup(d: Path, fx: Path) -> None:
-        p = first(d, pattern)
+        p = sorted(d.glob(rel))[0]
         p.write_text(fn(p.read_text()))
     return setup
 
 
-def truncate_first(pattern: str, keep: int = 20) -> Callable[[Path, Path], None]:
+def edit_json(rel: str, fn: Callable[[Any], Any]) -> Setup:
+    """Apply ``fn`` to a JSON file's parsed content in place (``fn`` may mutate and return None)."""
     def setup(d: Path, fx: Path) -> None:
-        p = first(d, pattern)
+        p = sorted(d.glob(rel))[0]
+        data = json.loads(p.read_text())
+        out = fn(data)
+        p.write_text(json.dumps(data if out is None else out))  # allow_nan: NaN, Infinity as Python writes them
+    return setup
+
+
+def truncate(rel: str, keep: int) -> Setup:
+    def setup(d: Path, fx: Path) -> None:
+        p = sorted(d.glob(rel))[0]
         p.write_bytes(p.read_bytes()[:keep])
     return setup
 
 
-def run_folder(d: Path, fx: Path) -> None:
-    copy("run")(d, fx)
+def symlink(rel: str, target: str) -> Setup:
+    def setup(d: Path, fx: Path) -> None:
+        (d / rel).parent.mkdir(parents=True, exist_ok=True)
+        os.symlink(target, d / rel)
+    return setup
 
 
-TRAIN = "train --steps 16 --n-steps 8 --episode-steps 8 --scenes 2 --system blind --quiet".split()
-CAMP = "camp"  # a campaign with a collision (blind system, highway scene), records of failures
-BIN = bytes(range(256)) * 8
-TOML_OK = "[env]\nscenes = 2\nepisode_steps = 8\nsystem = 'blind'\n[ppo]\nn_steps = 8\n[train]\ntotal_timesteps = 16\n"
+def fifo(rel: str) -> Setup:
+    def setup(d: Path, fx: Path) -> None:
+        os.mkfifo(d / rel)
+    return setup
 
 
-def cfg(extra: str, base: str = TOML_OK) -> str:
-    """A tiny training config with ``extra`` lines added to the table they name (``[ppo] x = 1``)."""
-    table, _, line = extra.partition("] ")
-    table += "]"
-    return base.replace(table + "\n", f"{table}\n{line}\n") if table in base else base + f"{table}\n{line}\n"
+def devnull(rel: str) -> Setup:
+    """A character device like /dev/null, made in the case folder (so a command that replaces it harms nothing)."""
+    def setup(d: Path, fx: Path) -> None:
+        try:
+            os.mknod(d / rel, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+        except OSError:  # not root: a FIFO stands in for the special file
+            os.mkfifo(d / rel)
+    return setup
 
 
-def rulebook_cfg(rulebook: str | bytes) -> Callable[[Path, Path], None]:
-    return chain(write("rules.toml", rulebook), write("c.toml", TOML_OK.replace("[ppo]", "rulebook = 'rules.toml'\n[ppo]")))
+_LOCKS: dict[Path, list[int]] = {}  # case folder -> lock file descriptors this harness holds while it runs
 
 
-def build_cases() -> None:  # noqa: PLR0915 - a list
-    long = "x" * 300
-    # -- top level ------------------------------------------------------------------------------------
-    case("cli", [], "no subcommand")
-    case("cli", "frobnicate", "unknown subcommand")
-    case("cli", "--version", expect_ok=True)
-    # -- scenes ----------------------------------------------------------------------------------------
-    case("scenes", "scenes --count -5 --out c.json --quiet")
-    case("scenes", "scenes --count 0 --out c.json --quiet")
-    case("scenes", "scenes --count abc --out c.json")
-    case("scenes", "scenes --map nowhere --count 1 --out c.json")
-    case("scenes", ["scenes", "--map", "", "--count", "1", "--out", "c.json"])
-    case("scenes", "scenes --seed -1 --count 1 --out c.json")
-    case("scenes", f"scenes --seed {2**70} --count 1 --out c.json")
-    case("scenes", ["scenes", "--count", "1", "--out", ""], "empty --out")
-    case("scenes", "scenes --count 1 --out existing_dir", setup=write("existing_dir/keep.txt", "mine"))
-    case("scenes", "scenes --count 1 --out deep/new/folders/c.json --quiet", expect_ok=True)
-    case("scenes", "scenes --count 1 --out ünï/кат.json --quiet", "unicode path", expect_ok=True)
-    case("scenes", f"scenes --count 1 --out {long}.json", "file name of 300 characters (ENAMETOOLONG)")
-    case("scenes", f"scenes --count 1 --out {long}/c.json", "folder name of 300 characters")
-    case("scenes", "scenes --count 1 --out afile/c.json", "a file where a folder goes", setup=write("afile", "mine"))
-    case("scenes", "scenes --count 1 --out mine.json", "existing file, no --force", setup=write("mine.json", "mine"))
-    case("scenes", "scenes --count 1 --out link.json --force --quiet", "--force onto a symlink: refused, link kept",
-         setup=lambda d, fx: (write("mine.json", "mine")(d, fx), os.symlink("mine.json", d / "link.json")))
-    case("scenes", "scenes --count 1 --out dangling.json --quiet", "a dangling symlink as --out",
-         setup=lambda d, fx: os.symlink("nowhere/x.json", d / "dangling.json"))
-    case("scenes", "scenes --count 1 --out ro/c.json --quiet", "read-only file system", mode="ro:ro",
-         setup=write("ro/keep.txt", "mine"))
-    case("scenes", "scenes --count 1 --out full/c.json --quiet", "disk full", mode="full:full")
-    case("scenes", "scenes --count 1 --out perm/c.json --quiet", "permission denied", mode="perm:perm")
-    case("scenes", "scenes --count 1 --out imm/c.json --quiet", "immutable folder (EPERM)", mode="immutable:imm")
-    case("scenes", "scenes --count 1 --out ro/c.json --force --quiet", "--force over a file on a read-only fs",
-         mode="ro:ro", setup=write("ro/c.json", "old"))
-    case("scenes", "scenes --count 3000 --out c.json --quiet", "Ctrl-C while generating", mode="sigint:3")
-    case("scenes", "scenes --count 1 --backend nonsense --out c.json")
-    case("scenes", "scenes --count 1 --out /proc/c.json --quiet", "--out in /proc")
-    # -- render ----------------------------------------------------------------------------------------
-    R = ["render", "--catalog", "cat.json", *SMALL]
-    case("render", R + ["--scene", "-1", "--out", "r"], setup=copy("cat.json"))
-    case("render", R + ["--scene", "99", "--out", "r"], setup=copy("cat.json"))
-    case("render", ["render", "--width", "0", "--out", "r"])
-    case("render", ["render", "--width", "100000", "--height", "100000", "--out", "r"], "a 10-gigapixel frame")
-    case("render", ["render", "--height", "-3", "--out", "r"])
-    for w in ("fog_density=nan", "fog_density=inf", "fog_density=1e400", "nope=3", "fog_density=",
-              "fog_density=50,fog_density=60", "=", ",,,", "clear_noon,heavy_rain_night,fog_density=-1"):
-        case("render", R + ["--weather", w, "--out", "r"], setup=copy("cat.json"))
-    case("render", ["render", "--catalog", "missing.json", "--out", "r"])
-    case("render", ["render", "--catalog", "empty.json", "--out", "r"], setup=write("empty.json", ""))
-    case("render", ["render", "--catalog", "bin.json", "--out", "r"], setup=write("bin.json", BIN))
-    case("render", ["render", "--catalog", "list.json", "--out", "r"], setup=write("list.json", "[]"))
-    case("render", ["render", "--catalog", "obj.json", "--out", "r"], setup=write("obj.json", "{}"))
-    case("render", ["render", "--catalog", "cat.json", "--out", "r"], "truncated catalog",
-         setup=chain(copy("cat.json"), truncate_first("cat.json", 300)))
-    case("render", ["render", "--catalog", "cat.json", "--out", "r"], "catalog scenes = \"x\"",
-         setup=chain(copy("cat.json"), edit_json("cat.json", lambda c: {**c, "scenes": "x"})))
-    case("render", R + ["--out", "r"], "catalog vehicle x = NaN",
-         setup=chain(copy("cat.json"), edit_json("cat.json", put("x", "NaN"), raw=True)))
-    case("render", R + ["--out", "r"], "catalog vehicle speed = 1e308",
-         setup=chain(copy("cat.json"), edit_json("cat.json", put("speed", "1e308"), raw=True)))
-    case("render", R + ["--out", "r"], "catalog with no vehicles",
-         setup=chain(copy("cat.json"), edit_json("cat.json", lambda c: {**c, "scenes": [{**c["scenes"][0], "vehicles": []}]})))
-    case("render", R + ["--out", "r"], "catalog of another schema version",
-         setup=chain(copy("cat.json"), edit_json("cat.json", lambda c: {**c, "version": 99})))
-    case("render", ["render", "--catalog", "adir", "--out", "r"], "a folder as --catalog", setup=write("adir/x", "y"))
-    case("render", R + ["--out", "ro/r"], "read-only file system", mode="ro:ro", setup=chain(copy("cat.json"), write("ro/k", "k")))
-    case("render", R + ["--out", "full/r"], "disk full", mode="full:full", setup=copy("cat.json"))
-    case("render", R + ["--out", "perm/r"], "permission denied", mode="perm:perm", setup=copy("cat.json"))
-    case("render", R + ["--out", "r.json"], "a file as --out", setup=chain(copy("cat.json"), write("r.json", "{}")))
-    case("render", R + ["--warmup", "-1", "--out", "r"], setup=copy("cat.json"))
-    case("render", ["render", "--map", "../../etc", "--out", "r"])
-    case("render", R + ["--out", "r", "--sweep"], "sweep into a read-only fs", mode="ro:r", setup=chain(copy("cat.json"), write("r/k", "k")))
-    # -- drive -----------------------------------------------------------------------------------------
-    D = ["drive", "--catalog", "cat.json", "--system", "blind", "--quiet", *SMALL]
-    dsetup = copy("cat.json")
-    for a in (["--steps", "0"], ["--steps", "-1"], ["--steps", "abc"], ["--scene", "a:b"], ["--scene", "5:2"],
-              ["--scene", "1:1"], ["--scene", "-1"], ["--scene", "0:2:1"], ["--scene", " "], ["--gif-stride", "0"],
-              ["--gif-from", "99"], ["--threads", "0"], ["--scene", "99"], ["--width", "7"],
-              ["--episode-seed", "-3"], ["--steps", "1e3"]):
-        case("drive", D + ["--steps", "5", *a, "--out", "d"] if a[0] != "--steps" else D + [*a, "--out", "d"],
-             setup=dsetup)
-    S = D + ["--steps", "5", "--out", "d", "--schedule", "s.csv"]
-    head = "step,fog_density\n"
-    for note, text in (("empty schedule", ""), ("header only", head), ("binary schedule", BIN),
-                       ("3 rows for 5 steps", head + "0,1\n1,1\n2,1\n"), ("a NaN value", head + "".join(f"{i},nan\n" for i in range(5))),
-                       ("an inf value", head + "".join(f"{i},inf\n" for i in range(5))),
-                       ("a word", head + "".join(f"{i},lots\n" for i in range(5))),
-                       ("out of range", head + "".join(f"{i},1000\n" for i in range(5))),
-                       ("unknown column", "step,snow\n" + "".join(f"{i},1\n" for i in range(5))),
-                       ("duplicate column", "step,fog_density,fog_density\n" + "".join(f"{i},1,2\n" for i in range(5))),
-                       ("step numbers out of order", head + "".join(f"{4 - i},1\n" for i in range(5))),
-                       ("ragged rows", head + "0,1,2,3\n1\n2,1\n3,1\n4,1\n"),
-                       ("latin-1 text", "step,fog_density\n0,1\n1,1\n2,1\n3,1\n4,1 \xe9\n".encode("latin-1")),
-                       ("UTF-16 file", (head + "".join(f"{i},1\n" for i in range(5))).encode("utf-16"))):
-        case("drive", S, f"--schedule: {note}", setup=chain(dsetup, write("s.csv", text)))
-    case("drive", S, "--schedule is a folder", setup=chain(dsetup, write("s.csv/x", "y")))
-    case("drive", S[:-1] + ["missing.csv"], "--schedule missing", setup=dsetup)
-    W = ["drive", "--catalog", "cat.json", "--quiet", "--steps", "5", *SMALL, "--out", "d", "--weights"]
-    case("drive", W + ["missing.pt"], setup=dsetup)
-    case("drive", W + ["empty.pt"], setup=chain(dsetup, write("empty.pt", b"")))
-    case("drive", W + ["text.pt"], setup=chain(dsetup, write("text.pt", "not weights")))
-    case("drive", W + ["wdir"], "a folder as --weights", setup=chain(dsetup, write("wdir/x", "y")))
-    case("drive", W + ["zip.pt"], "a zip that is not a torch file", setup=chain(dsetup, copy("camp/steps", "zdir"),
-         lambda d, fx: shutil.make_archive(str(d / "zip"), "zip", d / "zdir") and os.rename(d / "zip.zip", d / "zip.pt")))
-    case("drive", D + ["--steps", "5", "--system", "nonexistent", "--out", "d"], setup=dsetup)
-    case("drive", D + ["--steps", "5", "--system", "os:system", "--out", "d"], "a plug-in that is not a system",
-         setup=dsetup)
-    case("drive", D + ["--steps", "5", "--system", "no_such_module:Foo", "--out", "d"], setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", "ro/d"], "read-only file system", mode="ro:ro",
-         setup=chain(dsetup, write("ro/k", "k")))
-    case("drive", D + ["--steps", "5", "--out", "full/d"], "disk full", mode="full:full", setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", "perm/d"], "permission denied", mode="perm:perm", setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", "imm/d"], "immutable folder", mode="immutable:imm", setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", f"{long}"], "folder name of 300 characters", setup=dsetup)
-    case("drive", ["drive", "--catalog", "adir", "--out", "d"], "a folder as --catalog", setup=write("adir/x", "y"))
-    case("drive", D + ["--steps", "3000", "--out", "d"], "Ctrl-C mid-episode", mode="sigint:6", setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", "d", "--force"], "--force into the user's folder",
-         setup=chain(dsetup, write("d/telemetry.parquet", "mine"), write("d/notes.txt", "mine")))
-    case("drive", D + ["--steps", "30", "--out", "d"], "two drives into one --out at once", mode="twice",
-         setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", "d", "--weather", "sun_altitude_angle=nan"], setup=dsetup)
-    case("drive", D + ["--steps", "5", "--out", "cat.json"], "--out is the catalog file", setup=dsetup)
-    # -- train -----------------------------------------------------------------------------------------
-    T = [*TRAIN, "--out", "run"]
-    for a in (["--steps", "0"], ["--steps", "-5"], ["--envs", "0"], ["--envs", "1000"], ["--n-steps", "1"],
-              ["--n-steps", "3", "--envs", "2"], ["--episode-steps", "0"], ["--knobs", "nope"], ["--knobs", ","],
-              ["--seed", "-1"], ["--scenes", "0"], ["--map", "nowhere"], ["--catalog", "missing.json"],
-              ["--system", "os:system"], ["--disable-knobs", "fog_density,nope"]):
-        case("train", T + a)
-    case("train", T + ["--config", "missing.toml"])
-    case("train", T + ["--config", "empty.toml"], "empty config (all defaults but --steps 16)",
-         setup=write("empty.toml", ""), expect_ok=True, timeout=300)
-    case("train", T + ["--config", "bin.toml"], setup=write("bin.toml", BIN))
-    case("train", T + ["--config", "c.toml"], "config is a folder", setup=write("c.toml/x", "y"))
-    for extra in ("[nope] x = 1", "[ppo] learning_rate = nan", "[ppo] learning_rate = inf", "[ppo] learning_rate = 'fast'",
-                  "[ppo] learning_rate = -1", "[ppo] device = 'tpu'", "[ppo] batch_size = 10000000000",
-                  "[ppo] gamma = 1.5", "[ppo] n_epochs = 0", "[ppo] clip_range = nan", "[train] seed = -1",
-                  "[train] envs = 1.5", "[train] checkpoint_every = 0", "[train] torch_threads = -2",
-                  "[env] max_step_fraction = nan", "[env] max_step_fraction = 2.0", "[env] camera_width = 0",
-                  "[env] start_weather = 'fog_density=nan'", "[env] knobs = 'fog_density'", "[env] knobs = []",
-                  "[env.reward] collision_weight = nan", "[env.reward] collision_weight = -1",
-                  "[env] obs_width = 100000", "[env] unknown_key = 1", "[env] scenes = 1e400",
-                  "[env] catalog_seed = -4", "[ppo] unknown = true", "[train] total_timesteps = true"):
-        case("train", ["train", "--quiet", "--config", "c.toml", "--out", "run"], f"config {extra}",
-             setup=write("c.toml", cfg(extra)))
-    case("train", ["train", "--quiet", "--config", "c.toml", "--out", "run"], "config ppo.device = 'cuda'",
-         setup=write("c.toml", cfg("[ppo] device = 'cuda'")))
-    case("train", ["train", "--quiet", "--config", "c.toml", "--out", "run"], "duplicate key in config",
-         setup=write("c.toml", TOML_OK + "[train]\nseed = 1\n"))
-    case("train", ["train", "--quiet", "--config", "c.toml", "--out", "run"], "latin-1 config",
-         setup=write("c.toml", (TOML_OK + "# caf\xe9\n").encode("latin-1")))
-    for note, rb in (("empty rulebook", ""), ("binary rulebook", BIN), ("rules not a list", "rules = 3\n"),
-                     ("rule without name", "[[rules]]\npriority = 1\n"),
-                     ("unknown rule", "[[rules]]\nname = 'teleport'\npriority = 1\n"),
-                     ("priority a word", "[[rules]]\nname = 'collision'\npriority = 'high'\n"),
-                     ("duplicate priority", "[[rules]]\nname = 'collision'\npriority = 1\n[[rules]]\nname = 'proximity'\npriority = 1\n"),
-                     ("distance -1", "[[rules]]\nname = 'proximity'\npriority = 1\nparams = { distance = -1.0 }\n"),
-                     ("distance a word", "[[rules]]\nname = 'proximity'\npriority = 1\nparams = { distance = 'far' }\n"),
-                     ("distance 1e308", "[[rules]]\nname = 'proximity'\npriority = 1\nparams = { distance = 1e308 }\n"),
-                     ("unknown param", "[[rules]]\nname = 'proximity'\npriority = 1\nparams = { radius = 3.0 }\n"),
-                     ("rule os:system", "[[rules]]\nname = 'os:system'\npriority = 1\n"),
-                     ("no rules", "rules = []\n"), ("params a list", "[[rules]]\nname = 'proximity'\npriority = 1\nparams = [1]\n")):
-        case("rulebook", ["train", "--quiet", "--config", "c.toml", "--out", "run"], note, setup=rulebook_cfg(rb))
-    case("rulebook", ["train", "--quiet", "--config", "c.toml", "--out", "run"], "rulebook missing",
-         setup=write("c.toml", TOML_OK.replace("[ppo]", "rulebook = 'missing.toml'\n[ppo]")))
-    case("train", ["train", "--resume", "--quiet", "--out", "nothere"], "--resume on a missing folder")
-    case("train", ["train", "--resume", "--quiet", "--out", "emptyrun"], "--resume on an empty folder",
-         setup=lambda d, fx: (d / "emptyrun").mkdir())
-    case("train", ["train", "--resume", "--quiet", "--out", "run"], "--resume, config.toml binary",
-         setup=chain(run_folder, write("run/config.toml", BIN)), may_change=())
-    case("train", ["train", "--resume", "--quiet", "--out", "run"], "--resume, last.json is a folder",
-         setup=chain(run_folder, lambda d, fx: (os.remove(d / "run/checkpoints/last.json"),
-                                                (d / "run/checkpoints/last.json").mkdir())))
-    case("train", ["train", "--resume", "--quiet", "--out", "run"], "--resume, state file truncated",
-         setup=chain(run_folder, truncate_first("run/checkpoints/step_*.state.json", 30)))
-    case("train", ["train", "--resume", "--quiet", "--out", "run"], "--resume, episodes.csv binary",
-         setup=chain(run_folder, write("run/episodes.csv", BIN)))
-    case("train", ["train", "--resume", "--quiet", "--out", "run", "--steps", "24"], "--resume --steps 24 into a read-only run",
-         mode="ro:run", setup=run_folder)
-    case("train", T + ["--out", "ro/run"], "read-only file system", mode="ro:ro", setup=write("ro/k", "k"))
-    case("train", T + ["--out", "full/run"], "disk full", mode="full:full")
-    case("train", T + ["--out", "perm/run"], "permission denied", mode="perm:perm")
-    case("train", T + ["--out", "run2", "--force"], "--force over a run (ours)", setup=copy("run", "run2"),
-         may_change=("run2",), expect_ok=True, timeout=300)
-    case("train", [*TRAIN[:2], "400", *TRAIN[3:], "--out", "run"], "Ctrl-C mid-training", mode="sigint:12", timeout=300)
-    # -- evaluate --------------------------------------------------------------------------------------
-    E = ["evaluate", "--catalog", "cat.json", "--policies", "sunny", "--steps", "5", "--scenes", "1", "--quiet",
-         "--system", "blind", "--no-report"]
-    es = copy("cat.json")
-    for a in (["--scenes", "0"], ["--scenes", "-1"], ["--scenes", "1000000"], ["--steps", "0"],
-              ["--policies", ""], ["--policies", "sunny,sunny"], ["--policies", "nope"], ["--policies", "agent"],
-              ["--policies", "agent", "--agent", "missing"], ["--workers", "0"], ["--workers", "-1"],
-              ["--search-budget", "1", "--policies", "cmaes"], ["--retries", "-1"], ["--catalog", "adir"],
-              ["--seed", "-1"], ["--steps", "999999999"], ["--policies", ",,,"], ["--catalog-seed", "-2"]):
-        case("evaluate", E + a + ["--out", "camp2"], setup=chain(es, write("adir/x", "y")))
-    case("evaluate", E + ["--policies", "agent", "--agent", "f.zip", "--out", "camp2"], "--agent a text file",
-         setup=chain(es, write("f.zip", "not a zip")))
-    case("evaluate", E + ["--policies", "agent", "--agent", "emptydir", "--out", "camp2"], "--agent an empty folder",
-         setup=chain(es, lambda d, fx: (d / "emptydir").mkdir()))
-    case("evaluate", E + ["--config", "bin.toml", "--out", "camp2"], setup=chain(es, write("bin.toml", BIN)))
-    case("evaluate", E + ["--out", "camp2", "--resume"], "--resume on a foreign campaign.json",
-         setup=chain(es, write("camp2/campaign.json", '{"schema": "other"}')))
-    case("evaluate", E + ["--out", "ro/camp2"], "read-only file system", mode="ro:ro", setup=chain(es, write("ro/k", "k")))
-    case("evaluate", E + ["--out", "full/camp2"], "disk full", mode="full:full", setup=es)
-    case("evaluate", E + ["--out", "perm/camp2"], "permission denied", mode="perm:perm", setup=es)
-    case("evaluate", E[:-1] + ["--out", "camp2"], "report cannot be written: campaign folder read-only after run",
-         mode="ro:camp2", setup=chain(es, write("camp2/.keep", "")))
-    case("evaluate", E + ["--steps", "400", "--out", "camp2"], "Ctrl-C mid-campaign", mode="sigint:8", setup=es)
-    case("evaluate", E + ["--steps", "30", "--out", "camp2"], "two evaluates into one --out at once", mode="twice",
-         setup=es)
-    # -- report ----------------------------------------------------------------------------------------
-    cs = copy(CAMP)
-    case("report", "report nothere", "a missing folder")
-    case("report", "report afile", "a file as campaign", setup=write("afile", "x"))
-    case("report", "report emptydir", setup=lambda d, fx: (d / "emptydir").mkdir())
-    case("report", "report camp", 'campaign.json "[]"', setup=chain(cs, write("camp/campaign.json", "[]")))
-    case("report", "report camp", "campaign.json binary", setup=chain(cs, write("camp/campaign.json", BIN)))
-    case("report", "report camp", "campaign.json truncated", setup=chain(cs, truncate_first("camp/campaign.json", 40)))
-    case("report", "report camp --force", "episode total = NaN",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json", lambda t: t.replace('"total": ', '"total": NaN, "x": ', 1))),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"))
-    case("report", "report camp --force", "episode violations.collision = Infinity",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json",
-                                    lambda t: json.dumps({**json.loads(t), "violations": {**json.loads(t)["violations"], "collision": "Infinity"}}).replace('"Infinity"', "Infinity"))),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"))
-    case("report", "report camp --force", "episode mean_iou = NaN",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json", lambda t: t.replace('"mean_iou": ', '"mean_iou": NaN, "x": ', 1))),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"))
-    case("report", "report camp --force", "episode min_gap = NaN",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json", lambda t: t.replace('"min_gap": ', '"min_gap": NaN, "x": ', 1))),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"))
-    case("report", "report camp --force", "episode collision_speed = NaN",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json", lambda t: t.replace('"collision_speed": ', '"collision_speed": NaN, "x": ', 1))),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"))
-    case("report", "report camp --markdown", "--markdown, episode return = NaN",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json", lambda t: t.replace('"return": ', '"return": NaN, "x": ', 1))))
-    case("report", "report camp --force", "episode file empty",
-         setup=chain(cs, edit_first("camp/episodes/*/scene_*.json", lambda t: "")))
-    case("report", "report camp --force", "a folder named like an episode file",
-         setup=chain(cs, write("camp/episodes/sunny/scene_9999.json/x", "y")))
-    case("report", "report camp --force", "step Parquet truncated",
-         setup=chain(cs, truncate_first("camp/steps/random/scene_*.parquet", 100)),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"))
-    case("report", "report camp --out deep/new/r.html", "--out in a missing folder", setup=cs, expect_ok=True)
-    case("report", "report camp --out adir", "--out a folder", setup=chain(cs, write("adir/x", "y")))
-    case("report", "report camp --out mine.html", "--out an existing file", setup=chain(cs, write("mine.html", "mine")))
-    case("report", "report camp --out r.html --force", "campaign folder read-only, --out elsewhere", mode="ro:camp",
-         setup=cs, expect_ok=True)
-    case("report", "report camp --force", "campaign folder read-only, no --out", mode="ro:camp", setup=cs)
-    case("report", "report full/camp --force", "disk full in the campaign folder", mode="full:full",
-         setup=copy(CAMP, "full/camp"))
-    case("report", "report camp --force --out perm/r.html", "permission denied on --out folder", mode="perm:perm",
-         setup=cs)
-    case("report", "report camp --out ünï/报告.html", "unicode --out", setup=cs, expect_ok=True)
-    case("report", "report camp --force", "summary.json is a folder",
-         setup=chain(cs, lambda d, fx: (os.remove(d / "camp/summary.json"), (d / "camp/summary.json").mkdir())))
-    case("report", "report link --force", "campaign through a symlink", setup=chain(cs, lambda d, fx: os.symlink("camp", d / "link")),
-         may_change=("camp/report.html", "camp/summary.json", "camp/episodes.csv"), expect_ok=True)
-    # -- export ----------------------------------------------------------------------------------------
-    for a in (["--format", "xml"], ["--format", ""], ["--format", "YOLO"], ["--policies", "a,,b"],
-              ["--policies", "nope"]):
-        case("export", ["export", "camp", *a, "--out", "ex"], setup=cs)
-    case("export", "export nothere --out ex", "a missing campaign")
-    case("export", "export afile --out ex", "a file as campaign", setup=write("afile", "x"))
-    case("export", "export emptydir --out ex", setup=lambda d, fx: (d / "emptydir").mkdir())
-    case("export", "export camp --out ex", "frames deleted", setup=chain(cs, lambda d, fx: shutil.rmtree(d / "camp/frames")))
-    case("export", "export camp --out ex", "a frame truncated",
-         setup=chain(cs, lambda d, fx: first(d, "camp/frames/*/*/*.jpg").write_bytes(b"\xff\xd8\xff")))
-    case("export", "export camp --out ex", "a steps Parquet missing",
-         setup=chain(cs, lambda d, fx: [p.unlink() for p in (d / "camp/steps").glob("*/*.parquet")]))
-    case("export", "export camp --out ex --policies sunny", "a policy with no collisions", setup=cs)
-    case("export", "export camp --out ro/ex", "read-only file system", mode="ro:ro", setup=chain(cs, write("ro/k", "k")))
-    case("export", "export camp --out full/ex", "disk full", mode="full:full", setup=cs)
-    case("export", "export camp --out perm/ex", "permission denied", mode="perm:perm", setup=cs)
-    case("export", "export camp --out mine", "an existing user folder, no --force", setup=chain(cs, write("mine/a.txt", "mine")))
-    case("export", "export camp --out ex --format coco --force", "--force over our own export, read-only",
-         mode="ro:ex", setup=chain(cs, write("ex/.genesis-rl.json", '{"schema": "genesis-rl/output-folder", "kind": "export", "version": "0.5.0"}'), write("ex/export.json", "{}")))
-    case("export", "export camp --out ex", "two exports into one --out at once", mode="twice", setup=cs)
-    case("export", f"export camp --out {long}", "folder name of 300 characters", setup=cs)
-    case("export", "export camp --out ünï/数据", "unicode --out", setup=cs, expect_ok=True)
-    # -- replay ----------------------------------------------------------------------------------------
-    RP = ["replay", "--quiet", "--out", "rp", "--no-gif"]
-    case("replay", RP + ["missing.json"])
-    case("replay", RP + ["empty.json"], setup=write("empty.json", ""))
-    case("replay", RP + ["bin.json"], setup=write("bin.json", BIN))
-    case("replay", RP + ["list.json"], setup=write("list.json", "[]"))
-    case("replay", RP + ["rec.json"], "a truncated record", setup=chain(copy("record.json", "rec.json"), truncate_first("rec.json", 200)))
-    case("replay", RP + ["rec.json"], "record start_weather holds NaN",
-         setup=chain(copy("record.json", "rec.json"), edit_json("rec.json", put("fog_density", "NaN"), raw=True)))
-    case("replay", RP + ["rec.json"], "record without its scene",
-         setup=chain(copy("record.json", "rec.json"), edit_json("rec.json", lambda r: {k: v for k, v in r.items() if k != "scene"})))
-    case("replay", RP + ["rec.json"], "record steps = -5",
-         setup=chain(copy("record.json", "rec.json"), edit_json("rec.json", lambda r: {**r, "steps": -5})))
-    case("replay", RP + ["rec.json"], "record system spec os:system",
-         setup=chain(copy("record.json", "rec.json"), edit_json("rec.json", lambda r: {**r, "system": {**r["system"], "spec": "os:system", "class": "os:system"}})))
-    case("replay", ["replay", "--quiet", "--out", "rp", "--gif-seconds", "-1", "rec.json"], setup=copy("record.json", "rec.json"))
-    case("replay", RP + ["--weights", "missing.pt", "rec.json"], setup=copy("record.json", "rec.json"))
-    case("replay", ["replay", "--quiet", "--out", "afile", "rec.json"], "a file as --out",
-         setup=chain(copy("record.json", "rec.json"), write("afile", "x")))
-    case("replay", ["replay", "--quiet", "--out", "ro/rp", "rec.json"], "read-only file system", mode="ro:ro",
-         setup=chain(copy("record.json", "rec.json"), write("ro/k", "k")))
-    case("replay", ["replay", "--quiet", "--out", "full/rp", "rec.json"], "disk full", mode="full:full",
-         setup=copy("record.json", "rec.json"))
-    case("replay", ["replay", "--quiet", "--out", "perm/rp", "rec.json"], "permission denied", mode="perm:perm",
-         setup=copy("record.json", "rec.json"))
-    case("replay", RP + ["adir"], "a folder as record", setup=write("adir/x", "y"))
-    # -- detector --------------------------------------------------------------------------------------
-    for a in (["--frames", "0"], ["--frames", "-1"], ["--epochs", "0"], ["--seed", "-1"]):
-        case("detector", ["detector", "train", "--quiet", "--out", "det", *a])
-    case("detector", "detector train --quiet --frames 8 --epochs 1 --out ro/det", "read-only file system", mode="ro:ro",
-         setup=write("ro/k", "k"))
-    case("detector", "detector train --quiet --frames 8 --epochs 1 --out afile", "a file as --out", setup=write("afile", "x"))
-    case("detector", "detector train --quiet --frames 8 --epochs 1 --out full/det", "disk full", mode="full:full")
-    case("detector", "detector eval --quiet --weights missing.pt --out de")
-    case("detector", "detector eval --quiet --weights bin.pt --out de", setup=write("bin.pt", BIN))
-    case("detector", "detector eval --quiet --maps nope --out de")
-    case("detector", "detector eval --quiet --conditions nope --out de")
-    case("detector", "detector eval --quiet --frames-per-condition 0 --out de")
-    case("detector", "detector eval --quiet --frames-per-condition -1 --out de")
-    case("detector", "detector eval --quiet --frames-per-condition 1 --maps urban --conditions clear --out ro/de",
-         "read-only file system", mode="ro:ro", setup=write("ro/k", "k"))
-    case("detector", "detector eval --quiet --frames-per-condition 1 --maps urban --conditions clear --out perm/de",
-         "permission denied", mode="perm:perm")
-    case("detector", "detector eval --quiet --frames-per-condition 1 --maps urban --conditions clear --out full/de",
-         "disk full", mode="full:full")
-    # -- bench -----------------------------------------------------------------------------------------
-    case("bench", "bench sim --steps 0 --frames 1 --no-render")
-    case("bench", "bench sim --steps -1 --frames 1")
-    case("bench", "bench sim --steps 10 --frames 0")
-    case("bench", "bench system --system nope --steps 1 --frames 1")
-    case("bench", "bench train --steps 1")
+def hold_lock(rel: str) -> Setup:
+    """Hold ``rel`` locked (flock, as genesis-rl's output lock) while the command runs: a run still training."""
+    import fcntl
+
+    def setup(d: Path, fx: Path) -> None:
+        fd = os.open(d / rel, os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        _LOCKS.setdefault(d, []).append(fd)
+    return setup
 
 
-# -- running ------------------------------------------------------------------------------------------
+def hardlink(rel: str, target: str) -> Setup:
+    def setup(d: Path, fx: Path) -> None:
+        os.link(d / target, d / rel)
+    return setup
+
+
+def set_path(obj: Any, path: Sequence[Any], value: Any) -> None:
+    for key in path[:-1]:
+        obj = obj[key]
+    obj[path[-1]] = value
+
+
+class _Payload:
+    """Unpickling this calls ``open(marker, "w")``: the marker file appears if anything unpickles it."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[Any, tuple[str, str]]:
+        return (open, (self.marker, "w"))
+
+
+def payload(d: Path) -> bytes:
+    return pickle.dumps(_Payload(str(d / MARKER)), protocol=4)
+
+
+def torch_payload(d: Path) -> bytes:
+    import torch  # the harness runs under the package's environment
+
+    buf = io.BytesIO()
+    torch.save(_Payload(str(d / MARKER)), buf)
+    return buf.getvalue()
+
+
+def zip_member(rel: str, member: str, make: Callable[[Path, bytes], bytes]) -> Setup:
+    """Rewrite one member of a zip (an SB3 agent or checkpoint) with ``make(case folder, old bytes)``."""
+    def setup(d: Path, fx: Path) -> None:
+        p = d / rel
+        with zipfile.ZipFile(p) as z:
+            members = {i.filename: z.read(i.filename) for i in z.infolist()}
+        members[member] = make(d, members[member])
+        with zipfile.ZipFile(p, "w", zipfile.ZIP_DEFLATED) as z:
+            for name, data in members.items():
+                z.writestr(name, data)
+    return setup
+
+
+def serialized(entry: str) -> Callable[[Path, bytes], bytes]:
+    """SB3's ``data``: replace the cloudpickled ``:serialized:`` of ``entry`` with the payload."""
+    def make(d: Path, old: bytes) -> bytes:
+        data = json.loads(old)
+        item = data.get(entry)
+        if not isinstance(item, dict):
+            item = {":type:": "<class 'function'>"}
+            data[entry] = item
+        item[":serialized:"] = base64.b64encode(payload(d)).decode()
+        return json.dumps(data).encode()
+    return make
+
+
+def evil_module(name: str = "evil") -> Setup:
+    """A module in the case folder (the command's working directory, so importable) that creates the marker
+    when imported, with classes of every plug-in kind's name."""
+    def setup(d: Path, fx: Path) -> None:
+        (d / f"{name}.py").write_text(
+            f"open({str(d / MARKER)!r}, 'w').close()\n"
+            "class Sys:\n    pass\nclass Backend:\n    pass\nclass Rule:\n    pass\nclass Pol:\n    pass\n")
+    return setup
+
+
+def deep_json(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+def deep_toml(key: str, depth: int) -> str:
+    return f"{key} = " + "[" * depth + "]" * depth + "\n"
+
+
+BIN = bytes(range(256)) * 16
+LATIN1 = "[env]\nmap = \"urban\"\n# caf\xe9\n".encode("latin-1")
+
+
+# -- fixtures --------------------------------------------------------------------------------------------------
+TINY = """[env]
+map = "urban"
+scenes = 3
+system = "blind"
+episode_steps = 10
+camera_width = 64
+camera_height = 48
+obs_width = 36
+obs_height = 36
+
+[ppo]
+n_steps = 16
+batch_size = 8
+n_epochs = 2
+
+[train]
+total_timesteps = 32
+checkpoint_every = 16
+seed = 3
+torch_threads = 1
+"""
+TINY64 = TINY.replace("total_timesteps = 32", "total_timesteps = 96")
+SAC = """[env]
+map = "urban"
+scenes = 2
+system = "blind"
+episode_steps = 10
+camera_width = 64
+camera_height = 48
+obs_width = 36
+obs_height = 36
+
+[sac]
+buffer_size = 64
+learning_starts = 8
+batch_size = 8
+net_arch = [16, 16]
+
+[train]
+algorithm = "sac"
+total_timesteps = 24
+checkpoint_every = 12
+seed = 3
+torch_threads = 1
+"""
+SCHEDULE = "step,fog_density,precipitation\n" + "".join(f"{i},{10 * i},{5 * i}\n" for i in range(5))
+
+
+def make_fixtures(fx: Path, log: Callable[[str], None]) -> None:
+    if (fx / "done").exists():
+        return
+    if fx.exists():
+        shutil.rmtree(fx)
+    fx.mkdir(parents=True)
+    env = child_env()
+
+    def grl(*a: str) -> None:
+        r = subprocess.run(GRL + list(a), cwd=fx, capture_output=True, env=env)
+        if r.returncode:
+            raise SystemExit(f"fixture 'genesis-rl {' '.join(a)}' failed ({r.returncode}): "
+                             f"{r.stderr.decode(errors='replace')[-2000:]}")
+
+    t0 = time.time()
+    (fx / "tiny.toml").write_text(TINY)
+    (fx / "tiny64.toml").write_text(TINY64)
+    (fx / "sac.toml").write_text(SAC)
+    (fx / "sched.csv").write_text(SCHEDULE)
+    shutil.copy(ROOT / "configs" / "odd" / "highway_day.toml", fx / "odd.toml")
+    shutil.copy(ROOT / "configs" / "rulebook.toml", fx / "rules.toml")
+    (fx / "rcfg.toml").write_text(TINY.replace("[ppo]", "rulebook = \"rules.toml\"\n\n[ppo]"))
+    grl("scenes", "--count", "2", "--out", "cat.json", "--quiet")
+    grl("scenes", "--map", "highway", "--count", "12", "--out", "hw.json", "--quiet")
+    log(f"fixtures: catalogs ({time.time() - t0:.0f} s)")
+    grl("train", "--config", "tiny.toml", "--out", "run", "--quiet")
+    grl("train", "--config", "sac.toml", "--out", "sacrun", "--quiet")
+    log(f"fixtures: runs ({time.time() - t0:.0f} s)")
+    # the blind system never sees a vehicle: one of these highway scenes ends in a collision (frames are kept,
+    # so export has work), another in a proximity failure; each failure writes a record
+    grl("evaluate", "--agent", "run", "--catalog", "hw.json", "--policies", "sunny,agent", "--scenes", "3",
+        "--seed", "1", "--steps", "70", "--system", "blind", "--out", "camp", "--quiet", "--records", "failures",
+        "--no-counterfactual")
+    records = sorted((fx / "camp" / "records").glob("*.json"))
+    if not records or not (fx / "camp" / "frames").is_dir():
+        raise SystemExit("fixture campaign wrote no record or no failure frames")
+    shutil.copy(records[0], fx / "rec.json")
+    log(f"fixtures: campaign ({time.time() - t0:.0f} s)")
+    (fx / "done").write_text("ok")
+
+
+# -- loopback listeners ----------------------------------------------------------------------------------------
+class _Server(socketserver.ThreadingTCPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+
+
+def _handler(kind: str) -> type[socketserver.BaseRequestHandler]:
+    class H(socketserver.BaseRequestHandler):
+        def handle(self) -> None:
+            s = self.request
+            s.settimeout(120)
+            try:
+                if kind == "http":
+                    s.recv(4096)
+                    s.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+                elif kind == "garbage":
+                    s.sendall(random.Random(7).randbytes(65536))
+                elif kind == "echo":
+                    while data := s.recv(65536):
+                        s.sendall(data)
+                else:  # silent: hold the connection, say nothing
+                    while s.recv(65536):
+                        pass
+            except OSError:
+                pass
+    return H
+
+
+def start_listeners() -> dict[str, int]:
+    ports: dict[str, int] = {}
+    for kind in ("http", "garbage", "echo", "silent"):
+        srv = _Server(("127.0.0.1", 0), _handler(kind))
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        ports[kind] = srv.server_address[1]
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    ports["closed"] = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    return ports
+
+
+# -- running ---------------------------------------------------------------------------------------------------
+def child_env(extra: dict[str, str] | None = None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GENESIS_RL_") and k != "RAY_ADDRESS"}
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update({"PYTHONUNBUFFERED": "1", "PYTHONHASHSEED": "0", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+    env.update(extra or {})
+    return env
+
+
+def entry_state(p: Path) -> str:
+    """What a path is, to compare before and after: a link's target, a special file's kind, a file's bytes."""
+    st = os.lstat(p)
+    if stat.S_ISLNK(st.st_mode):
+        return "link:" + os.readlink(p)
+    if stat.S_ISFIFO(st.st_mode):
+        return "fifo"
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode):
+        return f"dev:{os.major(st.st_rdev)},{os.minor(st.st_rdev)}"
+    if stat.S_ISREG(st.st_mode):
+        import hashlib
+
+        h = hashlib.sha256()
+        with open(p, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        return h.hexdigest()
+    return "other"
+
+
 def snapshot(root: Path) -> dict[str, str]:
-    out = {}
-    for dirpath, _, filenames in os.walk(root):
-        for name in filenames:
+    out: dict[str, str] = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in filenames + [n for n in dirnames if os.path.islink(os.path.join(dirpath, n))]:
             p = Path(dirpath) / name
             try:
-                out[str(p.relative_to(root))] = "link:" + os.readlink(p) if p.is_symlink() else \
-                    hashlib.sha256(p.read_bytes()).hexdigest()
+                out[str(p.relative_to(root))] = entry_state(p)
             except OSError:
                 out[str(p.relative_to(root))] = "unreadable"
     return out
+
+
+TEMP_RE = re.compile(r"(\.partial$|\.lock$|\.zip\.\w+\.zip$|^\..+\.\w{6,}\.\w+$|\.tmp$)")
 
 
 def leftovers(root: Path) -> list[str]:
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
         for name in dirnames + filenames:
-            if name.endswith(".partial") or name.endswith(".genesis-rl.lock") or (
-                    name.startswith(".") and name.count(".") >= 2 and not name.startswith(".genesis-rl")
-                    and name not in (".keep",)):
+            if TEMP_RE.search(name) and not name.startswith(".genesis-rl.json"):
                 found.append(str((Path(dirpath) / name).relative_to(root)))
     return found
 
 
-def wrap(c: Case, d: Path) -> tuple[list[str], str | None]:
-    """The command line, wrapped for its mode; or a reason the mode cannot be set up here."""
-    cmd = GRL + c.argv
-    kind, _, arg = c.mode.partition(":")
-    q = " ".join(f"'{a}'" for a in cmd)
-    if kind == "ro":
-        (d / arg).mkdir(parents=True, exist_ok=True)
-        return ["unshare", "-m", "sh", "-c", f"mount --bind {arg} {arg} && mount -o remount,bind,ro {arg} && exec {q}"], None
-    if kind == "full":
-        (d / arg).mkdir(parents=True, exist_ok=True)
-        fill = f"cp -a {d}/.fullseed/. {arg}/ 2>/dev/null; dd if=/dev/zero of={arg}/.filler bs=4k >/dev/null 2>&1;"
-        return ["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o size=2m tmpfs {arg} && {fill} exec {q}"], None
-    if kind == "perm":
-        (d / arg).mkdir(parents=True, exist_ok=True)
-        os.chmod(d / arg, 0o555)
-        return ["capsh", f"--drop={DROP}", "--", "-c", f"exec {q}"], None
-    if kind == "immutable":
-        (d / arg).mkdir(parents=True, exist_ok=True)
-        r = subprocess.run(["chattr", "+i", str(d / arg)], capture_output=True)
-        if r.returncode:
-            return cmd, f"chattr +i not possible: {r.stderr.decode().strip()}"
-    return cmd, None
+def fill(arg: str, d: Path, ports: dict[str, int]) -> str:
+    for k, v in ports.items():
+        arg = arg.replace(f"@PORT_{k}@", str(v))
+
+    def glob(m: re.Match[str]) -> str:
+        hits = sorted(d.glob(m.group(1)))
+        return str(hits[0].relative_to(d)) if hits else m.group(1)
+    return re.sub(r"@GLOB:([^@]+)@", glob, arg)
 
 
-def _default_sigint() -> None:
-    """Started in the background by a shell, this script inherits SIGINT ignored; its commands must not."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+def _limits(ray: bool) -> Callable[[], None]:
+    def pre() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)  # a background parent leaves SIGINT ignored
+        if not ray:
+            resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+    return pre
 
 
-def run_case(c: Case, d: Path, fx: Path) -> dict:
-    d.mkdir(parents=True)
-    if c.setup:
-        c.setup(d, fx)
-    if c.mode.startswith("full:"):  # what the case set up under the full folder goes into the tmpfs
-        arg = c.mode.split(":")[1]
-        if (d / arg).exists():
-            shutil.move(d / arg, d / ".fullseed")
-    before, fx_before = snapshot(d), snapshot(fx)
-    cmd, skip = wrap(c, d)
-    if skip:
-        return {"skipped": skip}
+def _run(cmd: list[str], d: Path, env: dict[str, str], c: Case) -> tuple[int | None, str, str, float]:
+    """(exit status or None on timeout, stdout, stderr, seconds)."""
     t0 = time.time()
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    if c.mode == "twice":
-        procs = [subprocess.Popen(cmd, cwd=d, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-                                  preexec_fn=_default_sigint)
-                 for _ in range(2)]
-        outs = [p.communicate(timeout=c.timeout) for p in procs]
-        codes = [p.returncode for p in procs]
-        stderr = "\n".join(o[1].decode(errors="replace") for o in outs)
-        code = "/".join(map(str, codes))
-    elif c.mode.startswith("sigint:"):
-        p = subprocess.Popen(cmd, cwd=d, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-                                  preexec_fn=_default_sigint)
-        try:
-            p.wait(timeout=float(c.mode.split(":")[1]))
-        except subprocess.TimeoutExpired:
-            p.send_signal(signal.SIGINT)
+    p = subprocess.Popen(cmd, cwd=d, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env=env, start_new_session=True, preexec_fn=_limits(c.ray))
+    stop = threading.Event()
+    sent: list[float] = []
+
+    def watch() -> None:  # polls for the file whose appearance marks the moment to interrupt
+        while c.signal_when and not stop.is_set() and not any(d.glob(c.signal_when)):
+            time.sleep(0.02)
+        if not stop.wait(c.signal_at or 0.0) and p.poll() is None:
+            sent.append(time.time() - t0)
+            _killpg(p.pid, c.signal_num)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    if c.signal_at is not None:
+        watcher.start()
+    try:
         out, err = p.communicate(timeout=c.timeout)
-        stderr, code = err.decode(errors="replace"), str(p.returncode)
-    else:
+        code: int | None = p.returncode
+    except subprocess.TimeoutExpired:
+        _killpg(p.pid, signal.SIGKILL)
+        out, err = p.communicate()
+        code = None
+    finally:
+        stop.set()
+    note = "" if c.signal_at is None else f"\n(sweep: signal sent at {sent[0]:.1f} s)" if sent else \
+        "\n(sweep: the command ended before the moment to signal it)"
+    return code, out.decode(errors="replace"), err.decode(errors="replace") + note, time.time() - t0
+
+
+def _killpg(pid: int, sig: int) -> None:
+    try:
+        os.killpg(pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def _end_ray(tag: str) -> None:
+    """End the Ray processes one case started (their command lines name its RAY_TMPDIR), by pid."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
         try:
-            r = subprocess.run(cmd, cwd=d, capture_output=True, timeout=c.timeout, env=env,
-                               preexec_fn=_default_sigint)
-            stderr, code = r.stderr.decode(errors="replace"), str(r.returncode)
-        except subprocess.TimeoutExpired as err:
-            stderr, code = (err.stderr or b"").decode(errors="replace"), "timeout"
-    if c.mode.startswith("immutable:"):
-        subprocess.run(["chattr", "-i", str(d / c.mode.split(":")[1])])
-    if c.mode.startswith("perm:"):
-        os.chmod(d / c.mode.split(":")[1], 0o755)
-    after, fx_after = snapshot(d), snapshot(fx)
-    lost = [k for k, v in before.items() if after.get(k) != v and not k.startswith(".fullseed")
+            if tag.encode() in (proc / "cmdline").read_bytes() or tag.encode() in (proc / "environ").read_bytes():
+                os.kill(int(proc.name), signal.SIGKILL)
+        except (OSError, ProcessLookupError):
+            pass
+
+
+def message(stderr: str, limit: int | None = 300) -> str:
+    """The command's own last message line (else the last line), cut to ``limit`` characters."""
+    lines = [ln.strip() for ln in stderr.splitlines() if ln.strip() and "%|" not in ln]
+    errs = [ln for ln in lines if ln.startswith("genesis-rl")]
+    return (errs[-1] if errs else lines[-1] if lines else "")[:limit]
+
+
+def judge(c: Case, d: Path, code: int | None, out: str, err: str, lost: list[str],
+          problems: Sequence[str] = ()) -> tuple[str, str]:
+    """(outcome, detail): the strictest finding first."""
+    both = out + "\n" + err
+    if (d / MARKER).exists():
+        return "code-exec", f"the marker {MARKER} was created"
+    if lost:
+        return "data-loss", "changed or gone: " + ", ".join(lost[:4])
+    interrupted = c.signal_at is not None and code == -c.signal_num  # SIGTERM's default: end by the signal
+    if code is not None and not interrupted and (code < 0 or code in (134, 139)) or "Fatal Python error" in both \
+            or "terminate called" in both:
+        return "abort", f"exit {code}"
+    if "Traceback (most recent call last)" in both:
+        tb = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith(" ")]
+        return "traceback", (tb[-1] if tb else "traceback on stdout")[:300]
+    if code is None:
+        return "timeout", f"still running after {c.timeout:.0f} s"
+    if code not in c.expect and not interrupted:
+        return "wrong-exit", f"exit {code}, expected {' or '.join(map(str, c.expect))}"
+    if code == 2 and not message(err):
+        return "wrong-exit", "exit 2 without a message"
+    if code == 2 and c.names and not any(n.lower() in message(err, None).lower() for n in c.names):
+        return "wrong-exit", f"refused, but not naming {' or '.join(c.names)}"
+    if code == 0 and c.warns and not any(w.lower() in err.lower() for w in c.warns):
+        return "wrong-exit", f"exit 0 without a warning ({' or '.join(c.warns)})"
+    if problems:
+        return "wrong-exit", "; ".join(problems)[:300]
+    bad = [a for a in c.absent if os.path.lexists(d / a)]
+    if bad:
+        return "wrong-exit", "created " + ", ".join(bad)
+    return "pass", ""
+
+
+def run_case(c: Case, work: Path, fx: Path, ports: dict[str, int]) -> dict[str, Any]:
+    d = work / "cases" / c.id
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    row: dict[str, Any] = {"id": c.id, "family": c.family, "what": c.what, "from_issue": c.from_issue}
+    try:
+        if c.setup:
+            c.setup(d, fx)
+    except Exception as exc:  # noqa: BLE001 - a setup that cannot run here is reported, not fatal
+        for fd in _LOCKS.pop(d, []):
+            os.close(fd)
+        return {**row, "command": "", "exit": None, "outcome": "skipped", "detail": f"setup: {exc!r}"[:300],
+                "stderr": "", "seconds": 0.0}
+    argv = [fill(a, d, ports) for a in c.argv]
+    cmd = c.raw if c.raw is not None else GRL + argv
+    before = snapshot(d)
+    extra: dict[str, str] = {}
+    tag = ""
+    if c.ray:
+        tag = f"/tmp/grl-ray-{os.getpid()}-{c.id}"[:60]
+        extra["RAY_TMPDIR"] = tag
+    env = child_env(extra)
+    try:
+        code, out, err, secs = _run(cmd, d, env, c)
+    except OSError as exc:  # the command could not start at all (an argument list too long): the case is wrong
+        return {**row, "command": " ".join(argv)[:300], "exit": None, "outcome": "skipped",
+                "detail": f"could not start: {exc}"[:300], "stderr": "", "seconds": 0.0}
+    problems = [f"temporaries or lock left: {', '.join(left[:4])}" for left in [leftovers(d)] if left] \
+        if c.signal_at is not None else []
+    if c.then and code is not None:
+        then = Case(c.id, c.family, c.what, c.then, expect=OK, timeout=c.timeout, ray=c.ray)
+        code2, out2, err2, secs2 = _run(GRL + [fill(a, d, ports) for a in c.then], d, env, then)
+        out, err, secs = out + out2, err + "\n" + err2, secs + secs2
+        if code2 is None or code2 < 0 or code2 in (134, 139):
+            code = code2
+        elif code2 != 0:
+            problems.append(f"the follow-up 'genesis-rl {' '.join(c.then)}' exited {code2}: {message(err2)}")
+    for fd in _LOCKS.pop(d, []):
+        os.close(fd)
+    if tag:
+        _end_ray(tag)
+        shutil.rmtree(tag, ignore_errors=True)
+    after = snapshot(d)
+    lost = [k for k, v in before.items() if after.get(k) != v
             and not any(k == m or k.startswith(m.rstrip("/") + "/") for m in c.may_change)]
-    lost += [f"fixture:{k}" for k, v in fx_before.items() if fx_after.get(k) != v]
-    lines = [ln for ln in stderr.strip().splitlines() if ln.strip() and "%|" not in ln]
-    return {"exit": code, "traceback": "Traceback (most recent call last)" in stderr, "lost": lost,
-            "leftovers": leftovers(d), "seconds": round(time.time() - t0, 1),
-            "message": (lines[-1] if lines else "")[:300]}
+    outcome, detail = judge(c, d, code, out, err, lost, problems)
+    shown = argv if c.raw is None else c.raw
+    return {**row, "command": ("genesis-rl " if c.raw is None else "") + " ".join(shown), "exit": code,
+            "outcome": outcome, "detail": detail, "stderr": message(err), "seconds": round(secs, 1)}
 
 
-def make_fixtures(fx: Path) -> None:
-    if (fx / "done").exists():
-        return
-    fx.mkdir(parents=True, exist_ok=True)
-
-    def grl(*a: str) -> None:
-        subprocess.run(GRL + list(a), cwd=fx, check=True, stdout=subprocess.DEVNULL)
-
-    grl("scenes", "--count", "2", "--out", "cat.json", "--quiet")
-    grl("scenes", "--map", "highway", "--count", "12", "--out", "hw.json", "--quiet")
-    # the blind system never sees a vehicle: scene 5 (seed 1) ends in a collision at step 49
-    grl("evaluate", "--catalog", "hw.json", "--policies", "sunny,random", "--scenes", "3", "--seed", "1",
-        "--steps", "70", "--system", "blind", "--out", CAMP, "--quiet")
-    shutil.copy(first(fx / CAMP, "records/*.json"), fx / "record.json")
-    grl(*TRAIN, "--out", "run")
-    (fx / "done").write_text("ok")
+# -- report ----------------------------------------------------------------------------------------------------
+def _cell(text: str, n: int) -> str:
+    text = text.replace("|", "\\|").replace("\n", " ")
+    return text if len(text) <= n else text[: n - 3] + "..."
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", default="/tmp/genesis-rl-sweep")
-    ap.add_argument("--only", default=None, help="comma list of groups")
-    ap.add_argument("--cases", default=None, help="comma list of case numbers")
-    ap.add_argument("--md", default=None, help="write the Markdown table here")
-    ap.add_argument("--jobs", type=int, default=2, help="cases run at once (default: 2)")
-    args = ap.parse_args()
-    work = Path(args.work)
-    build_cases()
-    fx = work / "fixtures"
-    make_fixtures(fx)
-    groups = set(args.only.split(",")) if args.only else None
-    numbers = {int(n) for n in args.cases.split(",")} if args.cases else None
-    todo = [(n, c) for n, c in enumerate(CASES, start=1)
-            if not (groups and c.group not in groups) and not (numbers and n not in numbers)]
-
-    def one(item: tuple[int, Case]) -> dict:
-        n, c = item
-        d = work / "cases" / f"{n:03d}"
-        if d.exists():
-            subprocess.run(["chattr", "-R", "-i", str(d)], capture_output=True)
-            shutil.rmtree(d)
-        res = run_case(c, d, fx)
-        row = {"n": n, "group": c.group, "command": "genesis-rl " + " ".join(c.argv), "note": c.note,
-               "mode": c.mode, "expect_ok": c.expect_ok, **res}
-        flag = ("TRACEBACK " if res.get("traceback") else "") + ("LOST " if res.get("lost") else "")
-        print(f"{n:3d} {c.group:9s} exit {res.get('exit', 'skip'):>5} {flag}{c.note or ' '.join(c.argv)[:60]} :: "
-              f"{res.get('message', res.get('skipped', ''))[:160]}", flush=True)
-        return row
-
-    with ThreadPoolExecutor(args.jobs) as pool:  # each case is a subprocess; threads only wait
-        results = sorted(pool.map(one, todo), key=lambda r: r["n"])
-    prev = work / "results.json"
-    merged = {r["n"]: r for r in (json.loads(prev.read_text()) if prev.exists() else [])}
-    merged.update({r["n"]: r for r in results})
-    prev.write_text(json.dumps([merged[k] for k in sorted(merged)], indent=1))
-    table = markdown(results)
-    if args.md:
-        Path(args.md).write_text(table)
-    tb = sum(1 for r in results if r.get("traceback"))
-    lost = sum(1 for r in results if r.get("lost"))
-    print(f"\n{len(results)} cases, {tb} with a traceback, {lost} with data lost")
-    return 0
-
-
-def markdown(results: list[dict]) -> str:
-    lines = ["| # | command | case | exit | traceback | data lost | message |", "| --- | --- | --- | --- | --- | --- | --- |"]
-    for r in results:
-        cmd = r["command"].replace("|", "\\|")
-        if len(cmd) > 90:
-            cmd = cmd[:87] + "..."
-        msg = r.get("message", r.get("skipped", "")).replace("|", "\\|")[:140]
-        lost = ", ".join(r.get("lost", [])[:2]) or "no"
-        lines.append(f"| {r['n']} | `{cmd}` | {r['note'] or ''}{' (' + r['mode'] + ')' if r['mode'] else ''} | "
-                     f"{r.get('exit', 'skipped')} | {'yes' if r.get('traceback') else 'no'} | {lost} | {msg} |")
+def markdown(rows: list[dict[str, Any]]) -> str:
+    lines = ["# Hostile-input sweep (issue 38)", "",
+             "Made by `scripts/hostile_sweep.py`; one row a case. Outcomes: pass, code-exec, data-loss, abort, "
+             "traceback, timeout, wrong-exit (see the script's docstring). Cases marked * are the issue's own "
+             "examples; the others are new.", "",
+             "| family | cases | new | " + " | ".join(OUTCOMES) + " |",
+             "| --- | --- | --- | " + " | ".join("---" for _ in OUTCOMES) + " |"]
+    for fam, title in FAMILIES.items():
+        rs = [r for r in rows if r["family"] == fam]
+        counts = [sum(1 for r in rs if r["outcome"] == o) for o in OUTCOMES]
+        lines.append(f"| {fam}. {title} | {len(rs)} | {sum(1 for r in rs if not r['from_issue'])} | "
+                     + " | ".join(map(str, counts)) + " |")
+    total = [sum(1 for r in rows if r["outcome"] == o) for o in OUTCOMES]
+    lines.append(f"| all | {len(rows)} | {sum(1 for r in rows if not r['from_issue'])} | "
+                 + " | ".join(map(str, total)) + " |")
+    bad = [r for r in rows if r["outcome"] not in ("pass", "skipped")]
+    if bad:
+        lines += ["", "## What fails, by family", ""]
+        for fam, title in FAMILIES.items():
+            rs = [r for r in bad if r["family"] == fam]
+            if rs:
+                lines.append(f"- **{fam}. {title}** ({len(rs)}): "
+                             + "; ".join(f"`{r['id']}` {r['outcome']} ({_cell(r['detail'], 90)})" for r in rs))
+    for fam, title in FAMILIES.items():
+        rs = [r for r in rows if r["family"] == fam]
+        if not rs:
+            continue
+        lines += ["", f"## {fam}. {title}", "", "| id | what | command | exit | outcome | stderr (last line) |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for r in rs:
+            outcome = r["outcome"] if r["outcome"] == "pass" else f"**{r['outcome']}**: {r['detail']}"
+            lines.append(f"| {r['id']}{'*' if r['from_issue'] else ''} | {_cell(r['what'], 80)} | "
+                         f"`{_cell(r['command'], 100)}` | {r['exit']} | {_cell(outcome, 160)} | "
+                         f"{_cell(r['stderr'], 160)} |")
     return "\n".join(lines) + "\n"
 
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="sweep.json", help="JSON of every case and its outcome")
+    ap.add_argument("--markdown", default=None, help="also write the Markdown table here")
+    ap.add_argument("--family", type=int, action="append", choices=sorted(FAMILIES), help="only these families")
+    ap.add_argument("--ids", default=None, help="comma list of case ids (or id prefixes)")
+    ap.add_argument("--limit", type=int, default=None, help="at most this many cases (after the filters)")
+    ap.add_argument("--jobs", type=int, default=2, help="cases run at once (default: 2)")
+    ap.add_argument("--work", default=None, help="work folder (fixtures are kept and reused there); default: a "
+                                                 "new temporary folder, removed afterwards")
+    ap.add_argument("--all", action="store_true", help="every case, the whole value grids too (about twice as long)")
+    ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--render", default=None, metavar="JSON", help="only write --markdown from an earlier --out JSON")
+    args = ap.parse_args(argv)
+    if args.render:
+        Path(args.markdown or "sweep.md").write_text(markdown(json.loads(Path(args.render).read_text())["results"]))
+        return 0
+    build_cases()
+    todo = [c for c in CASES if (args.all or c.core or args.ids) and (not args.family or c.family in args.family)
+            and (not args.ids or any(c.id == i or c.id.startswith(i) for i in args.ids.split(",")))]
+    todo = todo[: args.limit] if args.limit else todo
+    if args.list:
+        for c in todo:
+            print(f"{c.id:40s} {c.what}")
+        print(f"{len(todo)} cases ({sum(1 for c in todo if not c.from_issue)} new)")
+        return 0
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="grl-sweep-"))
+    work.mkdir(parents=True, exist_ok=True)
+
+    def log(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+    fx = work / "fixtures"
+    needed = any(c.setup is not None for c in todo)
+    if needed:
+        make_fixtures(fx, log)
+    fx_before = snapshot(fx) if needed else {}
+    ports = start_listeners()
+    t0 = time.time()
+    rows: list[dict[str, Any]] = []
+    lock = threading.Lock()
+
+    def save(final: bool) -> None:
+        """The JSON (and Markdown) so far, rewritten after every case: a long sweep can be read while it runs."""
+        ordered = sorted(rows, key=lambda r: [c.id for c in todo].index(r["id"]))
+        report = {"schema": "genesis-rl/hostile-sweep", "version": 1, "complete": final, "cases": len(ordered),
+                  "planned": len(todo), "new_cases": sum(1 for r in ordered if not r["from_issue"]),
+                  "seconds": round(time.time() - t0, 1),
+                  "counts": {str(f): {o: sum(1 for r in ordered if r["family"] == f and r["outcome"] == o)
+                                      for o in (*OUTCOMES, "skipped")} for f in FAMILIES},
+                  "results": ordered}
+        Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+        if args.markdown:
+            Path(args.markdown).write_text(markdown(ordered))
+
+    def one(c: Case) -> dict[str, Any]:
+        r = run_case(c, work, fx, ports)
+        with lock:
+            rows.append(r)
+            save(False)
+            log(f"[{len(rows):3d}/{len(todo)}] {r['id']:38s} {r['outcome']:10s} exit {str(r['exit']):>4} "
+                f"{r['seconds']:5.1f}s {(r['detail'] or r['stderr'])[:110]}")
+        return r
+
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:  # each case is a subprocess: threads only wait
+        list(pool.map(one, todo))
+    if needed and snapshot(fx) != fx_before:
+        log("warning: a case changed the shared fixtures")
+    save(True)
+    bad = [r for r in rows if r["outcome"] not in ("pass", "skipped")]
+    log(f"{len(rows)} cases in {time.time() - t0:.0f} s: {len(rows) - len(bad)} pass, {len(bad)} fail "
+        + str({o: sum(1 for r in bad if r['outcome'] == o) for o in OUTCOMES[1:]}))
+    if not args.work:
+        shutil.rmtree(work, ignore_errors=True)
+    return 1 if bad else 0
+
+
+# -- the cases -------------------------------------------------------------------------------------------------
+def build_cases() -> None:
+    if CASES:
+        return
+    family1()
+    family2()
+    family3()
+    family4()
+    family5()
+    family6()
+    ids = [c.id for c in CASES]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise SystemExit(f"duplicate case ids: {dup}")
+
+
+def iter_values() -> Iterable[tuple[str, str, str]]:
+    """(name, JSON literal, TOML literal) of the hostile values every numeric field is swept with."""
+    yield from (("zero", "0", "0"), ("neg", "-1", "-1"), ("tiny", "1e-320", "1e-320"), ("huge", "1e308", "1e308"),
+                ("inf", "Infinity", "inf"), ("nan", "NaN", "nan"), ("str", '"str"', '"str"'),
+                ("bool", "true", "true"), ("list", "[]", "[]"))
+
+
+
+# -- commands the cases share (tiny sizes: one scene, a few steps, 64x48 cameras) ----------------------------------
+EVAL = "evaluate --catalog cat.json --policies sunny --scenes 1 --steps 5 --system blind --quiet --no-report --no-counterfactual"
+EVAL_HW = EVAL.replace("cat.json", "hw.json")
+EVAL_AGENT = "evaluate --agent run --policies agent --catalog hw.json --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e"
+DRIVE = "drive --catalog cat.json --steps 5 --system blind --no-gif --quiet --width 64 --height 48 --out dv"
+RENDER = "render --catalog cat.json --width 64 --height 48 --out r"
+CORNERS = "corners --config c.toml --scenes 1 --steps 3 --quiet --out corners.json"
+TRAIN = "train --config c.toml --out r --steps 8 --n-steps 8 --quiet"
+RESUME = "train --out run --resume --steps 48 --quiet"
+REPLAY = "replay rec.json --out rp --no-gif --quiet"
+CAMP = cp("camp")
+# the fixture campaign's own command, resumed (a campaign resumes only with the settings it was run with)
+RESUME_CAMP = ("evaluate --agent run --catalog hw.json --policies sunny,agent --scenes 3 --seed 1 --steps 70 --system blind "
+               "--records failures --no-counterfactual --out camp --resume --quiet --no-report")
+RUN = cp("run")
+CARLA = "scenes --backend carla --count 1 --out c.json --quiet"
+
+
+def toml_set(text: str, table: str, key: str, literal: str) -> str:
+    """Set ``key = literal`` in ``[table]`` of a TOML text (added, with the table, where missing)."""
+    lines = text.splitlines()
+    start = next((i for i, ln in enumerate(lines) if ln.strip() == f"[{table}]"), None)
+    if start is None:
+        return text.rstrip("\n") + f"\n\n[{table}]\n{key} = {literal}\n"
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("[")), len(lines))
+    for i in range(start + 1, end):
+        if re.match(rf"\s*{re.escape(key)}\s*=", lines[i]):
+            lines[i] = f"{key} = {literal}"
+            return "\n".join(lines) + "\n"
+    lines.insert(start + 1, f"{key} = {literal}")
+    return "\n".join(lines) + "\n"
+
+
+def config(table: str, key: str, literal: str, base: str = "tiny.toml", name: str = "c.toml") -> Setup:
+    def setup(d: Path, fx: Path) -> None:
+        (d / name).write_text(toml_set((fx / base).read_text(), table, key, literal))
+    return setup
+
+
+def family1() -> None:
+    """Outputs onto their own inputs, into input folders, onto links, FIFOs and devices. An output folder that
+    holds an input may be refused or written (exit 0 or 2), as long as the input is kept."""
+    R = "report camp"
+    case(1, "report-onto-campaign-json", "report --out the campaign's campaign.json --force", f"{R} --out camp/campaign.json --force", setup=CAMP, from_issue=True)
+    for rel in ("summary.json", "episodes.csv", "catalog.json", "run_time.json", "@GLOB:camp/episodes/sunny/*.json@", "@GLOB:camp/records/*.json@", "@GLOB:camp/steps/agent/*.parquet@"):
+        slug = re.sub(r"\W+", "-", rel.replace("@GLOB:camp/", "").rstrip("@").replace("*", "x")).strip("-")
+        case(1, f"report-onto-{slug}", f"report --out onto the campaign's own {rel} --force", f"{R} --out {rel if rel.startswith('@') else 'camp/' + rel} --force", setup=CAMP,
+             core=rel in ("summary.json", "episodes.csv", "@GLOB:camp/records/*.json@", "@GLOB:camp/steps/agent/*.parquet@"))
+    case(1, "report-onto-campaign-folder", "report --out the campaign folder itself --force", f"{R} --out camp --force", setup=CAMP)
+    case(1, "report-into-records", "report --out the campaign's records folder --force", f"{R} --out camp/records --force", setup=CAMP)
+    case(1, "report-onto-link-to-input", "report --out a symlink to the campaign's campaign.json --force", f"{R} --out link.html --force", setup=chain(CAMP, symlink("link.html", "camp/campaign.json")))
+    case(1, "report-onto-hardlink", "report --out a hard link of campaign.json --force (the campaign's file itself)", f"{R} --out hard.html --force", setup=chain(CAMP, hardlink("hard.html", "camp/campaign.json")), may_change=("hard.html",))
+    case(1, "report-onto-fifo", "report --out a FIFO nobody reads --force", f"{R} --out pipe --force", setup=chain(CAMP, fifo("pipe")), timeout=30)
+    case(1, "report-onto-device", "report --out a character device (a null device node) --force", f"{R} --out nulldev --force", setup=chain(CAMP, devnull("nulldev")), expect=EITHER)
+    case(1, "report-onto-stdout-link", "report --out a symlink to /proc/self/fd/1 --force", f"{R} --out so --force", setup=chain(CAMP, symlink("so", "/proc/self/fd/1")), expect=EITHER)
+    case(1, "report-dash", "report --out - writes to stdout, not a file named '-'", f"{R} --out -", setup=CAMP, expect=OK, absent=("-",))
+    case(1, "report-onto-user-link", "report --out a symlink to the user's own notes --force: written through or refused, the link kept", f"{R} --out l.html --force", setup=chain(CAMP, write("notes.html", "mine"), symlink("l.html", "notes.html")), expect=EITHER, may_change=("notes.html",))
+    C = "compare a=camp:sunny b=camp:agent"
+    case(1, "compare-onto-campaign-json", "compare --json the campaign's campaign.json --force", f"{C} --json camp/campaign.json --force", setup=CAMP, from_issue=True)
+    for rel in ("summary.json", "episodes.csv", "@GLOB:camp/records/*.json@"):
+        slug = re.sub(r"\W+", "-", rel.replace("@GLOB:camp/", "").rstrip("@").replace("*", "x")).strip("-")
+        case(1, f"compare-onto-{slug}", f"compare --json onto the campaign's {rel} --force", f"{C} --json {rel if rel.startswith('@') else 'camp/' + rel} --force", setup=CAMP)
+    case(1, "compare-onto-link", "compare --json a symlink to the campaign's summary.json --force", f"{C} --json s.json --force", setup=chain(CAMP, symlink("s.json", "camp/summary.json")))
+    case(1, "compare-onto-fifo", "compare --json a FIFO nobody reads", f"{C} --json pipe --force", setup=chain(CAMP, fifo("pipe")), timeout=30)
+    case(1, "compare-dash", "compare --json - writes to stdout", f"{C} --json -", setup=CAMP, expect=OK, absent=("-",))
+    case(1, "compare-onto-folder", "compare --json the campaign folder --force", f"{C} --json camp --force", setup=CAMP)
+    RX = "reactivity --campaign camp --policy sunny --scenes 2 --no-other-seeds --quiet"
+    case(1, "reactivity-onto-campaign-json", "reactivity --out the campaign's campaign.json --force", f"{RX} --out camp/campaign.json --force", setup=CAMP)
+    case(1, "reactivity-onto-episodes-csv", "reactivity --out the campaign's episodes.csv --force", f"{RX} --out camp/episodes.csv --force", setup=CAMP)
+    case(1, "export-onto-campaign", "export --out the campaign folder itself --force", "export camp --out camp --force", setup=CAMP)
+    case(1, "export-into-records", "export --out the campaign's records folder --force", "export camp --out camp/records --force", setup=CAMP)
+    case(1, "export-onto-run", "export --out a training run folder --force", "export camp --out run --force", setup=chain(CAMP, RUN))
+    case(1, "export-onto-user-folder", "export --out a user's folder holding notes --force", "export camp --out ex --force", setup=chain(CAMP, write("ex/notes.txt", "mine")))
+    case(1, "replay-out-holds-record", "replay --out the folder holding the record --force", "replay recs/rec.json --out recs --no-gif --quiet --force", setup=cp("rec.json", to="recs/rec.json"), expect=EITHER)
+    case(1, "replay-out-campaign", "replay a campaign's record --out the campaign folder --force", "replay @GLOB:camp/records/*.json@ --out camp --no-gif --quiet --force", setup=CAMP, expect=EITHER)
+    case(1, "replay-out-cwd", "replay --out . (the folder holding the record) --force", "replay rec.json --out . --no-gif --quiet --force", setup=cp("rec.json"), expect=EITHER)
+    case(1, "render-out-holds-catalog", "render --out the folder holding its --catalog --force", "render --catalog o/cat.json --width 64 --height 48 --out o --force", setup=cp("cat.json", to="o/cat.json"), expect=EITHER)
+    case(1, "drive-out-holds-catalog", "drive --out the folder holding its --catalog --force", "drive --catalog o/cat.json --steps 5 --system blind --no-gif --quiet --width 64 --height 48 --out o --force", setup=cp("cat.json", to="o/cat.json"), expect=EITHER)
+    case(1, "drive-out-holds-schedule", "drive --out the folder holding its --schedule --force", "drive --catalog cat.json --schedule o/sched.csv --steps 5 --system blind --no-gif --quiet --width 64 --height 48 --out o --force", setup=chain(cp("cat.json"), cp("sched.csv", to="o/sched.csv")), expect=EITHER)
+    case(1, "drive-out-cwd", "drive --out . with its catalog in it --force", "drive --catalog cat.json --steps 5 --system blind --no-gif --quiet --width 64 --height 48 --out . --force", setup=cp("cat.json"), expect=EITHER)
+    case(1, "evaluate-onto-run", "evaluate --agent run --out run --force (a campaign over its own agent)", "evaluate --agent run --policies agent --catalog hw.json --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out run --force", setup=chain(RUN, cp("hw.json")))
+    case(1, "evaluate-into-checkpoints", "evaluate --out the run's checkpoints folder --force", "evaluate --agent run --policies agent --catalog hw.json --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out run/checkpoints --force", setup=chain(RUN, cp("hw.json")))
+    case(1, "evaluate-out-holds-catalog", "evaluate --out the folder holding its --catalog --force", f"{EVAL.replace('cat.json', 'ev/cat.json')} --out ev --force", setup=cp("cat.json", to="ev/cat.json"), expect=EITHER)
+    case(1, "evaluate-out-holds-odd", "evaluate --out the folder holding its --odd --force", f"{EVAL_HW} --odd ev/odd.toml --out ev --force", setup=chain(cp("hw.json"), cp("odd.toml", to="ev/odd.toml")), expect=EITHER)
+    case(1, "evaluate-out-holds-config", "evaluate --config inside --out --force", "evaluate --config ev/c.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out ev --force", setup=chain(cp("cat.json"), cp("tiny.toml", to="ev/c.toml")), expect=EITHER)
+    case(1, "evaluate-onto-campaign-with-notes", "evaluate --out an existing campaign holding a user's notes --force", f"{EVAL_HW} --out camp --force", setup=chain(CAMP, cp("hw.json"), write("camp/notes.txt", "mine")))
+    case(1, "train-force-notes", "train --out RUN --force with a user's notes in RUN", "train --config tiny.toml --out run --force --quiet", setup=chain(RUN, cp("tiny.toml"), write("run/notes.txt", "mine")), from_issue=True)
+    case(1, "train-force-eval-campaign", "train --out RUN --force with an eval/ campaign kept in RUN", "train --config tiny.toml --out run --force --quiet", setup=chain(RUN, cp("tiny.toml"), cp("camp", to="run/eval")), from_issue=True)
+    case(1, "train-config-inside-out", "train --config RUN/config.toml --out RUN --force", "train --config run/config.toml --out run --force --quiet", setup=RUN, expect=EITHER)
+    case(1, "train-catalog-inside-out", "train --catalog RUN/catalog.json --out RUN --force", "train --config tiny.toml --catalog run/catalog.json --out run --force --quiet", setup=chain(RUN, cp("tiny.toml")), expect=EITHER)
+    case(1, "train-odd-inside-out", "train --odd inside --out --force", "train --config tiny.toml --odd run/odd.toml --out run --force --quiet", setup=chain(RUN, cp("tiny.toml"), cp("odd.toml", to="run/odd.toml")), expect=EITHER)
+    case(1, "train-onto-campaign", "train --out a campaign folder --force", "train --config tiny.toml --out camp --force --quiet", setup=chain(CAMP, cp("tiny.toml")))
+    case(1, "train-out-cwd", "train --out . (holding its --config) --force", "train --config tiny.toml --out . --force --quiet", setup=cp("tiny.toml"), expect=EITHER)
+    case(1, "corners-onto-config", "corners --out its own --config --force", "corners --config c.toml --scenes 1 --steps 3 --quiet --out c.toml --force", setup=cp("tiny.toml", to="c.toml"))
+    case(1, "corners-onto-fifo", "corners --out a FIFO", "corners --config c.toml --scenes 1 --steps 3 --quiet --out pipe --force", setup=chain(cp("tiny.toml", to="c.toml"), fifo("pipe")), timeout=30)
+    case(1, "corners-onto-run-config", "corners --config RUN/config.toml --out RUN/config.toml --force", "corners --config run/config.toml --scenes 1 --steps 3 --quiet --out run/config.toml --force", setup=RUN)
+    case(1, "scenes-onto-fifo", "scenes --out a FIFO", "scenes --count 1 --out pipe --force --quiet", setup=fifo("pipe"), timeout=30)
+    case(1, "scenes-onto-device", "scenes --out a character device --force", "scenes --count 1 --out nulldev --force --quiet", setup=devnull("nulldev"), expect=EITHER)
+    case(1, "scenes-onto-user-link", "scenes --out a symlink to the user's file --force: written through or refused, the link kept", "scenes --count 1 --out l.json --force --quiet", setup=chain(write("mine.json", "{}"), symlink("l.json", "mine.json")), expect=EITHER, may_change=("mine.json",))
+    case(1, "scenes-dash", "scenes --out - writes to stdout", "scenes --count 1 --out - --quiet", expect=OK, absent=("-",))
+    case(1, "map-onto-fifo", "map --out a FIFO", "map export --out pipe --force", setup=fifo("pipe"), timeout=30)
+    case(1, "map-onto-run-folder", "map --out a run folder --force", "map export --out run --force", setup=RUN)
+    case(1, "map-dash", "map --out - writes to stdout", "map export --out -", expect=OK, absent=("-",))
+
+
+def family2() -> None:
+    """Payloads whose loading would create the marker file: pickles in agents, checkpoints, replay buffers;
+    import paths named by run, campaign, record and catalog files."""
+    for entry in ("lr_schedule", "clip_range", "policy_class", "observation_space", "action_space", "_last_obs"):
+        case(2, f"agent-data-{entry}", f"agent.zip 'data' {entry} holds a pickled payload; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), zip_member("run/agent.zip", "data", serialized(entry))), expect=EITHER, from_issue=entry == "lr_schedule")
+    case(2, "agent-zip-loose", "a loose agent .zip with a pickled lr_schedule as --agent", EVAL_AGENT.replace("--agent run", "--agent a.zip"), setup=chain(cp("run/agent.zip", to="a.zip"), cp("hw.json"), zip_member("a.zip", "data", serialized("lr_schedule"))), expect=EITHER)
+    for member in ("policy.pth", "pytorch_variables.pth", "policy.optimizer.pth"):
+        case(2, f"agent-{member.replace('.', '-')}", f"agent.zip {member} is a torch pickle with a payload", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), zip_member("run/agent.zip", member, lambda d, old: torch_payload(d))), expect=EITHER)
+    case(2, "checkpoint-data-lr-schedule", "the last checkpoint's 'data' holds a pickled payload; train --resume", RESUME, setup=chain(RUN, zip_member("run/checkpoints/step_00000032.zip", "data", serialized("lr_schedule"))), expect=EITHER)
+    case(2, "checkpoint-policy-pth", "the last checkpoint's policy.pth is a torch pickle with a payload; train --resume", RESUME, setup=chain(RUN, zip_member("run/checkpoints/step_00000032.zip", "policy.pth", lambda d, old: torch_payload(d))), expect=EITHER)
+    case(2, "checkpoint-optimizer-pth", "the last checkpoint's policy.optimizer.pth holds a payload; train --resume", RESUME, setup=chain(RUN, zip_member("run/checkpoints/step_00000032.zip", "policy.optimizer.pth", lambda d, old: torch_payload(d))), expect=EITHER)
+    case(2, "evaluate-agent-no-agent-zip", "no agent.zip: evaluate --agent falls back to a checkpoint holding a payload", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), lambda d, fx: (d / "run/agent.zip").unlink(), zip_member("run/checkpoints/last.zip", "data", serialized("clip_range"))), expect=EITHER)
+    case(2, "sac-replay-buffer", "a SAC run's replay buffer (.pkl) holds a payload; train --resume", "train --out sacrun --resume --steps 36 --quiet", setup=chain(cp("sacrun"), write("sacrun/checkpoints/step_00000024.replay.pkl", b""), lambda d, fx: (d / "sacrun/checkpoints/step_00000024.replay.pkl").write_bytes(payload(d))), expect=EITHER)
+    case(2, "sac-agent-data", "a SAC run's agent.zip 'data' holds a payload; evaluate --agent", EVAL_AGENT.replace("--agent run", "--agent sacrun"), setup=chain(cp("sacrun"), cp("hw.json"), zip_member("sacrun/agent.zip", "data", serialized("lr_schedule"))), expect=EITHER)
+    case(2, "detector-weights-pickle", "--weights: a detector checkpoint that is a torch pickle with a payload", "drive --catalog cat.json --steps 2 --system builtin --weights w.pt --no-gif --quiet --width 64 --height 48 --out dv", setup=chain(cp("cat.json"), lambda d, fx: (d / "w.pt").write_bytes(torch_payload(d))))
+    ev = evil_module()
+    case(2, "run-config-system", "the run's config.toml names env.system = 'evil:Sys' (a module in the working folder)", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "system", '"evil:Sys"'))))
+    case(2, "run-config-plugins", "the run's config.toml names env.plugins = ['evil']", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "plugins", '["evil"]'))))
+    case(2, "run-config-backend", "the run's config.toml names env.backend = 'evil:Backend'", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "backend", '"evil:Backend"'))))
+    case(2, "run-config-rulebook-rule", "the run's config.toml names a rulebook whose rule is 'evil:Rule'", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), ev, write("run/rules.toml", '[[rules]]\nname = "evil:Rule"\npriority = 1\n'), edit_text("run/config.toml", lambda t: toml_set(t, "env", "rulebook", '"run/rules.toml"'))))
+    case(2, "resume-config-plugins", "the run's config.toml names env.plugins = ['evil']; train --resume", RESUME, setup=chain(RUN, ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "plugins", '["evil"]'))))
+    case(2, "resume-config-system", "the run's config.toml names env.system = 'evil:Sys'; train --resume", RESUME, setup=chain(RUN, ev, edit_text("run/config.toml", lambda t: toml_set(t, "env", "system", '"evil:Sys"'))))
+    case(2, "campaign-system", "campaign.json's spec names env.system = 'evil:Sys'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
+    case(2, "campaign-plugins", "campaign.json's spec names env.plugins = ['evil']; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "plugins"], ["evil"]))))
+    case(2, "campaign-policy", "campaign.json's spec names a policy 'evil:Pol'; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "policies"], ["sunny", "evil:Pol"]))))
+    case(2, "campaign-system-reactivity", "campaign.json's spec names env.system = 'evil:Sys'; reactivity", "reactivity --campaign camp --policy sunny --scenes 2 --no-other-seeds --quiet --out rx.json", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))))
+    case(2, "campaign-system-report", "campaign.json's spec names env.system = 'evil:Sys'; report", "report camp --out rep.html", setup=chain(CAMP, ev, edit_json("camp/campaign.json", lambda c: set_path(c, ["spec", "env", "system"], "evil:Sys"))), expect=EITHER)
+    case(2, "record-system", "a record's system spec is 'evil:Sys'; replay", REPLAY, setup=chain(cp("rec.json"), ev, edit_json("rec.json", lambda r: set_path(r, ["system", "spec"], "evil:Sys"))))
+    case(2, "record-backend", "a record's backend is 'evil:Backend'; replay", REPLAY, setup=chain(cp("rec.json"), ev, edit_json("rec.json", lambda r: set_path(r, ["backend"], "evil:Backend"))))
+    case(2, "catalog-backend", "a catalog's backend is 'evil:Backend'; render", RENDER, setup=chain(cp("cat.json"), ev, edit_json("cat.json", lambda c: set_path(c, ["backend"], "evil:Backend"))))
+    case(2, "catalog-backend-drive", "a catalog's backend is 'evil:Backend'; drive", DRIVE, setup=chain(cp("cat.json"), ev, edit_json("cat.json", lambda c: set_path(c, ["backend"], "evil:Backend"))))
+
+
+CORE_VALUES = ("neg", "huge", "nan", "str")  # the default sweep's share of each value grid; --all runs all nine
+
+
+def expect_for(value: str, signed: bool) -> tuple[int, ...]:
+    """0 and 1e-320 may be valid (or refused); -1 too where the field is signed; the rest must be refused."""
+    if value in ("zero", "tiny") or (signed and value == "neg"):
+        return EITHER
+    return REJECT
+
+
+def family3() -> None:
+    """Every numeric field swept with 0, -1, 1e-320, 1e308, inf, nan, a string, a bool and a list; files that
+    are believed when they should be checked."""
+    cat_fields = [("ego-speed", ["scenes", 0, "vehicles", 0, "speed"], False),
+                  ("ego-x", ["scenes", 0, "vehicles", 0, "x"], True),
+                  ("ego-yaw", ["scenes", 0, "vehicles", 0, "yaw"], True),
+                  ("lead-max-accel", ["scenes", 0, "vehicles", 1, "autopilot", "max_accel"], False),
+                  ("lead-comfort-decel", ["scenes", 0, "vehicles", 1, "autopilot", "comfort_decel"], False),
+                  ("lead-time-gap", ["scenes", 0, "vehicles", 1, "autopilot", "time_gap"], False),
+                  ("signal-offset", ["scenes", 0, "signal_offset"], True)]
+    for name, path, signed in cat_fields:
+        for vname, js, _ in iter_values():
+            case(3, f"catalog-{name}-{vname}", f"catalog scene 0 {'.'.join(map(str, path[3:]))} = {js}; drive", DRIVE,
+                 setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(path, js))), expect=expect_for(vname, signed), names=(str(path[-1]),),
+                 core=vname in CORE_VALUES or (name in ("ego-speed", "lead-comfort-decel") and vname in ("tiny", "inf")))
+    case(3, "catalog-ego-speed-1000", "catalog ego speed 1000 m/s; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "1000"))), from_issue=True)
+    case(3, "catalog-ego-speed-1e200", "catalog ego speed 1e200; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "1e200"))), from_issue=True)
+    for vname, js in (("true", "true"), ("float", "1.0"), ("str", '"1"'), ("big", "2"), ("null", "null")):
+        case(3, f"catalog-version-{vname}", f"catalog \"version\": {js}; render", RENDER, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["version"], js))), from_issue=vname == "true",
+             expect=EITHER if vname == "float" else REJECT)  # 1.0 == 1
+    case(3, "catalog-map-mismatch", "an urban catalog evaluated under --map highway", EVAL.replace("--scenes 1", "--map highway --scenes 1") + " --out e", setup=cp("cat.json"), from_issue=True)
+    case(3, "catalog-header-map-lies", "catalog header map = highway over urban scenes; drive", DRIVE, setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["map"], "highway"))))
+    case(3, "catalog-scene-map-lies", "catalog scene 0 map = highway in an urban catalog; drive", DRIVE, setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["scenes", 0, "map"], "highway"))))
+    case(3, "catalog-lane-out-of-range", "catalog ego lane = 10**9; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "lane"], "1000000000"))))
+    case(3, "catalog-color-nan", "catalog ego colour [NaN, 2, -1]; render", RENDER, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles", 0, "color"], "[NaN, 2, -1]"))))
+    for key, vname in (("distance", "prox"), ("decel", "rss")):
+        for v, _, tl in iter_values():
+            case(3, f"rulebook-{vname}-{key}-{v}", f"rulebook {key} = {tl}; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e",
+                 setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", _toml_param(key, tl))), expect=expect_for(v, False), from_issue=(key, v) == ("decel", "tiny"), names=(key,),
+                 core=v in CORE_VALUES or key == "decel")
+    for v, lit in (("str", '"high"'), ("neg", "-1"), ("huge", "1e308")):
+        case(3, f"rulebook-priority-{v}", f"rulebook priority = {lit}; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e",
+             setup=chain(cp("rcfg.toml", "rules.toml", "cat.json"), edit_text("rules.toml", _sub("priority = 2", f"priority = {lit}"))))
+    odd_fields = [("visibility-min", "visibility", "min"), ("rain-max", "rain_rate", "max"), ("margin", None, "boundary_margin")]
+    for name, table, key in odd_fields:
+        for v, _, tl in iter_values():
+            case(3, f"odd-{name}-{v}", f"ODD {table + '.' if table else ''}{key} = {tl}; evaluate --odd", f"{EVAL_HW} --odd odd.toml --out e",
+                 setup=chain(cp("hw.json", "odd.toml"), edit_text("odd.toml", _toml_key(table, key, tl))), expect=expect_for(v, True), names=(table or key,),
+                 core=v in CORE_VALUES)
+    cfg_fields = [("env", "max_step_fraction"), ("env", "start_spread"), ("env.reward", "collision_weight"), ("ppo", "learning_rate"), ("ppo", "gamma"), ("ppo", "clip_range")]
+    for table, key in cfg_fields:
+        for v, _, tl in iter_values():
+            if v in ("zero", "bool", "list"):
+                continue
+            case(3, f"config-{table.replace('.', '-')}-{key.replace('_', '-')}-{v}", f"config [{table}] {key} = {tl}; train", TRAIN,
+                 setup=config(table, key, tl), expect=expect_for(v, False), names=(key,), from_issue=(key, v) in (("max_step_fraction", "tiny"), ("collision_weight", "huge")),
+                 core=v in ("tiny", "huge", "nan"))
+    for v, cell in (("nan", "nan"), ("inf", "inf"), ("neg", "-1"), ("huge", "1e308"), ("str", "heavy"), ("empty", ""), ("tiny", "1e-320")):
+        case(3, f"schedule-cell-{v}", f"schedule CSV fog_density cell = '{cell}'; drive --schedule", DRIVE + " --schedule s.csv",
+             setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", _sub("2,20,10", f"2,{cell},10"))), expect=EITHER if v == "tiny" else REJECT, names=("s.csv",))
+    for v, js in (("fog-nan", "NaN"), ("fog-huge", "1e308")):
+        case(3, f"record-weather-{v}", f"record start_weather fog_density = {js}; replay", REPLAY, setup=chain(cp("rec.json"), edit_text("rec.json", _json_setter(["start_weather", "fog_density"], js))), expect=(1, 2))
+    case(3, "record-ego-speed-1e200", "record scene ego speed = 1e200; replay", REPLAY, setup=chain(cp("rec.json"), edit_text("rec.json", _json_setter(["scene", "vehicles", 0, "speed"], "1e200"))), expect=(1, 2), from_issue=True)
+    case(3, "record-schedule-inf", "record schedule step 0 holds Infinity; replay", REPLAY, setup=chain(cp("rec.json"), edit_text("rec.json", _json_setter(["schedule", 0, 0], "Infinity"))), expect=(1, 2))
+    case(3, "record-episode-seed-str", "record episode_seed = 'x'; replay", REPLAY, setup=chain(cp("rec.json"), edit_text("rec.json", _json_setter(["episode_seed"], '"x"'))))
+    # a run is pinned like a campaign
+    case(3, "run-empty-config", "the run's config.toml is empty; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", "")), from_issue=True)
+    case(3, "run-edited-config-resume", "the run's config.toml edited (episode_steps 10 -> 12); train --resume", RESUME, setup=chain(RUN, edit_text("run/config.toml", lambda t: t.replace("episode_steps = 10", "episode_steps = 12"))), from_issue=True)
+    case(3, "run-edited-system-evaluate", "the run's config.toml edited (system blind -> oracle); evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), edit_text("run/config.toml", lambda t: t.replace('system = "blind"', 'system = "oracle"'))))
+    case(3, "run-edited-obs-evaluate", "the run's config.toml edited (obs_history 4 -> 2); evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), edit_text("run/config.toml", lambda t: t.replace("obs_history = 4", "obs_history = 2"))))
+    case(3, "run-edited-catalog-resume", "the run's catalog.json edited (a speed); train --resume", RESUME, setup=chain(RUN, edit_text("run/catalog.json", _json_setter(["scenes", 0, "vehicles", 0, "speed"], "3.0"))))
+    case(3, "run-swapped-agent", "the run's agent.zip swapped for another run's; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), cp("sacrun/agent.zip", to="run/agent.zip")))
+    case(3, "run-edited-knobs-resume", "the run's config.toml edited (a knob removed); train --resume", RESUME, setup=chain(RUN, edit_text("run/config.toml", lambda t: t.replace(', "sun_azimuth_angle"', ""))))
+    case(3, "run-config-only-comment", "the run's config.toml holds only a comment; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", "# nothing\n")))
+    case(3, "run-still-locked", "evaluate --agent on a run whose lock is held (still training) warns or refuses", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), hold_lock(".run.genesis-rl.lock")), expect=EITHER,
+         warns=("checkpoint",), names=("checkpoint", "being written", "still"))
+    case(3, "campaign-edited-seeds-resume", "campaign.json's episode seeds edited; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), edit_json("camp/campaign.json", lambda c: set_path(c, ["scenes", 0, 1], 12345))))
+    case(3, "campaign-steps-nan", "campaign.json's spec steps = NaN; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/campaign.json", _json_setter(["spec", "steps"], "NaN"))))
+    case(3, "campaign-summary-inf", "summary.json holds Infinity; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/summary.json", lambda t: re.sub(r'("collision": )[-0-9.e]+', r"\1Infinity", t, count=1))), expect=EITHER,
+         may_change=("camp/summary.json",))
+    case(3, "episodes-csv-nan-return", "the campaign's episodes.csv return cell = nan; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/episodes.csv", lambda t: t.replace(",70.0,", ",nan,", 1))), expect=EITHER)
+    case(3, "weather-flag-1e-320", "--weather fog_density=1e-320 (valid: tiny) ; drive", DRIVE + " --weather fog_density=1e-320", setup=cp("cat.json"), expect=EITHER)
+    case(3, "constant-action-nan", "--constant-action nan,...; evaluate", EVAL.replace("sunny", "constant") + " --constant-action nan,0,0,0,0 --out e", setup=cp("cat.json"))
+    case(3, "constant-action-1e308", "--constant-action 1e308,...; evaluate", EVAL.replace("sunny", "constant") + " --constant-action 1e308,0,0,0,0 --out e", setup=cp("cat.json"))
+
+
+def _sub(old: str, new: str) -> Callable[[str], str]:
+    return lambda text: text.replace(old, new, 1)
+
+
+def _json_setter(path: Sequence[Any], literal: str) -> Callable[[str], str]:
+    """Set a JSON value by path to a literal (NaN, Infinity, 1e-320 kept as written)."""
+    def fn(text: str) -> str:
+        data = json.loads(text)
+        token = "__SWEEP_VALUE__"
+        set_path(data, path, token)
+        return json.dumps(data).replace(f'"{token}"', literal)
+    return fn
+
+
+def _toml_param(key: str, literal: str) -> Callable[[str], str]:
+    return lambda t: re.sub(rf"({key} = )[-0-9.e]+", rf"\g<1>{literal}", t, count=1)
+
+
+def _toml_key(table: str | None, key: str, literal: str) -> Callable[[str], str]:
+    def fn(text: str) -> str:
+        if table is None:
+            return re.sub(rf"(?m)^{key}\s*=\s*[-0-9.e]+", f"{key} = {literal}", text, count=1)
+        return re.sub(rf"(\[{table}\][^\[]*?\n){key}\s*=\s*[-0-9.e]+", rf"\g<1>{key} = {literal}", text, count=1)
+    return fn
+
+
+def family4() -> None:
+    """Depth, size and encoding of every parsed file; unusual scenes; CARLA connection errors; interrupts."""
+    deep = 100_000
+    case(4, "deep-catalog", f"catalog nested {deep} deep; render", RENDER, setup=write("cat.json", deep_json(deep)), from_issue=True)
+    case(4, "deep-catalog-inner", f"catalog scene 0 vehicles nested {deep} deep; drive", DRIVE, setup=chain(cp("cat.json"), edit_text("cat.json", _json_setter(["scenes", 0, "vehicles"], deep_json(deep)))))
+    case(4, "deep-odd", f"ODD TOML array nested {deep} deep; evaluate --odd", f"{EVAL_HW} --odd odd.toml --out e", setup=chain(cp("hw.json"), write("odd.toml", deep_toml("name", deep))))
+    case(4, "deep-odd-tables", "ODD TOML inline tables nested 50,000 deep; evaluate --odd", f"{EVAL_HW} --odd odd.toml --out e", setup=chain(cp("hw.json"), write("odd.toml", "a = " + "{b = " * 50_000 + "1" + "}" * 50_000 + "\n")))
+    case(4, "deep-config", f"config TOML nested {deep} deep; corners --config", CORNERS, setup=write("c.toml", deep_toml("x", deep)))
+    case(4, "deep-config-train", "config [env] value nested 100,000 deep; train --config", TRAIN, setup=write("c.toml", "[env]\n" + deep_toml("knobs", deep)))
+    case(4, "deep-rulebook", f"rulebook TOML nested {deep} deep; evaluate --config", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e", setup=chain(cp("rcfg.toml", "cat.json"), write("rules.toml", deep_toml("rules", deep))))
+    case(4, "deep-campaign", f"campaign.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/campaign.json", deep_json(deep))))
+    case(4, "deep-campaign-resume", f"campaign.json nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), write("camp/campaign.json", deep_json(deep))))
+    case(4, "deep-summary", f"summary.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/summary.json", deep_json(deep))),
+         may_change=("camp/summary.json",), expect=EITHER)  # report may rebuild summary.json from the episodes
+    case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))))
+    case(4, "deep-record", f"record nested {deep} deep; replay", REPLAY, setup=write("rec.json", deep_json(deep)))
+    case(4, "deep-run-config", f"the run's config.toml nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", deep_toml("env", deep))))
+    case(4, "deep-run-json", f"the run's run.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/run.json", deep_json(deep))), expect=EITHER)
+    case(4, "deep-last-json", f"checkpoints/last.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/checkpoints/last.json", deep_json(deep))))
+    case(4, "deep-state-json", f"the checkpoint's state.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/checkpoints/step_00000032.state.json", deep_json(deep))))
+    case(4, "deep-marker", f"the campaign's .genesis-rl.json nested {deep} deep; evaluate --force onto it", f"{EVAL_HW} --out camp --force", setup=chain(CAMP, cp("hw.json"), write("camp/.genesis-rl.json", deep_json(deep))))
+    case(4, "deep-agent-data", f"agent.zip 'data' nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), zip_member("run/agent.zip", "data", lambda d, old: deep_json(deep).encode())))
+    big = 200_000
+    case(4, "schedule-huge-cell", f"schedule CSV cell of {big:,} characters; drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t: t.replace("2,20,10", f"2,{'9' * big},10"))), from_issue=True)
+    case(4, "schedule-huge-header", f"schedule CSV header cell of {big:,} characters; drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t: t.replace("precipitation", "p" * big, 1))))
+    case(4, "schedule-unclosed-quote", "schedule CSV with an unclosed quote running to the end of the file; drive", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), write("s.csv", 'step,fog_density\n0,"' + "1" * 300_000 + "\n")))
+    case(4, "campaign-csv-huge-cell", f"the campaign's episodes.csv holds a cell of {big:,} characters; report", "report camp --out rep.html", setup=chain(CAMP, edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", "sunny" + "x" * big + ",", 1))), expect=EITHER)
+    case(4, "campaign-csv-huge-cell-resume", f"the campaign's episodes.csv holds a cell of {big:,} characters; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), edit_text("camp/episodes.csv", lambda t: t.replace("sunny,", '"' + "x" * big + '",', 1))), expect=EITHER)  # resume may rebuild the index from the episode files
+    case(4, "run-csv-huge-cell", f"the run's episodes.csv holds a cell of {big:,} characters; train --resume", RESUME, setup=chain(RUN, lambda d, fx: (d / "run/episodes.csv").write_text((d / "run/episodes.csv").read_text() + '"' + "9" * big + '"\n')))
+    case(4, "catalog-64mb", "a 64 MB catalog (one huge string field); render", RENDER, setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["pad"], "x" * (64 << 20)))), expect=EITHER)
+    case(4, "catalog-1gib-sparse", "a 1 GiB catalog (sparse, all NUL bytes); render", RENDER, setup=lambda d, fx: os.truncate(_touch(d / "cat.json"), 1 << 30), timeout=60)
+    case(4, "schedule-1gib-sparse", "a 1 GiB schedule CSV (sparse, NUL bytes); drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), lambda d, fx: os.truncate(_touch(d / "s.csv"), 1 << 30)), timeout=60)
+    damaged = {"zero": lambda rel: write(rel, b""), "trunc": lambda rel: truncate(rel, 37), "binary": lambda rel: write(rel, BIN),
+               "latin1": lambda rel: write(rel, LATIN1)}
+    loaders = [("catalog", "cat.json", RENDER, cp("cat.json")),
+               ("odd", "odd.toml", f"{EVAL_HW} --odd odd.toml --out e", cp("odd.toml", "hw.json")),
+               ("config", "c.toml", "evaluate --config c.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --no-counterfactual --out e", chain(cp("tiny.toml", to="c.toml"), cp("cat.json"))),
+               ("rulebook", "rules.toml", "evaluate --config rcfg.toml --catalog cat.json --policies sunny --scenes 1 --steps 5 --quiet --no-report --out e", cp("rcfg.toml", "rules.toml", "cat.json")),
+               ("campaign-json", "camp/campaign.json", "report camp --out rep.html", CAMP),
+               ("record", "rec.json", REPLAY, cp("rec.json")),
+               ("run-config", "run/config.toml", EVAL_AGENT, chain(RUN, cp("hw.json"))),
+               ("schedule", "s.csv", DRIVE + " --schedule s.csv", chain(cp("cat.json"), cp("sched.csv", to="s.csv"))),
+               ("state-json", "run/checkpoints/step_00000032.state.json", RESUME, RUN),
+               ("episodes-csv", "camp/episodes.csv", "report camp --out rep.html", CAMP)]  # report may rebuild this index
+    for lname, rel, argv, base in loaders:
+        for dname, make in damaged.items():
+            case(4, f"{dname}-{lname}", f"{lname} file {rel} {dname}", argv, setup=chain(base, make(rel)),
+                 expect=EITHER if lname == "episodes-csv" or (lname, dname) == ("config", "zero") else REJECT,
+                 core=dname in ("zero", "binary"))  # an empty --config the user gives means the defaults
+    for lname, rel, argv, base in [("agent-zip", "run/agent.zip", EVAL_AGENT, chain(RUN, cp("hw.json"))),
+                                   ("checkpoint-zip", "run/checkpoints/step_00000032.zip", RESUME, RUN),
+                                   ("replay-buffer", "sacrun/checkpoints/step_00000024.replay.pkl", "train --out sacrun --resume --steps 36 --quiet", cp("sacrun"))]:
+        for dname in ("zero", "trunc", "binary"):
+            case(4, f"{dname}-{lname}", f"{lname} {rel} {dname}", argv, setup=chain(base, damaged[dname](rel)), core=dname != "trunc")
+    case(4, "agent-zip-missing-data", "agent.zip without its 'data' member; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), lambda d, fx: _drop_member(d / "run/agent.zip", "data")))
+    case(4, "agent-zip-policy-garbage", "agent.zip's policy.pth is garbage bytes; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), zip_member("run/agent.zip", "policy.pth", lambda d, old: BIN)))
+    # unusual but structurally valid scenes
+    def vehicles(fn: Callable[[list[Any]], list[Any]]) -> Setup:
+        return edit_json("cat.json", lambda c: set_path(c, ["scenes", 0, "vehicles"], fn(c["scenes"][0]["vehicles"])))
+    case(4, "scene-ego-only", "a scene with only the ego vehicle; drive", DRIVE, setup=chain(cp("cat.json"), vehicles(lambda v: v[:1])), expect=EITHER, from_issue=True)
+    case(4, "scene-ego-only-evaluate", "a scene with only the ego vehicle; evaluate", EVAL + " --out e", setup=chain(cp("cat.json"), edit_json("cat.json", _ego_only)), expect=EITHER)
+    case(4, "scene-no-vehicles", "a scene with no vehicles at all; drive", DRIVE, setup=chain(cp("cat.json"), vehicles(lambda v: [])))
+    case(4, "scene-two-egos", "a scene with two egos; drive", DRIVE, setup=chain(cp("cat.json"), vehicles(lambda v: [v[0], v[0]])), expect=EITHER)
+    case(4, "scene-no-ego", "a scene without an ego; drive", DRIVE, setup=chain(cp("cat.json"), vehicles(lambda v: v[1:])))
+    case(4, "scene-stacked-vehicles", "a scene with 60 vehicles on the same spot; drive", DRIVE, setup=chain(cp("cat.json"), vehicles(lambda v: v + [v[1]] * 60)), expect=EITHER)
+    case(4, "scene-vehicles-null", "a scene whose vehicles is null; drive", DRIVE, setup=chain(cp("cat.json"), vehicles(lambda v: None)))  # type: ignore[arg-type,return-value]
+    case(4, "scene-ego-autopilot", "the ego given an autopilot table; drive", DRIVE, setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["scenes", 0, "vehicles", 0, "autopilot"], c["scenes"][0]["vehicles"][1]["autopilot"]))), expect=EITHER)
+    case(4, "catalog-no-scenes", "a catalog whose scenes list is empty; evaluate", EVAL + " --out e", setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["scenes"], []))))
+    case(4, "catalog-scene-index-dup", "a catalog whose two scenes share index 0; evaluate --scenes 2", EVAL.replace("--scenes 1", "--scenes 2") + " --out e", setup=chain(cp("cat.json"), edit_json("cat.json", lambda c: set_path(c, ["scenes", 1, "index"], 0))), expect=EITHER)
+    # CARLA: only loopback listeners this script runs
+    for name, port in (("closed", "@PORT_closed@"), ("http", "@PORT_http@"), ("silent", "@PORT_silent@"), ("garbage", "@PORT_garbage@"), ("echo", "@PORT_echo@")):
+        case(4, f"carla-port-{name}", f"--carla-port a loopback {name} server (not CARLA); scenes --backend carla", f"{CARLA} --carla-host 127.0.0.1 --carla-port {port} --carla-timeout 2", timeout=45, from_issue=name == "http")
+    case(4, "carla-train-echo", "train --backend carla --carla-port an echo server", f"{TRAIN} --backend carla --carla-host 127.0.0.1 --carla-port @PORT_echo@ --carla-timeout 2", setup=cp("tiny.toml", to="c.toml"), timeout=45)
+    case(4, "carla-drive-http", "drive --backend carla --carla-port an HTTP server", f"{DRIVE} --backend carla --carla-host 127.0.0.1 --carla-port @PORT_http@ --carla-timeout 2", setup=cp("cat.json"), timeout=45)
+    for name, host in (("bad-ip", "256.256.256.256"), ("empty", ""), ("label-too-long", "a" * 300), ("dots", ".."), ("with-port", "127.0.0.1:2000"), ("spaces", "127.0.0.1 ; touch PWNED"), ("dash", "-h")):
+        case(4, f"carla-host-{name}", f"--carla-host {host[:30]!r}", [*CARLA.split(), "--carla-host", host, "--carla-port", "@PORT_closed@", "--carla-timeout", "2"], timeout=45, core=name in ("bad-ip", "empty", "label-too-long", "with-port"))
+    for name, port in (("zero", "0"), ("neg", "-1"), ("70000", "70000"), ("str", "abc"), ("empty-item", "2000,,2001"), ("float", "2000.5")):
+        case(4, f"carla-port-value-{name}", f"--carla-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port {port} --carla-timeout 2", timeout=45, core=name in ("70000", "str", "empty-item"),
+             names=(port,))  # the refusal quotes the value, not a connection failure
+    for name, port in (("70000", "70000"), ("zero", "0"), ("neg", "-1"), ("str", "x")):
+        case(4, f"carla-tm-port-{name}", f"--carla-tm-port {port}", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_closed@ --carla-tm-port {port} --carla-timeout 2", timeout=45, from_issue=name == "70000", core=name in ("70000", "str"),
+             names=("tm-port", "tm_port"))
+    for name, t in (("inf", "inf"), ("nan", "nan"), ("neg", "-1"), ("zero", "0"), ("huge", "1e308"), ("tiny", "1e-320"), ("str", "soon")):
+        case(4, f"carla-timeout-{name}", f"--carla-timeout {t} against a silent server", f"{CARLA} --carla-host 127.0.0.1 --carla-port @PORT_silent@ --carla-timeout {t}", timeout=45, from_issue=name == "inf", core=name in ("inf", "nan", "neg", "huge"),
+             names=("carla-timeout", "carla_timeout", "CARLA timeout") if name != "zero" else ())
+    case(4, "carla-servers-garbage", "--carla-servers pointing at a garbage server; evaluate --backend carla", f"{EVAL} --backend carla --carla-servers 127.0.0.1:@PORT_garbage@ --carla-timeout 2 --out e", setup=cp("cat.json"), timeout=45)
+    case(4, "carla-servers-malformed", "--carla-servers '127.0.0.1:x:y:z'", f"{EVAL} --backend carla --carla-servers 127.0.0.1:x:y:z --out e", setup=cp("cat.json"), timeout=45)
+    # interrupts: signal the whole process group at a few moments (after the first checkpoint, while a checkpoint
+    # is being written, later); the next --resume must finish the run from what was kept
+    # (before the first checkpoint is complete there is nothing to resume: refusing then is right)
+    moments = [("after-checkpoint", "r/checkpoints/last.json", 0.0), ("during-save", "r/checkpoints/.step_00000032.zip.*", 0.0),
+               ("mid-run", "r/checkpoints/last.json", 1.5)]
+    for sig, sname in ((signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")):
+        for mname, when, delay in moments:
+            case(4, f"train-{sname}-{mname}", f"{sname.upper()} {mname.replace('-', ' ')} of a 96-step training, then train --resume",
+                 "train --config tiny64.toml --out r --quiet", setup=cp("tiny64.toml"), signal_when=when, signal_at=delay, signal_num=sig,
+                 expect=(0, 130, 143), then=["train", "--out", "r", "--resume", "--quiet"], timeout=150, from_issue=mname == "during-save")
+    campaign = f"{EVAL_HW.replace('--scenes 1 --steps 5', '--scenes 3 --steps 40')} --out e"
+    for sig, sname in ((signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")):
+        case(4, f"evaluate-{sname}", f"{sname.upper()} after a campaign's first episode, then the same command with --resume", campaign,
+             setup=cp("hw.json"), signal_when="e/episodes/sunny/*.json", signal_at=0.2, signal_num=sig, expect=(0, 130, 143),
+             then=[*campaign.split(), "--resume"], timeout=150)
+
+
+def _touch(p: Path) -> Path:
+    p.touch()
+    return p
+
+
+def _ego_only(catalog: Any) -> None:
+    for scene in catalog["scenes"]:
+        scene["vehicles"] = scene["vehicles"][:1]
+
+
+def _drop_member(p: Path, member: str) -> None:
+    with zipfile.ZipFile(p) as z:
+        members = {i.filename: z.read(i.filename) for i in z.infolist() if i.filename != member}
+    with zipfile.ZipFile(p, "w") as z:
+        for name, data in members.items():
+            z.writestr(name, data)
+
+
+def family5() -> None:
+    """1e12 on every count that sets work: refused at once (the limit is generous; the case waits 20 s)."""
+    T = 45.0  # "at once": before any real work; a loaded machine needs ~10 s just to start a command
+    N = "1000000000000"
+    bounded = [("corners-steps", f"{CORNERS} --steps {N}".replace("--steps 3 ", ""), cp("tiny.toml", to="c.toml"), True),
+               ("corners-scenes", CORNERS.replace("--scenes 1", f"--scenes {N}"), cp("tiny.toml", to="c.toml"), False),
+               ("evaluate-steps", f"{EVAL.replace('--steps 5', f'--steps {N}')} --out e", cp("cat.json"), False),
+               ("evaluate-scenes", f"{EVAL.replace('--scenes 1', f'--scenes {N}')} --out e", cp("cat.json"), False),
+               ("evaluate-search-budget-1e9", f"{EVAL.replace('sunny', 'cmaes')} --search-budget 1000000000 --out e", cp("cat.json"), True),
+               ("evaluate-search-budget", f"{EVAL.replace('sunny', 'cem')} --search-budget {N} --out e", cp("cat.json"), False),
+               ("evaluate-search-segments", f"{EVAL.replace('sunny', 'cmaes')} --search-segments {N} --out e", cp("cat.json"), False),
+               ("evaluate-retries", f"{EVAL} --retries {N} --out e", cp("cat.json"), False),
+               ("evaluate-workers", f"{EVAL} --workers {N} --out e", cp("cat.json"), False),
+               ("scenes-count", f"scenes --count {N} --out c.json --quiet", None, False),
+               ("render-warmup", f"{RENDER} --warmup {N}", cp("cat.json"), False),
+               ("render-size", f"{RENDER} --width 1000000 --height 1000000".replace("--width 64 --height 48 ", ""), cp("cat.json"), False),
+               ("drive-steps", DRIVE.replace("--steps 5", f"--steps {N}"), cp("cat.json"), False),
+               ("drive-scene-range", DRIVE + f" --scene 0:{N}", cp("cat.json"), False),
+               ("drive-threads", DRIVE + f" --threads {N}", cp("cat.json"), False),
+               ("drive-gif-stride", DRIVE.replace("--no-gif ", "") + f" --gif-stride {N}", cp("cat.json"), False),
+               ("train-steps", f"{TRAIN} --steps {N}".replace("--steps 8 ", ""), cp("tiny.toml", to="c.toml"), False),
+               ("train-n-steps", f"{TRAIN} --n-steps {N}".replace("--n-steps 8 ", ""), cp("tiny.toml", to="c.toml"), False),
+               ("train-episode-steps", f"{TRAIN} --episode-steps {N}", cp("tiny.toml", to="c.toml"), False),
+               ("train-scenes", f"{TRAIN} --scenes {N}", cp("tiny.toml", to="c.toml"), False),
+               ("config-total-timesteps", "train --config c.toml --out r --quiet", config("train", "total_timesteps", N), False),
+               ("config-episode-steps", "train --config c.toml --out r --quiet", config("env", "episode_steps", N), False),
+               ("config-scenes", "train --config c.toml --out r --quiet", config("env", "scenes", N), False),
+               ("config-obs-size", "train --config c.toml --out r --quiet", chain(config("env", "obs_width", "100000"), edit_text("c.toml", lambda t: toml_set(t, "env", "obs_height", "100000"))), False),
+               ("config-camera-size", "train --config c.toml --out r --quiet", chain(config("env", "camera_width", "1000000"), edit_text("c.toml", lambda t: toml_set(t, "env", "camera_height", "1000000"))), False),
+               ("config-batch-size", "train --config c.toml --out r --quiet", config("ppo", "batch_size", N), False),
+               ("config-n-epochs", "train --config c.toml --out r --quiet", config("ppo", "n_epochs", N), False),
+               ("resume-steps", RESUME.replace("--steps 48", f"--steps {N}"), RUN, False),
+               ("bench-system-frames-1e9", "bench system --frames 1000000000", None, True),
+               ("bench-sim-steps", f"bench sim --steps {N} --frames 1 --no-render", None, False),
+               ("bench-sim-frames", f"bench sim --steps 1 --frames {N}", None, False),
+               ("bench-train-updates", f"bench train --updates {N} --envs 1", None, False),
+               ("bench-campaign-scenes", f"bench campaign --scenes {N} --workers 1 --executors local", None, False),
+               ("bench-campaign-workers-list", "bench campaign --scenes 1 --workers " + ",".join(["1"] * 30000), None, False),
+               ("detector-train-frames", f"detector train --frames {N} --epochs 1 --quiet --out det", None, False),
+               ("detector-train-epochs", f"detector train --frames 8 --epochs {N} --quiet --out det", None, False),
+               ("detector-eval-frames", f"detector eval --frames-per-condition {N} --quiet --out de", None, False),
+               ("replay-gif-seconds", f"replay rec.json --out rp --quiet --gif-seconds {N}", cp("rec.json"), False),
+               ("reactivity-scenes", f"reactivity --campaign camp --policy sunny --no-other-seeds --quiet --out rx.json --scenes {N}", CAMP, False)]
+    for cid, argv, setup, issue in bounded:
+        expect = EITHER if cid in ("reactivity-scenes", "evaluate-workers", "drive-gif-stride", "replay-gif-seconds", "evaluate-retries", "config-batch-size") else REJECT  # batch_size is capped by n_steps
+        case(5, cid, f"{cid.replace('-', ' ')} = 1e12 (or the issue's 1e9)", argv, setup=setup, timeout=T, expect=expect, from_issue=issue)
+
+
+RAY_EVAL = "evaluate --catalog cat.json --policies sunny --scenes 1 --steps 5 --system blind --quiet --no-report --no-counterfactual --out e --executor ray"
+
+
+def family6() -> None:
+    """Ray addresses and worker counts (a lost node is tested in pytest): each answered within 20 s, in one line."""
+    T = 25.0
+    addresses = [("closed", "127.0.0.1:@PORT_closed@"), ("ray-closed", "ray://127.0.0.1:@PORT_closed@"),
+                 ("http", "127.0.0.1:@PORT_http@"), ("silent", "127.0.0.1:@PORT_silent@"),
+                 ("garbage", "127.0.0.1:@PORT_garbage@"), ("ray-silent", "ray://127.0.0.1:@PORT_silent@"),
+                 ("http-scheme", "http://127.0.0.1:@PORT_http@"), ("port-70000", "127.0.0.1:70000"),
+                 ("port-zero", "127.0.0.1:0"), ("port-str", "127.0.0.1:abc"), ("no-port", "127.0.0.1"),
+                 ("colon", ":"), ("list", "127.0.0.1:@PORT_closed@,127.0.0.1:1"), ("bad-ip", "256.1.1.1:6379")]
+    # not "auto" nor "": on a shared machine they may join someone else's cluster
+    for name, addr in addresses:
+        case(6, f"ray-address-{name}", f"evaluate --executor ray --ray-address {addr!r}", [*RAY_EVAL.split(), "--ray-address", addr], setup=cp("cat.json"), timeout=T, ray=True,
+             core=name in ("closed", "ray-closed", "http", "silent", "garbage", "ray-silent", "port-70000", "port-str", "no-port", "colon"))
+    for name, addr in (("closed", "127.0.0.1:@PORT_closed@"), ("silent", "ray://127.0.0.1:@PORT_silent@"), ("http", "127.0.0.1:@PORT_http@")):
+        case(6, f"train-ray-address-{name}", f"train --envs 2 --executor ray --ray-address {addr!r}", [*TRAIN.split(), "--envs", "2", "--executor", "ray", "--ray-address", addr], setup=cp("tiny.toml", to="c.toml"), timeout=T, ray=True)
+    for name, w in (("zero", "0"), ("neg", "-1"), ("empty-item", "1,,2"), ("str", "two"), ("float", "1.5"), ("huge", "1000000000000")):
+        case(6, f"ray-workers-{name}", f"evaluate --executor ray --workers {w}", [*RAY_EVAL.split(), "--workers", w], setup=cp("cat.json"), timeout=T if name != "huge" else 120, ray=True, expect=EITHER if name == "huge" else REJECT, from_issue=name == "empty-item")
+    for name, e in (("zero", "0"), ("neg", "-1"), ("str", "x")):
+        case(6, f"train-ray-envs-{name}", f"train --executor ray --envs {e}", [*TRAIN.split(), "--envs", e, "--executor", "ray"], setup=cp("tiny.toml", to="c.toml"), timeout=T, ray=True)
+    case(6, "ray-address-local-executor", "--ray-address given with --executor local", f"{EVAL} --out e --ray-address 127.0.0.1:@PORT_closed@", setup=cp("cat.json"), timeout=T, expect=EITHER)
+    case(6, "ray-carla-servers-mismatch", "--executor ray --workers 2 --carla-servers with one server (lite backend)", [*RAY_EVAL.split(), "--workers", "2", "--carla-servers", "127.0.0.1:@PORT_closed@", "--ray-address", "127.0.0.1:@PORT_closed@"], setup=cp("cat.json"), timeout=T, ray=True)
+    case(6, "bench-executors-bad", "bench campaign --executors ray,,local", "bench campaign --executors ray,,local --scenes 1 --workers 1", timeout=120, ray=True)
+    case(6, "bench-workers-bad", "bench campaign --workers 0,-1", "bench campaign --executors local --scenes 1 --workers 0,-1", timeout=T)
 
 if __name__ == "__main__":
     raise SystemExit(main())
