@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from genesis_rl import ranges
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.errors import SimulatorLost, UserInputError
 
@@ -44,8 +45,7 @@ def connect(host: str, port: int, timeout: float) -> Any:
     carla = require_carla()
     if not 1 <= int(port) <= 65535:
         raise UserInputError(f"--carla-port {port} is not a TCP port (1..65535)")
-    if not timeout > 0:
-        raise UserInputError(f"CARLA timeout must be > 0 s, got {timeout}")
+    timeout = ranges.TIMEOUT.check(timeout, "CARLA timeout (--carla-timeout, env.carla_timeout)")
     client = carla.Client(str(host), int(port))
     client.set_timeout(float(timeout))
     t0 = time.monotonic()
