@@ -180,8 +180,9 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     limits.SIM_STEPS.check(args.steps, "--steps")
     if args.gif_stride < 1:
         raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
-    if args.threads < 1:
-        raise UserInputError(f"--threads must be >= 1, got {args.threads}")
+    if not 1 <= args.threads <= 1024:  # torch's thread pool segfaults on 100,000 threads
+        raise UserInputError(f"--threads must be >= 1, got {args.threads}" if args.threads < 1 else
+                             f"--threads = {args.threads} must be in 1..1024")
     if args.gif_from < 0 or args.gif_from >= args.steps:
         raise UserInputError(f"--gif-from must be a step in 0..{args.steps - 1} (--steps {args.steps}), "
                              f"got {args.gif_from}")

@@ -445,8 +445,10 @@ def test_carla_timeout_and_ports_are_checked_by_the_parser() -> None:
 @pytest.mark.parametrize(("argv", "needle"), [
     (["drive", "--backend", "carla", "--carla-timeout", "inf"], "--carla-timeout: 'inf'"),
     (["drive", "--backend", "carla", "--carla-tm-port", "70000"], "--carla-tm-port: '70000'"),
+    (["drive", "--threads", "100000"], "--threads = 100000 must be in 1..1024"),  # was a segfault in torch
 ])
 def test_the_cli_refuses_a_bad_connection_number_in_one_line(tmp_path, argv, needle) -> None:
+    """Exit 2 with one error line naming the flag (argparse's usage line comes first), never a traceback."""
     r = subprocess.run([sys.executable, "-m", "genesis_rl", *argv, "--out", str(tmp_path / "o")],
                        capture_output=True, text=True, timeout=120)
     errors = [line for line in r.stderr.splitlines() if "error:" in line]
