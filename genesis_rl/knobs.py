@@ -214,10 +214,25 @@ class Weather:
         if unknown:
             raise UserInputError(f"recorded weather names unknown knob(s) {sorted(unknown)}; "
                                  f"allowed: {', '.join(KNOBS)}")
-        read = {k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()}
+        wrong: dict[str, object] = {k: v for k, v in values.items()
+                                    if isinstance(v, bool) or not isinstance(v, int | float | str)}
+        try:
+            if wrong:
+                raise ValueError
+            read = {k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()}
+        except (ValueError, OverflowError):  # "fast", true, [1], 10**400: a damaged record or telemetry file
+            unreadable = wrong or {k: v for k, v in values.items() if not _parses(v)}
+            shown = ", ".join(f"'{k}': {repr(v)[:30]}" for k, v in unreadable.items())
+            raise UserInputError(f"recorded weather has knob value(s) that are not numbers {{{shown}}}; "
+                                 "expected finite numbers in the knobs' ranges") from None
         bad = {k: v for k, v in read.items() if not math.isfinite(v)}
         if bad:  # JSON's NaN and Infinity parse; a damaged record or telemetry file must not steer the simulator
             raise UserInputError(f"recorded weather has non-finite knob value(s) {bad}; expected finite numbers")
+        outside = {k: v for k, v in read.items() if not KNOBS[k].low <= v <= KNOBS[k].high}
+        if outside:  # a fog density of 1e308 would reach the renderer and the ODD labels as it is
+            k, v = next(iter(outside.items()))
+            raise UserInputError(f"recorded weather has knob value(s) outside their range {outside}; e.g. '{k}' "
+                                 f"= {v!r}, allowed {KNOBS[k].low:g}..{KNOBS[k].high:g} {KNOBS[k].unit}")
         return cls(read)
 
     @classmethod
@@ -241,6 +256,14 @@ class Weather:
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.values)
+
+
+def _parses(v: object) -> bool:
+    try:
+        float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        return False
+    return True
 
 
 def parse_weather(text: str, base: Weather | None = None) -> Weather:

@@ -466,3 +466,18 @@ def test_the_cli_refuses_an_absurd_catalog_speed_in_one_line(catalog_json, tmp_p
                        timeout=120)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "'scenes[0].vehicles[0].speed' = 1e+200; expected <= 70 m/s" in r.stderr
+
+
+def test_a_recorded_weather_is_checked_like_a_typed_one() -> None:
+    """Records and telemetry are files too: a knob value of 1e308, -5 %, a bool, a list or a 400-digit
+    integer steered the simulator as it was (or raised a TypeError/OverflowError)."""
+    from genesis_rl.knobs import Weather
+
+    def sane(name: str, value: Any, weather: Any) -> str | None:
+        return None if 0.0 <= weather["fog_density"] <= 100.0 else f"fog_density is {weather['fog_density']}"
+
+    fields = [("fog_density", "fog_density", lambda v: Weather.from_recorded({"fog_density": v}))]
+    problems = sweep(fields, [*HOSTILE, ("huge_int", HUGE_INT), ("above", 100.5)], sane)
+    problems = [p for p in problems if "string" not in p]  # telemetry CSV cells are strings: '5' reads as 5
+    assert not problems, "\n".join(problems)
+    assert Weather.from_recorded({"fog_density": "12.5"})["fog_density"] == 12.5
