@@ -35,6 +35,11 @@ HUGE_INT = 10**400
 SANE_MAGNITUDE = 1e7
 
 
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 24 else f"{text[:12]}...({len(text)} chars)"
+
+
 def _outcome(load: Callable[[Any], Any], value: Any) -> tuple[str, Any]:
     """("ok", result), ("refused", message) or ("crash", "ExcType: message")."""
     try:
@@ -65,14 +70,14 @@ def sweep(fields: Iterable[tuple[str, str, Callable[[Any], Any]]],
             else:
                 accepted[label] = value
                 if isinstance(value, bool) or not isinstance(value, int | float):
-                    problems.append(f"{name} = {label} ({value!r}): a wrong type was accepted")
+                    problems.append(f"{name} = {label} ({_short(value)}): a wrong type was accepted")
                     continue
-                if not math.isfinite(value) or abs(value) > SANE_MAGNITUDE:
-                    problems.append(f"{name} = {label} ({value!r}): accepted")
+                if abs(value) > SANE_MAGNITUDE or not math.isfinite(value):  # (a huge int stops at the first)
+                    problems.append(f"{name} = {label} ({_short(value)}): accepted")
                     continue
                 why = sane(name, value, out) if sane else None
                 if why:
-                    problems.append(f"{name} = {label} ({value!r}): accepted but {why}")
+                    problems.append(f"{name} = {label} ({_short(value)}): accepted but {why}")
         if "subnormal" in accepted and "zero" not in accepted and "zero_float" not in accepted:
             problems.append(f"{name} = 1e-320 accepted where 0 is refused: it divides or scales to inf or 0")
     return problems
@@ -481,3 +486,22 @@ def test_a_recorded_weather_is_checked_like_a_typed_one() -> None:
     problems = [p for p in problems if "string" not in p]  # telemetry CSV cells are strings: '5' reads as 5
     assert not problems, "\n".join(problems)
     assert Weather.from_recorded({"fog_density": "12.5"})["fog_density"] == 12.5
+
+
+def test_a_campaign_file_s_seeds_and_steps_are_checked(tmp_path) -> None:
+    """campaign.json is shared between people: a negative episode seed reached numpy (a ValueError
+    traceback on resume and report), a 400-digit one or 0 steps passed the integer check."""
+    from genesis_rl.evaluation.campaign_files import CAMPAIGN_SCHEMA, CAMPAIGN_VERSION, read_campaign_meta
+
+    def load(spec_seed: Any = 0, steps: Any = 512, pair: Any = (3, 17)) -> Any:
+        meta = {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION, "spec": {"policies": ["sunny"],
+                "seed": spec_seed, "steps": steps}, "scenes": [list(pair)]}
+        (tmp_path / "campaign.json").write_text(json.dumps(meta))
+        return read_campaign_meta(tmp_path)
+
+    assert load()["scenes"] == [[3, 17]]
+    problems = sweep([("spec.seed", "spec.seed", lambda v: load(spec_seed=v)),
+                      ("spec.steps", "spec.steps", lambda v: load(steps=v)),
+                      ("scenes[0][1]", "'scenes'", lambda v: load(pair=(3, v))),
+                      ("scenes[0][0]", "'scenes'", lambda v: load(pair=(v, 17)))], [*HOSTILE, ("huge_int", HUGE_INT)])
+    assert not problems, "\n".join(problems)
