@@ -505,3 +505,18 @@ def test_a_campaign_file_s_seeds_and_steps_are_checked(tmp_path) -> None:
                       ("scenes[0][1]", "'scenes'", lambda v: load(pair=(3, v))),
                       ("scenes[0][0]", "'scenes'", lambda v: load(pair=(v, 17)))], [*HOSTILE, ("huge_int", HUGE_INT)])
     assert not problems, "\n".join(problems)
+
+
+def test_every_controller_setting_is_checked() -> None:
+    """env.system_kwargs.controller (a config file's) reached the built-in system's IDM unchecked: a
+    comfort deceleration of 1e-320 or a max_accel of 1e308 drove it to inf."""
+    from genesis_rl.system.controller import ControllerConfig
+    from genesis_rl.system.protocol import load_system
+
+    def field(key: str) -> tuple[str, str, Callable[[Any], Any]]:
+        return f"controller.{key}", f"controller.{key}", lambda v: load_system("blind", controller={key: v})
+
+    keys = [f for f in ControllerConfig.__dataclass_fields__]
+    assert len(keys) >= 16
+    problems = sweep([field(k) for k in keys])
+    assert not problems, "\n".join(problems)
