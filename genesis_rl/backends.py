@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Protocol, cast
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 from genesis_rl.plugins import load_class
 from genesis_rl.scenes.catalog import Catalog, parse_catalog, read_catalog
@@ -138,9 +140,29 @@ def add_backend_arguments(parser: argparse.ArgumentParser, default: str | None =
     parser.add_argument("--carla-port", type=_ports, default=(2000,), metavar="PORT[,PORT...]",
                         help="CARLA server RPC port (--backend carla); a list names one server per worker or env "
                              "process on --carla-host (traffic managers at PORT+6000), as --carla-servers does")
-    parser.add_argument("--carla-tm-port", type=int, default=8000, help="CARLA traffic manager port (--backend carla)")
-    parser.add_argument("--carla-timeout", type=float, default=10.0,
-                        help="seconds to wait for the CARLA server on each call (--backend carla)")
+    parser.add_argument("--carla-tm-port", type=_port, default=8000,
+                        help="CARLA traffic manager port, 1..65535 (--backend carla)")
+    parser.add_argument("--carla-timeout", type=_timeout, default=10.0,
+                        help="seconds to wait for the CARLA server on each call, 0.1..3600 (--backend carla)")
+
+
+def _port(text: str) -> int:
+    """``--carla-tm-port``: a TCP port 1..65535."""
+    t = str(text).strip()
+    if not t.isdigit() or not 1 <= int(t) <= 65535:
+        raise argparse.ArgumentTypeError(f"'{text}': allowed: a TCP port 1..65535")
+    return int(t)
+
+
+def _timeout(text: str) -> float:
+    """``--carla-timeout``: seconds in [0.1, 3600] (``inf`` would become 0 s in the client, ``nan`` never end)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and ranges.TIMEOUT.low <= value <= ranges.TIMEOUT.high):
+        raise argparse.ArgumentTypeError(f"'{text}': allowed: {ranges.TIMEOUT.describe()}")
+    return value
 
 
 def _ports(text: str) -> tuple[int, ...]:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 
 #: A lite render hook: ``hook(rgb, depth, value) -> rgb`` applied to the finished camera image (uint8, H x W x
@@ -49,7 +50,10 @@ class KnobSpec:
     def __post_init__(self) -> None:
         if not self.name.isidentifier():
             raise UserInputError(f"knob name {self.name!r} must be an identifier, e.g. lens_dirt")
-        if not (math.isfinite(self.low) and math.isfinite(self.high) and self.low < self.high):
+        for end in ("low", "high", "default"):  # within 1e9: a span and a step of it stay finite
+            ranges.number(getattr(self, end), f"knob '{self.name}': {end}", -KNOB_MAGNITUDE, KNOB_MAGNITUDE,
+                          self.unit)
+        if not self.low < self.high:
             raise UserInputError(f"knob '{self.name}': range {self.low}..{self.high} must be finite with low < high")
         if not self.low <= self.default <= self.high:
             raise UserInputError(f"knob '{self.name}': default {self.default} is outside {self.low:g}..{self.high:g}")
@@ -67,6 +71,10 @@ class KnobSpec:
 
 
 LITE_EFFECTS = ("lighting", "weather_pass", "hook", "none")
+#: the largest magnitude a knob's bound may have (CARLA's largest range is 0..360 deg)
+KNOB_MAGNITUDE = 1e9
+#: a step fraction below this freezes the agent (a knob would need over 1,000 steps to cross its range)
+MIN_STEP_FRACTION = 1e-3
 _PCT = (0.0, 20.0, 40.0, 60.0, 80.0, 100.0)
 
 
@@ -206,10 +214,25 @@ class Weather:
         if unknown:
             raise UserInputError(f"recorded weather names unknown knob(s) {sorted(unknown)}; "
                                  f"allowed: {', '.join(KNOBS)}")
-        read = {k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()}
+        wrong: dict[str, object] = {k: v for k, v in values.items()
+                                    if isinstance(v, bool) or not isinstance(v, int | float | str)}
+        try:
+            if wrong:
+                raise ValueError
+            read = {k: float(values[k]) if k in values else float(spec.default) for k, spec in KNOBS.items()}
+        except (ValueError, OverflowError):  # "fast", true, [1], 10**400: a damaged record or telemetry file
+            unreadable = wrong or {k: v for k, v in values.items() if not _parses(v)}
+            shown = ", ".join(f"'{k}': {repr(v)[:30]}" for k, v in unreadable.items())
+            raise UserInputError(f"recorded weather has knob value(s) that are not numbers {{{shown}}}; "
+                                 "expected finite numbers in the knobs' ranges") from None
         bad = {k: v for k, v in read.items() if not math.isfinite(v)}
         if bad:  # JSON's NaN and Infinity parse; a damaged record or telemetry file must not steer the simulator
             raise UserInputError(f"recorded weather has non-finite knob value(s) {bad}; expected finite numbers")
+        outside = {k: v for k, v in read.items() if not KNOBS[k].low <= v <= KNOBS[k].high}
+        if outside:  # a fog density of 1e308 would reach the renderer and the ODD labels as it is
+            k, v = next(iter(outside.items()))
+            raise UserInputError(f"recorded weather has knob value(s) outside their range {outside}; e.g. '{k}' "
+                                 f"= {v!r}, allowed {KNOBS[k].low:g}..{KNOBS[k].high:g} {KNOBS[k].unit}")
         return cls(read)
 
     @classmethod
@@ -233,6 +256,14 @@ class Weather:
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.values)
+
+
+def _parses(v: object) -> bool:
+    try:
+        float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        return False
+    return True
 
 
 def parse_weather(text: str, base: Weather | None = None) -> Weather:
@@ -292,8 +323,8 @@ class KnobActionMapper:
         for name in disabled:
             if name not in knobs:
                 raise UserInputError(f"disabled knob '{name}' is not among the controlled knobs {list(knobs)}")
-        if not 0.0 < max_step_fraction <= 1.0:
-            raise UserInputError(f"max_step_fraction must be in (0, 1], got {max_step_fraction}")
+        ranges.number(max_step_fraction, "env.max_step_fraction", MIN_STEP_FRACTION, 1.0,
+                      note="of a knob's range per step; the paper's 0.05")
         self.knobs = tuple(knobs)
         self.max_step_fraction = float(max_step_fraction)
         self.disabled = disabled

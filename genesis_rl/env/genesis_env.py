@@ -18,6 +18,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from genesis_rl import limits, ranges
 from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.env.observation import OBSERVATIONS, FeatureHistory, observation_space, step_features
@@ -35,6 +36,23 @@ from genesis_rl.system.protocol import load_system
 from genesis_rl.viz.frames import annotate_frame
 
 ENV_ID = "genesis_rl/Weather-v0"
+
+
+#: the physical range of every numeric [env] key (the knob step fraction is checked by KnobActionMapper)
+ENV_RANGES: dict[str, ranges.Ranged] = {
+    "scenes": ranges.Ranged(1, 2**31 - 1, "scenes", integer=True),  # and at most limits.SCENES
+    "catalog_seed": ranges.SEED,  # numpy refuses negative seeds, with a traceback
+    "start_spread": ranges.Ranged(0.0, 1.0, note="0: start_weather"),
+    "episode_steps": ranges.Ranged(1, 2**31 - 1, "steps", integer=True),  # and at most limits.SIM_STEPS
+    "camera_width": ranges.Ranged(16, 4096, "px", integer=True),
+    "camera_height": ranges.Ranged(16, 4096, "px", integer=True),
+    "obs_width": ranges.Ranged(36, 1024, "px", integer=True, note="CNN policies need >= 36"),
+    "obs_height": ranges.Ranged(36, 1024, "px", integer=True, note="CNN policies need >= 36"),
+    "obs_history": ranges.Ranged(1, 16, "steps", integer=True),
+    "carla_port": ranges.PORT,
+    "carla_tm_port": ranges.PORT,
+    "carla_timeout": ranges.TIMEOUT,
+}
 
 
 @dataclass(frozen=True)
@@ -78,10 +96,10 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         import_modules(self.plugins, "env.plugins")  # before the knob checks below
+        for k, rng in ENV_RANGES.items():  # an int or a number before the comparisons below
+            ranges.check_type(getattr(self, k), f"env.{k}", rng)
         if self.episode_steps < 1:
             raise UserInputError(f"env.episode_steps = {self.episode_steps} must be >= 1")
-        from genesis_rl import limits
-
         limits.SIM_STEPS.check(self.episode_steps, "env.episode_steps")  # corners/train --steps 10**12: years
         for k in ("obs_width", "obs_height"):
             if not 36 <= getattr(self, k) <= 1024:
@@ -114,6 +132,8 @@ class EnvConfig:
             raise UserInputError(f"env.dynamics = '{self.dynamics}' is unknown; allowed: {', '.join(DYNAMICS)}")
         if not 0.0 <= self.start_spread <= 1.0:
             raise UserInputError(f"env.start_spread = {self.start_spread} must be in 0..1 (0: start_weather)")
+        for k, rng in ENV_RANGES.items():  # finite, in its physical range (docs/reliability.md)
+            rng.check(getattr(self, k), f"env.{k}")
         start = parse_weather(self.start_weather)
         if self.odd is not None:
             odd = self.load_odd()

@@ -39,6 +39,10 @@ def _damaged(path: Path, what: str) -> UserInputError:
     return UserInputError(f"'{path}' is damaged: {what}; {REMEDY}")
 
 
+#: seeds and scene indices: numpy refuses negative seeds (with a traceback); 64-bit as TOML's integers
+_SEEDS = (0, 2**63 - 1)
+
+
 def read_campaign_meta(folder: Path) -> dict[str, Any]:
     """``campaign.json``, checked for the fields that summaries, reports, exports and resumption read."""
     folder = Path(folder)
@@ -61,13 +65,15 @@ def read_campaign_meta(folder: Path) -> dict[str, Any]:
     policies = spec.get("policies")
     if not isinstance(policies, list) or not policies or not all(isinstance(p, str) and p for p in policies):
         raise _damaged(path, f"field 'spec.policies' = {policies!r}; expected a list of policy names")
-    for key in ("seed", "steps"):
-        if not _is_int(spec.get(key)):
-            raise _damaged(path, f"field 'spec.{key}' = {spec.get(key)!r}; expected an integer")
+    for key, (low, high) in (("seed", _SEEDS), ("steps", (1, 2**31 - 1))):
+        if not _is_int(spec.get(key)) or not low <= spec[key] <= high:
+            raise _damaged(path, f"field 'spec.{key}' = {str(spec.get(key))[:30]}; expected an integer in "
+                                 f"{low}..{high}")
     scenes = meta.get("scenes")
     if not isinstance(scenes, list) or not all(isinstance(p, list) and len(p) == 2 and all(map(_is_int, p))
-                                                 for p in scenes):
-        raise _damaged(path, "field 'scenes' must be a list of [scene index, episode seed] pairs")
+                                                 and all(_SEEDS[0] <= v <= _SEEDS[1] for v in p) for p in scenes):
+        raise _damaged(path, "field 'scenes' must be a list of [scene index, episode seed] pairs (integers in "
+                             f"{_SEEDS[0]}..{_SEEDS[1]})")
     return meta
 
 

@@ -78,14 +78,14 @@ class Traffic:
         self.steer_angle = np.zeros(n)
         self.braking = np.zeros(n, bool)
         p = [q or AutopilotParams(0, 1.5, 2, 2, 3, 0, 0) for q in params]
-        self.v0_base = np.array([q.target_speed for q in p])
+        self.v0_base = np.array([q.target_speed for q in p], dtype=np.float64)
         self.v0 = self.v0_base.copy()
-        self.time_gap = np.array([q.time_gap for q in p])
-        self.min_gap = np.array([q.min_gap for q in p])
-        self.a_max = np.array([q.max_accel for q in p])
-        self.b_comf = np.array([q.comfort_decel for q in p])
-        self.stop_rate = np.array([q.stop_rate for q in p]) / 60.0  # per second
-        self.speed_noise = np.array([q.speed_noise for q in p])
+        self.time_gap = np.array([q.time_gap for q in p], dtype=np.float64)
+        self.min_gap = np.array([q.min_gap for q in p], dtype=np.float64)
+        self.a_max = np.array([q.max_accel for q in p], dtype=np.float64)
+        self.b_comf = np.array([q.comfort_decel for q in p], dtype=np.float64)
+        self.stop_rate = np.array([q.stop_rate for q in p], dtype=np.float64) / 60.0  # per second
+        self.speed_noise = np.array([q.speed_noise for q in p], dtype=np.float64)
         self.stop_timer = np.zeros(n)  # > 0: holding a spontaneous stop [s]
         self.stop_decel = np.zeros(n)
         self.is_npc = np.ones(n, bool)

@@ -17,12 +17,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.odd.conditions import LIGHTS, ROAD_STATES, Conditions, ConditionsModel
 
 #: numeric quantities: unit, and the Conditions field they bound
 NUMERIC = {"visibility": ("m", "visibility_m"), "rain_rate": ("mm/h", "rain_mm_h")}
+#: the physical range of each numeric quantity's bounds: visibility up to 100 km (a clear day's meteorological
+#: range is tens of km); rain up to 2000 mm/h (record one-minute rates are below it)
+NUMERIC_RANGES = {"visibility": ranges.Ranged(0.0, 100_000.0, "m"), "rain_rate": ranges.Ranged(0.0, 2000.0, "mm/h")}
 #: categorical quantities: allowed values, and the Conditions field
 CATEGORICAL = {"road_state": (ROAD_STATES, "road_state"), "light": (LIGHTS, "light")}
 QUANTITIES = (*NUMERIC, *CATEGORICAL, "sun_glare")
@@ -182,6 +186,9 @@ def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | Non
             raise UserInputError(f"{where}: give min, max or both [{unit}]")
         low = _number(f"{where}.min", t["min"]) if "min" in t else 0.0
         high = _number(f"{where}.max", t["max"]) if "max" in t else math.inf
+        for end, v in (("min", low), ("max", high)):
+            if end in t:
+                NUMERIC_RANGES[q].check(v, f"{where}.{end}")
         if low < 0 or high < 0:
             raise UserInputError(f"{where}: bounds must be >= 0 {unit}, got min {low:g}, max {high:g}")
         if low > high:

@@ -13,6 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -131,13 +132,14 @@ class VehicleDetector:
             self.model_config = DetectorModelConfig.from_dict(dict(ckpt["model_config"]))
             net = VehicleDetectorNet(self.model_config)
             net.load_state_dict(ckpt["state_dict"])
-        except (ValueError, TypeError, RuntimeError) as e:
+        except (ValueError, TypeError, RuntimeError, OverflowError) as e:
             msg = _first_mismatch(e)
             raise UserInputError(f"weights file {self.weights_path} does not match the detector network: "
                                  f"{msg}") from None
-        thr = float(ckpt["score_threshold"]) if score_threshold is None else float(score_threshold)
-        if not 0.0 < thr < 1.0:
-            raise UserInputError(f"score_threshold must be in (0, 1), got {thr}")
+        _check_weights_finite(net, self.weights_path)
+        given = ckpt["score_threshold"] if score_threshold is None else score_threshold
+        where = f"weights file {self.weights_path}: score_threshold" if score_threshold is None else "score_threshold"
+        thr = ranges.number(given, where, 1e-6, 1.0 - 1e-6, note="a detection score, strictly between 0 and 1")
         if max_detections < 1 or batch_size < 1:
             raise UserInputError(f"max_detections and batch_size must be >= 1, got {max_detections}, {batch_size}")
         self.score_threshold = thr
@@ -261,6 +263,37 @@ def _fold_batch_norm(net: Any) -> Any:
                 seq[i] = fuse_conv_bn_eval(conv, bn)
                 seq[i + 1] = nn.Identity()
     return net
+
+
+#: the largest magnitude a weight may have: trained ones stay below 10 (the shipped net's largest is 8.1);
+#: far larger ones overflow float32 activations into inf and NaN
+MAX_WEIGHT = 1e6
+
+
+def _check_weights_finite(net: Any, path: Path) -> None:
+    """Refuse weights that are NaN, infinite or absurdly large: a net with them detects nothing (IoU 0
+    everywhere) and every result would silently measure a broken detector."""
+    import torch
+
+    with torch.no_grad():
+        for name, tensor in net.state_dict().items():
+            if not tensor.is_floating_point() or tensor.numel() == 0:
+                continue
+            finite = torch.isfinite(tensor)
+            if not bool(finite.all()):
+                bad = int((~finite).sum())
+                raise UserInputError(f"weights file {path}: tensor '{name}' has {bad} of {tensor.numel()} values "
+                                     "that are NaN or infinite; the file is damaged: retrain it ('genesis-rl "
+                                     "detector train') or use the shipped weights")
+            if name.endswith("running_var") and bool((tensor < 0).any()):
+                raise UserInputError(f"weights file {path}: tensor '{name}' (a variance) has negative values; "
+                                     "the file is damaged: retrain it ('genesis-rl detector train') or use the "
+                                     "shipped weights")
+            largest = float(tensor.abs().max())
+            if largest > MAX_WEIGHT:
+                raise UserInputError(f"weights file {path}: tensor '{name}' holds a value of magnitude "
+                                     f"{largest:.3g}, beyond {MAX_WEIGHT:g}; the file is damaged: retrain it "
+                                     "('genesis-rl detector train') or use the shipped weights")
 
 
 def read_weights_json(weights: Path) -> dict:

@@ -20,6 +20,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from genesis_rl import ranges
+
 #: heatmap bias at init: sigmoid(-2.19) = 0.1 (CenterNet / focal-loss prior)
 HEATMAP_BIAS_INIT = -2.19
 
@@ -35,6 +37,12 @@ class DetectorModelConfig:
     output_stride: int = 4
 
     def __post_init__(self) -> None:
+        # sizes within reason: a checkpoint that says 10^9 channels must not allocate terabytes
+        for i, c in enumerate(self.channels):
+            ranges.number(c, f"model_config.channels[{i}]", 4, 1024, "channels", integer=True)
+        ranges.number(self.fpn_channels, "model_config.fpn_channels", 4, 1024, "channels", integer=True)
+        ranges.number(self.input_width, "model_config.input_width", 32, 4096, "px", integer=True)
+        ranges.number(self.input_height, "model_config.input_height", 16, 4096, "px", integer=True)
         if len(self.channels) != 5 or any(int(c) < 4 for c in self.channels):
             raise ValueError(f"channels must be 5 widths >= 4 (strides 2..32), got {self.channels}")
         if self.output_stride != 4:

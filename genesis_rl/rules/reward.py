@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 from genesis_rl.rules.rulebook import Rulebook
 
@@ -27,14 +28,18 @@ class RewardConfig:
     naturalness_weight: float = 0.0  # scales the step's weather surprise (-0.5 sum z^2, odd.dynamics) [1/nat]
 
     def __post_init__(self) -> None:
+        # every weight in [0, 1e6]: a rule term of 70 m/s times 1e6, summed over a few rules, stays finite
         for k in ("collision_weight", "proximity_weight", "iou_weight", "naturalness_weight"):
-            if not (math.isfinite(getattr(self, k)) and getattr(self, k) >= 0):
-                raise ValueError(f"reward.{k} = {getattr(self, k)} must be a finite number >= 0")
+            v = getattr(self, k)
+            if isinstance(v, int | float) and not isinstance(v, bool) and not (math.isfinite(v) and v >= 0):
+                raise UserInputError(f"env.reward.{k} = {v} must be a finite number >= 0 (at most 1e6)")
+            ranges.WEIGHT.check(v, f"env.reward.{k}")
+        if not isinstance(self.rule_weights, Mapping):
+            raise UserInputError(f"env.reward.rule_weights = {self.rule_weights!r} must be a table of rule weights")
         for name, w in self.rule_weights.items():
             if name in ("collision", "proximity"):
-                raise ValueError(f"reward.rule_weights.{name}: set it with reward.{name}_weight")
-            if isinstance(w, bool) or not isinstance(w, int | float) or not (math.isfinite(w) and w >= 0):
-                raise ValueError(f"reward.rule_weights.{name} = {w!r} must be a finite number >= 0")
+                raise UserInputError(f"env.reward.rule_weights.{name}: set it with env.reward.{name}_weight")
+            ranges.WEIGHT.check(w, f"env.reward.rule_weights.{name}")
 
     def weights(self) -> dict[str, float]:
         """Every rule weight by rule name, the paper's two first."""

@@ -30,6 +30,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 from genesis_rl.plugins import load_class
 from genesis_rl.step_record import StepRecord
@@ -82,12 +83,15 @@ class Rule:
 
     ``unit`` names the violation's unit for tables and plots; ``in_total`` says whether the violation adds
     into an episode's ``total`` score (the paper's collision + proximity, both in m/s; the RSS deficit, in
-    metres, is reported beside it)."""
+    metres, is reported beside it). ``param_ranges`` gives a parameter's physical range (a rulebook's value
+    outside it is refused when the file is loaded); a parameter without one must be 0 or of a magnitude in
+    [1e-9, 1e9]."""
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     unit: ClassVar[str] = ""
     in_total: ClassVar[bool] = True
+    param_ranges: ClassVar[Mapping[str, ranges.Ranged]] = {}
 
     def term(self, record: StepRecord) -> float:
         raise NotImplementedError
@@ -131,6 +135,7 @@ class ProximityRule(Rule):
     description = "ego speed while the gap to the lead vehicle is under the threshold [m/s]"
     unit = "m/s"
     distance: float = 5.0  # [m]
+    param_ranges: ClassVar[Mapping[str, ranges.Ranged]] = {"distance": ranges.Ranged(0.1, 1000.0, "m")}
 
     def __post_init__(self) -> None:
         _positive(self)
@@ -149,6 +154,7 @@ class RSSFollowingDistanceRule(Rule):
     unit = "m"
     in_total = False
     decel: float = 5.0  # a [m/s^2]
+    param_ranges: ClassVar[Mapping[str, ranges.Ranged]] = {"decel": ranges.DECEL}
 
     def __post_init__(self) -> None:
         _positive(self)
@@ -194,6 +200,8 @@ class SpeedForVisibilityRule(Rule):
     in_total = False
     reaction_s: float = 0.67  # [s]
     decel: float = 6.5  # [m/s^2] on a dry road; halved on a wet one
+    param_ranges: ClassVar[Mapping[str, ranges.Ranged]] = {"reaction_s": ranges.Ranged(0.01, 10.0, "s"),
+                                                           "decel": ranges.DECEL}
 
     def __post_init__(self) -> None:
         _positive(self)
@@ -285,15 +293,24 @@ def build_rulebook(entries: Sequence[Mapping[str, Any]], source: str = "rulebook
             if key not in fields:
                 allowed = ", ".join(fields) or "(none)"
                 raise UserInputError(f"{where}: rule '{cls.name}' has no parameter '{key}'; allowed: {allowed}")
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            finite = (isinstance(value, float) and math.isfinite(value)) or \
+                (isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**63)
+            if not finite:
                 raise UserInputError(f"{where}: {cls.name}.{key} = {value!r} must be a finite number")
         priority = entry.get("priority", i + 1)
         if isinstance(priority, bool) or not isinstance(priority, int) or priority < 1:
             raise UserInputError(f"{where}: priority = {priority!r} must be an integer >= 1")
         try:
             rule = cls(**{k: float(v) for k, v in params.items()})
-        except (ValueError, TypeError) as err:
+        except (ValueError, TypeError, OverflowError) as err:
             raise UserInputError(f"{where}: {err}") from None
+        for key, value in params.items():  # a physical range (a deceleration of 1e-320 would divide to inf)
+            rng = cls.param_ranges.get(key)
+            field = f"{where}: {cls.name}.{key}"
+            if rng is not None:
+                rng.check(value, field)
+            else:
+                ranges.generic(value, field)
         rules.append((priority, i, rule))
     if not rules:
         raise UserInputError(f"{source}: a rulebook needs at least one rule; allowed: {', '.join(sorted(RULES))}")

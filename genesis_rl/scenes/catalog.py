@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.scenes.vehicles import MAKES
@@ -91,9 +92,21 @@ class Catalog:
 
 
 _TYPE_NAMES = {str: "a string", int: "an integer", list: "a list", dict: "an object", float: "a number"}
-#: autopilot fields (lite's AutopilotParams) and the least value each may take
-AUTOPILOT_MIN = {"target_speed": 0.0, "time_gap": 0.0, "min_gap": 0.0, "max_accel": 1e-3, "comfort_decel": 1e-3,
-                 "stop_rate": 0.0, "speed_noise": 0.0}
+#: autopilot fields (lite's AutopilotParams) and the physical range of each (docs/reliability.md)
+AUTOPILOT_RANGES: dict[str, ranges.Ranged] = {
+    "target_speed": ranges.SPEED,  # desired speed [m/s]
+    "time_gap": ranges.Ranged(0.0, 10.0, "s"),  # IDM time headway
+    "min_gap": ranges.Ranged(0.0, 100.0, "m"),  # IDM standstill gap
+    "max_accel": ranges.ACCEL,  # IDM maximum acceleration
+    "comfort_decel": ranges.Ranged(1e-3, 15.0, "m/s^2"),  # IDM comfortable deceleration
+    "stop_rate": ranges.Ranged(0.0, 60.0, "stops/min"),  # spontaneous stops
+    "speed_noise": ranges.Ranged(0.0, 10.0, "m/s"),  # std of the target speed's random walk
+}
+#: the least value each autopilot field may take (older name, kept for callers)
+AUTOPILOT_MIN = {k: r.low for k, r in AUTOPILOT_RANGES.items()}
+#: a lane index (lite) or key (CARLA: road id * 100 + lane id + 50), a scene index
+LANE = ranges.Ranged(0, 2**31 - 1, integer=True)
+INDEX = ranges.Ranged(0, 1_000_000_000, integer=True)
 
 
 def _req(obj: Any, key: str, typ: type, where: str) -> Any:
@@ -109,14 +122,25 @@ def _req(obj: Any, key: str, typ: type, where: str) -> Any:
     return value
 
 
-def _number(obj: Any, key: str, where: str, minimum: float | None = None) -> float:
-    """A finite number (JSON's NaN and Infinity are refused), at least ``minimum`` when given."""
-    value = float(_req(obj, key, float, where))
-    if not math.isfinite(value):
-        raise UserInputError(f"catalog: field '{where}.{key}' = {value}; expected a finite number")
-    if minimum is not None and value < minimum:
-        raise UserInputError(f"catalog: field '{where}.{key}' = {value}; expected >= {minimum}")
-    return value
+def _number(obj: Any, key: str, where: str, rng: ranges.Ranged, role: str = "") -> Any:
+    """A number in its physical range ``rng``: JSON's NaN and Infinity, 400-digit integers and absurd values
+    (a speed of 1e200 m/s, an acceleration of 1e308 m/s^2) are refused here, before any arithmetic."""
+    value = _req(obj, key, int if rng.integer else float, where)
+    try:
+        return rng.check(value, key)
+    except UserInputError:
+        pass
+    unit = f" {rng.unit}" if rng.unit else ""
+    shown = value if not isinstance(value, int) or abs(value) < 10**30 else f"{str(value)[:12]}..."
+    if isinstance(value, float) and not math.isfinite(value):
+        expected = f"a finite number in {rng.bounds()}{unit}"
+    elif value < rng.low:
+        expected = f"{'an integer ' if rng.integer else ''}>= {ranges.fmt(rng.low)}{unit}"
+    else:
+        expected = f"{'an integer ' if rng.integer else ''}<= {ranges.fmt(rng.high)}{unit}"
+    whose = f" for the {role}" if role else ""
+    raise UserInputError(f"catalog: field '{where}.{key}' = {shown}; expected {expected} "
+                         f"(allowed{whose}: {rng.bounds()}{unit})")
 
 
 def _autopilot(d: dict, role: str, where: str) -> dict[str, float] | None:
@@ -127,12 +151,12 @@ def _autopilot(d: dict, role: str, where: str) -> dict[str, float] | None:
         return None
     if not isinstance(ap, dict):
         raise UserInputError(f"catalog: '{where}.autopilot' must be an object with the fields "
-                             f"{', '.join(AUTOPILOT_MIN)}, got {type(ap).__name__}")
-    unknown = sorted(set(ap) - set(AUTOPILOT_MIN))
+                             f"{', '.join(AUTOPILOT_RANGES)}, got {type(ap).__name__}")
+    unknown = sorted(set(ap) - set(AUTOPILOT_RANGES))
     if unknown:
         raise UserInputError(f"catalog: unknown field(s) {', '.join(repr(k) for k in unknown)} in "
-                             f"'{where}.autopilot'; allowed: {', '.join(AUTOPILOT_MIN)}")
-    return {k: _number(ap, k, f"{where}.autopilot", lo) for k, lo in AUTOPILOT_MIN.items()}
+                             f"'{where}.autopilot'; allowed: {', '.join(AUTOPILOT_RANGES)}")
+    return {k: _number(ap, k, f"{where}.autopilot", rng, role) for k, rng in AUTOPILOT_RANGES.items()}
 
 
 def _vehicle(d: Any, where: str) -> VehicleSpec:
@@ -146,10 +170,10 @@ def _vehicle(d: Any, where: str) -> VehicleSpec:
     if len(color) != 3 or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and 0 <= c <= 1
                                   for c in color):
         raise UserInputError(f"catalog: '{where}.color' must be 3 numbers in 0..1, got {color}")
-    lane = _req(d, "lane", int, where)
-    next_lane = _req(d, "next_lane", int, where)
-    s, x, y = _number(d, "s", where), _number(d, "x", where), _number(d, "y", where)
-    yaw, speed = _number(d, "yaw", where), _number(d, "speed", where, 0.0)
+    lane, next_lane = _number(d, "lane", where, LANE, role), _number(d, "next_lane", where, LANE, role)
+    s = _number(d, "s", where, ranges.ARC_LENGTH, role)
+    x, y = _number(d, "x", where, ranges.COORDINATE, role), _number(d, "y", where, ranges.COORDINATE, role)
+    yaw, speed = _number(d, "yaw", where, ranges.YAW, role), _number(d, "speed", where, ranges.SPEED, role)
     r, g, b = (float(c) for c in color)
     return VehicleSpec(role, make, _req(d, "color_name", str, where), (r, g, b), lane,
                        s, x, y, yaw, speed, next_lane, _autopilot(d, role, where))
@@ -167,24 +191,18 @@ def parse_catalog(data: Any) -> Catalog:
     map_name = _req(data, "map", str, "catalog")
     if not map_name:
         raise UserInputError("catalog field 'map' is empty; expected the map's name (e.g. urban, highway)")
-    seed = _req(data, "seed", int, "catalog")
-    if seed < 0:
-        raise UserInputError(f"catalog field 'seed' = {seed}; expected an integer >= 0")
+    seed = _number(data, "seed", "catalog", ranges.SEED)
     scene_list = _req(data, "scenes", list, "catalog")
     if not scene_list:
         raise UserInputError("catalog field 'scenes' is empty: the catalog has no scenes")
     scenes = []
     for i, sd in enumerate(scene_list):
         where = f"scenes[{i}]"
-        index = _req(sd, "index", int, where)  # a subset (e.g. replay's one scene) keeps its scenes' indices
-        if index < 0:
-            raise UserInputError(f"catalog: '{where}.index' = {index}; expected an integer >= 0")
+        index = _number(sd, "index", where, INDEX)  # a subset (e.g. replay's one scene) keeps its scenes' indices
         scene_map = _req(sd, "map", str, where)
         if scene_map != map_name:
             raise UserInputError(f"catalog: '{where}.map' = '{scene_map}'; allowed: '{map_name}' (the catalog's map)")
-        scene_seed = _req(sd, "seed", int, where)
-        if scene_seed < 0:
-            raise UserInputError(f"catalog: '{where}.seed' = {scene_seed}; expected an integer >= 0")
+        scene_seed = _number(sd, "seed", where, ranges.SEED)
         vehicles = tuple(_vehicle(v, f"{where}.vehicles[{j}]")
                          for j, v in enumerate(_req(sd, "vehicles", list, where)))
         if not vehicles or vehicles[0].role != "ego":
@@ -193,7 +211,8 @@ def parse_catalog(data: Any) -> Catalog:
         if len(egos) > 1:
             raise UserInputError(f"catalog: '{where}.vehicles[{egos[1]}].role' = 'ego'; a scene has one ego, "
                                  f"vehicles[0]; allowed for the others: {', '.join(ROLES[1:])}")
-        scenes.append(Scene(index, scene_map, scene_seed, _number(sd, "signal_offset", where), vehicles))
+        offset = _number(sd, "signal_offset", where, ranges.SIGNAL_OFFSET)
+        scenes.append(Scene(index, scene_map, scene_seed, offset, vehicles))
     return Catalog(map_name, seed, backend, tuple(scenes))
 
 

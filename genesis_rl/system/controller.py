@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from genesis_rl import ranges
 from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import ActorState, VehicleControl
 from genesis_rl.system.protocol import Detection
@@ -41,6 +42,33 @@ class ControllerConfig:
     max_steer_deg: float = 35.0  # the vehicle's front wheel angle at steer = 1 [deg]
     throttle_accel: float = 3.0  # acceleration at full throttle (feed-forward gain) [m/s^2]
     full_brake_decel: float = 8.0  # deceleration at brake = 1 [m/s^2]
+
+    def __post_init__(self) -> None:
+        # env.system_kwargs.controller comes from a config file: each setting in its physical range
+        for name, rng in CONTROLLER_RANGES.items():
+            rng.check(getattr(self, name), f"system controller.{name} (env.system_kwargs.controller)")
+
+
+_R = ranges.Ranged
+#: the physical range of each controller setting (docs/reliability.md)
+CONTROLLER_RANGES: dict[str, ranges.Ranged] = {
+    "max_speed": _R(0.1, 70.0, "m/s"),
+    "speed_limit_margin": _R(0.0, 20.0, "m/s"),
+    "max_lateral_accel": _R(0.1, 15.0, "m/s^2"),
+    "time_gap": _R(0.0, 10.0, "s"),
+    "min_gap": _R(0.0, 100.0, "m"),
+    "max_accel": _R(0.01, 15.0, "m/s^2"),
+    "comfort_decel": _R(0.01, 15.0, "m/s^2"),
+    "max_decel": _R(0.1, 30.0, "m/s^2"),
+    "ttc_emergency": _R(0.0, 20.0, "s"),
+    "emergency_gap": _R(0.0, 100.0, "m"),
+    "path_half_width": _R(0.1, 20.0, "m"),
+    "perception_range": _R(1.0, 1000.0, "m"),
+    "track_hold_steps": _R(0, 1000, "steps", integer=True),
+    "max_steer_deg": _R(1.0, 89.0, "deg"),
+    "throttle_accel": _R(0.1, 30.0, "m/s^2"),
+    "full_brake_decel": _R(0.1, 30.0, "m/s^2"),
+}
 
 
 @dataclass

@@ -3,14 +3,64 @@ paper's values with units. ``train.algorithm`` picks the learner: PPO (the paper
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from genesis_rl import limits
+from genesis_rl import limits, ranges
 from genesis_rl.config import dump_toml, from_mapping, read_toml, to_mapping
 from genesis_rl.env.genesis_env import EnvConfig
 from genesis_rl.errors import UserInputError
+
+_R = ranges.Ranged
+#: a rollout or batch of 2**20 image steps is about 20 GB: beyond that a run cannot fit in memory
+_BIG_COUNT = 2**20
+#: the physical range of every numeric key of [ppo], [sac] and [train] (docs/reliability.md)
+PPO_RANGES: dict[str, ranges.Ranged] = {
+    "learning_rate": _R(1e-8, 1.0, note="SB3's 3e-4"),
+    "n_steps": _R(2, _BIG_COUNT, "steps", integer=True),
+    "batch_size": _R(2, _BIG_COUNT, "steps", integer=True),
+    "n_epochs": _R(1, 1000, integer=True),
+    "gamma": _R(1e-6, 1.0),
+    "gae_lambda": _R(1e-6, 1.0),
+    "clip_range": _R(1e-6, 10.0),
+    "ent_coef": _R(0.0, 100.0),
+    "vf_coef": _R(0.0, 100.0),
+    "max_grad_norm": _R(1e-6, 1e6),
+    "log_std_init": _R(-5.0, 2.0, note="std e^-5..e^2"),
+}
+SAC_RANGES: dict[str, ranges.Ranged] = {
+    "learning_rate": _R(1e-8, 1.0, note="SB3's 3e-4"),
+    "buffer_size": _R(1, 10_000_000, "transitions", integer=True),  # 10M image transitions: ~60 GB
+    "learning_starts": _R(0, limits.TIMESTEPS.default, "steps", integer=True),
+    "batch_size": _R(1, _BIG_COUNT, "transitions", integer=True),
+    "tau": _R(1e-6, 1.0),
+    "gamma": _R(1e-6, 1.0),
+    "train_freq": _R(1, 1_000_000, "steps", integer=True),
+    "gradient_steps": _R(1, 10_000, integer=True),
+}
+#: SAC's entropy coefficient X in 'X' or 'auto_X'
+SAC_ENT_COEF = _R(1e-6, 100.0)
+TRAIN_RANGES: dict[str, ranges.Ranged] = {
+    "total_timesteps": _R(1, 2**62, "env steps", integer=True),  # and at most limits.TIMESTEPS
+    "envs": _R(1, 64, "processes", integer=True),
+    "seed": _R(0, 2**32 - 1, integer=True, note="gymnasium's and SB3's seeding limit"),
+    "checkpoint_every": _R(1, 2**62, "env steps", integer=True),
+    "torch_threads": _R(0, 1024, "threads", integer=True, note="0: torch's default"),
+}
+
+
+def _check_types(section: str, obj: object, table: dict[str, ranges.Ranged]) -> None:
+    """Before the checks below compare them: each value an int (integer keys) or a number, never a bool."""
+    for k, rng in table.items():
+        ranges.check_type(getattr(obj, k), f"{section}.{k}", rng)
+
+
+def _check_ranges(section: str, obj: object, table: dict[str, ranges.Ranged]) -> None:
+    """After them: finite and within the key's physical range (what the checks above let through)."""
+    for k, rng in table.items():
+        rng.check(getattr(obj, k), f"{section}.{k}")
 
 
 @dataclass(frozen=True)
@@ -31,6 +81,7 @@ class PPOConfig:
     device: str = "auto"  # torch device for the policy: auto, cpu, cuda
 
     def __post_init__(self) -> None:
+        _check_types("ppo", self, PPO_RANGES)
         if self.n_steps < 2 or self.batch_size < 2:
             raise UserInputError(f"ppo.n_steps = {self.n_steps} and ppo.batch_size = {self.batch_size} must be >= 2")
         limits.BUFFER.check(self.n_steps, "ppo.n_steps")  # the rollout buffer is allocated whole, at once
@@ -48,6 +99,7 @@ class PPOConfig:
         for k in ("vf_coef", "ent_coef"):
             if not getattr(self, k) >= 0:
                 raise UserInputError(f"ppo.{k} = {getattr(self, k)} must be >= 0")
+        _check_ranges("ppo", self, PPO_RANGES)
         check_device("ppo", self.device)
 
     def check_device_present(self) -> None:
@@ -97,6 +149,7 @@ class SACConfig:
     device: str = "auto"
 
     def __post_init__(self) -> None:
+        _check_types("sac", self, SAC_RANGES)
         if not 0 < self.learning_rate < 1:
             raise UserInputError(f"sac.learning_rate = {self.learning_rate} must be in (0, 1)")
         if not 0 < self.gamma <= 1 or not 0 < self.tau <= 1:
@@ -105,20 +158,30 @@ class SACConfig:
             if getattr(self, k) < 1:
                 raise UserInputError(f"sac.{k} = {getattr(self, k)} must be >= 1")
         limits.BUFFER.check(self.buffer_size, "sac.buffer_size")  # the replay buffer is allocated whole, at once
-        if not self.net_arch or not all(1 <= n <= 4096 for n in self.net_arch):
-            raise UserInputError(f"sac.net_arch = {list(self.net_arch)}: expected 1 or more layer widths in 1..4096")
+        widths = self.net_arch
+        if not (isinstance(widths, tuple | list) and 1 <= len(widths) <= 16
+                and all(isinstance(n, int) and not isinstance(n, bool) and 1 <= n <= 4096 for n in widths)):
+            shown = list(widths) if isinstance(widths, tuple | list) else widths
+            raise UserInputError(f"sac.net_arch = {shown!r}: expected 1 or more layer widths in 1..4096 "
+                                 "(at most 16 layers)")
         if self.learning_starts < 0:
             raise UserInputError(f"sac.learning_starts = {self.learning_starts} must be >= 0")
+        if not isinstance(self.ent_coef, str):
+            raise UserInputError(f"sac.ent_coef = {self.ent_coef!r}; allowed: 'auto', 'auto_X' or 'X' (a string) "
+                                 f"with X in {SAC_ENT_COEF.bounds()}")
         if self.ent_coef != "auto":
             number = self.ent_coef.removeprefix("auto_")
             try:
-                ok = float(number) > 0
+                x = float(number)  # 'inf' and '1e308' parse: refused by the range
+                ok = math.isfinite(x) and SAC_ENT_COEF.low <= x <= SAC_ENT_COEF.high
             except ValueError:
                 ok = False
         else:
             ok = True
         if not ok:
-            raise UserInputError(f"sac.ent_coef = '{self.ent_coef}'; allowed: 'auto', 'auto_X' or 'X' with X > 0")
+            raise UserInputError(f"sac.ent_coef = '{self.ent_coef}'; allowed: 'auto', 'auto_X' or 'X' with X in "
+                                 f"{SAC_ENT_COEF.bounds()}")
+        _check_ranges("sac", self, SAC_RANGES)
         check_device("sac", self.device)
 
     def sb3_ent_coef(self) -> str | float:
@@ -140,6 +203,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
             raise UserInputError(f"train.algorithm = '{self.algorithm}'; allowed: {', '.join(ALGORITHMS)}")
+        _check_types("train", self, TRAIN_RANGES)
         if self.total_timesteps < 1:
             raise UserInputError(f"train.total_timesteps = {self.total_timesteps} must be >= 1")
         limits.TIMESTEPS.check(self.total_timesteps, "train.total_timesteps")
@@ -151,6 +215,7 @@ class TrainConfig:
             raise UserInputError(f"train.seed = {self.seed}; allowed: an integer in 0..{2**32 - 1}")
         if self.torch_threads < 0:
             raise UserInputError(f"train.torch_threads = {self.torch_threads} must be >= 0 (0: torch's default)")
+        _check_ranges("train", self, TRAIN_RANGES)
 
 
 @dataclass(frozen=True)
