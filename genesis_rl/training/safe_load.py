@@ -299,9 +299,9 @@ def read_sb3_state(path: Path, cfg: RunConfig, n_envs: int) -> dict[str, Any]:
             raise damaged(f"'{name}' has parts {sorted(parts) if isinstance(parts, dict) else '?'}")
         for k, space in want.items():
             arr = parts[k]
-            if arr.shape != (n_envs, *space.shape) or arr.dtype != space.dtype:
-                raise damaged(f"'{name}' {k} is {arr.dtype}{list(arr.shape)}; expected {space.dtype}"
-                              f"{[n_envs, *space.shape]}")
+            shape = (n_envs, *(space.shape or ()))
+            if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != space.dtype:
+                raise damaged(f"'{name}' {k} is not {space.dtype}{list(shape)}")
         return value
 
     try:
@@ -359,9 +359,10 @@ def read_replay_buffer(path: Path, buffer: Any) -> None:
                     raise damaged(f"'{name}' is missing or has other parts")
                 for k, arr in mine_parts.items():
                     got = theirs_parts[k]
-                    if got.shape != arr.shape or got.dtype != arr.dtype:
-                        raise damaged(f"'{name}' {k} is {got.dtype}{list(got.shape)}; the run's config makes "
-                                      f"{arr.dtype}{list(arr.shape)}")
+                    if not isinstance(arr, np.ndarray) or not isinstance(got, np.ndarray) or \
+                            got.shape != arr.shape or got.dtype != arr.dtype:
+                        raise damaged(f"'{name}' {k} is not what the run's config makes "
+                                      f"({getattr(arr, 'dtype', None)}{list(getattr(arr, 'shape', ()))})")
                 loaded[name] = theirs
             pos, full = z["pos"], z["full"]
             if pos.shape != () or full.shape != () or full.dtype != np.bool_ or not 0 <= int(pos) < buffer.buffer_size:
