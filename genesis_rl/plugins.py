@@ -42,6 +42,11 @@ def _trusted() -> set[str] | None:
     return {n for n in names if isinstance(n, str)} if isinstance(names, list) else set()
 
 
+def gate_held() -> bool:
+    """Whether a command holds the gate (in this process or the command's parent)."""
+    return GATE_VARIABLE in os.environ
+
+
 def _own(module: str) -> bool:
     return module == "genesis_rl" or module.startswith("genesis_rl.")
 

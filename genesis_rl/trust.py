@@ -19,10 +19,14 @@ import os
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 
+from genesis_rl.errors import UserInputError
 from genesis_rl.plugins import PLUGINS_VARIABLE, gate, import_modules, module_of
 
 #: Set to "1" while a command given ``--trust-pickle`` runs (and so in its spawned workers).
 PICKLE_VARIABLE = "GENESIS_RL_TRUST_PICKLE"
+
+#: Set while a command runs: a JSON list of the files its command line names (``--weights``), resolved.
+FILES_VARIABLE = "GENESIS_RL_NAMED_FILES"
 
 #: Subcommands that open an agent or a checkpoint, and so take ``--trust-pickle``.
 PICKLE_COMMANDS = ("train", "evaluate", "reactivity")
@@ -69,19 +73,46 @@ def named_modules(args: argparse.Namespace) -> set[str]:
 def trusted_for(args: argparse.Namespace) -> Iterator[None]:
     """Run a command under its own trust: the gate on imports, ``--trust-pickle`` or not (an ambient
     variable does not count), and the ``--plugin`` modules imported."""
-    saved = os.environ.pop(PICKLE_VARIABLE, None)
+    import json
+    from pathlib import Path
+
+    saved = {v: os.environ.pop(v, None) for v in (PICKLE_VARIABLE, FILES_VARIABLE)}
     if getattr(args, "trust_pickle", False):
         os.environ[PICKLE_VARIABLE] = "1"
+    weights = getattr(args, "weights", None)
+    os.environ[FILES_VARIABLE] = json.dumps([str(Path(weights).resolve())] if isinstance(weights, str) else [])
     try:
         with gate(named_modules(args)):
             import_modules(plugin_modules(args), "--plugin")
             yield
     finally:
-        os.environ.pop(PICKLE_VARIABLE, None)
-        if saved is not None:
-            os.environ[PICKLE_VARIABLE] = saved
+        for variable, value in saved.items():
+            os.environ.pop(variable, None)
+            if value is not None:
+                os.environ[variable] = value
 
 
 def pickle_trusted() -> bool:
     """Whether this command was given ``--trust-pickle`` (in this process or the command's parent)."""
     return os.environ.get(PICKLE_VARIABLE) == "1"
+
+
+def check_pickle_file(path: str | os.PathLike[str], what: str) -> None:
+    """Refuse to load ``path``, a file format that is a pickle (a YOLO ``.pt``), unless the command line
+    names it (``--weights``), the command has ``--trust-pickle``, or no command runs (the Python API): a path
+    read from a run's config.toml, a campaign.json or a record is not reason enough to run what it holds."""
+    import json
+    from pathlib import Path
+
+    text = os.environ.get(FILES_VARIABLE)
+    if text is None or pickle_trusted():
+        return
+    try:
+        named = set(json.loads(text))
+    except (ValueError, TypeError):
+        named = set()
+    if str(Path(path).resolve()) in named:
+        return
+    raise UserInputError(f"{what} '{path}' comes from a file (a run's config.toml, a campaign.json or a record), "
+                         "and loading it unpickles it, which runs any code it holds: pass --weights PATH on the "
+                         "command line, or --trust-pickle where the command has it, if you trust the file")

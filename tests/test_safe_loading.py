@@ -263,3 +263,43 @@ def test_a_rule_by_import_path_loads_from_the_command_line(catalog, tmp_path, mo
     capsys.readouterr()
     row = json.loads(next((tmp_path / "c" / "episodes" / "sunny").glob("*.json")).read_text())
     assert list(row["violations"]) == ["collision", "speeding", "proximity"]
+
+
+def test_an_import_path_in_a_record_is_refused(tmp_path, monkeypatch, capsys) -> None:
+    """A shared edge-case record names its system and its rules; ``replay`` imported an import path found
+    there. It is refused before anything is imported, naming --plugin."""
+    marker = _evil_module(tmp_path, monkeypatch, "evil_rec")
+    source = Path(__file__).parent / "data" / "campaign_0.4.0" / "records" / "sunny_scene_0000.json"
+    record = json.loads(source.read_text())
+    record["system"]["spec"] = "evil_rec:System"
+    path = tmp_path / "record.json"
+    path.write_text(json.dumps(record))
+    assert main(["replay", str(path), "--out", str(tmp_path / "r1"), "--no-gif", "--quiet"]) == 2
+    assert "--plugin evil_rec" in capsys.readouterr().err
+    record = json.loads(source.read_text())
+    record["rulebook"][2] = {"priority": 3, "name": "speeding", "params": {}, "path": "evil_rec:System"}
+    path.write_text(json.dumps(record))
+    assert main(["replay", str(path), "--out", str(tmp_path / "r2"), "--no-gif", "--quiet"]) == 2
+    assert "--plugin evil_rec" in capsys.readouterr().err
+    assert not marker.exists()
+
+
+def test_yolo_weights_a_file_names_are_not_unpickled(tmp_path) -> None:
+    """A YOLO .pt file is a pickle (ultralytics loads it so): a weights path read from a run's config, a
+    campaign or a record is refused unless the command line names it (--weights) or --trust-pickle."""
+    import argparse
+
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.system.yolo_adapter import YoloSystem
+    from genesis_rl.trust import check_pickle_file, trusted_for
+
+    marker = tmp_path / "ran"
+    weights = tmp_path / "shared.pt"
+    weights.write_bytes(pickle.dumps(_Payload(marker)))
+    with trusted_for(argparse.Namespace()), pytest.raises(UserInputError, match="runs any code it holds"):
+        YoloSystem(weights=str(weights))
+    assert not marker.exists()
+    with trusted_for(argparse.Namespace(weights=str(weights))):
+        check_pickle_file(weights, "YOLO weights file")  # named now: the user's choice
+    with trusted_for(argparse.Namespace(trust_pickle=True)):
+        check_pickle_file(weights, "YOLO weights file")

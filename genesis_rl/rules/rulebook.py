@@ -334,3 +334,20 @@ def load_rulebook(path: str | Path) -> Rulebook:
     if unknown:
         raise UserInputError(f"rulebook '{path}': unknown key(s) {sorted(unknown)}; allowed: rules")
     return build_rulebook(data.get("rules", []), str(path))
+
+
+def check_rulebook_imports(path: str | Path, where: str = "env.rulebook") -> None:
+    """Hold the import paths a rulebook file names to the command's gate (genesis_rl/plugins.py) without
+    importing anything: where the envs run elsewhere (Ray actors), the parent refuses them first. A rulebook
+    that does not parse is left for the env to report."""
+    from genesis_rl.config import read_toml
+    from genesis_rl.plugins import check_import
+
+    try:
+        rules = read_toml(path, "rulebook").get("rules", [])
+    except UserInputError:
+        return
+    for rule in rules if isinstance(rules, list) else []:
+        name = rule.get("name") if isinstance(rule, dict) else None
+        if isinstance(name, str) and ":" in name and name not in RULES:
+            check_import(name.partition(":")[0], f"{where} '{path}': rule '{name}'")
