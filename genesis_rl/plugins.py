@@ -51,6 +51,12 @@ def _own(module: str) -> bool:
     return module == "genesis_rl" or module.startswith("genesis_rl.")
 
 
+def import_allowed(module: str) -> bool:
+    """Whether :func:`check_import` lets ``module`` in."""
+    trusted = _trusted()
+    return trusted is None or _own(module) or module in trusted
+
+
 def check_import(module: str, what: str) -> None:
     """Refuse to import ``module`` (named by ``what``, e.g. "system 'evil:Sys'") unless no gate is held, it
     is the package's own, or the user named it on the command line of this command."""

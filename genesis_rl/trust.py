@@ -62,7 +62,7 @@ def named_modules(args: argparse.Namespace) -> set[str]:
     paths given to ``--system``, ``--backend`` and ``--policies``."""
     names = set(plugin_modules(args))
     names |= {n.strip() for n in os.environ.get(PLUGINS_VARIABLE, "").split(",") if n.strip()}
-    for flag in ("system", "backend", "policies"):
+    for flag in ("system", "backend", "policies", "policy"):
         value = getattr(args, flag, None)
         if isinstance(value, str):
             names |= {m for m in (module_of(v.strip()) for v in value.split(",")) if m}

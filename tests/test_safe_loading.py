@@ -263,6 +263,11 @@ def test_a_rule_by_import_path_loads_from_the_command_line(catalog, tmp_path, mo
     capsys.readouterr()
     row = json.loads(next((tmp_path / "c" / "episodes" / "sunny").glob("*.json")).read_text())
     assert list(row["violations"]) == ["collision", "speeding", "proximity"]
+    # reporting the shared campaign needs none of its code: the rule as stored (name, unit) is enough
+    monkeypatch.delenv("GENESIS_RL_PLUGINS")
+    assert main(["report", str(tmp_path / "c"), "--force"]) == 0
+    capsys.readouterr()
+    assert "speeding [m/s]" in (tmp_path / "c" / "report.html").read_text()
 
 
 def test_an_import_path_in_a_record_is_refused(tmp_path, monkeypatch, capsys) -> None:

@@ -116,7 +116,7 @@ def _read_zip(path: Path, what: str) -> tuple[dict[str, Any], dict[str, bytes]]:
     except UserInputError:
         raise
     except (OSError, zipfile.BadZipFile, UnicodeDecodeError, ValueError, RecursionError) as err:
-        raise UserInputError(f"{what}: '{path}' cannot be read as an SB3 agent: {err}") from None
+        raise UserInputError(f"{what}: '{path}' cannot be loaded as an SB3 agent: {err}") from None
     if not isinstance(data, dict):
         raise UserInputError(f"{what}: '{path}': its 'data' is not a JSON object")
     return data, pth
