@@ -44,7 +44,7 @@ MAX_DATA_BYTES = 256 * 1024 * 1024
 _COUNTERS: dict[str, tuple[type, float, float]] = {
     "num_timesteps": (int, 0, 2**62), "_total_timesteps": (int, 0, 2**62), "_num_timesteps_at_start": (int, 0, 2**62),
     "_episode_num": (int, 0, 2**62), "_n_updates": (int, 0, 2**62), "_current_progress_remaining": (float, 0.0, 1.0),
-    "start_time": (int, 0, 2**63 - 1), "_stats_window_size": (int, 1, 100_000),
+    "start_time": (float, 0, 2**63 - 1), "_stats_window_size": (int, 1, 100_000),  # start_time: ns, or 0.0
 }
 #: The tensors files each learner's zip holds (policy and optimizers) besides pytorch_variables.pth.
 _STATE_DICTS = {"ppo": {"policy", "policy.optimizer"},
@@ -52,6 +52,84 @@ _STATE_DICTS = {"ppo": {"policy", "policy.optimizer"},
 _VARIABLES = {"ppo": set(), "sac": {"log_ent_coef", "ent_coef_tensor"}}
 TRUST_HINT = ("pass --trust-pickle to load it the old way if you trust whoever made the file (unpickling runs any "
               "code it holds)")
+
+
+#: Classes a stored ``policy_kwargs`` may name (SB3 writes a readable ``<class '...'>`` beside each pickle):
+#: matched by their full name, never imported from the file.
+_KWARG_CLASSES = {
+    "features_extractor_class": ("stable_baselines3.common.torch_layers.NatureCNN",
+                                 "stable_baselines3.common.torch_layers.FlattenExtractor",
+                                 "stable_baselines3.common.torch_layers.CombinedExtractor",
+                                 "genesis_rl.training.throughput.ChannelsLastNatureCNN"),
+    "activation_fn": tuple(f"torch.nn.modules.activation.{n}" for n in ("Tanh", "ReLU", "ELU", "LeakyReLU", "GELU",
+                                                                         "SiLU")),
+    "optimizer_class": ("torch.optim.adam.Adam", "torch.optim.adamw.AdamW", "torch.optim.rmsprop.RMSprop"),
+}
+_KWARG_SCALARS = {"log_std_init": float, "use_sde": bool, "ortho_init": bool, "normalize_images": bool,
+                  "share_features_extractor": bool, "squash_output": bool, "full_std": bool, "use_expln": bool,
+                  "n_critics": int, "clip_mean": float}
+
+
+def _class_named(text: Any, allowed: tuple[str, ...]) -> type | None:
+    import importlib
+    import re
+
+    match = re.fullmatch(r"<class '([\w.]+)'>", text) if isinstance(text, str) else None
+    if match is None or match.group(1) not in allowed:
+        return None
+    module, _, name = match.group(1).rpartition(".")
+    return getattr(importlib.import_module(module), name, None)  # a fixed list of the package's and SB3's own
+
+
+def stored_policy_kwargs(data: dict[str, Any], path: Path, what: str) -> dict[str, Any] | None:
+    """The ``policy_kwargs`` the model in ``data`` was built with, read from their JSON (the readable copy SB3
+    writes beside the pickle) and an allow-list of classes and scalar settings; None when the file has none."""
+    stored = data.get("policy_kwargs")
+    if stored is None or isinstance(stored, dict) and not set(stored) - {":type:", ":serialized:"}:
+        return None  # none, or a pickle with no readable copy: the config's
+    if not isinstance(stored, dict):
+        raise UserInputError(f"{what}: '{path}': data['policy_kwargs'] is not a table")
+    out: dict[str, Any] = {}
+
+    def refuse(key: str) -> UserInputError:
+        return UserInputError(f"{what}: '{path}': policy_kwargs['{key}'] = {str(stored[key])[:80]!r} is not one "
+                              f"genesis-rl rebuilds without unpickling; {TRUST_HINT}")
+
+    def numbers(value: Any) -> bool:
+        return isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096
+                                               for v in value)
+
+    for key, value in stored.items():
+        if key in (":type:", ":serialized:"):
+            continue
+        if key in _KWARG_CLASSES:
+            cls = _class_named(value, _KWARG_CLASSES[key])
+            if cls is None:
+                raise refuse(key)
+            out[key] = cls
+        elif key in _KWARG_SCALARS:
+            kind = _KWARG_SCALARS[key]
+            ok = isinstance(value, bool) if kind is bool else (
+                isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value))
+            if not ok:
+                raise refuse(key)
+            out[key] = kind(value)
+        elif key == "net_arch":
+            if numbers(value):
+                out[key] = list(value)
+            elif isinstance(value, dict) and set(value) <= {"pi", "vf", "qf"} and all(map(numbers, value.values())):
+                out[key] = {k: list(v) for k, v in value.items()}
+            else:
+                raise refuse(key)
+        elif key in ("optimizer_kwargs", "features_extractor_kwargs"):
+            if not isinstance(value, dict) or not all(
+                    isinstance(k, str) and (isinstance(v, (bool, int)) or isinstance(v, float) and math.isfinite(v))
+                    for k, v in value.items()):
+                raise refuse(key)
+            out[key] = dict(value)
+        else:
+            raise refuse(key)
+    return out
 
 
 def learner_kwargs(cfg: RunConfig, policy: str) -> dict[str, Any]:
@@ -188,9 +266,12 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
     policy = sb3_policy(cfg.env.observation_mode)
     settings = learner_kwargs(cfg, policy)
     obs_space, action_space = model_spaces(cfg)
+    built = settings.pop("policy_kwargs")
+    stored = stored_policy_kwargs(data, path, what)  # what the weights were made with (an older version's)
     custom: dict[str, Any] = {
         "policy_class": cls.policy_aliases[policy], "observation_space": obs_space, "action_space": action_space,
-        "policy_kwargs": {**settings.pop("policy_kwargs"), **({"use_sde": False} if algorithm == "sac" else {})},
+        "policy_kwargs": stored if stored is not None else {**built, **({"use_sde": False} if algorithm == "sac"
+                                                                        else {})},
         "lr_schedule": None,  # SB3 remakes it from learning_rate
         "_last_obs": None, "_last_original_obs": None, "_last_episode_starts": None,
         "ep_info_buffer": None, "ep_success_buffer": None,
