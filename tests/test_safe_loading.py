@@ -308,3 +308,26 @@ def test_yolo_weights_a_file_names_are_not_unpickled(tmp_path) -> None:
         check_pickle_file(weights, "YOLO weights file")  # named now: the user's choice
     with trusted_for(argparse.Namespace(trust_pickle=True)):
         check_pickle_file(weights, "YOLO weights file")
+
+
+def test_an_agent_naming_a_class_outside_the_allow_list_is_refused(runs, tmp_path, monkeypatch) -> None:
+    """The network's classes are read from the readable copy SB3 stores beside its pickle, by full name from a
+    fixed list: a file naming another class (here a module that would run code at import) is refused, naming
+    --trust-pickle, and nothing is imported."""
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.evaluation.policies import load_agent
+
+    marker = _evil_module(tmp_path, monkeypatch, "evil_kwargs")
+    run = _copy_run(runs["ppo"], tmp_path / "shared")
+    zip_path = run / "agent.zip"
+    with zipfile.ZipFile(zip_path) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    data = json.loads(members["data"])
+    data["policy_kwargs"] = {**_pickled(tmp_path / "ran"), "features_extractor_class": "<class 'evil_kwargs.System'>"}
+    members["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(zip_path, "w") as z:
+        for name, blob in members.items():
+            z.writestr(name, blob)
+    with pytest.raises(UserInputError, match=r"policy_kwargs\['features_extractor_class'\].*--trust-pickle"):
+        load_agent(run)
+    assert not marker.exists() and not (tmp_path / "ran").exists()
