@@ -85,7 +85,8 @@ def stored_policy_kwargs(data: dict[str, Any], path: Path, what: str) -> dict[st
     """The ``policy_kwargs`` the model in ``data`` was built with, read from their JSON (the readable copy SB3
     writes beside the pickle) and an allow-list of classes and scalar settings; None when the file has none."""
     stored = data.get("policy_kwargs")
-    if stored is None or isinstance(stored, dict) and not set(stored) - {":type:", ":serialized:"}:
+    if stored is None or isinstance(stored, dict) and ":serialized:" in stored and \
+            not set(stored) - {":type:", ":serialized:"}:
         return None  # none, or a pickle with no readable copy: the config's
     if not isinstance(stored, dict):
         raise UserInputError(f"{what}: '{path}': data['policy_kwargs'] is not a table")
