@@ -26,6 +26,7 @@ from genesis_rl.cli_args import add_odd_arguments, add_scale_arguments, odd_over
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import os_error_message
 from genesis_rl.plugins import import_env_plugins
+from genesis_rl.trust import add_trust_arguments, trusted_for
 
 
 def _weather_help() -> str:
@@ -483,6 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     for choice in sub._choices_actions:  # each subcommand's own --help opens with its one-line summary
         page = sub.choices[choice.dest]
         page.description = page.description or choice.help
+    add_trust_arguments(sub.choices)
     return p
 
 
@@ -495,7 +497,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args))
+        with trusted_for(args):  # only what this command line names is imported or unpickled
+            return int(args.func(args))
     except UserInputError as err:
         print(f"genesis-rl {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code

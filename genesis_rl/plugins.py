@@ -3,6 +3,14 @@ errors for every kind of plug-in (systems under test, weather policies, backends
 
 Each kind keeps its built-in names (``builtin``, ``lite``, ...) in a table of import paths; a user's own
 class is named the same way, so nothing of the package is edited to add one.
+
+Importing a module runs its code, so the command line decides what may be imported (docs/reliability.md,
+"Safe loading"): while a command runs, :func:`gate` holds the modules the user named *now* (``--plugin``,
+``GENESIS_RL_PLUGINS``, an import path given to ``--system``, ``--backend`` or ``--policies``), and an import path
+read from a file (a run's config.toml, a campaign.json, a record, a rulebook) resolves only to those modules
+or the package's own; anything else is refused, naming ``--plugin``. Spawned worker processes inherit the
+gate through the environment. Outside a command (the Python API) nothing is gated: the caller runs code
+already.
 """
 
 from __future__ import annotations
@@ -14,6 +22,77 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from genesis_rl.errors import UserInputError
+
+#: Environment variable that carries the gate into spawned worker processes: a JSON list of the trusted
+#: modules (set only while a command runs; absent: no gate).
+GATE_VARIABLE = "GENESIS_RL_TRUSTED_MODULES"
+
+
+def _trusted() -> set[str] | None:
+    """The modules the user named for this command, or None when no command holds the gate."""
+    import json
+
+    text = os.environ.get(GATE_VARIABLE)
+    if text is None:
+        return None
+    try:
+        names = json.loads(text)
+    except ValueError:
+        return set()
+    return {n for n in names if isinstance(n, str)} if isinstance(names, list) else set()
+
+
+def gate_held() -> bool:
+    """Whether a command holds the gate (in this process or the command's parent)."""
+    return GATE_VARIABLE in os.environ
+
+
+def _own(module: str) -> bool:
+    return module == "genesis_rl" or module.startswith("genesis_rl.")
+
+
+def import_allowed(module: str) -> bool:
+    """Whether :func:`check_import` lets ``module`` in."""
+    trusted = _trusted()
+    return trusted is None or _own(module) or module in trusted
+
+
+def check_import(module: str, what: str) -> None:
+    """Refuse to import ``module`` (named by ``what``, e.g. "system 'evil:Sys'") unless no gate is held, it
+    is the package's own, or the user named it on the command line of this command."""
+    trusted = _trusted()
+    if trusted is None or _own(module) or module in trusted:
+        return
+    raise UserInputError(f"{what}: module '{module}' is not one the command line names; an import path read "
+                         "from a file (a run's config.toml, a campaign.json, a record or a rulebook) is not "
+                         f"imported, since importing runs its code: pass --plugin {module} if you trust it")
+
+
+def module_of(spec: str) -> str | None:
+    """The module of an import path ``package.module:Class`` (None for a plain name)."""
+    return spec.partition(":")[0] if ":" in spec else None
+
+
+class gate:  # noqa: N801 - used as a context manager, like a function
+    """While a command runs: only ``modules`` (and the package's own) may be imported by a name from a file.
+    Nested gates add their modules; leaving restores the previous state (the environment variable)."""
+
+    def __init__(self, modules: Iterable[str]) -> None:
+        self.modules = sorted({m for m in modules if m})
+        self.saved: str | None = None
+
+    def __enter__(self) -> gate:
+        import json
+
+        self.saved = os.environ.get(GATE_VARIABLE)
+        os.environ[GATE_VARIABLE] = json.dumps(sorted(set(self.modules) | (_trusted() or set())))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.saved is None:
+            os.environ.pop(GATE_VARIABLE, None)
+        else:
+            os.environ[GATE_VARIABLE] = self.saved
 
 
 def load_class(spec: str, kind: str, builtins: Mapping[str, str], *, base: type | None = None,
@@ -31,6 +110,8 @@ def load_class(spec: str, kind: str, builtins: Mapping[str, str], *, base: type 
         raise UserInputError(f"{kind} '{spec}' is not an import path 'package.module:Class' nor a built-in "
                              f"({', '.join(builtins)})")
     module_name, _, class_name = path.partition(":")
+    if spec not in builtins:
+        check_import(module_name, f"{kind} '{spec}'")
     try:
         module = importlib.import_module(module_name)
     except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
@@ -58,11 +139,14 @@ def user_modules(classes: Iterable[type], modules: Iterable[str] = ()) -> list[s
                   and m not in ("__main__", "__mp_main__"))
 
 
-def import_modules(names: Iterable[str], field: str = "plugins") -> None:
+def import_modules(names: Iterable[str], field: str = "plugins", *, checked: bool = True) -> None:
     """Import each module: user modules that register plug-ins at import (``register_knob``,
     ``@register_policy``, ``@register_rule``), named by ``env.plugins`` or ``GENESIS_RL_PLUGINS``, and, in a
-    worker process, those its parent had imported. ``field`` names the setting in errors."""
+    worker process, those its parent had imported (``checked=False``: the parent's gate let them in; the
+    names come from its memory, not from a file). ``field`` names the setting in errors."""
     for name in names:
+        if checked:
+            check_import(name, field)
         try:
             importlib.import_module(name)
         except Exception as err:  # noqa: BLE001 - any import failure is the user's to see

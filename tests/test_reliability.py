@@ -372,7 +372,7 @@ def test_a_resumed_sac_run_matches_an_uninterrupted_one(tmp_path, capsys) -> Non
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert main(["train", "--config", str(config), "--out", str(whole), "--quiet"]) == 0
     assert main(["train", "--config", str(config), "--out", str(cut), "--steps", "32", "--quiet"]) == 0
-    assert [p.name for p in (cut / "checkpoints").glob("*.replay.pkl")] == ["step_00000032.replay.pkl"]
+    assert [p.name for p in (cut / "checkpoints").glob("*.replay.npz")] == ["step_00000032.replay.npz"]
     assert main(["train", "--out", str(cut), "--resume", "--steps", "64", "--quiet"]) == 0
     capsys.readouterr()
     a, b = _sac_state(whole / "agent.zip"), _sac_state(cut / "agent.zip")
@@ -384,10 +384,10 @@ def test_a_resumed_sac_run_matches_an_uninterrupted_one(tmp_path, capsys) -> Non
     assert float(a["log_ent_coef"]) != 0.0  # the entropy coefficient was learned (it starts at log 1 = 0)
     assert (cut / "episodes.csv").read_text() == (whole / "episodes.csv").read_text()
     # the loose replay buffer is what resume needs: without it the run says so, exit 2
-    for p in (cut / "checkpoints").glob("*.replay.pkl"):
+    for p in (cut / "checkpoints").glob("*.replay.npz"):
         p.unlink()
     assert main(["train", "--out", str(cut), "--resume", "--steps", "80", "--quiet"]) == 2
-    assert "replay.pkl missing" in capsys.readouterr().err
+    assert "replay.npz missing" in capsys.readouterr().err
 
 
 def test_evaluate_plays_a_sac_agent(tmp_path, capsys) -> None:
@@ -400,9 +400,13 @@ def test_evaluate_plays_a_sac_agent(tmp_path, capsys) -> None:
 
     model = load_agent(run)
     assert type(model).__name__ == "SAC"
-    loose = tmp_path / "loose.zip"  # no run config beside it: tried as PPO, then as SAC
+    loose = tmp_path / "loose.zip"  # no run config beside it: only through pickle, so only when trusted
     loose.write_bytes((run / "agent.zip").read_bytes())
-    assert type(load_agent(loose)).__name__ == "SAC"
+    with pytest.raises(UserInputError, match="--trust-pickle"):
+        load_agent(loose)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GENESIS_RL_TRUST_PICKLE", "1")  # what --trust-pickle sets: tried as PPO, then as SAC
+        assert type(load_agent(loose)).__name__ == "SAC"
     out = tmp_path / "eval"
     assert main(["evaluate", "--agent", str(run), "--policies", "agent", "--scenes", "2", "--steps", "12",
                  "--no-report", "--quiet", "--out", str(out)]) == 0

@@ -27,12 +27,12 @@ from genesis_rl.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, pars
 from genesis_rl.odd.conditions import conditions_model
 from genesis_rl.odd.domain import ODD, check_start, load_odd
 from genesis_rl.odd.dynamics import DYNAMICS, WeatherModel, max_deltas
-from genesis_rl.plugins import import_modules
+from genesis_rl.plugins import check_import, gate_held, import_modules
 from genesis_rl.rules.reward import PaperReward, RewardConfig
-from genesis_rl.rules.rulebook import Rulebook, rulebook_for
+from genesis_rl.rules.rulebook import Rulebook, check_rulebook_imports, rulebook_for
 from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, CameraConfig, ConnectionSettings, Simulation
 from genesis_rl.step_record import StepRecord
-from genesis_rl.system.protocol import load_system
+from genesis_rl.system.protocol import BUILTIN_SYSTEMS, load_system
 from genesis_rl.viz.frames import annotate_frame
 
 ENV_ID = "genesis_rl/Weather-v0"
@@ -98,6 +98,10 @@ class EnvConfig:
         import_modules(self.plugins, "env.plugins")  # before the knob checks below
         for k, rng in ENV_RANGES.items():  # an int or a number before the comparisons below
             ranges.check_type(getattr(self, k), f"env.{k}", rng)
+        if self.system not in BUILTIN_SYSTEMS and ":" in self.system:  # refused here, before env processes start
+            check_import(self.system.partition(":")[0], f"env.system '{self.system}'")
+        if self.rulebook is not None and gate_held():
+            check_rulebook_imports(self.rulebook)
         if self.episode_steps < 1:
             raise UserInputError(f"env.episode_steps = {self.episode_steps} must be >= 1")
         limits.SIM_STEPS.check(self.episode_steps, "env.episode_steps")  # corners/train --steps 10**12: years

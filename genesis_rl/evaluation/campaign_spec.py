@@ -18,6 +18,7 @@ from genesis_rl.config import read_toml
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.policies import PolicyContext, agent_file, load_agent, resolve_policy
 from genesis_rl.knobs import PAPER_KNOBS
+from genesis_rl.plugins import check_import
 
 
 @dataclass(frozen=True)
@@ -165,6 +166,9 @@ def check_spec(spec: CampaignSpec) -> None:
         raise UserInputError(f"--steps = {spec.steps} must be >= 1")
     if spec.records not in ("failures", "all"):
         raise UserInputError(f"records = '{spec.records}' is unknown; allowed: failures, all")
+    plugins = spec.env.get("plugins") or ()
+    for name in [plugins] if isinstance(plugins, str) else plugins:  # imported by every worker: checked here
+        check_import(str(name), "env.plugins")
     for name in spec.policies:
         cls = resolve_policy(name)
         if cls.needs_agent and not spec.agent:

@@ -167,24 +167,25 @@ def agent_file(path: Path) -> Path | None:
     return next((p for p in _agent_candidates(Path(path)) if p.is_file()), None)
 
 
-def _run_algorithm(agent: Path) -> str | None:
-    """``train.algorithm`` of the run an agent file belongs to (its folder, or the folder above checkpoints/);
-    None for a loose file."""
+def _run_config(agent: Path) -> Any:
+    """The checked config of the run an agent file belongs to (its folder, or the folder above
+    checkpoints/); None for a loose file."""
     from genesis_rl.training.config import load_run_config
 
     for folder in (agent.parent, agent.parent.parent):
         if (folder / "config.toml").is_file():
             try:
-                return load_run_config(folder / "config.toml").train.algorithm
-            except UserInputError:
-                return None
+                return load_run_config(folder / "config.toml")
+            except UserInputError as err:
+                raise UserInputError(f"--agent: the run's config '{folder / 'config.toml'}': {err}") from None
     return None
 
 
 def load_agent(path: Path | None) -> Any:
     """A trained agent (PPO or SAC) from a run folder (its ``agent.zip``, else its last checkpoint) or a .zip
-    file; the run's config names the learner, a loose file is tried as PPO then SAC."""
-    from stable_baselines3 import PPO, SAC
+    file, rebuilt from its run's config.toml and the file's tensors: nothing in the file is unpickled
+    (training/safe_load.py); a loose file without its run's config loads only with ``--trust-pickle``."""
+    from genesis_rl.training.safe_load import load_model
 
     if path is None:
         raise UserInputError("policy 'agent' needs a trained agent: pass --agent runs/NAME")
@@ -194,15 +195,7 @@ def load_agent(path: Path | None) -> Any:
         candidates = _agent_candidates(path)
         raise UserInputError(f"--agent '{path}' holds no trained agent (looked for "
                              f"{', '.join(str(c) for c in candidates)}); train one with genesis-rl train")
-    learners: dict[str, Any] = {"ppo": PPO, "sac": SAC}
-    algorithm = _run_algorithm(found)
-    errors = []
-    for name in [algorithm] if algorithm else list(learners):
-        try:
-            return learners[name].load(found, device="cpu")
-        except Exception as err:  # noqa: BLE001 - a corrupt zip raises many kinds
-            errors.append(f"as {name.upper()}: {err}")
-    raise UserInputError(f"--agent: '{found}' cannot be loaded ({'; '.join(errors)})") from None
+    return load_model(found, _run_config(found), device="cpu", what="--agent")
 
 
 @register_policy

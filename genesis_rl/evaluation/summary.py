@@ -29,7 +29,7 @@ def campaign_rulebook(meta: dict[str, Any], rows: dict[str, list[dict[str, Any]]
     rules were all built in) rebuilt from the rule names of its episode rows."""
     stored = meta.get("identity", {}).get("rulebook")
     if stored:
-        return build_rulebook(stored, "campaign.json identity.rulebook")
+        return build_rulebook(stored, "campaign.json identity.rulebook", stored_only=True)
     first = next((eps[0] for eps in rows.values() if eps), None)
     names = list(first["violations"]) if first else ["collision", "proximity", "rss_deficit"]
     return build_rulebook([{"name": n} for n in names], "campaign rulebook")

@@ -37,7 +37,7 @@ def init_worker(spec_json: dict[str, Any], folder: str, torch_threads: int, plug
                 env_settings: dict[str, Any] | None = None) -> None:
     """Set this process up as a worker writing into ``folder``; ``env_settings`` are its own env keys (its
     CARLA server)."""
-    import_modules(plugins)
+    import_modules(plugins, checked=False)  # what the parent imported, through its gate
     torch.set_num_threads(torch_threads)
     _WORKER.clear()
     _WORKER.update(spec=CampaignSpec.from_json(spec_json), folder=Path(folder), runner=None, policies={},

@@ -266,10 +266,44 @@ class Rulebook:
         return out
 
 
-def build_rulebook(entries: Sequence[Mapping[str, Any]], source: str = "rulebook") -> Rulebook:
+class StoredRule(Rule):
+    """A plug-in rule a campaign names but this command may not import (its module is not on the command
+    line): its name, unit and parameters as stored, enough to summarise and report the campaign's rows; it
+    scores nothing."""
+
+    stored_path: ClassVar[str] = ""
+
+    @classmethod
+    def import_path(cls) -> str | None:
+        return cls.stored_path
+
+    def term(self, record: StepRecord) -> float:
+        raise UserInputError(f"rule '{self.name}' is a plug-in this command did not import; pass --plugin with "
+                             "its module to score with it")
+
+
+def _stored_rule_class(entry: Mapping[str, Any], path: str, where: str) -> type[Rule]:
+    unit, in_total, params = entry.get("unit", ""), entry.get("in_total", True), entry.get("params", {})
+    if not isinstance(unit, str) or not isinstance(in_total, bool) or not isinstance(params, Mapping):
+        raise UserInputError(f"{where}: a stored plug-in rule needs a string unit, a boolean in_total and a "
+                             "params table")
+    name = str(entry.get("name"))
+    fields = [(str(k), float, dataclasses.field(default=0.0)) for k in params]
+    cls = dataclasses.make_dataclass(f"Stored_{name}"[:60], fields, bases=(StoredRule,), frozen=True, namespace={
+        "name": name, "unit": unit, "in_total": in_total, "stored_path": path,
+        "description": f"{name} (plug-in {path}, not imported) [{unit}]"})
+    return _as_rule_class(cls, f"{where}: rule '{name}'")
+
+
+def build_rulebook(entries: Sequence[Mapping[str, Any]], source: str = "rulebook",
+                   stored_only: bool = False) -> Rulebook:
     """Rules from ``[{name, priority?, params?, path?}]``; ``name`` is a registered rule or an import path
     ``package.module:Class`` (``path``, as ``describe`` writes it, takes precedence). Sorted by priority
-    (1 = highest), else given order; priorities must be distinct."""
+    (1 = highest), else given order; priorities must be distinct. ``stored_only``: a campaign's stored
+    rulebook, read to summarise it: a plug-in rule whose module the command may not import becomes a
+    :class:`StoredRule` instead of an error."""
+    from genesis_rl.plugins import import_allowed, module_of
+
     if not isinstance(entries, list | tuple):
         raise UserInputError(f"{source}: `rules` must be a list of tables ([[rules]]), got {type(entries).__name__}")
     rules: list[tuple[int, int, Rule]] = []
@@ -284,7 +318,12 @@ def build_rulebook(entries: Sequence[Mapping[str, Any]], source: str = "rulebook
         if not isinstance(name, str):
             raise UserInputError(f"{where}: name = {name!r}; allowed: {', '.join(sorted(RULES))} or "
                                  "package.module:Class")
-        cls = rule_class(entry.get("path") or name, where)
+        spec = entry.get("path") or name
+        module = module_of(spec) if isinstance(spec, str) and spec not in RULES else None
+        if stored_only and module is not None and not import_allowed(module):
+            cls = _stored_rule_class(entry, str(spec), where)
+        else:
+            cls = rule_class(spec, where)
         params = entry.get("params", {})
         if not isinstance(params, Mapping):
             raise UserInputError(f"{where}: params = {params!r} must be a table, e.g. params = {{ distance = 5.0 }}")
@@ -351,3 +390,20 @@ def load_rulebook(path: str | Path) -> Rulebook:
     if unknown:
         raise UserInputError(f"rulebook '{path}': unknown key(s) {sorted(unknown)}; allowed: rules")
     return build_rulebook(data.get("rules", []), str(path))
+
+
+def check_rulebook_imports(path: str | Path, where: str = "env.rulebook") -> None:
+    """Hold the import paths a rulebook file names to the command's gate (genesis_rl/plugins.py) without
+    importing anything: where the envs run elsewhere (Ray actors), the parent refuses them first. A rulebook
+    that does not parse is left for the env to report."""
+    from genesis_rl.config import read_toml
+    from genesis_rl.plugins import check_import
+
+    try:
+        rules = read_toml(path, "rulebook").get("rules", [])
+    except UserInputError:
+        return
+    for rule in rules if isinstance(rules, list) else []:
+        name = rule.get("name") if isinstance(rule, dict) else None
+        if isinstance(name, str) and ":" in name and name not in RULES:
+            check_import(name.partition(":")[0], f"{where} '{path}': rule '{name}'")

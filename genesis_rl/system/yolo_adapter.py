@@ -20,6 +20,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.sim.interface import SensorFrame
 from genesis_rl.system.builtin import PerceptionDrivenSystem
 from genesis_rl.system.controller import ControllerConfig
+from genesis_rl.trust import check_pickle_file
 
 
 def _gl_started() -> bool:
@@ -57,6 +58,7 @@ class YoloSystem(PerceptionDrivenSystem):
         path = Path(weights)
         if not path.is_file():
             raise UserInputError(f"YOLO weights file '{path}' does not exist (nothing is downloaded at run time)")
+        check_pickle_file(path, "YOLO weights file")  # a .pt file is a pickle: only one the user names
         ultralytics = import_ultralytics()
         try:
             self.model = ultralytics.YOLO(str(path))

@@ -5,9 +5,13 @@ rollout depends on: the policy and its optimizer state (``step_N.zip``, SB3's ow
 the last observation and the step counters), and in ``step_N.state.json`` the trainer's random generators
 (torch, numpy, Python), every env's generator, the scene, episode seed and actions of the episode each env is
 in (the lite simulator rebuilds an episode exactly from them), the per-episode sums of the episode-metrics
-callback and the number of rows in ``episodes.csv``. An off-policy learner (SAC) also keeps its replay buffer
-(``step_N.replay.pkl``; only the newest is kept, it is the largest file). ``last.json`` names the newest
-complete checkpoint and is written last, so a crash while checkpointing leaves the previous one in charge.
+callback and the number of rows in ``episodes.csv``. ``step_N.sb3.npz`` keeps what SB3 itself pickles into
+the zip and a resumed run needs (the last observation and episode starts), so that nothing is unpickled on
+resume (training/safe_load.py). An off-policy learner (SAC) also keeps its replay buffer (``step_N.replay.npz``,
+plain arrays; only the newest is kept, it is the largest file). ``last.json`` names the newest complete
+checkpoint and is written last, so a crash while checkpointing leaves the previous one in charge.
+Checkpoints of genesis-rl 0.10.0 and before (no ``.sb3.npz``, a ``.replay.pkl`` buffer) resume only with
+``--trust-pickle``.
 """
 
 from __future__ import annotations
@@ -26,9 +30,20 @@ import numpy as np
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
+from genesis_rl.training.safe_load import (
+    TRUST_HINT,
+    load_model,
+    read_replay_buffer,
+    read_sb3_state,
+    sb3_state_path,
+    write_replay_buffer,
+    write_sb3_state,
+)
+from genesis_rl.trust import pickle_trusted
 
 if TYPE_CHECKING:
     from genesis_rl.env.genesis_env import GenesisEnv
+    from genesis_rl.training.config import RunConfig
 
 CHECKPOINTS = "checkpoints"
 STATE_FORMAT = 1
@@ -145,20 +160,27 @@ def save_checkpoint(run: Path, model: Any, steps: int, episode_sums: dict[int, d
              "episode_sums": {str(i): a for i, a in episode_sums.items()},
              "episodes_csv_rows": csv_rows(run / "episodes.csv")}
     atomic_write(ck / f"step_{steps:08d}.zip", lambda p: model.save(p))
+    atomic_write(sb3_state_path(ck / f"step_{steps:08d}.zip"), lambda p: write_sb3_state(p, model))
     replay = replay_path(ck, steps)
     if hasattr(model, "replay_buffer"):
-        atomic_write(replay, lambda p: model.save_replay_buffer(p))
+        atomic_write(replay, lambda p: write_replay_buffer(p, model.replay_buffer))
     atomic_write_json(ck / f"step_{steps:08d}.state.json", state)
     atomic_write(ck / "last.zip", lambda p: model.save(p))
     atomic_write_json(ck / "last.json", {"timesteps": int(steps), "time": time.time(),
                                          "checkpoint": f"step_{steps:08d}.zip",
                                          "state": f"step_{steps:08d}.state.json"})
-    for old in ck.glob("step_*.replay.pkl"):  # last.json names the new one now: the older buffers can go
-        if old != replay:
-            old.unlink(missing_ok=True)
+    for pattern in ("step_*.replay.npz", "step_*.replay.pkl"):  # last.json names the new one now: the older
+        for old in ck.glob(pattern):                                # buffers can go
+            if old != replay:
+                old.unlink(missing_ok=True)
 
 
 def replay_path(ck: Path, steps: int) -> Path:
+    return ck / f"step_{steps:08d}.replay.npz"
+
+
+def _pickled_replay_path(ck: Path, steps: int) -> Path:
+    """Where genesis-rl 0.10.0 and before kept SAC's replay buffer (SB3's pickle)."""
     return ck / f"step_{steps:08d}.replay.pkl"
 
 
@@ -209,11 +231,10 @@ def read_last(run: Path, max_steps: int) -> tuple[int, Path, Path | None]:
     return steps, ck / names[0], ck / names[1]
 
 
-def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, algorithm: str = "ppo") -> Resumed:
+def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, cfg: RunConfig) -> Resumed:
     """Reload the newest checkpoint into ``env``: model, optimizer, replay buffer (SAC), random generators and
-    each env's episode."""
-    from stable_baselines3 import PPO, SAC
-
+    each env's episode. Nothing is unpickled (training/safe_load.py) unless the command has --trust-pickle,
+    which a checkpoint of genesis-rl 0.10.0 or before needs."""
     steps, model_path, state_path = read_last(run, max_steps)
     state = None
     if state_path is not None:
@@ -223,22 +244,37 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, algorithm:
             raise _damaged(state_path, f"expected format {STATE_FORMAT} for timesteps = {steps}")
         if not isinstance(state.get("envs"), list) or len(state["envs"]) != env.num_envs:
             raise _damaged(state_path, f"expected the state of {env.num_envs} env(s)")
-    try:
-        # force_reset=False keeps the checkpoint's last observation: the envs are rebuilt below, not reset
-        if algorithm == "sac":
-            replay = replay_path(model_path.parent, steps)
-            if not replay.is_file():
-                raise UserInputError(f"--resume: run '{run}' has no complete checkpoint ({replay} missing); start "
-                                     "it again with --force")
-            sac = SAC.load(model_path, env=env, device=device, force_reset=state is None)
-            sac.load_replay_buffer(replay)
-            model: Any = sac
+    trust = pickle_trusted()
+    ck = model_path.parent
+    sb3_state = None
+    if state is not None and not trust:  # 0.4.0 checkpoints hold no observation: the envs are reset (below)
+        sb3_path = sb3_state_path(model_path)
+        if not sb3_path.is_file():
+            raise UserInputError(f"--resume: the checkpoint in '{run}' was written by genesis-rl 0.10.0 or before "
+                                 f"and keeps its last observation only pickled inside '{model_path.name}' (no "
+                                 f"{sb3_path.name}); {TRUST_HINT}")
+        sb3_state = read_sb3_state(sb3_path, cfg, env.num_envs)
+    replay = replay_path(ck, steps)
+    if cfg.train.algorithm == "sac" and not replay.is_file():
+        pickled = _pickled_replay_path(ck, steps)
+        if not pickled.is_file():
+            raise UserInputError(f"--resume: run '{run}' has no complete checkpoint ({replay} missing); start "
+                                 "it again with --force")
+        if not trust:
+            raise UserInputError(f"--resume: the checkpoint in '{run}' keeps SAC's replay buffer as a pickle "
+                                 f"('{pickled.name}', genesis-rl 0.10.0 and before); {TRUST_HINT}")
+        replay = pickled
+    # force_reset=False keeps the checkpoint's last observation: the envs are rebuilt below, not reset
+    model: Any = load_model(model_path, cfg, env=env, device=device, resume_state=sb3_state,
+                            force_reset=state is None, what="--resume", trust_pickle=trust)
+    if cfg.train.algorithm == "sac":
+        if replay.suffix == ".pkl":
+            try:
+                model.load_replay_buffer(replay)
+            except Exception as err:  # noqa: BLE001 - a corrupt pickle raises many kinds
+                raise UserInputError(f"--resume: replay buffer '{replay}' cannot be loaded: {err}") from None
         else:
-            model = PPO.load(model_path, env=env, device=device, force_reset=state is None)
-    except UserInputError:
-        raise
-    except Exception as err:  # noqa: BLE001 - a corrupt checkpoint is the user's to see, clearly
-        raise UserInputError(f"--resume: checkpoint '{model_path}' cannot be loaded: {err}") from None
+            read_replay_buffer(replay, model.replay_buffer)
     model.num_timesteps = steps
     if state is None:
         print(f"genesis-rl train: the checkpoint in '{run}' was written by genesis-rl 0.4.0 and holds no trainer "

@@ -40,7 +40,8 @@ from genesis_rl.rules.reward import RewardConfig
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, check_device_present, load_run_config
 from genesis_rl.training.pinning import adopt_pins, check_run, current_pins, write_pins
-from genesis_rl.training.throughput import RolloutThreads, policy_kwargs
+from genesis_rl.training.safe_load import learner_kwargs
+from genesis_rl.training.throughput import RolloutThreads
 
 
 def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int):  # noqa: ANN202
@@ -166,21 +167,10 @@ def max_timesteps(cfg: RunConfig) -> int:
 
 
 def new_model(cfg: RunConfig, env: Any, policy: str) -> BaseAlgorithm:
-    """A fresh learner of ``train.algorithm`` for ``env``, seeded with ``train.seed``."""
-    kwargs = policy_kwargs(policy)
-    if cfg.train.algorithm == "sac":
-        s = cfg.sac
-        return SAC(policy, env, learning_rate=s.learning_rate, buffer_size=s.buffer_size,
-                   learning_starts=s.learning_starts, batch_size=s.batch_size, tau=s.tau, gamma=s.gamma,
-                   train_freq=s.train_freq, gradient_steps=s.gradient_steps, ent_coef=s.sb3_ent_coef(),
-                   seed=cfg.train.seed, device=s.device, policy_kwargs={**kwargs, "net_arch": list(s.net_arch)},
-                   verbose=0)
-    p = cfg.ppo
-    return PPO(policy, env, learning_rate=p.learning_rate, n_steps=p.n_steps // cfg.train.envs,
-               batch_size=min(p.batch_size, p.n_steps), n_epochs=p.n_epochs, gamma=p.gamma,
-               gae_lambda=p.gae_lambda, clip_range=p.clip_range, ent_coef=p.ent_coef, vf_coef=p.vf_coef,
-               max_grad_norm=p.max_grad_norm, seed=cfg.train.seed, device=p.device,
-               policy_kwargs={**kwargs, "log_std_init": p.log_std_init}, verbose=0)
+    """A fresh learner of ``train.algorithm`` for ``env``, seeded with ``train.seed`` (a checkpoint or agent is
+    loaded with the same settings: training/safe_load.py)."""
+    learner = SAC if cfg.train.algorithm == "sac" else PPO
+    return learner(policy, env, device=cfg.device, verbose=0, **learner_kwargs(cfg, policy))
 
 
 def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
@@ -257,7 +247,7 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
         policy = sb3_policy(cfg.env.observation_mode)
         sums: dict[int, dict[str, Any]] = {}
         if resume:
-            resumed = load_checkpoint(out, env, cfg.device, max_timesteps(cfg), cfg.train.algorithm)
+            resumed = load_checkpoint(out, env, cfg.device, max_timesteps(cfg), cfg)
             model, done, sums = resumed.model, resumed.steps, resumed.episode_sums
             if load_run_config(out / "config.toml") != cfg:  # --steps raised the target
                 atomic_write_text(out / "config.toml", cfg.to_toml())
