@@ -252,7 +252,7 @@ def test_a_campaign_spec_whose_map_is_not_its_catalogs_is_refused(made, tmp_path
 @pytest.mark.parametrize(("field", "value", "message"), [
     ("version", True, "catalog field 'version' = True"),  # Python's True == 1
     ("version", 1.0, "catalog field 'version' = 1.0"),
-    ("seed", -1, "catalog field 'seed' = -1; expected an integer >= 0"),
+    ("seed", -1, "field 'catalog.seed' = -1; expected an integer >= 0"),
 ])
 def test_wrong_types_in_a_catalogs_header_are_refused(made, tmp_path, capsys, field, value, message) -> None:
     data = json.loads(made["highway"].read_text())

@@ -5,6 +5,7 @@ imported only when the command line names its module (docs/reliability.md, "Safe
 from __future__ import annotations
 
 import base64
+import hashlib
 import json
 import os
 import pickle
@@ -238,6 +239,9 @@ def test_an_import_path_in_a_campaign_json_or_a_run_config_is_refused(runs, cata
     text = (run / "config.toml").read_text().replace('system = "blind"', 'system = "evil_camp:System"')
     assert "evil_camp" in text
     (run / "config.toml").write_text(text)
+    meta = json.loads((run / "run.json").read_text())  # whoever shares a run can re-pin it: pins are no signature
+    meta["pins"]["config.toml"]["sha256"] = hashlib.sha256((run / "config.toml").read_bytes()).hexdigest()
+    (run / "run.json").write_text(json.dumps(meta))
     assert main(["evaluate", "--agent", str(run), "--policies", "agent", "--scenes", "1", "--steps", "4",
                  "--catalog", catalog, "--no-report", "--quiet", "--out", str(tmp_path / "eval")]) == 2
     assert "--plugin evil_camp" in capsys.readouterr().err
