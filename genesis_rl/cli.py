@@ -26,6 +26,7 @@ from genesis_rl.cli_args import add_odd_arguments, add_scale_arguments, odd_over
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import os_error_message
 from genesis_rl.plugins import import_env_plugins
+from genesis_rl.signals import exit_status, interrupts_raise, resume_hint
 
 
 def _weather_help() -> str:
@@ -488,7 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args))
+        with interrupts_raise():  # SIGTERM cleans up as Ctrl-C does (signals.py)
+            return int(args.func(args))
     except UserInputError as err:
         print(f"genesis-rl {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
@@ -498,9 +500,10 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
         return UserInputError.exit_code
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:  # one line, what to do next where the command knows it
+        hint = resume_hint(err)
+        print(f"genesis-rl {args.command}: interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return exit_status(err)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """The console entry point: Ctrl-C while the command line is still importing its modules (about 0.4 s, more
-on a busy machine) exits 130 with one line, as it does once the command runs, instead of a traceback."""
+on a busy machine) exits 130 with one line, as it does once the command runs, instead of a traceback; SIGTERM
+exits 143 the same way (signals.py)."""
 
 from __future__ import annotations
 
@@ -7,9 +8,15 @@ import sys
 
 
 def main() -> int:
+    from genesis_rl.signals import exit_status, interrupts_raise  # the standard library only: no delay
+
     try:
-        from genesis_rl.cli import main as cli_main  # local: the import itself is what Ctrl-C may interrupt
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    return cli_main()
+        with interrupts_raise():
+            try:
+                from genesis_rl.cli import main as cli_main  # local: the import itself is what Ctrl-C may interrupt
+            except KeyboardInterrupt as err:
+                print("interrupted", file=sys.stderr)
+                return exit_status(err)
+            return cli_main()
+    except KeyboardInterrupt as err:  # a signal in the instant between the command's end and the handlers' reset
+        return exit_status(err)

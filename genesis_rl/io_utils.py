@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.signals import deferred_signals
 
 
 def ensure_writable(path: Path, force: bool) -> None:
@@ -36,6 +37,7 @@ def ensure_folder_path(path: Path, flag: str = "--out") -> None:
             return
 
 
+@deferred_signals()  # Ctrl-C or SIGTERM waits for the rename: no temporary left, no torch error (signals.py)
 def atomic_write(path: Path, writer: Callable[[Path], object]) -> None:
     """Call ``writer(tmp_path)`` then rename the temporary file onto ``path`` (atomic on POSIX). A failure
     leaves no temporary file behind; one that the machine caused (permission, read-only, disk full, ...)

@@ -7,7 +7,8 @@ the last observation and the step counters), and in ``step_N.state.json`` the tr
 in (the lite simulator rebuilds an episode exactly from them), the per-episode sums of the episode-metrics
 callback and the number of rows in ``episodes.csv``. An off-policy learner (SAC) also keeps its replay buffer
 (``step_N.replay.pkl``; only the newest is kept, it is the largest file). ``last.json`` names the newest
-complete checkpoint and is written last, so a crash while checkpointing leaves the previous one in charge.
+complete checkpoint and is written last, so a crash while checkpointing leaves the previous one in charge;
+SIGINT and SIGTERM wait until a checkpoint is whole (``signals.deferred_signals``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import numpy as np
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
+from genesis_rl.signals import deferred_signals
 
 if TYPE_CHECKING:
     from genesis_rl.env.genesis_env import GenesisEnv
@@ -135,6 +137,7 @@ def truncate_csv(path: Path, rows: int) -> None:
         atomic_write(path, write)
 
 
+@deferred_signals()  # one unit: Ctrl-C or SIGTERM during it takes effect once last.json names the new one
 def save_checkpoint(run: Path, model: Any, steps: int, episode_sums: dict[int, dict[str, Any]]) -> None:
     """``step_N.zip`` + ``step_N.state.json``, a copy as ``last.zip``, then ``last.json`` naming N."""
     ck = run / CHECKPOINTS
