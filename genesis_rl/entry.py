@@ -11,7 +11,7 @@ def main() -> int:
     from genesis_rl.signals import exit_status, interrupts_raise  # the standard library only: no delay
 
     try:
-        with interrupts_raise():
+        with interrupts_raise(restore=False):  # after the command, a signal has nothing left to stop
             try:
                 from genesis_rl.cli import main as cli_main  # local: the import itself is what Ctrl-C may interrupt
             except KeyboardInterrupt as err:

@@ -61,10 +61,12 @@ def _raise(signum: int, frame: Any) -> None:
 
 
 @contextmanager
-def interrupts_raise() -> Iterator[None]:
+def interrupts_raise(restore: bool = True) -> Iterator[None]:
     """For the block, SIGINT and SIGTERM raise :class:`Interrupted`; the previous handlers come back after
-    (``cli.main`` is also called from tests and notebooks). A signal that is ignored or already has a handler
-    of someone else's (a host program, an outer block) keeps it."""
+    (``cli.main`` is also called from tests and notebooks), or with ``restore`` False (the console entry
+    point: the command has ended, its results are written) both are ignored while the process shuts down.
+    A signal that is ignored or already has a handler of someone else's (a host program, an outer block)
+    keeps it."""
     installed: dict[int, Any] = {}
     if _main_thread():
         for signum in SIGNALS:
@@ -76,7 +78,7 @@ def interrupts_raise() -> Iterator[None]:
         yield
     finally:
         for signum, handler in installed.items():
-            signal.signal(signum, handler)
+            signal.signal(signum, handler if restore else signal.SIG_IGN)
 
 
 @contextmanager
