@@ -69,13 +69,14 @@ def _temporary_appears(folder: Path, proc: subprocess.Popen, limit: float) -> bo
 
 
 def _signalled(args: list[str], cwd: Path, signum: int, when: str, rng: random.Random, watch: Path,
-               started: Callable[[], bool] = lambda: True) -> dict:
+               started: Callable[[], bool] = lambda: True, group: bool = False) -> dict:
     """Run ``genesis-rl ARGS`` in a child process and send it ``signum``: after a random delay from its start
     (``when`` = "start"), a random moment once ``started()`` is true ("run"), or the instant a temporary file
-    appears under ``watch`` ("write"). Returns its status, its stderr and the moment chosen."""
+    appears under ``watch`` ("write"); with ``group``, to all its processes, as a terminal's Ctrl-C is.
+    Returns its status, its stderr and the moment chosen."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "genesis_rl", *args], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=group)
     t0 = time.monotonic()
     if when == "start":
         time.sleep(rng.uniform(0.5, 4.0))  # not in the interpreter's own start-up (docs/reliability.md)
@@ -88,7 +89,10 @@ def _signalled(args: list[str], cwd: Path, signum: int, when: str, rng: random.R
         time.sleep(rng.uniform(0.0, 0.002))
     moment = round(time.monotonic() - t0, 3)
     if proc.poll() is None:
-        proc.send_signal(signum)
+        if group:
+            os.killpg(proc.pid, signum)
+        else:
+            proc.send_signal(signum)
     out, err = proc.communicate(timeout=300)
     return {"status": proc.returncode, "stderr": err, "at": moment, "when": when,
             "signal": signal.Signals(signum).name, "seconds": round(time.monotonic() - t0, 1), "stdout": out}
@@ -210,9 +214,9 @@ def test_sigterm_while_a_checkpoint_is_written_waits_for_it(tmp_path) -> None:
 @pytest.mark.render
 @pytest.mark.slow
 def test_signals_during_a_campaign_leave_it_resumable_to_the_same_summary(tmp_path, capsys) -> None:
-    """An evaluate campaign signalled as an episode file is being written, then during its episodes: each
-    ends with one line and 130/143, no temporary file, no lock; --resume finishes it with the uninterrupted
-    campaign's summary."""
+    """An evaluate campaign signalled as an episode file is being written, during its episodes, and (Ctrl-C
+    to the process group, two pool workers) as a step file is being written: each ends with one line and
+    130/143, no temporary file, no lock; --resume finishes it with the uninterrupted campaign's summary."""
     catalog = tmp_path / "highway.json"
     assert main(["scenes", "--map", "highway", "--count", "6", "--seed", "1", "--out", str(catalog),
                  "--quiet"]) == 0
@@ -223,11 +227,14 @@ def test_signals_during_a_campaign_leave_it_resumable_to_the_same_summary(tmp_pa
     camp = tmp_path / "camp"
     rng = random.Random(7)
     trials = []
-    for i, (when, watch) in enumerate([("write", "episodes"), ("run", ""), ("write", "steps")]):
+    # the last: Ctrl-C in a terminal, which reaches the pool's worker processes too
+    for i, (when, watch, workers) in enumerate([("write", "episodes", 1), ("run", "", 1), ("write", "steps", 2)]):
         signum = (signal.SIGTERM, signal.SIGINT)[i % 2]
-        args = [*common, "--out", "camp", *(["--resume"] if (camp / "campaign.json").is_file() else [])]
+        args = [*common, "--out", "camp", "--workers", str(workers),
+                *(["--resume"] if (camp / "campaign.json").is_file() else [])]
         done = _episodes(camp)
-        trial = _signalled(args, tmp_path, signum, when, rng, camp / watch, lambda n=done: _episodes(camp) > n)
+        trial = _signalled(args, tmp_path, signum, when, rng, camp / watch, lambda n=done: _episodes(camp) > n,
+                           group=workers > 1)
         trials.append(trial)
         _check_outcome(trial, tmp_path)
     with capsys.disabled():
