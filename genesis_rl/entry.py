@@ -10,8 +10,13 @@ import sys
 def main() -> int:
     from genesis_rl.signals import exit_status, interrupts_raise  # the standard library only: no delay
 
+    # the process's own program (the genesis-rl script, python -m genesis_rl) ignores both signals once the
+    # command has ended and its results are written: one during the interpreter's shut-down would kill a
+    # finished command (status -15) or raise in an atexit hook; called from elsewhere (tests), the caller's
+    # handlers come back
+    own_process = getattr(sys.modules.get("__main__"), "main", None) is main
     try:
-        with interrupts_raise(restore=False):  # after the command, a signal has nothing left to stop
+        with interrupts_raise(restore=not own_process):
             try:
                 from genesis_rl.cli import main as cli_main  # local: the import itself is what Ctrl-C may interrupt
             except KeyboardInterrupt as err:
