@@ -481,6 +481,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    named: list[str] = []  # the subcommand, once parsed
+    try:
+        with interrupts_raise():  # SIGTERM cleans up as Ctrl-C does, from the first line on (signals.py)
+            return _main(argv, named)
+    except KeyboardInterrupt as err:  # one line, what to do next where the command knows it
+        hint = resume_hint(err)
+        print(" ".join(["genesis-rl", *named]) + ": interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return exit_status(err)
+
+
+def _main(argv: list[str] | None, named: list[str]) -> int:
     try:
         import_env_plugins()  # before the parser: a user's knobs are known to --weather and --help
     except UserInputError as err:
@@ -488,9 +499,9 @@ def main(argv: list[str] | None = None) -> int:
         return err.exit_code
     parser = build_parser()
     args = parser.parse_args(argv)
+    named.append(args.command)
     try:
-        with interrupts_raise():  # SIGTERM cleans up as Ctrl-C does (signals.py)
-            return int(args.func(args))
+        return int(args.func(args))
     except UserInputError as err:
         print(f"genesis-rl {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
@@ -500,10 +511,6 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
         return UserInputError.exit_code
-    except KeyboardInterrupt as err:  # one line, what to do next where the command knows it
-        hint = resume_hint(err)
-        print(f"genesis-rl {args.command}: interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
-        return exit_status(err)
 
 
 if __name__ == "__main__":
