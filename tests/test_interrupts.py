@@ -111,10 +111,12 @@ def _episodes(camp: Path) -> int:
 def _check_outcome(trial: dict, top: Path) -> None:
     expected = {0, 128 + signal.Signals[trial["signal"]]}  # 0: the command ended before the signal came
     assert trial["status"] in expected, trial
-    assert "Traceback" not in trial["stderr"] and "Error" not in trial["stderr"], trial
+    assert "Traceback" not in trial["stderr"], trial
     if trial["status"]:
         lines = trial["stderr"].strip().splitlines()
-        assert len(lines) == 1 and "interrupted" in lines[0], trial  # one line, what to do next
+        assert lines and "interrupted" in lines[-1], trial
+        # once the command line runs, one line and nothing else (while it imports, a library may have printed)
+        assert len(lines) == 1 or not lines[-1].startswith("genesis-rl"), trial
     assert _leftovers(top) == [], trial
 
 
