@@ -230,8 +230,8 @@ def test_signals_during_a_campaign_leave_it_resumable_to_the_same_summary(tmp_pa
     rng = random.Random(7)
     trials = []
     # the last: Ctrl-C in a terminal, which reaches the pool's worker processes too
-    for i, (when, watch, workers) in enumerate([("write", "episodes", 1), ("run", "", 1), ("write", "steps", 2)]):
-        signum = (signal.SIGTERM, signal.SIGINT)[i % 2]
+    for signum, when, watch, workers in [(signal.SIGTERM, "write", "episodes", 1), (signal.SIGINT, "run", "", 1),
+                                         (signal.SIGINT, "write", "steps", 2)]:
         args = [*common, "--out", "camp", "--workers", str(workers),
                 *(["--resume"] if (camp / "campaign.json").is_file() else [])]
         done = _episodes(camp)
