@@ -220,9 +220,9 @@ def test_signals_during_a_campaign_leave_it_resumable_to_the_same_summary(tmp_pa
     to the process group, two pool workers) as a step file is being written: each ends with one line and
     130/143, no temporary file, no lock; --resume finishes it with the uninterrupted campaign's summary."""
     catalog = tmp_path / "highway.json"
-    assert main(["scenes", "--map", "highway", "--count", "6", "--seed", "1", "--out", str(catalog),
+    assert main(["scenes", "--map", "highway", "--count", "10", "--seed", "1", "--out", str(catalog),
                  "--quiet"]) == 0
-    common = ["evaluate", "--policies", "random,sunny", "--catalog", str(catalog), "--scenes", "5", "--steps", "40",
+    common = ["evaluate", "--policies", "random,sunny", "--catalog", str(catalog), "--scenes", "8", "--steps", "150",
               "--system", "blind", "--no-report", "--quiet"]
     assert main([*common, "--out", str(tmp_path / "whole")]) == 0
     capsys.readouterr()
@@ -246,7 +246,7 @@ def test_signals_during_a_campaign_leave_it_resumable_to_the_same_summary(tmp_pa
     capsys.readouterr()
     summary = json.loads((camp / "summary.json").read_text())
     assert summary["policies"] == json.loads((tmp_path / "whole" / "summary.json").read_text())["policies"]
-    assert _episodes(camp) == 10
+    assert _episodes(camp) == 16
     assert _leftovers(tmp_path) == []
 
 
