@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -42,9 +43,11 @@ from genesis_rl.training.config import RunConfig, check_device_present, load_run
 from genesis_rl.training.throughput import RolloutThreads, policy_kwargs
 
 
-def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int):  # noqa: ANN202
+def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int,  # noqa: ANN202
+              subprocess: bool = False):
     def thunk():  # noqa: ANN202
-
+        if subprocess:  # Ctrl-C reaches every process of the command: it is the trainer's, which closes the envs
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         if torch_threads:
             torch.set_num_threads(torch_threads)
         env = GenesisEnv(EnvConfig(**config_dict))
@@ -69,7 +72,7 @@ def build_vec_env(cfg: RunConfig, catalog_path: Path, scale: ExecutorSettings | 
     d["reward"] = RewardConfig(**d["reward"])
     n = cfg.train.envs
     fns = [_make_env({**d, **scale.server(i)}, i, cfg.train.seed, 1 if n > 1 or scale.kind == "ray"
-                     else cfg.train.torch_threads) for i in range(n)]
+                     else cfg.train.torch_threads, subprocess=n > 1 and scale.kind != "ray") for i in range(n)]
     if scale.kind == "ray":
         from genesis_rl.training.ray_vec_env import RayVecEnv
 
@@ -306,5 +309,30 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                   "steps_per_second": round(max(remaining, 0) / seconds, 2) if seconds > 0 else None}
         atomic_write_json(out / "train_result.json", result, indent=2)
         return result
+    except KeyboardInterrupt:
+        _close_after_interrupt(env)
+        raise
     finally:
         env.close()
+
+
+def _close_after_interrupt(env: Any) -> None:
+    """Close env processes that an interrupt may have caught mid-step: SB3's ``close`` waits for every env's
+    answer to that step, which can block for ever when some had been read already, and fails (EOFError) when a
+    worker was ended by the same signal (SIGTERM to the whole process group). The workers are told to close,
+    given 10 s, then terminated."""
+    if not isinstance(env, SubprocVecEnv) or env.closed:
+        return
+    with deferred_signals():
+        for remote in env.remotes:
+            try:
+                remote.send(("close", None))
+            except OSError:  # that worker is gone already
+                pass
+        for process in env.processes:
+            process.join(timeout=10)
+            if process.is_alive():
+                process.terminate()
+        for remote in env.remotes:
+            remote.close()
+        env.closed = True
