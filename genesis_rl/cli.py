@@ -26,6 +26,7 @@ from genesis_rl.cli_args import add_odd_arguments, add_scale_arguments, odd_over
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import os_error_message
 from genesis_rl.plugins import import_env_plugins
+from genesis_rl.signals import exit_status, interrupts_raise, resume_hint
 from genesis_rl.trust import add_trust_arguments, trusted_for
 
 
@@ -489,6 +490,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    named: list[str] = []  # the subcommand, once parsed
+    try:
+        with interrupts_raise():  # SIGTERM cleans up as Ctrl-C does, from the first line on (signals.py)
+            return _main(argv, named)
+    except KeyboardInterrupt as err:  # one line, what to do next where the command knows it
+        hint = resume_hint(err)
+        print(" ".join(["genesis-rl", *named]) + ": interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return exit_status(err)
+
+
+def _main(argv: list[str] | None, named: list[str]) -> int:
     try:
         import_env_plugins()  # before the parser: a user's knobs are known to --weather and --help
     except UserInputError as err:
@@ -496,6 +508,7 @@ def main(argv: list[str] | None = None) -> int:
         return err.exit_code
     parser = build_parser()
     args = parser.parse_args(argv)
+    named.append(args.command)
     try:
         with trusted_for(args):  # only what this command line names is imported or unpickled
             return int(args.func(args))
@@ -508,9 +521,6 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
         return UserInputError.exit_code
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
 
 
 if __name__ == "__main__":

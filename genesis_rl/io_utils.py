@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.output_paths import refuse_special
+from genesis_rl.signals import deferred_signals
 
 if TYPE_CHECKING:
     from genesis_rl.limits import Limit
@@ -41,6 +42,7 @@ def ensure_folder_path(path: Path, flag: str = "--out") -> None:
             return
 
 
+@deferred_signals()  # Ctrl-C or SIGTERM waits for the rename: no temporary left, no torch error (signals.py)
 def atomic_write(path: Path, writer: Callable[[Path], object]) -> None:
     """Call ``writer(tmp_path)`` then rename the temporary file onto ``path`` (atomic on POSIX). A failure
     leaves no temporary file behind; one that the machine caused (permission, read-only, disk full, ...)

@@ -30,6 +30,7 @@ from genesis_rl.evaluation.policies import resolve_policy
 from genesis_rl.evaluation.summary import summarize_campaign
 from genesis_rl.evaluation.worker import plugin_modules
 from genesis_rl.io_utils import atomic_write_text
+from genesis_rl.signals import deferred_signals, set_resume_hint
 
 
 def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool = False, resume: bool = False,
@@ -55,11 +56,18 @@ def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, 
         for row in run_tasks(tasks, setup, settings):
             bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")
             bar.update()
-    except BaseException:
-        if not resume and not any((folder / "episodes").glob("*/*.json")):
+    except BaseException as err:
+        done = sum(1 for _ in (folder / "episodes").glob("*/*.json"))
+        if not resume and not done:
             # no episode finished (e.g. the agent's env settings are invalid): leave no folder behind that a
             # corrected re-run would need --force to replace
-            shutil.rmtree(folder, ignore_errors=True)
+            with deferred_signals():  # a second signal does not leave half a folder
+                shutil.rmtree(folder, ignore_errors=True)
+            if isinstance(err, KeyboardInterrupt):
+                set_resume_hint(err, f"no episode had finished, so '{folder}' was removed; run the command again")
+        elif isinstance(err, KeyboardInterrupt):
+            set_resume_hint(err, f"{done} episode(s) in '{folder}' are kept; the same command with --resume "
+                                 "runs the rest")
         raise
     finally:
         bar.close()

@@ -46,6 +46,7 @@ from genesis_rl.odd.domain import load_odd
 from genesis_rl.perception.detector import file_sha256
 from genesis_rl.provenance import git_commit
 from genesis_rl.rules.rulebook import rulebook_for
+from genesis_rl.signals import deferred_signals
 from genesis_rl.system.protocol import load_system
 
 Task = tuple[str, int, int]  # (policy, scene, episode seed)
@@ -106,15 +107,17 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
             raise UserInputError(f"map '{spec.map}' and catalog '{spec.catalog}' disagree: the catalog's scenes are on "
                                  f"map '{catalog.map}'; pass --map {catalog.map}, or a catalog made for '{spec.map}'")
         pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
-        output_folder.replace(folder, "campaign")
-        catalog.save(folder / "catalog.json")
-        atomic_write_json(meta, {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION, "package_version": __version__,
-                                 "git_commit": git_commit(), "spec": spec.to_json(), "scenes": pairs,
-                                 "identity": identity,
-                                 "catalog": {"map": catalog.map, "seed": catalog.seed,
-                                             "scenes": len(catalog.scenes),
-                                             "sha256": file_sha256(folder / "catalog.json")},
-                                 "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
+        commit = git_commit()
+        with deferred_signals():  # the folder with its catalog and campaign.json, so --resume can take it up
+            output_folder.replace(folder, "campaign")
+            catalog.save(folder / "catalog.json")
+            atomic_write_json(meta, {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION,
+                                     "package_version": __version__, "git_commit": commit, "spec": spec.to_json(),
+                                     "scenes": pairs, "identity": identity,
+                                     "catalog": {"map": catalog.map, "seed": catalog.seed,
+                                                 "scenes": len(catalog.scenes),
+                                                  "sha256": file_sha256(folder / "catalog.json")},
+                                     "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
     return [(p, s, e) for p in spec.policies for s, e in pairs if not episode_done(folder, p, s, resume)]
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -64,7 +65,10 @@ def _run_here(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSetti
 
 
 def _pool_init(setup: WorkerSetup, next_slot: Any, servers: list[dict[str, Any]]) -> None:
-    """A pool process takes the next worker slot, and with it its CARLA server."""
+    """A pool process takes the next worker slot, and with it its CARLA server. Ctrl-C, which a terminal sends
+    to every process of the command, is the parent's to handle: it stops the pool (SIGTERM), and a worker
+    finishes the file it is writing first (``signals.deferred_signals``), without a traceback of its own."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     with next_slot.get_lock():
         slot = next_slot.value
         next_slot.value += 1

@@ -11,7 +11,7 @@ resume (training/safe_load.py). An off-policy learner (SAC) also keeps its repla
 plain arrays; only the newest is kept, it is the largest file). ``last.json`` names the newest complete
 checkpoint and is written last, so a crash while checkpointing leaves the previous one in charge.
 Checkpoints of genesis-rl 0.10.0 and before (no ``.sb3.npz``, a ``.replay.pkl`` buffer) resume only with
-``--trust-pickle``.
+``--trust-pickle``. SIGINT and SIGTERM wait until a checkpoint is whole (``signals.deferred_signals``).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import numpy as np
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
+from genesis_rl.signals import deferred_signals
 from genesis_rl.training.safe_load import (
     TRUST_HINT,
     load_model,
@@ -151,6 +152,7 @@ def truncate_csv(path: Path, rows: int) -> None:
         atomic_write(path, write)
 
 
+@deferred_signals()  # one unit: Ctrl-C or SIGTERM during it takes effect once last.json names the new one
 def save_checkpoint(run: Path, model: Any, steps: int, episode_sums: dict[int, dict[str, Any]]) -> None:
     """``step_N.zip`` + ``step_N.state.json``, a copy as ``last.zip``, then ``last.json`` naming N."""
     ck = run / CHECKPOINTS

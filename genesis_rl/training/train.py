@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -37,6 +38,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
 from genesis_rl.provenance import git_commit
 from genesis_rl.rules.reward import RewardConfig
+from genesis_rl.signals import deferred_signals, resume_hint, set_resume_hint
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, check_device_present, load_run_config
 from genesis_rl.training.pinning import adopt_pins, check_run, current_pins, write_pins
@@ -44,9 +46,11 @@ from genesis_rl.training.safe_load import learner_kwargs
 from genesis_rl.training.throughput import RolloutThreads
 
 
-def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int):  # noqa: ANN202
+def _make_env(config_dict: dict[str, Any], rank: int, seed: int, torch_threads: int,  # noqa: ANN202
+              subprocess: bool = False):
     def thunk():  # noqa: ANN202
-
+        if subprocess:  # Ctrl-C reaches every process of the command: it is the trainer's, which closes the envs
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         if torch_threads:
             torch.set_num_threads(torch_threads)
         env = GenesisEnv(EnvConfig(**config_dict))
@@ -71,7 +75,7 @@ def build_vec_env(cfg: RunConfig, catalog_path: Path, scale: ExecutorSettings | 
     d["reward"] = RewardConfig(**d["reward"])
     n = cfg.train.envs
     fns = [_make_env({**d, **scale.server(i)}, i, cfg.train.seed, 1 if n > 1 or scale.kind == "ray"
-                     else cfg.train.torch_threads) for i in range(n)]
+                     else cfg.train.torch_threads, subprocess=n > 1 and scale.kind != "ray") for i in range(n)]
     if scale.kind == "ray":
         from genesis_rl.training.ray_vec_env import RayVecEnv
 
@@ -119,8 +123,9 @@ class _Callbacks:
                     self.checkpoint()
 
             def checkpoint(self) -> None:
-                save_checkpoint(run, self.model, self.model.num_timesteps, self.acc)
-                self.last_ckpt = self.model.num_timesteps
+                with deferred_signals():  # a signal here is taken once last_ckpt names the checkpoint written
+                    save_checkpoint(run, self.model, self.model.num_timesteps, self.acc)
+                    self.last_ckpt = self.model.num_timesteps
 
             def _on_step(self) -> bool:
                 n_envs = self.training_env.num_envs
@@ -146,7 +151,7 @@ class _Callbacks:
                     if k != "timesteps":
                         self.logger.record(f"episode/{k}", v)
                 new = not self.episodes_path.exists()
-                with self.episodes_path.open("a", newline="") as fh:
+                with deferred_signals(), self.episodes_path.open("a", newline="") as fh:  # whole rows only
                     w = csv.DictWriter(fh, fieldnames=list(row))
                     if new:
                         w.writeheader()
@@ -174,10 +179,11 @@ def new_model(cfg: RunConfig, env: Any, policy: str) -> BaseAlgorithm:
 
 
 def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
-                total_timesteps: int | None = None, progress: bool = True) -> RunConfig:
+                total_timesteps: int | None = None, progress: bool = True,
+                made: list[Path] | None = None) -> RunConfig:
     """Create (or reopen with ``resume``) the run folder; returns the config the run uses. On resume,
     ``total_timesteps`` may raise the run's target (it is written back to its config.toml). Call it holding
-    the folder (``output_folder.claim``)."""
+    the folder (``output_folder.claim``). ``made`` gets ``out`` once the folder is (re)made for this run."""
     if resume:
         if not (out / "config.toml").is_file():
             raise UserInputError(f"--resume: '{out}' is not a run folder (no config.toml)")
@@ -198,16 +204,20 @@ def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list
     # the catalog is resolved before an old run is removed, so a bad catalog setting loses nothing
     catalog = catalog_or_generate(cfg.env.catalog, cfg.env.map, cfg.env.scenes, cfg.env.catalog_seed,
                                   map_field="env.map", progress=progress)
-    output_folder.replace(out, "run")
-    catalog.save(out / "catalog.json")
-    atomic_write_text(out / "config.toml", cfg.to_toml())
-    atomic_write_json(out / "run.json", {
-        "package": "genesis-rl", "version": __version__, "git_commit": git_commit(),
-        "python": sys.version.split()[0], "command": argv, "seed": cfg.train.seed,
-        "catalog": {"map": catalog.map, "seed": catalog.seed, "scenes": len(catalog.scenes)},
-        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "pins": current_pins(out, asdict(cfg.env)),  # training/pinning.py: checked whenever the run is reopened
-    }, indent=2)
+    commit = git_commit()
+    with deferred_signals():  # a folder with all of its set-up files or none (and then removed by train)
+        if made is not None:
+            made.append(out)
+        output_folder.replace(out, "run")
+        catalog.save(out / "catalog.json")
+        atomic_write_text(out / "config.toml", cfg.to_toml())
+        atomic_write_json(out / "run.json", {
+            "package": "genesis-rl", "version": __version__, "git_commit": commit,
+            "python": sys.version.split()[0], "command": argv, "seed": cfg.train.seed,
+            "catalog": {"map": catalog.map, "seed": catalog.seed, "scenes": len(catalog.scenes)},
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "pins": current_pins(out, asdict(cfg.env)),  # training/pinning.py: checked whenever the run is reopened
+        }, indent=2)
     return cfg
 
 
@@ -224,15 +234,26 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
         scale = check_scale(cfg, scale)
     read = [cfg.env.catalog, cfg.env.odd, cfg.env.rulebook]  # the files the run's env reads
     with output_folder.claim(out, "run", force, resume=resume, inputs=[*read, *inputs]):
-        cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress)
+        made: list[Path] = []  # the folder, once prepare_run has (re)made it: before that it is the user's
         try:
+            cfg = prepare_run(out, cfg, force, resume, argv or [], total_timesteps, progress, made)
             return _train_prepared(cfg, out, resume, progress, check_scale(cfg, scale) if resume else scale,
                                    callbacks)
-        except BaseException:
-            if not resume and not (out / CHECKPOINTS / "last.json").exists():
+        except BaseException as err:
+            interrupted = isinstance(err, KeyboardInterrupt)
+            if not resume and not made:  # stopped before the folder was touched (e.g. making the catalog)
+                if interrupted:
+                    set_resume_hint(err, f"stopped before '{out}' was written; run the command again")
+            elif not resume and not (out / CHECKPOINTS / "last.json").exists():
                 # nothing was trained (e.g. the system under test failed to load): leave no folder behind that
                 # a corrected re-run would need --force to replace
-                shutil.rmtree(out, ignore_errors=True)
+                with deferred_signals():  # a second signal does not leave half a folder
+                    shutil.rmtree(out, ignore_errors=True)
+                if interrupted:
+                    set_resume_hint(err, f"no checkpoint was written yet, so '{out}' was removed; run the "
+                                         "command again")
+            elif interrupted and resume_hint(err) is None:
+                set_resume_hint(err, f"--resume continues the run in '{out}' from its last checkpoint")
             raise
 
 
@@ -273,12 +294,12 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
             try:
                 model.learn(total_timesteps=remaining, callback=[cb, *threads, *extra], reset_num_timesteps=not resume,
                             progress_bar=False)
-            except KeyboardInterrupt:
+            except KeyboardInterrupt as err:
                 # a checkpoint is only whole between rollouts, so none is taken here: --resume goes back to the
                 # last one and trains the steps since again, exactly as before
                 if (out / CHECKPOINTS / "last.json").exists():
-                    print(f"genesis-rl train: interrupted at step {model.num_timesteps}; --resume continues from "
-                          f"the checkpoint at step {cb.last_ckpt}", file=sys.stderr, flush=True)
+                    set_resume_hint(err, f"stopped at step {model.num_timesteps}; --resume continues from the "
+                                         f"checkpoint at step {cb.last_ckpt}")
                 raise
             except RayWorkersLost as err:  # a lost Ray env or node: stop at the last whole checkpoint (exit 3)
                 if (out / CHECKPOINTS / "last.json").exists():
@@ -295,5 +316,30 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                   "steps_per_second": round(max(remaining, 0) / seconds, 2) if seconds > 0 else None}
         atomic_write_json(out / "train_result.json", result, indent=2)
         return result
+    except KeyboardInterrupt:
+        _close_after_interrupt(env)
+        raise
     finally:
         env.close()
+
+
+def _close_after_interrupt(env: Any) -> None:
+    """Close env processes that an interrupt may have caught mid-step: SB3's ``close`` waits for every env's
+    answer to that step, which can block for ever when some had been read already, and fails (EOFError) when a
+    worker was ended by the same signal (SIGTERM to the whole process group). The workers are told to close,
+    given 10 s, then terminated."""
+    if not isinstance(env, SubprocVecEnv) or env.closed:
+        return
+    with deferred_signals():
+        for remote in env.remotes:
+            try:
+                remote.send(("close", None))
+            except OSError:  # that worker is gone already
+                pass
+        for process in env.processes:
+            process.join(timeout=10)
+            if process.is_alive():
+                process.terminate()
+        for remote in env.remotes:
+            remote.close()
+        env.closed = True
