@@ -11,7 +11,7 @@ here, naming the field, instead of turning into ``inf`` or an ``OverflowError`` 
     genesis_rl.errors.UserInputError: scene 3 lead speed = 1000.0 must be in 0..70 m/s (a finite number)
 
 ``bool`` is not a number (``true`` in a file is refused where a number is expected); an integer field takes
-an ``int`` only; a float field takes ``int`` or ``float``. docs/reliability_numbers.md lists every field.
+an ``int`` only; a float field takes ``int`` or ``float``. docs/reliability/numbers.md lists every field.
 """
 
 from __future__ import annotations
