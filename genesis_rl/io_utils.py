@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.output_paths import refuse_special
 from genesis_rl.signals import deferred_signals
+from genesis_rl.special_files import refuse_special
 
 if TYPE_CHECKING:
     from genesis_rl.limits import Limit
@@ -29,7 +29,7 @@ def ensure_writable(path: Path, force: bool) -> None:
     ensure_folder_path(path.parent, flag="output folder")
     if (path.exists() or path.is_symlink()) and not force:  # a dangling link is the user's too
         raise UserInputError(f"output '{path}' already exists; pass --force to overwrite it")
-    refuse_special(path)  # --force replaces a file, never a link, a device or a pipe (output_paths)
+    refuse_special(path)  # --force replaces a file, never a link, a device or a pipe (special_files)
 
 
 def ensure_folder_path(path: Path, flag: str = "--out") -> None:

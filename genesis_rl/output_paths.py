@@ -33,7 +33,6 @@ import errno
 import json
 import os
 import re
-import stat
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,12 +40,11 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.special_files import DISCARD, special_kind
 
 #: names that mean standard output, and standard error
 STDOUT_NAMES = ("-", "/dev/stdout", "/dev/fd/1", "/proc/self/fd/1")
 STDERR_NAMES = ("/dev/stderr", "/dev/fd/2", "/proc/self/fd/2")
-#: the one device written in place
-DISCARD = "/dev/null"
 
 Inputs = Sequence["str | Path | None"]
 
@@ -54,35 +52,6 @@ Inputs = Sequence["str | Path | None"]
 def is_stdout(given: str | Path | None) -> bool:
     """Whether a path names a standard stream (standard output, or standard error), written in place."""
     return given is not None and str(given) in (*STDOUT_NAMES, *STDERR_NAMES)
-
-
-def special_kind(path: Path) -> str | None:
-    """What a path is when it is not a plain file or folder (by ``lstat``: a link is a link), else None."""
-    try:
-        mode = os.lstat(path).st_mode
-    except (FileNotFoundError, NotADirectoryError):
-        return None
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
-        return None
-    for test, name in ((stat.S_ISLNK, "symbolic link"), (stat.S_ISFIFO, "FIFO (named pipe)"),
-                       (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"),
-                       (stat.S_ISSOCK, "socket")):
-        if test(mode):
-            return name
-    return "special file"
-
-
-def refuse_special(path: Path, what: str = "output") -> None:
-    """Refuse a path that is a symbolic link or a special file: writing a file there by rename would replace
-    it (a link, a device, a pipe) with a regular file."""
-    kind = special_kind(Path(path))
-    if kind is None:
-        return
-    if kind == "symbolic link":
-        raise UserInputError(f"{what} '{path}' is a symbolic link to '{os.readlink(path)}'; genesis-rl neither "
-                             "replaces a link nor writes through one: pass the target itself, or remove the link")
-    raise UserInputError(f"{what} '{path}' is a {kind}, not a regular file; refusing to replace it; write to a "
-                         f"regular file, a FIFO, {DISCARD} or '-' (standard output)")
 
 
 def _same_file(a: Path, b: Path) -> bool:
