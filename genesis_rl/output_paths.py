@@ -17,7 +17,8 @@ Every command checks each output before it starts any work:
 * **Regular files** are written to a temporary file beside them that is renamed onto them (atomic); an existing
   one is replaced only with ``--force``.
 * **A FIFO** (named pipe) and ``/dev/null`` are written in place (opened and written, nothing renamed onto them);
-  they need no ``--force`` since nothing is replaced. Opening a FIFO waits for its reader, as a shell does.
+  they need no ``--force`` since nothing is replaced. A FIFO must have its reader within 5 s of the write,
+  else the write is refused (a plain open would wait forever).
 * **A symbolic link** is refused, naming its target: genesis-rl neither replaces a link with a file nor writes
   through one (a link inside a shared campaign or run folder could point anywhere, e.g. at ``~/.bashrc``).
   Pass the target itself.
@@ -141,13 +142,40 @@ class OutputFile:
                 raise OSError(errno.EPIPE, os.strerror(errno.EPIPE), self.given) from None
             return
         if self.in_place:
-            with open(self.path, "w", encoding="utf-8") as f:
+            with os.fdopen(_open_in_place(self.path), "w", encoding="utf-8") as f:
                 f.write(text)
             return
         atomic_write_text(self.path, text)
 
     def write_json(self, data: Any, indent: int | None = None) -> None:
         self.write_text(json.dumps(data, indent=indent, separators=None if indent else (",", ":")))
+
+
+#: how long a FIFO output may wait for its reader to open it before the write is refused
+FIFO_READER_WAIT_S = 5.0
+
+
+def _open_in_place(path: Path) -> int:
+    """A descriptor for writing a FIFO or /dev/null in place. A FIFO is opened without blocking, retried for
+    ``FIFO_READER_WAIT_S``: a plain open would wait forever for a reader that never comes (a hung command)."""
+    import fcntl
+    import time
+
+    deadline = time.monotonic() + FIFO_READER_WAIT_S
+    while True:
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+            break
+        except OSError as err:
+            if err.errno != errno.ENXIO:  # ENXIO: a FIFO nobody has open for reading (yet)
+                raise
+            if time.monotonic() >= deadline:
+                raise UserInputError(f"output '{path}' is a FIFO that no process read within "
+                                     f"{FIFO_READER_WAIT_S:g} s; start its reader first (e.g. `cat {path} &`), "
+                                     "or write to a regular file") from None
+            time.sleep(0.05)
+    fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) & ~os.O_NONBLOCK)  # a reader: block as usual
+    return fd
 
 
 def output_file(given: str | Path, force: bool, *, flag: str = "--out", inputs: Inputs = (),

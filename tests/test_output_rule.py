@@ -9,6 +9,7 @@ import os
 import shutil
 import socket
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -142,6 +143,19 @@ def test_a_fifo_is_written_in_place(tmp_path, capsys) -> None:
     assert len(json.loads(got[0])["scenes"]) == 2
     assert fifo.is_fifo() and sorted(os.listdir(tmp_path)) == ["pipe"]
     capsys.readouterr()
+
+
+def test_a_fifo_nobody_reads_is_refused_instead_of_hanging(tmp_path, capsys, monkeypatch) -> None:
+    from genesis_rl import output_paths
+
+    monkeypatch.setattr(output_paths, "FIFO_READER_WAIT_S", 0.3)
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    t0 = time.monotonic()
+    assert main(["scenes", "--count", "1", "--out", str(fifo), "--quiet"]) == 2
+    assert time.monotonic() - t0 < 20  # a plain open() waited here for ever
+    assert "is a FIFO that no process read within 0.3 s" in capsys.readouterr().err
+    assert fifo.is_fifo() and os.listdir(tmp_path) == ["pipe"]
 
 
 def test_a_link_or_a_device_is_never_replaced(tmp_path, capsys) -> None:
