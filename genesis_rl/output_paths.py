@@ -84,6 +84,10 @@ def check_inputs(out: str | Path, inputs: Inputs, *, flag: str = "--out", produc
             continue
         if path == real or _same_file(real, path):
             raise UserInputError(f"{flag} '{out}' is this command's input '{given}'; write the output somewhere else")
+        twin = _hard_link_inside(real, path)
+        if twin is not None:
+            raise UserInputError(f"{flag} '{out}' is a hard link to '{twin}', a file of this command's input "
+                                 f"'{given}'; write the output somewhere else")
         if folder and real in path.parents:
             raise UserInputError(f"{flag} '{out}' holds this command's input '{given}'; write the output somewhere "
                                  "else")
@@ -95,6 +99,34 @@ def check_inputs(out: str | Path, inputs: Inputs, *, flag: str = "--out", produc
             onto = f" (onto its '{entry.name}')" if os.path.lexists(entry) else ""
             raise UserInputError(f"{flag} '{out}' lies inside this command's input '{given}'{onto}; write the "
                                  "output somewhere else")
+
+
+#: the most files of an input folder searched for a hard link of the output (a campaign holds a few per episode)
+HARD_LINK_SEARCH = 200_000
+
+
+def _hard_link_inside(out: Path, folder: Path) -> Path | None:
+    """The file inside input ``folder`` that the existing output ``out`` is a hard link of, if any. Searched only
+    when ``out`` has more than one link (``st_nlink``), so an ordinary output costs one ``stat``."""
+    try:
+        st = os.stat(out)
+    except OSError:
+        return None
+    if st.st_nlink < 2 or not folder.is_dir():
+        return None
+    seen = 0
+    for root, _dirs, names in os.walk(folder):
+        for name in names:
+            seen += 1
+            if seen > HARD_LINK_SEARCH:
+                return None
+            try:
+                other = os.stat(os.path.join(root, name), follow_symlinks=False)
+            except OSError:
+                continue
+            if (other.st_dev, other.st_ino) == (st.st_dev, st.st_ino):
+                return Path(root) / name
+    return None
 
 
 def check_folder_output(out: str | Path, flag: str = "--out") -> None:

@@ -93,6 +93,10 @@ def test_an_output_that_is_the_input_or_a_link_to_it_is_refused(camp, tmp_path, 
     assert main(["corners", "--config", str(config), "--scenes", "1", "--out", str(config), "--force",
                  "--quiet"]) == 2
     assert f"--out '{config}' is this command's input '{config}'" in capsys.readouterr().err
+    hard = tmp_path / "hard.html"
+    os.link(camp / "campaign.json", hard)  # another name for the campaign's own file
+    assert main(["report", str(camp), "--out", str(hard), "--force"]) == 2
+    assert f"--out '{hard}' is a hard link to '{camp / 'campaign.json'}'" in capsys.readouterr().err
     assert config.read_text() == TINY_RUN and _files(camp) == before and link.is_symlink()
     # report's own CAMPAIGN/report.html lies inside its input, but beside what it reads, never onto it
     kept = ("report", "summary.json")  # report writes these; summary.json names the campaign's folder
