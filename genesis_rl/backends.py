@@ -167,7 +167,10 @@ def _timeout(text: str) -> float:
 
 def _ports(text: str) -> tuple[int, ...]:
     """``--carla-port``: one port or a comma list (one server per process)."""
-    items = [t.strip() for t in str(text).split(",") if t.strip()]
+    items = [t.strip() for t in str(text).split(",")]
+    if "" in items:  # 2000,,2001: a server left out by mistake, not a list of two
+        raise argparse.ArgumentTypeError(f"'{text}' has an empty item; allowed: a TCP port 1..65535 or a comma "
+                                         "list of them (e.g. 2000,3000)")
     if not items or not all(t.isdigit() and 1 <= int(t) <= 65535 for t in items):
         raise argparse.ArgumentTypeError(f"'{text}': allowed: a TCP port 1..65535 or a comma list of them "
                                          "(e.g. 2000,3000)")

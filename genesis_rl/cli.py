@@ -186,8 +186,8 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise UserInputError(f"--steps must be >= 1, got {args.steps}")
     limits.SIM_STEPS.check(args.steps, "--steps")
-    if args.gif_stride < 1:
-        raise UserInputError(f"--gif-stride must be >= 1, got {args.gif_stride}")
+    if not 1 <= args.gif_stride <= args.steps:  # a stride past the episode keeps one frame; past 2**63 overflows
+        raise UserInputError(f"--gif-stride = {args.gif_stride}; allowed: 1..{args.steps} (--steps)")
     if args.threads < 1:
         raise UserInputError(f"--threads must be >= 1, got {args.threads}")
     limits.THREADS.check(args.threads, "--threads")

@@ -96,6 +96,7 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
                                  f"({', '.join(diff)}); pass the same arguments, or --force to start over")
         _check_catalog_pin(folder, saved.get("catalog"))
         pairs = [tuple(p) for p in saved["scenes"]]
+        _check_scene_pairs(folder, saved, spec, pairs)
     else:
         read = [v for k in ("odd", "rulebook", "catalog", "weights")  # files the env reads
                 if isinstance(v := spec.env.get(k), str)]
@@ -133,6 +134,19 @@ def _check_catalog_pin(folder: Path, saved: Any) -> None:
         raise UserInputError(f"--resume: '{path}' {'changed' if found else 'is missing'} since the campaign began "
                              f"(campaign.json pins sha256 {str(pinned)[:16]}, found {(found or 'none')[:16]}): the "
                              "remaining episodes would play other scenes; restore it, or pass --force to start over")
+
+
+def _check_scene_pairs(folder: Path, saved: dict, spec: CampaignSpec, pairs: list[tuple]) -> None:
+    """The scenes and episode seeds a campaign.json lists are those its seed draws from its catalog: an edited
+    list would resume other episodes under the campaign's name (results would mix)."""
+    size = (saved.get("catalog") or {}).get("scenes")
+    if type(size) is not int:  # campaigns of 0.4.0 kept no catalog size: nothing to redraw from
+        return
+    expected = [tuple(p) for p in pick_scenes(size, spec.scenes, spec.seed)]
+    if pairs != expected:
+        raise UserInputError(f"--resume: '{folder / 'campaign.json'}' field 'scenes' is not what seed {spec.seed} "
+                             f"draws from its {size}-scene catalog (scene indices or episode seeds were edited); "
+                             "restore the file, or pass --force to start over")
 
 
 def episode_done(folder: Path, policy: str, scene: int, resume: bool) -> bool:

@@ -230,6 +230,9 @@ def load_odd(path: str | Path, model: ConditionsModel | None = None) -> ODD:
     from genesis_rl.config import read_toml
 
     data = read_toml(path, "ODD", hint="; shipped ones: configs/odd/*.toml")
+    if not data:  # an empty file would claim no domain at all: every weather inside it
+        raise UserInputError(f"ODD '{path}' is empty; expected a name and at least one [quantity] table "
+                             "(shipped ones: configs/odd/*.toml)")
     return parse_odd(data, str(path), model)
 
 
