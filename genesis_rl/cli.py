@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
+import warnings
 from pathlib import Path
+from typing import Any
 
 from genesis_rl import __version__, limits
 from genesis_rl.backends import (
@@ -290,10 +293,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
 
     if args.what == "campaign":
-        executors = tuple(_csv_list(args.executors or "local,ray") or [])
-        bad = [e for e in executors if e not in ("local", "ray")]
-        if bad or not executors:
-            raise UserInputError(f"--executors {args.executors!r}; allowed: a comma list of local, ray")
+        executors = tuple(t.strip() for t in (args.executors or "local,ray").split(","))
+        bad = [e for e in executors if e not in ("local", "ray")]  # an empty item (ray,,local) is a typo too
+        if bad or not executors or len(set(executors)) < len(executors):
+            raise UserInputError(f"--executors {args.executors!r}; allowed: a comma list of local, ray (each once, "
+                                 "no empty items)")
         counts = limits.count_list(args.workers, "--workers", limits.WORKERS)  # 1,,2 is refused
         if not 1 <= args.scenes <= 500:
             raise UserInputError(f"--scenes = {args.scenes} must be in 1..500")
@@ -489,6 +493,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line_warning(command: str, default: Any) -> Any:
+    """The package's own warnings as one line naming the command (Python's format adds the file, line number
+    and the source line of the warn call: noise to a user); other libraries' warnings keep their format."""
+    def format_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                       line: str | None = None) -> str:
+        if f"{os.sep}genesis_rl{os.sep}" in filename:
+            return f"genesis-rl {command}: warning: {message}\n"
+        return str(default(message, category, filename, lineno, line))
+
+    return format_warning
+
+
 def main(argv: list[str] | None = None) -> int:
     named: list[str] = []  # the subcommand, once parsed
     try:
@@ -509,6 +525,8 @@ def _main(argv: list[str] | None, named: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     named.append(args.command)
+    default_format = warnings.formatwarning
+    warnings.formatwarning = _one_line_warning(args.command, default_format)
     try:
         with trusted_for(args):  # only what this command line names is imported or unpickled
             return int(args.func(args))
@@ -521,6 +539,8 @@ def _main(argv: list[str] | None, named: list[str]) -> int:
             raise
         print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
         return UserInputError.exit_code
+    finally:
+        warnings.formatwarning = default_format
 
 
 if __name__ == "__main__":

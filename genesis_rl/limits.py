@@ -62,6 +62,10 @@ BUFFER = Limit("BUFFER", 1_000_000, "transitions", "held in memory: 1,000,000 ca
 RETRIES = Limit("RETRIES", 100, "retries", "each reconnects to the simulator and plays the episode again")
 
 
+#: the most items a comma list of counts may have (--workers 1,2,4,8 names four runs)
+MAX_LIST_ITEMS = 16
+
+
 def count_list(text: str | None, flag: str, limit: Limit, least: int = 1) -> tuple[int, ...]:
     """A comma list of counts (``--workers 1,2,4``): every item an integer in ``least``..the limit, none empty
     (``1,,2`` is a typo, not the list 1,2)."""
@@ -73,6 +77,9 @@ def count_list(text: str | None, flag: str, limit: Limit, least: int = 1) -> tup
     if not counts or min(counts) < least:
         raise UserInputError(f"{flag} {text!r}; allowed: a comma list of integers >= {least}, e.g. 1,2 (no empty "
                              "items)")
+    if len(counts) > MAX_LIST_ITEMS:  # each item is a whole run (bench campaign times one campaign per item)
+        raise UserInputError(f"{flag} lists {len(counts):,} counts; allowed: at most {MAX_LIST_ITEMS} (each one is a "
+                             "separate run)")
     for c in counts:
         limit.check(c, flag, text)
     return counts

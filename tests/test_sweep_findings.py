@@ -50,3 +50,28 @@ def test_resume_refuses_a_campaign_whose_episode_seeds_were_edited(tmp_path, cap
     meta["scenes"][0][1] -= 1
     (camp / "campaign.json").write_text(json.dumps(meta))
     assert main([*args, "--resume"]) == 0  # restored: the campaign resumes (nothing left to run)
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--executors", "ray,,local", "--workers", "1"], "--executors 'ray,,local'; allowed: a comma list of local, ray"),
+    (["--workers", ",".join(["1"] * 40)], "--workers lists 40 counts; allowed: at most 16"),
+])
+def test_bench_campaign_lists_with_a_typo_or_too_many_runs_are_refused(capsys, argv, message) -> None:
+    assert main(["bench", "campaign", "--scenes", "1", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_the_packages_warnings_are_one_line_naming_the_command(tmp_path) -> None:
+    """A damaged episode on resume is set aside and run again, with one warning line (Python's format added the
+    file, the line number and the source line of the warn call)."""
+    camp = tmp_path / "camp"
+    args = [sys.executable, "-m", "genesis_rl", "evaluate", "--policies", "sunny", "--system", "blind", "--map",
+            "highway", "--scenes", "1", "--steps", "4", "--no-report", "--no-counterfactual", "--quiet", "--out",
+            str(camp)]
+    assert subprocess.run(args, capture_output=True, timeout=300).returncode == 0
+    (next((camp / "episodes" / "sunny").glob("*.json"))).write_text("[" * 100_000)
+    r = subprocess.run([*args, "--resume"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("genesis-rl evaluate: warning: sunny scene_")
+    assert " is damaged (episode file " in lines[0], lines
