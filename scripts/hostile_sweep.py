@@ -1040,13 +1040,15 @@ def family4() -> None:
     case(4, "deep-campaign-resume", f"campaign.json nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), write("camp/campaign.json", deep_json(deep))))
     case(4, "deep-summary", f"summary.json nested {deep} deep; report", "report camp --out rep.html", setup=chain(CAMP, write("camp/summary.json", deep_json(deep))),
          may_change=("camp/summary.json",), expect=EITHER)  # report may rebuild summary.json from the episodes
-    case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))))
+    case(4, "deep-episode-json", f"an episode JSON nested {deep} deep; evaluate --resume", RESUME_CAMP, setup=chain(CAMP, RUN, cp("hw.json"), lambda d, fx: sorted(d.glob("camp/episodes/sunny/*.json"))[0].write_text(deep_json(deep))),
+         may_change=("camp/",), expect=EITHER)  # resume sets a damaged episode aside under damaged/ and runs it again
     case(4, "deep-record", f"record nested {deep} deep; replay", REPLAY, setup=write("rec.json", deep_json(deep)))
     case(4, "deep-run-config", f"the run's config.toml nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), write("run/config.toml", deep_toml("env", deep))))
     case(4, "deep-run-json", f"the run's run.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/run.json", deep_json(deep))), expect=EITHER)
     case(4, "deep-last-json", f"checkpoints/last.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/checkpoints/last.json", deep_json(deep))))
     case(4, "deep-state-json", f"the checkpoint's state.json nested {deep} deep; train --resume", RESUME, setup=chain(RUN, write("run/checkpoints/step_00000032.state.json", deep_json(deep))))
-    case(4, "deep-marker", f"the campaign's .genesis-rl.json nested {deep} deep; evaluate --force onto it", f"{EVAL_HW} --out camp --force", setup=chain(CAMP, cp("hw.json"), write("camp/.genesis-rl.json", deep_json(deep))))
+    case(4, "deep-marker", f"the campaign's .genesis-rl.json nested {deep} deep; evaluate --force onto it", f"{EVAL_HW} --out camp --force", setup=chain(CAMP, cp("hw.json"), write("camp/.genesis-rl.json", deep_json(deep))),
+         may_change=("camp/",), expect=EITHER)  # its content (campaign.json) says campaign: --force replaces it, as asked
     case(4, "deep-agent-data", f"agent.zip 'data' nested {deep} deep; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), zip_member("run/agent.zip", "data", lambda d, old: deep_json(deep).encode())))
     big = 200_000
     case(4, "schedule-huge-cell", f"schedule CSV cell of {big:,} characters; drive --schedule", DRIVE + " --schedule s.csv", setup=chain(cp("cat.json"), cp("sched.csv", to="s.csv"), edit_text("s.csv", lambda t: t.replace("2,20,10", f"2,{'9' * big},10"))), from_issue=True)
@@ -1077,7 +1079,7 @@ def family4() -> None:
                  core=dname in ("zero", "binary"))  # an empty --config the user gives means the defaults
     for lname, rel, argv, base in [("agent-zip", "run/agent.zip", EVAL_AGENT, chain(RUN, cp("hw.json"))),
                                    ("checkpoint-zip", "run/checkpoints/step_00000032.zip", RESUME, RUN),
-                                   ("replay-buffer", "sacrun/checkpoints/step_00000024.replay.pkl", "train --out sacrun --resume --steps 36 --quiet", cp("sacrun"))]:
+                                   ("replay-buffer", "sacrun/checkpoints/step_00000024.replay.npz", "train --out sacrun --resume --steps 36 --quiet", cp("sacrun"))]:  # .replay.pkl before 0.11.0
         for dname in ("zero", "trunc", "binary"):
             case(4, f"{dname}-{lname}", f"{lname} {rel} {dname}", argv, setup=chain(base, damaged[dname](rel)), core=dname != "trunc")
     case(4, "agent-zip-missing-data", "agent.zip without its 'data' member; evaluate --agent", EVAL_AGENT, setup=chain(RUN, cp("hw.json"), lambda d, fx: _drop_member(d / "run/agent.zip", "data")))

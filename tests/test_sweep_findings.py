@@ -75,3 +75,12 @@ def test_the_packages_warnings_are_one_line_naming_the_command(tmp_path) -> None
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("genesis-rl evaluate: warning: sunny scene_")
     assert " is damaged (episode file " in lines[0], lines
+
+
+def test_an_empty_npz_is_a_damaged_file_not_an_eof_traceback(tmp_path) -> None:
+    from genesis_rl.perception.dataset import DetectionDataset
+
+    empty = tmp_path / "data.npz"
+    empty.write_bytes(b"")
+    with pytest.raises(UserInputError, match="is not a genesis-rl detector dataset"):
+        DetectionDataset.load(empty)

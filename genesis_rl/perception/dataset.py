@@ -192,7 +192,7 @@ class DetectionDataset:
                 images, boxes, weather = z["images"], z["boxes"], z["weather"]
         except FileNotFoundError:
             raise UserInputError(f"dataset file {path} does not exist") from None
-        except (OSError, ValueError, KeyError) as e:
+        except (OSError, ValueError, KeyError, EOFError) as e:  # EOFError: an empty file
             raise UserInputError(f"dataset file {path} is not a genesis-rl detector dataset: {e}") from None
         if meta.get("format") != DATASET_FORMAT or meta.get("version") != DATASET_VERSION:
             raise UserInputError(f"dataset file {path} has format {meta.get('format')} v{meta.get('version')}; "

@@ -396,7 +396,7 @@ def read_sb3_state(path: Path, cfg: RunConfig, n_envs: int) -> dict[str, Any]:
             infos = json.loads(str(z["ep_info_buffer_json"]))
     except UserInputError:
         raise
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, RecursionError) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, RecursionError) as err:  # EOFError: empty
         raise damaged(f"{type(err).__name__}: {err}") from None
     if not isinstance(infos, list) or not all(isinstance(i, dict) and all(
             isinstance(v, (int, float)) for v in i.values()) for i in infos):
@@ -451,7 +451,7 @@ def read_replay_buffer(path: Path, buffer: Any) -> None:
                 raise damaged(f"pos = {pos!r} and full = {full!r}; allowed: 0..{buffer.buffer_size - 1} and a bool")
     except UserInputError:
         raise
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:  # EOFError: an empty file
         raise damaged(f"{type(err).__name__}: {err}") from None
     for name, value in loaded.items():
         if isinstance(value, dict):
