@@ -1,7 +1,7 @@
 """Hostile-input sweep for issue 38 ("Trust nothing a file says"), organised by the issue's six families.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/hostile_sweep.py --out sweep.json [--family N] [--jobs 2]
-        [--markdown docs/reliability_sweep.md] [--work DIR] [--limit N] [--ids ID,ID] [--all] [--list]
+        [--markdown docs/reliability/sweep.md] [--work DIR] [--limit N] [--ids ID,ID] [--all] [--list]
 
 The default set (368 cases, 341 of them new relative to the issue's examples) takes about 10 minutes on two idle
 cores once the fixes refuse early; ``--all`` adds the rest of each value grid (478 cases, 451 new). ``--work DIR`` keeps
