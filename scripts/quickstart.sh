@@ -23,5 +23,5 @@ mkdir -p "$OUT"
 # a highway day-time ODD (inside or not, blame, naturalness, distinct failures: docs/odd.md); report.html
 .venv/bin/genesis-rl evaluate --agent "$OUT/run" --catalog "$OUT/highway_scenes.json" --scenes 10 --steps 256 \
     --policies sunny,random,agent --odd configs/odd/highway_day.toml --odd-label-only --workers 2 \
-    --out "$OUT/run/eval" --force
-echo "[quickstart] done. Report: $OUT/run/eval/report.html"
+    --out "$OUT/eval" --force
+echo "[quickstart] done. Report: $OUT/eval/report.html"
