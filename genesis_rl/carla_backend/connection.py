@@ -14,6 +14,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from genesis_rl import ranges
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.errors import SimulatorLost, UserInputError
 
@@ -41,7 +42,7 @@ def start_hint(host: str, port: int) -> str:
 
 
 #: the longest --carla-timeout taken: a map loads in about a minute; an hour means something else is wrong
-MAX_TIMEOUT_S = 3600.0
+MAX_TIMEOUT_S = ranges.TIMEOUT.high  # one ceiling with the --carla-timeout flag's
 #: seconds the probe may take to find and connect to the server (the answer gets --carla-timeout)
 PROBE_CONNECT_S = 5.0
 #: CARLA's RPC is msgpack-rpc (rpclib): the request [0, msgid 0, "version", [[false]]], hand-encoded (fixarray
@@ -57,7 +58,7 @@ def check_numbers(port: int, timeout: float, tm_port: int | None = None) -> None
     """The connection's numbers, checked before any socket is opened: ports 1..65535, a timeout of finite
     seconds in (0, MAX_TIMEOUT_S] (the client turns inf into 0 s, which fails every call at once)."""
     for flag, value in (("--carla-port", port), ("--carla-tm-port", tm_port)):
-        if value is not None and not (isinstance(value, int) and 1 <= value <= 65535):
+        if value is not None and not (isinstance(value, int) and ranges.PORT.low <= value <= ranges.PORT.high):
             raise UserInputError(f"{flag} (env.{flag[2:].replace('-', '_')}) = {value} is not a TCP port; allowed: "
                                  "1..65535")
     if not (isinstance(timeout, int | float) and math.isfinite(timeout) and 0 < timeout <= MAX_TIMEOUT_S):
