@@ -210,8 +210,10 @@ def _cmd_drive(args: argparse.Namespace) -> int:
     schedule = load_schedule(args.schedule, base, args.steps) if args.schedule else None
     kwargs = {}
     if args.weights:
-        if args.system not in ("builtin", "yolo"):
-            raise UserInputError("--weights applies to --system builtin or yolo only")
+        from genesis_rl.system.protocol import WEIGHTED_SYSTEMS
+
+        if args.system not in WEIGHTED_SYSTEMS:
+            raise UserInputError(f"--weights applies to --system {', '.join(WEIGHTED_SYSTEMS)} only")
         kwargs["weights"] = args.weights
     import torch
 
@@ -409,10 +411,11 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--weather", default="clear_noon", help=_weather_help() + ". The base of --schedule.")
     dr.add_argument("--schedule", default=None, help="CSV of per-step knob values: one row a step, one column a knob")
     dr.add_argument("--system", default="builtin",
-                    help="system under test: builtin, blind, oracle, yolo, or package.module:Class "
+                    help="system under test: builtin, blind, oracle, yolo, coco, or package.module:Class "
                          "(default: builtin)")
     dr.add_argument("--weights", default=None,
-                    help="detector weights for --system builtin or yolo (default: the shipped ones)")
+                    help="detector weights for --system builtin or yolo (default: the shipped ones), or the "
+                         "model folder for coco (default: the model store)")
     dr.add_argument("--steps", type=int, default=512, help="steps per episode, 0.05 s each (default: 512)")
     dr.add_argument("--width", type=int, default=320, help="camera width [px] (default: 320)")
     dr.add_argument("--height", type=int, default=240, help="camera height [px] (default: 240)")
@@ -454,9 +457,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_scale_arguments(tr, "--envs")
     tr.set_defaults(func=_cmd_train)
 
-    from genesis_rl.perception.commands import add_detector_commands
+    from genesis_rl.perception.commands import add_detector_commands, add_model_commands
 
     add_detector_commands(sub)
+    add_model_commands(sub)
 
     from genesis_rl.evaluation.commands import add_evaluation_commands
 

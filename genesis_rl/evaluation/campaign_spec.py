@@ -148,10 +148,16 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None,
         env["system"] = system
         env.pop("system_kwargs", None)
     if weights is not None:
-        if env.get("system", "builtin") not in ("builtin", "yolo"):
-            raise UserInputError(f"--weights applies to --system builtin or yolo only, not "
+        from genesis_rl.system.protocol import WEIGHTED_SYSTEMS
+
+        if env.get("system", "builtin") not in WEIGHTED_SYSTEMS:
+            raise UserInputError(f"--weights applies to --system {', '.join(WEIGHTED_SYSTEMS)} only, not "
                                  f"'{env.get('system')}'")
-        if not Path(weights).is_file():
+        if env.get("system") == "coco":
+            if not Path(weights).is_dir():
+                raise UserInputError(f"--weights '{weights}' is not a folder (coco takes the folder holding "
+                                     f"yolov3-tiny.cfg, yolov3-tiny.weights and coco.names)")
+        elif not Path(weights).is_file():
             raise UserInputError(f"--weights '{weights}' is not a file")
         env["system_kwargs"] = {**env.get("system_kwargs", {}), "weights": str(weights)}
     for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps", "start_spread"):

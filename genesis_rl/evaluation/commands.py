@@ -250,7 +250,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
     ev.add_argument("--system", default=None, help="system under test (default: the agent's)")
     ev.add_argument("--weights", default=None,
-                    help="detector weights of the system under test (builtin or yolo; default: the shipped ones): "
+                    help="detector weights of the system under test (builtin or yolo; default: the shipped ones; "
+                         "coco: a model folder): "
                          "an agent against a detector it never trained with")
     ev.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
     ev.add_argument("--search-budget", type=int, default=8, help="episodes per scene a search baseline may spend")

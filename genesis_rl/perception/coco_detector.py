@@ -68,6 +68,12 @@ class CocoDetector:
             self._sha256 = file_sha256(self.weights_path)
         return self._sha256
 
+    @property
+    def input_size(self) -> tuple[int, int]:
+        """(width, height) the network runs at for a 4:3 frame (other aspect ratios: see ``input_shape``)."""
+        _, _, _, pw, ph = self.input_shape(4 * self.image_size, 3 * self.image_size)
+        return pw, ph
+
     def input_shape(self, width: int, height: int) -> tuple[float, int, int, int, int]:
         """(scale, scaled width, scaled height, padded width, padded height) for a frame of this size."""
         scale = self.image_size / max(width, height)

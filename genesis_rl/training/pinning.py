@@ -68,9 +68,13 @@ def _sha256(path: Path) -> str | None:
 
 def weights_file(env: Mapping[str, Any]) -> Path | None:
     """The system under test's weights file: ``system_kwargs.weights``, else the shipped detector's for the
-    built-in system, else None."""
+    built-in system (the model store's yolov3-tiny weights for coco, whose ``weights`` is a folder), else None."""
     kwargs = env.get("system_kwargs") or {}
     given = kwargs.get("weights") if isinstance(kwargs, Mapping) else None
+    if env.get("system") == "coco":  # a model folder: its weights file is what decides the detections
+        from genesis_rl.perception.model_store import model_dir
+
+        return (Path(given) if isinstance(given, str) and given else model_dir("coco")) / "yolov3-tiny.weights"
     if isinstance(given, str) and given:
         return Path(given)
     if env.get("system", "builtin") == "builtin":
