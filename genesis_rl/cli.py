@@ -457,10 +457,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_scale_arguments(tr, "--envs")
     tr.set_defaults(func=_cmd_train)
 
-    from genesis_rl.perception.commands import add_detector_commands, add_model_commands
+    from genesis_rl.perception.commands import add_detector_commands, add_model_commands, add_realism_command
 
     add_detector_commands(sub)
     add_model_commands(sub)
+    add_realism_command(sub)
 
     from genesis_rl.evaluation.commands import add_evaluation_commands
 

@@ -108,6 +108,13 @@ def _low_sun_glare(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]
     }
 
 
+def _clear_noon(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
+    """Exactly the ``clear_noon`` preset (no draw): the realism check's fixed light."""
+    from genesis_rl.knobs import PRESETS
+
+    return dict(PRESETS["clear_noon"])
+
+
 #: condition name -> weather sampler (rng, ego yaw in rad) -> knob overrides on the default weather.
 CONDITIONS: dict[str, Sampler] = {
     "typical": _typical,
@@ -119,10 +126,12 @@ CONDITIONS: dict[str, Sampler] = {
     "night": _night,
     "wet_road": _wet_road,
     "low_sun_glare": _low_sun_glare,
+    "clear_noon": _clear_noon,
 }
 
-#: evaluation buckets (``typical`` is the training distribution, reported as a reference)
-EVAL_CONDITIONS: tuple[str, ...] = tuple(CONDITIONS)
+#: evaluation buckets (``typical`` is the training distribution, reported as a reference); ``clear_noon``
+#: is the realism check's, not a detector-evaluation bucket
+EVAL_CONDITIONS: tuple[str, ...] = tuple(c for c in CONDITIONS if c != "clear_noon")
 
 
 def check_conditions(names: Sequence[str], flag: str = "conditions") -> tuple[str, ...]:
