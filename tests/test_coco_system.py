@@ -187,8 +187,21 @@ def test_the_reader_matches_opencvs_darknet_reader() -> None:
 
 
 @needs_model
+def test_the_weights_own_anchor_mask_is_restored() -> None:
+    from genesis_rl.perception.coco_detector import weights_cfg
+
+    shipped = model_store.find_model("coco")["yolov3-tiny.cfg"].read_text()
+    fixed = weights_cfg(shipped, "cfg")
+    assert [line for line in fixed.splitlines() if line.startswith("mask")] == ["mask = 3,4,5", "mask = 1,2,3"]
+    assert fixed.replace("mask = 1,2,3", "mask = 0,1,2").split() == shipped.split()
+    with pytest.raises(UserInputError, match="not the yolov3-tiny cfg"):
+        weights_cfg(shipped.replace("mask = 0,1,2", "mask = 6,7,8"), "cfg")
+
+
+@needs_model
 def test_the_coco_detector_sees_lite_cars_up_close() -> None:
-    """On 24 clear-noon highway frames, most unoccluded vehicles within 12 m are found (IoU >= 0.3)."""
+    """On 24 clear-noon highway frames, most unoccluded vehicles within 20 m are found with IoU >= 0.5 (with the
+    cfg's mask as shipped, 0,1,2, boxes were ~40 % too small and only 4 % of those at 10-20 m reached 0.5)."""
     from genesis_rl.perception.coco_detector import CocoDetector
     from genesis_rl.perception.dataset import render_condition_sets
     from genesis_rl.perception.evaluate import box_iou
@@ -200,10 +213,11 @@ def test_the_coco_detector_sees_lite_cars_up_close() -> None:
     found = counted = 0
     for i, boxes in enumerate(det.detect_batch(data.images)):
         gt = data.frame_boxes(i)
-        near = gt[(gt[:, 5] < 12) & (gt[:, 6] >= 0.9)]
+        near = gt[(gt[:, 5] < 20) & (gt[:, 6] >= 0.9) & (gt[:, 7] <= 0.5)]
         counted += len(near)
         if len(near) and len(boxes):
-            found += int((box_iou(near[:, 1:5], boxes[:, :4]).max(1) >= 0.3).sum())
-    assert counted >= 5
+            found += int((box_iou(near[:, 1:5], boxes[:, :4]).max(1) >= 0.5).sum())
+    print(f"recall within 20 m: {found}/{counted}")
+    assert counted >= 20
     assert found / counted >= 0.6
     assert all(b.shape[1] == 5 and (b[:, 4] >= det.score_threshold).all() for b in det.detect_batch(data.images[:2]))
