@@ -232,3 +232,19 @@ def test_the_controller_gets_the_servers_light_states_and_one_planner_per_map(fa
     assert extras["plan_route"] is route_from_context and isinstance(extras["route_planner"], RoutePlanner)
     assert sim.context_extras()["route_planner"] is extras["route_planner"]  # built once per map
     assert extras["speed_limits"][0] == pytest.approx(12.0)
+
+
+def test_the_carla_backend_imports_nothing_of_lite() -> None:
+    """The backends stand side by side: what both need (route spacing, vehicle placement) is backend-neutral."""
+    import ast
+    from pathlib import Path
+
+    import genesis_rl.carla_backend as pkg
+
+    found = []
+    for path in sorted(Path(pkg.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            found += [f"{path.name}: {n}" for n in names if n.startswith("genesis_rl.lite")]
+    assert found == []

@@ -6,7 +6,7 @@ destination, and a dense path of waypoints with road options (follow, turn at a 
 :class:`RoutePlanner` builds that graph from ``carla_map.get_topology()`` with networkx, and
 :class:`CarlaRoute` keeps the controller's :class:`~genesis_rl.system.route.PolylineRoute` interface filled
 ahead of the ego: it draws a destination with the episode's seeded generator, plans to it, samples the
-lanes every :data:`~genesis_rl.lite.maps.lane_graph.DS` metres (lane changes blend over
+lanes every :data:`~genesis_rl.sim.spacing.DS` metres (lane changes blend over
 :data:`LANE_CHANGE_LENGTH`), and draws the next destination when the plan runs short, so the ego roams as
 long as the episode lasts.
 
@@ -29,7 +29,7 @@ import numpy as np
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.lanes import lane_from_key
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.maps.lane_graph import DS
+from genesis_rl.sim.spacing import DS
 from genesis_rl.system.route import PLAN_AHEAD, PolylineRoute
 
 LANE_CHANGE_LENGTH = 20.0  # [m] a lane change blends from one lane centre to the next over this distance

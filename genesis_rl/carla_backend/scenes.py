@@ -28,8 +28,8 @@ from genesis_rl.carla_backend.backend import CarlaBackend
 from genesis_rl.carla_backend.frames import pose_from_carla
 from genesis_rl.carla_backend.lanes import lane_key
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.scenes import draw_autopilot, draw_make, fits
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+from genesis_rl.scenes.placement import draw_autopilot, draw_make, fits
 from genesis_rl.scenes.vehicles import PALETTE
 from genesis_rl.sim.interface import ConnectionSettings
 
