@@ -248,3 +248,67 @@ def test_the_carla_backend_imports_nothing_of_lite() -> None:
                 [node.module or ""] if isinstance(node, ast.ImportFrom) else []
             found += [f"{path.name}: {n}" for n in names if n.startswith("genesis_rl.lite")]
     assert found == []
+
+
+class _Vel:
+    def __init__(self, x: float) -> None:
+        self.x, self.y, self.z = x, 0.0, 0.0
+
+
+class _Snapshot:
+    """Velocities by CARLA actor id at one frame."""
+
+    def __init__(self, speeds: dict[int, float]) -> None:
+        self.speeds = speeds
+
+    def find(self, actor_id: int):
+        return SimpleNamespace(get_velocity=lambda: _Vel(self.speeds[actor_id]))
+
+
+class TickingWorld(FakeWorld):
+    """Frames from 100 on; ``speeds[frame]`` the snapshot of each; ``on_tick[frame]`` runs before the tick
+    returns (a collision event delivered then); ``hang`` makes tick block until released."""
+
+    def __init__(self, speeds: dict[int, dict[int, float]]) -> None:
+        super().__init__()
+        self.frame, self.speeds, self.on_tick = 99, speeds, {}
+
+    def tick(self, timeout: float) -> int:
+        self.frame += 1
+        self.on_tick.get(self.frame, lambda: None)()
+        return self.frame
+
+    def get_snapshot(self):
+        return _Snapshot(self.speeds[self.frame])
+
+
+def _bare_simulation(backend, world):
+    """A CarlaSimulation with an ego (CARLA id 10) and a lead (id 11), set up by hand on a fake world."""
+    import threading
+
+    from genesis_rl.knobs import Weather
+    from genesis_rl.sim.interface import VehicleControl
+
+    sim = object.__new__(CarlaSimulation)
+    sim._backend, sim.world, sim._destroyed, sim._step = backend, world, False, 0
+    sim._weather = sim._applied_weather = Weather.default()
+    sim._control = sim._applied_control = VehicleControl()
+    sim._actors = {0: SimpleNamespace(id=10), 1: SimpleNamespace(id=11)}
+    sim._index_of, sim._queues, sim._images, sim._history = {10: 0, 11: 1}, {}, {}, {}
+    sim._hits, sim._hits_lock, sim._contacts = [], threading.Lock(), ContactTracker()
+    return sim
+
+
+def test_a_late_collision_event_gets_the_speeds_and_step_of_its_own_frame(fake_server) -> None:
+    # the ego drives at 10 m/s into a lead at 4 m/s; the impact is frame 102 (step 2), after which the snapshot
+    # holds the crash's speeds (3 and 5 m/s). Its event reaches the client only during the next tick.
+    speeds = {100: {10: 10.0, 11: 4.0}, 101: {10: 10.0, 11: 4.0}, 102: {10: 3.0, 11: 5.0}, 103: {10: 2.0, 11: 5.0}}
+    b = CarlaBackend("localhost", 2000)
+    world = TickingWorld(speeds)
+    sim = _bare_simulation(b, world)
+    world.on_tick[103] = lambda: sim._on_collision(SimpleNamespace(frame=102, other_actor=SimpleNamespace(id=11)))
+    sim._advance(0)  # frame 100, step 0
+    assert sim.tick().collisions == [] and sim.tick().collisions == []  # frames 101, 102: no event yet
+    (hit,) = sim.tick().collisions  # frame 103: the event of frame 102 arrives
+    assert (hit.step, hit.vehicle_b) == (2, 1)
+    assert (hit.speed_a, hit.speed_b, hit.relative_speed) == (10.0, 4.0, 6.0)  # before the fix: 3, 5, 2 at step 3

@@ -51,6 +51,7 @@ DEFAULT_PORT = 2000
 DEFAULT_TM_PORT = 8000
 DEFAULT_TIMEOUT = 10.0  # [s] per client call (a tick with 30 vehicles and two cameras takes well under 1 s)
 LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold server
+VELOCITY_HISTORY = 32  # [frames] snapshots' velocities kept for collision events that arrive late
 
 
 #: The RGB camera adapts its exposure at once instead of over seconds (CARLA's default, 'histogram' with speeds
@@ -198,6 +199,7 @@ class CarlaSimulation(Simulation):
         self._hits: list[tuple[int, int]] = []  # (frame, other actor id) from the collision sensor
         self._hits_lock = threading.Lock()
         self._contacts = ContactTracker()
+        self._history: dict[int, tuple[int, dict[int, np.ndarray]]] = {}  # frame -> (step, velocities)
         self._blueprints: Any = None
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
@@ -242,7 +244,7 @@ class CarlaSimulation(Simulation):
         self._sensors.append(hit)
         hit.listen(self._on_collision)
         self._k = self.camera.intrinsics()
-        self._advance()  # first frame for observe() at step 0; the spawned cars settle onto the road
+        self._advance(0)  # first frame for observe() at step 0; the spawned cars settle onto the road
         with self._hits_lock:
             self._hits.clear()
 
@@ -312,8 +314,8 @@ class CarlaSimulation(Simulation):
     def apply_ego_control(self, control: VehicleControl) -> None:
         self._control = control
 
-    def _advance(self) -> int:
-        """Push weather and control, tick the server, and collect this frame's sensor data."""
+    def _advance(self, step: int) -> int:
+        """Push weather and control, tick the server, and collect this frame's sensor data (the frame of ``step``)."""
         carla = require_carla()
         b = self._backend
         if self._weather != self._applied_weather:
@@ -325,6 +327,9 @@ class CarlaSimulation(Simulation):
             self._applied_control = c
         frame = b.call(f"ticking (step {self._step})", self.world.tick, b.timeout)
         self._snapshot = self.world.get_snapshot()
+        self._history[int(frame)] = (step, self._velocities())
+        for old in sorted(self._history)[:-VELOCITY_HISTORY]:
+            del self._history[old]
         for name, q in self._queues.items():
             try:
                 self._images[name] = q.get(frame, b.timeout)
@@ -344,25 +349,34 @@ class CarlaSimulation(Simulation):
     def tick(self) -> TickResult:
         if self._destroyed:
             raise RuntimeError("this simulation was destroyed")
-        before = self._velocities()
-        frame = self._advance()
+        frame = self._advance(self._step + 1)
         self._step += 1
-        return TickResult(self._step, self._step * self.dt, self._collisions(frame, before))
+        return TickResult(self._step, self._step * self.dt, self._collisions(frame))
 
-    def _collisions(self, frame: int, before: dict[int, np.ndarray]) -> list[Collision]:
+    def _before(self, frame: int) -> tuple[int, dict[int, np.ndarray]]:
+        """The step of ``frame`` and the velocities just before it (the snapshot of the frame before: the
+        impact's own snapshot already holds post-impact speeds). The oldest held when ``frame`` is older."""
+        held = sorted(self._history)
+        prior = [f for f in held if f < frame] or held[:1]
+        step = self._history[frame][0] if frame in self._history else self._step
+        return step, self._history[prior[-1]][1] if prior else {}
+
+    def _collisions(self, frame: int) -> list[Collision]:
         """The ego's new contacts this tick (the sensor reports every frame of a contact, on its own stream;
         :class:`~genesis_rl.carla_backend.contacts.ContactTracker` reports each contact's start once, as the lite
-        backend does). Static objects have vehicle id -1."""
+        backend does). Static objects have vehicle id -1. A contact's speeds and step are those of the event's
+        own frame: an event that arrives a tick late is not given the post-impact speeds of the tick it is
+        read at."""
         with self._hits_lock:
             now = [h for h in self._hits if h[0] <= frame]
             self._hits = [h for h in self._hits if h[0] > frame]
-        new = self._contacts.update(now)
         zero = np.zeros(3)
         out = []
-        for other in new:
+        for hit_frame, other in self._contacts.starts(now):
+            step, before = self._before(hit_frame)
             j = self._index_of.get(other, -1)
             va, vb = before.get(0, zero), before.get(j, zero) if j >= 0 else zero
-            out.append(Collision(self._step, 0, j, float(np.linalg.norm(va[:2])), float(np.linalg.norm(vb[:2])),
+            out.append(Collision(step, 0, j, float(np.linalg.norm(va[:2])), float(np.linalg.norm(vb[:2])),
                                  float(np.linalg.norm((va - vb)[:2]))))
         return out
 
