@@ -94,7 +94,7 @@ def fake_server(monkeypatch):
     next reads time out on."""
     server = SimpleNamespace(clients=[], fail=None)
 
-    def connect(host, port, timeout):
+    def connect(host, port, timeout, tm_port=None):
         server.clients.append(FakeClient(FakeWorld(server.fail)))
         return server.clients[-1]
 
@@ -312,3 +312,64 @@ def test_a_late_collision_event_gets_the_speeds_and_step_of_its_own_frame(fake_s
     (hit,) = sim.tick().collisions  # frame 103: the event of frame 102 arrives
     assert (hit.step, hit.vehicle_b) == (2, 1)
     assert (hit.speed_a, hit.speed_b, hit.relative_speed) == (10.0, 4.0, 6.0)  # before the fix: 3, 5, 2 at step 3
+
+
+# -- issue 36: one traffic-manager port per run -----------------------------------------------------------------
+def test_each_run_gets_the_traffic_manager_port_of_its_server(fake_server) -> None:
+    """Two runs on one machine against servers 2000 and 3000 both opened a traffic manager on 8000, and the
+    second failed with CARLA's bind error; the port now follows the server's (PORT + 6000) unless given."""
+    import argparse
+
+    from genesis_rl.backends import add_backend_arguments, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_backend_arguments(parser)
+    ports = []
+    for rpc in ("2000", "3000"):
+        settings = settings_from_args(parser.parse_args(["--backend", "carla", "--carla-port", rpc]))
+        b = CarlaBackend.from_settings(settings)
+        ports.append(b.traffic_manager().port)
+        b.close()
+    assert ports == [8000, 9000]
+    given = CarlaBackend.from_settings(settings_from_args(parser.parse_args(["--carla-port", "3000",
+                                                                              "--carla-tm-port", "8123"])))
+    assert given.tm_port == 8123
+
+
+def _listening_port():
+    import socket
+
+    sock = socket.socket()
+    sock.bind(("", 0))
+    sock.listen(1)
+    return sock, sock.getsockname()[1]
+
+
+def test_a_traffic_manager_port_taken_on_this_machine_fails_at_once_by_name(fake_server) -> None:
+    from genesis_rl.carla_backend.ports import TrafficManagerPortBusy
+
+    sock, port = _listening_port()  # another run's traffic manager
+    try:
+        b = CarlaBackend("localhost", 2000, tm_port=port)
+        with pytest.raises(TrafficManagerPortBusy, match=f"traffic manager's port {port} is taken on this machine"):
+            b.traffic_manager()
+        assert fake_server.clients[-1].tms == []  # the client was never asked
+    finally:
+        sock.close()
+
+
+def test_carlas_bind_error_is_named(fake_server) -> None:
+    """When the port is taken between the check and the client's bind, CARLA's raw RuntimeError (which no
+    connection check recognised) is turned into the same named error (exit status 2)."""
+    from genesis_rl.carla_backend.ports import TrafficManagerPortBusy
+
+    b = CarlaBackend("localhost", 2000)
+
+    def bind_error(port):
+        raise RuntimeError("trying to create rpc server for traffic manager; but the system failed to create "
+                           "because of bind error.")
+
+    b.client.get_trafficmanager = bind_error
+    with pytest.raises(TrafficManagerPortBusy, match="port 8000 is taken on this machine .*CARLA: trying") as err:
+        b.traffic_manager()
+    assert err.value.exit_code == 2

@@ -24,6 +24,13 @@ from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, 
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
 from genesis_rl.carla_backend.lead import lane_path, lead_on_path
+from genesis_rl.carla_backend.ports import (
+    TrafficManagerPortBusy,
+    busy_message,
+    default_tm_port,
+    ensure_free,
+    is_bind_error,
+)
 from genesis_rl.carla_backend.projection import ground_truth_boxes
 from genesis_rl.carla_backend.sensors import FrameQueue, bgra_to_rgb, decode_depth
 from genesis_rl.carla_backend.spawn import SpawnSpec, initial_velocity, plan_scene, spawn_commands
@@ -48,7 +55,6 @@ T = TypeVar("T")
 
 DEFAULT_HOST = "localhost"
 DEFAULT_PORT = 2000
-DEFAULT_TM_PORT = 8000
 DEFAULT_TIMEOUT = 10.0  # [s] per client call (a tick with 30 vehicles and two cameras takes well under 1 s)
 LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold server
 VELOCITY_HISTORY = 32  # [frames] snapshots' velocities kept for collision events that arrive late
@@ -95,8 +101,9 @@ class CarlaBackend(Backend):
     needs_catalog = True  # scenes are generated on a server, once: genesis-rl scenes --backend carla
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, timeout: float = DEFAULT_TIMEOUT,
-                 tm_port: int = DEFAULT_TM_PORT, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
-        self.host, self.port, self.tm_port = str(host), int(port), int(tm_port)
+                 tm_port: int | None = None, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
+        self.host, self.port = str(host), int(port)
+        self.tm_port = default_tm_port(self.port, tm_port)  # one per run: two runs never share a port
         self.timeout, self.load_timeout = float(timeout), float(load_timeout)
         check_numbers(self.port, self.timeout, self.tm_port)  # --carla-tm-port 70000, --carla-timeout inf
         self.client = connect(self.host, self.port, self.timeout)
@@ -157,10 +164,17 @@ class CarlaBackend(Backend):
         return CarlaSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
 
     def traffic_manager(self) -> Any:
-        """This connection's traffic manager (started on ``tm_port`` once, shut down by :meth:`close`)."""
+        """This connection's traffic manager (started on ``tm_port`` once, shut down by :meth:`close`); a port
+        taken on this machine fails at once, by name (:mod:`~genesis_rl.carla_backend.ports`)."""
         if self._tm is None:
-            self._tm = self.call(f"starting the traffic manager on port {self.tm_port}", self.client.get_trafficmanager,
-                                 self.tm_port)
+            ensure_free(self.tm_port)
+            try:
+                self._tm = self.call(f"starting the traffic manager on port {self.tm_port}",
+                                     self.client.get_trafficmanager, self.tm_port)
+            except RuntimeError as err:
+                if not is_bind_error(err):
+                    raise
+                raise TrafficManagerPortBusy(busy_message(self.tm_port, f"CARLA: {err}")) from None
         return self._tm
 
     def close(self) -> None:
