@@ -373,3 +373,48 @@ def test_carlas_bind_error_is_named(fake_server) -> None:
     with pytest.raises(TrafficManagerPortBusy, match="port 8000 is taken on this machine .*CARLA: trying") as err:
         b.traffic_manager()
     assert err.value.exit_code == 2
+
+
+# -- issue 36: a map is known by its OpenDRIVE, not its name ----------------------------------------------------
+class MapWorld(FakeWorld):
+    """A server world running ``cmap`` (a real carla.Map: what generate_opendrive_world leaves loaded)."""
+
+    def __init__(self, cmap, world_id: int) -> None:
+        super().__init__()
+        self.cmap, self.id = cmap, world_id
+
+    def get_map(self):
+        return self.cmap
+
+
+def test_a_catalog_runs_only_on_the_map_it_was_made_on(fake_server) -> None:
+    """Regression (issue 36): catalogs made on the urban and the highway exports both said 'OpenDriveMap',
+    and load_map took any world of that name: one's scenes ran on the other's roads."""
+    import hashlib
+    import json
+
+    import carla
+
+    from genesis_rl.carla_backend.scenes import generate_catalog
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.lite.maps import load_map
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.scenes.catalog import parse_catalog
+
+    urban, highway = (to_opendrive(load_map(n)) for n in ("urban", "highway"))
+    made = generate_catalog(carla.Map("OpenDriveMap", urban), "OpenDriveMap", 2, seed=0, n_vehicles=3)
+    digest = hashlib.sha256(urban.encode()).hexdigest()
+    assert made.map_digest == digest and made.to_json()["map_digest"] == digest
+    as_json = json.loads(json.dumps(made.to_json()))
+    scene = parse_catalog(as_json).scene(1)
+    assert scene.map_digest == digest
+
+    b = CarlaBackend("localhost", 2000)
+    b.client.world = MapWorld(carla.Map("OpenDriveMap", highway), world_id=7)
+    with pytest.raises(UserInputError, match=f"digest {digest[:12]}, but the server localhost:2000 runs a map of "
+                                             "that name with digest"):
+        b.load_map(scene.map, scene.map_digest)
+    b.client.world = right = MapWorld(carla.Map("OpenDriveMap", urban), world_id=8)
+    assert b.load_map(scene.map, scene.map_digest) is right
+    with pytest.raises(UserInputError, match="'map_digest' = 'x'; allowed: the SHA-256"):
+        parse_catalog({**as_json, "map_digest": "x"})

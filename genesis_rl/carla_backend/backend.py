@@ -23,6 +23,7 @@ from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, connect, guarded
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
+from genesis_rl.carla_backend.identity import opendrive_digest, short
 from genesis_rl.carla_backend.lead import lane_path, lead_on_path
 from genesis_rl.carla_backend.ports import (
     TrafficManagerPortBusy,
@@ -109,6 +110,7 @@ class CarlaBackend(Backend):
         self.client = connect(self.host, self.port, self.timeout)
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
+        self._digest_cache: tuple[int, str] | None = None
         self._planner: tuple[tuple[int, str], Any, dict[int, float]] | None = None
         self._tm: Any = None
         if map is not None:
@@ -125,13 +127,18 @@ class CarlaBackend(Backend):
     def map_names(self) -> list[str]:
         return sorted({map_basename(m) for m in self.call("listing maps", self.client.get_available_maps)})
 
-    def load_map(self, name: str) -> Any:
-        """The world with map ``name`` (loaded only when the server runs another one)."""
+    def load_map(self, name: str, digest: str | None = None) -> Any:
+        """The world with map ``name`` (loaded only when the server runs another one). With ``digest`` (a
+        catalog's ``map_digest``) the map is the one whose OpenDRIVE has that SHA-256, whatever its name:
+        every generated world is called "OpenDriveMap", so a name alone would run one export's scenes on
+        another's roads."""
         world = self.call("reading the world", self.client.get_world)
-        if map_basename(self.map_of(world).name) == name:  # cached per world: the map is the whole OpenDRIVE
+        if map_basename(self.map_of(world).name) == name and self._is(world, digest):
             return world  # already loaded (also a world made with generate_opendrive_world, which no list holds)
         names = self.map_names()
         if name not in names:
+            if map_basename(self.map_of(world).name) == name:  # a generated world: only its content tells
+                raise self._other_map(name, digest, world)
             raise UserInputError(f"CARLA map '{name}' is not on the server {self.host}:{self.port}; "
                                  f"available: {', '.join(names)}")
         self.client.set_timeout(self.load_timeout)
@@ -139,7 +146,28 @@ class CarlaBackend(Backend):
             self.call(f"loading map {name}", self.client.load_world, name)
         finally:
             self.client.set_timeout(self.timeout)
-        return self.call("reading the world", self.client.get_world)
+        world = self.call("reading the world", self.client.get_world)
+        if not self._is(world, digest):
+            raise self._other_map(name, digest, world)
+        return world
+
+    def map_digest(self, world: Any) -> str:
+        """SHA-256 of the world's OpenDRIVE (cached per world: the text is the whole map)."""
+        if self._digest_cache is None or self._digest_cache[0] != world.id:
+            carla_map = self.map_of(world)
+            self._digest_cache = (world.id, opendrive_digest(self.call("reading the OpenDRIVE map",
+                                                                       carla_map.to_opendrive)))
+        return self._digest_cache[1]
+
+    def _is(self, world: Any, digest: str | None) -> bool:
+        return digest is None or self.map_digest(world) == digest
+
+    def _other_map(self, name: str, digest: str | None, world: Any) -> UserInputError:
+        return UserInputError(
+            f"the catalog's map '{name}' has OpenDRIVE digest {short(digest or '')}, but the server "
+            f"{self.host}:{self.port} runs a map of that name with digest {short(self.map_digest(world))}: another "
+            "map under the same name (CARLA names every generated world 'OpenDriveMap'). Load the map the catalog "
+            "was made on (the same .xodr), or make the catalog again on this one (genesis-rl scenes --backend carla)")
 
     def map_of(self, world: Any) -> Any:
         """The world's ``carla.Map`` (fetching it transfers the OpenDRIVE file: cached per world)."""
@@ -231,7 +259,7 @@ class CarlaSimulation(Simulation):
     def _setup(self) -> None:
         carla = require_carla()
         b, scene = self._backend, self.scene
-        self.world = b.load_map(scene.map)
+        self.world = b.load_map(scene.map, scene.map_digest)
         self.map = b.map_of(self.world)
         specs = plan_scene(scene, self.map)  # fails on a foreign catalog before the server is touched
         self._original_settings = original_settings(b.call("reading settings", self.world.get_settings),
