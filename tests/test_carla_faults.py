@@ -19,6 +19,7 @@ from genesis_rl.carla_backend.backend import (  # noqa: E402
 )
 from genesis_rl.carla_backend.connection import CarlaServerLost  # noqa: E402
 from genesis_rl.carla_backend.contacts import CONTACT_GAP, ContactTracker  # noqa: E402
+from genesis_rl.knobs import Weather  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
 
 TIMEOUT = RuntimeError("time-out of 10000ms while waiting for the simulator, make sure the simulator is ready")
@@ -418,3 +419,65 @@ def test_a_catalog_runs_only_on_the_map_it_was_made_on(fake_server) -> None:
     assert b.load_map(scene.map, scene.map_digest) is right
     with pytest.raises(UserInputError, match="'map_digest' = 'x'; allowed: the SHA-256"):
         parse_catalog({**as_json, "map_digest": "x"})
+
+
+# -- issue 36: a second live client is not taken for a dead one ---------------------------------------------------
+class DrivenWorld(MapWorld):
+    """A world in synchronous mode; ``ticker`` is what wait_for_tick meets: a frame (another client ticks)
+    or the client's time-out (nobody does)."""
+
+    def __init__(self, cmap, ticker) -> None:
+        super().__init__(cmap, world_id=9)
+        self.ticker, self.applied, self.watched = ticker, [], []
+
+    def get_settings(self):
+        return SimpleNamespace(synchronous_mode=True, fixed_delta_seconds=0.05, no_rendering_mode=False)
+
+    def apply_settings(self, settings) -> None:
+        self.applied.append(settings)
+
+    def wait_for_tick(self, seconds: float):
+        self.watched.append(seconds)
+        return self.ticker()
+
+
+@pytest.fixture(scope="module")
+def urban_scene():
+    import carla
+
+    from genesis_rl.carla_backend.scenes import generate_catalog
+    from genesis_rl.lite.maps import load_map
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+
+    cmap = carla.Map("OpenDriveMap", to_opendrive(load_map("urban")))
+    return cmap, generate_catalog(cmap, "OpenDriveMap", 1, seed=3, n_vehicles=3).scene(0)
+
+
+def test_a_server_another_client_ticks_is_refused_before_anything_is_changed(fake_server, urban_scene) -> None:
+    """Regression (issue 36): any server in synchronous mode was taken for orphaned; a second run then ticked
+    a server that another run drives, reseeded its traffic manager and at close made it asynchronous."""
+    from genesis_rl.carla_backend.backend import ORPHAN_WATCH_S, ServerInUse
+
+    cmap, scene = urban_scene
+    b = CarlaBackend("localhost", 2000)
+    b.client.world = world = DrivenWorld(cmap, lambda: SimpleNamespace(frame=5123))
+    with pytest.raises(ServerInUse, match="another client ticks it \\(frame 5123") as err:
+        CarlaSimulation(b, scene, 0, Weather.default(), CameraConfig(), render=False)
+    assert err.value.exit_code == 2 and world.watched == [ORPHAN_WATCH_S]
+    assert world.applied == [] and b.client.tms == []  # settings and traffic manager untouched
+
+
+def test_a_server_nobody_ticks_is_taken_over_as_orphaned(fake_server, urban_scene) -> None:
+    from genesis_rl.carla_backend.backend import check_not_driven
+
+    def timeout():
+        raise TIMEOUT
+
+    world = DrivenWorld(urban_scene[0], timeout)
+    assert check_not_driven(world, "localhost:2000", 0.5) is None and world.watched == [0.5]
+
+    def refused():
+        raise RuntimeError("rpc::rpc_error during call in function get_settings")
+
+    with pytest.raises(RuntimeError, match="rpc_error"):  # a broken connection is not a quiet server
+        check_not_driven(DrivenWorld(urban_scene[0], refused), "localhost:2000", 0.5)

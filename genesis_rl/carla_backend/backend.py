@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -20,7 +21,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
-from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, connect, guarded
+from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, connect, guarded, is_connection_error
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
 from genesis_rl.carla_backend.identity import opendrive_digest, short
@@ -71,10 +72,36 @@ CAMERA_ATTRIBUTES = {
 }
 
 
+#: [s] how long a server found in synchronous mode is watched for another client's tick before it is taken
+#: for orphaned (a live run ticks many times a second; one that pauses longer between episodes is missed)
+ORPHAN_WATCH_S = 3.0
+
+
+class ServerInUse(UserInputError):
+    """Another live client drives this server (it ticks it in synchronous mode): each run needs its own."""
+
+
+def check_not_driven(world: Any, where: str, watch_s: float = ORPHAN_WATCH_S) -> None:
+    """A server in synchronous mode advances only when a client ticks it: wait ``watch_s`` for a tick that
+    is not ours (``world.wait_for_tick``). One that comes means a live run drives the server, which this run
+    would tick under it, reseed its traffic manager and, at close, put into asynchronous mode: refuse."""
+    t0 = time.monotonic()
+    try:
+        snapshot = world.wait_for_tick(watch_s)
+    except RuntimeError as err:
+        if is_connection_error(err) and "time" in str(err).lower():
+            return  # no tick within watch_s: nobody drives it, the server was orphaned
+        raise
+    raise ServerInUse(
+        f"CARLA server {where} is in synchronous mode and another client ticks it (frame {snapshot.frame} came "
+        f"{time.monotonic() - t0:.1f} s into a {watch_s:g} s watch): another run drives this server. Give this run "
+        "a server of its own (--carla-port, --carla-servers), or stop the other run")
+
+
 def original_settings(settings: Any, where: str) -> Any:
-    """The settings to restore after an episode. A server found in synchronous mode was left so by a client
-    that died (a live one would still be ticking it, and CARLA takes one): restoring that would freeze it
-    again, so it is restored to asynchronous mode, with a warning."""
+    """The settings to restore after an episode. A server found in synchronous mode (and not ticked by anyone:
+    :func:`check_not_driven`) was left so by a client that died: restoring that would freeze it again, so it
+    is restored to asynchronous mode, with a warning."""
     if settings.synchronous_mode:
         warnings.warn(f"CARLA server {where} was in synchronous mode (left by a killed client?); it is put back "
                       "in asynchronous mode after the run", RuntimeWarning, stacklevel=3)
@@ -262,8 +289,10 @@ class CarlaSimulation(Simulation):
         self.world = b.load_map(scene.map, scene.map_digest)
         self.map = b.map_of(self.world)
         specs = plan_scene(scene, self.map)  # fails on a foreign catalog before the server is touched
-        self._original_settings = original_settings(b.call("reading settings", self.world.get_settings),
-                                                    f"{b.host}:{b.port}")
+        found = b.call("reading settings", self.world.get_settings)
+        if found.synchronous_mode:  # left so by a dead client, or driven by a live one: watch before taking it
+            b.call("watching for another client's ticks", check_not_driven, self.world, f"{b.host}:{b.port}")
+        self._original_settings = original_settings(found, f"{b.host}:{b.port}")
         settings = b.call("reading settings", self.world.get_settings)
         settings.synchronous_mode = True
         settings.fixed_delta_seconds = self.dt
