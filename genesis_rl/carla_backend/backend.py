@@ -21,7 +21,14 @@ from typing import Any, TypeVar
 import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
-from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, connect, guarded, is_connection_error
+from genesis_rl.carla_backend.connection import (
+    CarlaServerLost,
+    check_numbers,
+    connect,
+    guarded,
+    is_connection_error,
+    start_hint,
+)
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
 from genesis_rl.carla_backend.identity import opendrive_digest, short
@@ -31,6 +38,7 @@ from genesis_rl.carla_backend.ports import (
     busy_message,
     default_tm_port,
     ensure_free,
+    free_port,
     is_bind_error,
 )
 from genesis_rl.carla_backend.projection import ground_truth_boxes
@@ -52,6 +60,7 @@ from genesis_rl.sim.interface import (
     TickResult,
     VehicleControl,
 )
+from genesis_rl.sim.watchdog import SimulatorHung, Watchdog, deadline_for
 
 T = TypeVar("T")
 
@@ -59,6 +68,9 @@ DEFAULT_HOST = "localhost"
 DEFAULT_PORT = 2000
 DEFAULT_TIMEOUT = 10.0  # [s] per client call (a tick with 30 vehicles and two cameras takes well under 1 s)
 LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold server
+#: traffic-manager ports of this process whose traffic manager was abandoned with a lost server: it still
+#: listens there (shutting it down would call the dead server from a noexcept destructor: the process aborts)
+_ABANDONED_TM_PORTS: set[int] = set()
 VELOCITY_HISTORY = 32  # [frames] snapshots' velocities kept for collision events that arrive late
 
 
@@ -110,6 +122,15 @@ def original_settings(settings: Any, where: str) -> Any:
     return settings
 
 
+def _tm_setup(tm: Any, seed: int) -> None:
+    """The traffic manager of an episode: synchronous (deterministic NPCs), seeded, full physics for every
+    NPC (the same dynamics near and far), no respawning of dormant vehicles."""
+    tm.set_synchronous_mode(True)
+    tm.set_random_device_seed(seed)
+    tm.set_hybrid_physics_mode(False)
+    tm.set_respawn_dormant_vehicles(False)
+
+
 def map_basename(path: str) -> str:
     """'/Game/Carla/Maps/Town05' or 'Carla/Maps/Town05' -> 'Town05'."""
     return path.rstrip("/").rsplit("/", 1)[-1]
@@ -134,6 +155,7 @@ class CarlaBackend(Backend):
         self.tm_port = default_tm_port(self.port, tm_port)  # one per run: two runs never share a port
         self.timeout, self.load_timeout = float(timeout), float(load_timeout)
         check_numbers(self.port, self.timeout, self.tm_port)  # --carla-tm-port 70000, --carla-timeout inf
+        self.watchdog = Watchdog(f"CARLA server {self.host}:{self.port}")
         self.client = connect(self.host, self.port, self.timeout)
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
@@ -148,8 +170,30 @@ class CarlaBackend(Backend):
         return cls(settings.host, settings.port, settings.timeout, settings.tm_port)
 
     def call(self, what: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
-        """Run a client call; a lost server becomes :class:`CarlaServerLost` naming ``what``."""
-        return guarded(self.host, self.port, what, fn, *args, **kwargs)
+        """Run a client call under the watchdog (:mod:`genesis_rl.sim.watchdog`); a lost or hung server becomes
+        :class:`CarlaServerLost` naming ``what``."""
+        return self.call_within(what, deadline_for(self.timeout), fn, *args, **kwargs)
+
+    def call_within(self, what: str, seconds: float, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """:meth:`call` with the watchdog's deadline ``seconds`` (loading a map takes longer than a tick)."""
+        try:
+            return self.watchdog.call(what, seconds, guarded, self.host, self.port, what, fn, *args, **kwargs)
+        except SimulatorHung as err:
+            self._give_up()
+            raise CarlaServerLost(f"{err}. Check the server's log and restart it if it is stuck; "
+                                  + start_hint(self.host, self.port)) from err
+
+    @property
+    def lost(self) -> bool:
+        """The watchdog gave this connection up: nothing more is asked of its server."""
+        return self.watchdog.lost is not None
+
+    def _give_up(self) -> None:
+        """Keep the client and its traffic manager alive for good (a thread is still inside the client; the
+        traffic manager's destructor would call the dead server), and its port taken for this process."""
+        self.watchdog.abandon(self.client, self._tm)
+        if self._tm is not None:
+            _ABANDONED_TM_PORTS.add(self.tm_port)
 
     def map_names(self) -> list[str]:
         return sorted({map_basename(m) for m in self.call("listing maps", self.client.get_available_maps)})
@@ -170,7 +214,7 @@ class CarlaBackend(Backend):
                                  f"available: {', '.join(names)}")
         self.client.set_timeout(self.load_timeout)
         try:
-            self.call(f"loading map {name}", self.client.load_world, name)
+            self.call_within(f"loading map {name}", deadline_for(self.load_timeout), self.client.load_world, name)
         finally:
             self.client.set_timeout(self.timeout)
         world = self.call("reading the world", self.client.get_world)
@@ -222,6 +266,11 @@ class CarlaBackend(Backend):
         """This connection's traffic manager (started on ``tm_port`` once, shut down by :meth:`close`); a port
         taken on this machine fails at once, by name (:mod:`~genesis_rl.carla_backend.ports`)."""
         if self._tm is None:
+            if self.tm_port in _ABANDONED_TM_PORTS:  # a lost server's traffic manager of this process holds it
+                port = free_port()
+                warnings.warn(f"CARLA traffic manager port {self.tm_port} is held by the traffic manager of a lost "
+                              f"server; this connection uses port {port}", RuntimeWarning, stacklevel=2)
+                self.tm_port = port
             ensure_free(self.tm_port)
             try:
                 self._tm = self.call(f"starting the traffic manager on port {self.tm_port}",
@@ -238,10 +287,12 @@ class CarlaBackend(Backend):
         for sim in list(self._live):
             sim.destroy()
         self._live.clear()
-        if self._tm is not None:
+        if self._tm is not None and self.lost:
+            self._tm = None  # abandoned, never shut down: see _give_up
+        elif self._tm is not None:
             tm, self._tm = self._tm, None
             try:
-                tm.shut_down()
+                self.call(f"shutting the traffic manager on port {self.tm_port} down", tm.shut_down)
             except RuntimeError as err:
                 warnings.warn(f"CARLA traffic manager on port {self.tm_port}: shutting down failed ({err})",
                               RuntimeWarning, stacklevel=2)
@@ -299,11 +350,8 @@ class CarlaSimulation(Simulation):
         settings.no_rendering_mode = not self.render
         b.call("switching to synchronous mode", self.world.apply_settings, settings)
         tm_seed = episode_seed(scene, self.seed)
-        self._tm = b.traffic_manager()
-        self._tm.set_synchronous_mode(True)
-        self._tm.set_random_device_seed(tm_seed)
-        self._tm.set_hybrid_physics_mode(False)  # full physics for every NPC: the same dynamics near and far
-        self._tm.set_respawn_dormant_vehicles(False)
+        self._tm = tm = b.traffic_manager()
+        b.call("setting the traffic manager up", _tm_setup, tm, tm_seed)
         self._spawn(specs, tm_seed)
         ego = self._actors[0]
         if self.render:
@@ -313,7 +361,7 @@ class CarlaSimulation(Simulation):
         hit = b.call("spawning the collision sensor", self.world.spawn_actor,
                      library.find("sensor.other.collision"), carla.Transform(), attach_to=ego)
         self._sensors.append(hit)
-        hit.listen(self._on_collision)
+        b.call("listening to the collision sensor", hit.listen, self._on_collision)
         self._k = self.camera.intrinsics()
         self._advance(0)  # first frame for observe() at step 0; the spawned cars settle onto the road
         with self._hits_lock:
@@ -355,9 +403,9 @@ class CarlaSimulation(Simulation):
             ap = by_index[i].autopilot
             if ap:  # the traffic manager honours target speed and standstill gap; stops and noise are lite-only
                 if "target_speed" in ap:
-                    self._tm.set_desired_speed(actor, float(ap["target_speed"]) * 3.6)
+                    b.call("setting an NPC's speed", self._tm.set_desired_speed, actor, float(ap["target_speed"]) * 3.6)
                 if "min_gap" in ap:
-                    self._tm.distance_to_leading_vehicle(actor, float(ap["min_gap"]))
+                    b.call("setting an NPC's gap", self._tm.distance_to_leading_vehicle, actor, float(ap["min_gap"]))
         if batch:
             b.call("setting initial speeds", b.client.apply_batch_sync, batch, False)
 
@@ -375,7 +423,7 @@ class CarlaSimulation(Simulation):
         self._sensors.append(sensor)
         q = FrameQueue(name)
         self._queues[name] = q
-        sensor.listen(q.put)
+        self._backend.call(f"listening to the {name} camera", sensor.listen, q.put)
 
     def _on_collision(self, event: Any) -> None:
         with self._hits_lock:
@@ -394,7 +442,8 @@ class CarlaSimulation(Simulation):
             self._applied_weather = self._weather
         if self._control != self._applied_control:
             c = self._control
-            self._actors[0].apply_control(carla.VehicleControl(throttle=c.throttle, steer=c.steer, brake=c.brake))
+            b.call("applying the ego's control", self._actors[0].apply_control,
+                   carla.VehicleControl(throttle=c.throttle, steer=c.steer, brake=c.brake))
             self._applied_control = c
         frame = b.call(f"ticking (step {self._step})", self.world.tick, b.timeout)
         self._snapshot = self.world.get_snapshot()
@@ -538,27 +587,33 @@ class CarlaSimulation(Simulation):
         self._backend._live.discard(self)
         carla = require_carla()
         b, problems = self._backend, []
+        if b.lost:  # the watchdog gave the server up: asking it anything would only wait again
+            self._sensors, self._actors, self._queues, self._index_of = [], {}, {}, {}
+            warnings.warn(f"CARLA server {b.host}:{b.port} was given up ({b.watchdog.lost}): this episode's actors "
+                          "and settings are left on it; restart the server", RuntimeWarning, stacklevel=2)
+            return
         for s in self._sensors:
             try:
-                s.stop()
+                b.call(f"stopping sensor {s.id}", s.stop)
             except RuntimeError as err:
                 problems.append(f"stopping sensor {s.id}: {err}")
         ids = [s.id for s in self._sensors] + list(self._index_of)
         if ids:
             try:  # tick with it in synchronous mode, so the server processes the removal now
                 sync = self._original_settings is not None
-                b.client.apply_batch_sync([carla.command.DestroyActor(i) for i in ids], sync)
+                b.call("destroying the episode's actors", b.client.apply_batch_sync,
+                       [carla.command.DestroyActor(i) for i in ids], sync)
             except RuntimeError as err:
                 problems.append(f"destroying actors {ids}: {err}")
         if self._original_settings is not None:
             try:
-                self.world.apply_settings(self._original_settings)
+                b.call("restoring world settings", self.world.apply_settings, self._original_settings)
             except RuntimeError as err:
                 problems.append(f"restoring world settings: {err}")
         if self._tm is not None:
             try:
                 was_sync = self._original_settings is not None and self._original_settings.synchronous_mode
-                self._tm.set_synchronous_mode(bool(was_sync))
+                b.call("restoring the traffic manager", self._tm.set_synchronous_mode, bool(was_sync))
             except RuntimeError as err:
                 problems.append(f"restoring the traffic manager: {err}")
         self._sensors, self._actors, self._queues, self._index_of = [], {}, {}, {}

@@ -58,3 +58,14 @@ def is_bind_error(err: BaseException) -> bool:
     """CARLA's "trying to create rpc server for traffic manager; but the system failed to create because of
     bind error" (a RuntimeError that no connection check recognises)."""
     return "bind error" in str(err).lower()
+
+
+def free_port() -> int:
+    """A port that nothing listens on here now (the system's pick), for a connection whose configured
+    traffic-manager port is held by a lost server's traffic manager in this process."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.bind(("", 0))
+        return int(sock.getsockname()[1])
+    finally:
+        sock.close()
