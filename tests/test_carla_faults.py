@@ -481,3 +481,9 @@ def test_a_server_nobody_ticks_is_taken_over_as_orphaned(fake_server, urban_scen
 
     with pytest.raises(RuntimeError, match="rpc_error"):  # a broken connection is not a quiet server
         check_not_driven(DrivenWorld(urban_scene[0], refused), "localhost:2000", 0.5)
+
+
+def _free_tcp_port() -> int:
+    from genesis_rl.carla_backend.ports import free_port
+
+    return free_port()
