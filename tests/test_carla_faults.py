@@ -295,7 +295,7 @@ def _bare_simulation(backend, world):
     sim._weather = sim._applied_weather = Weather.default()
     sim._control = sim._applied_control = VehicleControl()
     sim._actors = {0: SimpleNamespace(id=10), 1: SimpleNamespace(id=11)}
-    sim._index_of, sim._queues, sim._images, sim._history = {10: 0, 11: 1}, {}, {}, {}
+    sim._index_of, sim._queues, sim._images, sim._history, sim._boxes = {10: 0, 11: 1}, {}, {}, {}, {}
     sim._hits, sim._hits_lock, sim._contacts = [], threading.Lock(), ContactTracker()
     return sim
 
@@ -487,3 +487,26 @@ def _free_tcp_port() -> int:
     from genesis_rl.carla_backend.ports import free_port
 
     return free_port()
+
+
+def test_a_vehicle_without_a_bounding_box_gets_its_makes_size(fake_server) -> None:
+    """Guard (issue 36, suspected): CARLA's one bus blueprint reported a zero bounding box in older releases,
+    which would drop its ground-truth box and make a lead gap from its centre."""
+    import carla
+
+    from genesis_rl.scenes.vehicles import MAKES
+
+    b = CarlaBackend("localhost", 2000)
+    sim = _bare_simulation(b, FakeWorld())
+    sim.scene = SimpleNamespace(vehicles=[SimpleNamespace(make="sedan"), SimpleNamespace(make="bus")])
+    sim._actors[0].bounding_box = carla.BoundingBox(carla.Location(0, 0, 0.7), carla.Vector3D(2.4, 1.0, 0.7))
+    sim._actors[1] = SimpleNamespace(id=11, type_id="vehicle.mitsubishi.fusorosa",
+                                     bounding_box=carla.BoundingBox(carla.Location(), carla.Vector3D(0, 0, 0)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert sim._box(0).extent.x == pytest.approx(2.4)  # a real box is kept as it is
+    with pytest.warns(RuntimeWarning, match="zero bounding box for vehicle 1 \\(vehicle.mitsubishi.fusorosa\\)"):
+        bus = sim._box(1)
+    bus_make = MAKES["bus"]
+    assert (bus.extent.x, bus.extent.y, bus.extent.z) == pytest.approx(
+        (bus_make.length / 2, bus_make.width / 2, bus_make.height / 2))

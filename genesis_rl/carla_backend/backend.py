@@ -48,6 +48,7 @@ from genesis_rl.carla_backend.weather import to_carla
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Scene
+from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import (
     ActorState,
     Backend,
@@ -71,6 +72,7 @@ LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold serve
 #: traffic-manager ports of this process whose traffic manager was abandoned with a lost server: it still
 #: listens there (shutting it down would call the dead server from a noexcept destructor: the process aborts)
 _ABANDONED_TM_PORTS: set[int] = set()
+MIN_EXTENT = 0.05  # [m] a half extent this small is no bounding box (see CarlaSimulation._box)
 VELOCITY_HISTORY = 32  # [frames] snapshots' velocities kept for collision events that arrive late
 
 
@@ -320,6 +322,7 @@ class CarlaSimulation(Simulation):
         self._hits_lock = threading.Lock()
         self._contacts = ContactTracker()
         self._history: dict[int, tuple[int, dict[int, np.ndarray]]] = {}  # frame -> (step, velocities)
+        self._boxes: dict[int, Any] = {}  # scene index -> bounding box (see _box)
         self._blueprints: Any = None
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
@@ -512,7 +515,7 @@ class CarlaSimulation(Simulation):
         for i, a in self._actors.items():
             s = self._snapshot.find(a.id)
             if i != 0 and s is not None:
-                vehicles.append((i, a.bounding_box, s.get_transform()))
+                vehicles.append((i, self._box(i), s.get_transform()))
         boxes = ground_truth_boxes(vehicles, depth_img.transform, self._k, depth, cam.max_range)
         return SensorFrame(self._step, rgb, depth, boxes)
 
@@ -523,7 +526,7 @@ class CarlaSimulation(Simulation):
             s = self._snapshot.find(a.id)
             if s is None:
                 continue
-            v, ext, spec = s.get_velocity(), a.bounding_box.extent, self.scene.vehicles[i]
+            v, ext, spec = s.get_velocity(), self._box(i).extent, self.scene.vehicles[i]
             out.append(ActorState(i, spec.role, spec.make, *pose_from_carla(s.get_transform()), math.hypot(v.x, v.y),
                                   2.0 * ext.x, 2.0 * ext.y, 2.0 * ext.z))
         return out
@@ -543,9 +546,9 @@ class CarlaSimulation(Simulation):
             loc, v = s.get_transform().location, s.get_velocity()
             ids.append(i)
             xy.append((loc.x, loc.y))
-            half.append(a.bounding_box.extent.x)
+            half.append(self._box(i).extent.x)
             speed.append(math.hypot(v.x, v.y))
-        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), ego.bounding_box.extent.x,
+        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), self._box(0).extent.x,
                             np.array(xy).reshape(-1, 2), np.array(half), np.array(speed), np.array(ids),
                             lane_half_width=wp.lane_width / 2.0)
 
@@ -571,6 +574,22 @@ class CarlaSimulation(Simulation):
             return "green"
         states = {carla.TrafficLightState.Red: "red", carla.TrafficLightState.Yellow: "yellow"}
         return states.get(light.state, "green")
+
+    def _box(self, i: int) -> Any:
+        """Vehicle ``i``'s bounding box; where the blueprint reports none (CARLA's one bus had a zero box in
+        older releases: no ground-truth box, no lead gap) a box of its catalog make's size, with a warning."""
+        if i not in self._boxes:
+            box = self._actors[i].bounding_box
+            if min(box.extent.x, box.extent.y, box.extent.z) <= MIN_EXTENT:
+                carla = require_carla()
+                make = MAKES[self.scene.vehicles[i].make]
+                warnings.warn(f"CARLA reports a zero bounding box for vehicle {i} ({self._actors[i].type_id}); "
+                              f"using its make's size ({make.length:g} x {make.width:g} x {make.height:g} m)",
+                              RuntimeWarning, stacklevel=3)
+                box = carla.BoundingBox(carla.Location(0.0, 0.0, make.height / 2.0),
+                                        carla.Vector3D(make.length / 2.0, make.width / 2.0, make.height / 2.0))
+            self._boxes[i] = box
+        return self._boxes[i]
 
     def carla_actor_ids(self) -> list[int]:
         """CARLA ids of everything this episode spawned (vehicles, then sensors), e.g. to check teardown."""
