@@ -338,7 +338,7 @@ class CarlaRoute(PolylineRoute):
             pairs.append((w, nb))
             landed = nb
         if landed is None:  # the marking allows it here only (or the section ends): step across at this s
-            landed = _change_target(here, side)
+            landed = _change_target(here, side) or (here.get_left_lane() if side == "left" else here.get_right_lane())
             raw, roads, pairs = [_xy(landed)], [int(landed.road_id)], [(here, landed)]
         self._add(raw, roads, [side] * len(raw), self._lights_along(pairs))
         self._last_wp = landed
@@ -361,7 +361,8 @@ class CarlaRoute(PolylineRoute):
         left pending, so the next leg can change lanes out of it."""
         while (len(self._points) - 1 - self.index) * DS < PLAN_AHEAD:
             before = len(self._points)
-            steps = self.planner.plan(self._segment, self.rng, self._pending)
+            here = self._pending if self._pending is not None else self._last_wp
+            steps = self.planner.plan(self._segment, self.rng, here)
             for k, (seg, kind) in enumerate(steps):
                 last = k == len(steps) - 1
                 following = steps[k + 1][1] if not last else "follow"
