@@ -296,7 +296,7 @@ def _bare_simulation(backend, world):
     sim._control = sim._applied_control = VehicleControl()
     sim._actors = {0: SimpleNamespace(id=10), 1: SimpleNamespace(id=11)}
     sim._index_of, sim._queues, sim._images, sim._history, sim._boxes = {10: 0, 11: 1}, {}, {}, {}, {}
-    sim._hits, sim._hits_lock, sim._contacts = [], threading.Lock(), ContactTracker()
+    sim._hits, sim._hits_lock, sim._contacts, sim._counted = [], threading.Lock(), ContactTracker(), None
     return sim
 
 
@@ -510,3 +510,31 @@ def test_a_vehicle_without_a_bounding_box_gets_its_makes_size(fake_server) -> No
     bus_make = MAKES["bus"]
     assert (bus.extent.x, bus.extent.y, bus.extent.z) == pytest.approx(
         (bus_make.length / 2, bus_make.width / 2, bus_make.height / 2))
+
+
+def test_a_second_connection_of_this_process_shares_its_open_traffic_manager(fake_server) -> None:
+    """A campaign's counterfactual (oracle) env connects to the same server from the same process: the client
+    hands it the traffic manager this process already runs on that port, which is not 'taken'."""
+    import socket
+
+    port = _free_tcp_port()
+    listening = []
+
+    def opens_port(p):  # the traffic manager's RPC server listens on its port
+        sock = socket.socket()
+        sock.bind(("", p))
+        sock.listen(1)
+        listening.append(sock)
+        return FakeTM(p)
+
+    try:
+        first = CarlaBackend("localhost", 2000, tm_port=port)
+        first.client.get_trafficmanager = opens_port
+        first.traffic_manager()
+        oracle = CarlaBackend("localhost", 2000, tm_port=port)
+        assert oracle.traffic_manager().port == port  # not TrafficManagerPortBusy
+        first.close()
+        oracle.close()
+    finally:
+        for sock in listening:
+            sock.close()

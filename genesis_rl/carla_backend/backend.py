@@ -72,6 +72,12 @@ LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold serve
 #: traffic-manager ports of this process whose traffic manager was abandoned with a lost server: it still
 #: listens there (shutting it down would call the dead server from a noexcept destructor: the process aborts)
 _ABANDONED_TM_PORTS: set[int] = set()
+#: traffic-manager ports this process has open: another connection of this process (a campaign's oracle env)
+#: gets the same traffic manager back from the client, so the port is not free and need not be
+_OPEN_TM_PORTS: set[int] = set()
+#: live episodes of this process per server (host, port): a server one of them holds in synchronous mode is
+#: neither orphaned nor driven by another run
+_OUR_EPISODES: dict[tuple[str, int], int] = {}
 MIN_EXTENT = 0.05  # [m] a half extent this small is no bounding box (see CarlaSimulation._box)
 VELOCITY_HISTORY = 32  # [frames] snapshots' velocities kept for collision events that arrive late
 
@@ -154,11 +160,11 @@ class CarlaBackend(Backend):
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, timeout: float = DEFAULT_TIMEOUT,
                  tm_port: int | None = None, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
         self.host, self.port = str(host), int(port)
-        self.tm_port = default_tm_port(self.port, tm_port)  # one per run: two runs never share a port
         self.timeout, self.load_timeout = float(timeout), float(load_timeout)
-        check_numbers(self.port, self.timeout, self.tm_port)  # --carla-tm-port 70000, --carla-timeout inf
+        check_numbers(self.port, self.timeout, tm_port)  # --carla-tm-port 70000, --carla-timeout inf
         self.watchdog = Watchdog(f"CARLA server {self.host}:{self.port}")
         self.client = connect(self.host, self.port, self.timeout)
+        self.tm_port = default_tm_port(self.port, tm_port)  # one per run: two runs never share a port
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
         self._digest_cache: tuple[int, str] | None = None
@@ -273,7 +279,8 @@ class CarlaBackend(Backend):
                 warnings.warn(f"CARLA traffic manager port {self.tm_port} is held by the traffic manager of a lost "
                               f"server; this connection uses port {port}", RuntimeWarning, stacklevel=2)
                 self.tm_port = port
-            ensure_free(self.tm_port)
+            if self.tm_port not in _OPEN_TM_PORTS:
+                ensure_free(self.tm_port)
             try:
                 self._tm = self.call(f"starting the traffic manager on port {self.tm_port}",
                                      self.client.get_trafficmanager, self.tm_port)
@@ -281,6 +288,7 @@ class CarlaBackend(Backend):
                 if not is_bind_error(err):
                     raise
                 raise TrafficManagerPortBusy(busy_message(self.tm_port, f"CARLA: {err}")) from None
+            _OPEN_TM_PORTS.add(self.tm_port)
         return self._tm
 
     def close(self) -> None:
@@ -293,6 +301,7 @@ class CarlaBackend(Backend):
             self._tm = None  # abandoned, never shut down: see _give_up
         elif self._tm is not None:
             tm, self._tm = self._tm, None
+            _OPEN_TM_PORTS.discard(self.tm_port)
             try:
                 self.call(f"shutting the traffic manager on port {self.tm_port} down", tm.shut_down)
             except RuntimeError as err:
@@ -323,6 +332,7 @@ class CarlaSimulation(Simulation):
         self._contacts = ContactTracker()
         self._history: dict[int, tuple[int, dict[int, np.ndarray]]] = {}  # frame -> (step, velocities)
         self._boxes: dict[int, Any] = {}  # scene index -> bounding box (see _box)
+        self._counted: tuple[str, int] | None = None  # the server this live episode is counted on
         self._blueprints: Any = None
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
@@ -344,8 +354,11 @@ class CarlaSimulation(Simulation):
         self.map = b.map_of(self.world)
         specs = plan_scene(scene, self.map)  # fails on a foreign catalog before the server is touched
         found = b.call("reading settings", self.world.get_settings)
-        if found.synchronous_mode:  # left so by a dead client, or driven by a live one: watch before taking it
+        server = (b.host, b.port)
+        if found.synchronous_mode and not _OUR_EPISODES.get(server):  # a dead client's, or another live run's
             b.call("watching for another client's ticks", check_not_driven, self.world, f"{b.host}:{b.port}")
+        _OUR_EPISODES[server] = _OUR_EPISODES.get(server, 0) + 1
+        self._counted = server
         self._original_settings = original_settings(found, f"{b.host}:{b.port}")
         settings = b.call("reading settings", self.world.get_settings)
         settings.synchronous_mode = True
@@ -604,6 +617,9 @@ class CarlaSimulation(Simulation):
             return
         self._destroyed = True
         self._backend._live.discard(self)
+        if self._counted is not None:
+            _OUR_EPISODES[self._counted] -= 1
+            self._counted = None
         carla = require_carla()
         b, problems = self._backend, []
         if b.lost:  # the watchdog gave the server up: asking it anything would only wait again
