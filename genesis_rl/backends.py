@@ -140,8 +140,9 @@ def add_backend_arguments(parser: argparse.ArgumentParser, default: str | None =
     parser.add_argument("--carla-port", type=_ports, default=(2000,), metavar="PORT[,PORT...]",
                         help="CARLA server RPC port (--backend carla); a list names one server per worker or env "
                              "process on --carla-host (traffic managers at PORT+6000), as --carla-servers does")
-    parser.add_argument("--carla-tm-port", type=_port, default=8000,
-                        help="CARLA traffic manager port, 1..65535 (--backend carla)")
+    parser.add_argument("--carla-tm-port", type=_port, default=None,
+                        help="CARLA traffic manager port, 1..65535, opened on this machine (--backend carla); "
+                             "default: --carla-port + 6000, so runs on other servers never share one")
     parser.add_argument("--carla-timeout", type=_timeout, default=10.0,
                         help="seconds to wait for the CARLA server on each call, 0.1..3600 (--backend carla)")
 

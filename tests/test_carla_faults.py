@@ -19,6 +19,7 @@ from genesis_rl.carla_backend.backend import (  # noqa: E402
 )
 from genesis_rl.carla_backend.connection import CarlaServerLost  # noqa: E402
 from genesis_rl.carla_backend.contacts import CONTACT_GAP, ContactTracker  # noqa: E402
+from genesis_rl.knobs import Weather  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
 
 TIMEOUT = RuntimeError("time-out of 10000ms while waiting for the simulator, make sure the simulator is ready")
@@ -94,7 +95,7 @@ def fake_server(monkeypatch):
     next reads time out on."""
     server = SimpleNamespace(clients=[], fail=None)
 
-    def connect(host, port, timeout):
+    def connect(host, port, timeout, tm_port=None):
         server.clients.append(FakeClient(FakeWorld(server.fail)))
         return server.clients[-1]
 
@@ -232,3 +233,308 @@ def test_the_controller_gets_the_servers_light_states_and_one_planner_per_map(fa
     assert extras["plan_route"] is route_from_context and isinstance(extras["route_planner"], RoutePlanner)
     assert sim.context_extras()["route_planner"] is extras["route_planner"]  # built once per map
     assert extras["speed_limits"][0] == pytest.approx(12.0)
+
+
+def test_the_carla_backend_imports_nothing_of_lite() -> None:
+    """The backends stand side by side: what both need (route spacing, vehicle placement) is backend-neutral."""
+    import ast
+    from pathlib import Path
+
+    import genesis_rl.carla_backend as pkg
+
+    found = []
+    for path in sorted(Path(pkg.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            found += [f"{path.name}: {n}" for n in names if n.startswith("genesis_rl.lite")]
+    assert found == []
+
+
+class _Vel:
+    def __init__(self, x: float) -> None:
+        self.x, self.y, self.z = x, 0.0, 0.0
+
+
+class _Snapshot:
+    """Velocities by CARLA actor id at one frame."""
+
+    def __init__(self, speeds: dict[int, float]) -> None:
+        self.speeds = speeds
+
+    def find(self, actor_id: int):
+        return SimpleNamespace(get_velocity=lambda: _Vel(self.speeds[actor_id]))
+
+
+class TickingWorld(FakeWorld):
+    """Frames from 100 on; ``speeds[frame]`` the snapshot of each; ``on_tick[frame]`` runs before the tick
+    returns (a collision event delivered then); ``hang`` makes tick block until released."""
+
+    def __init__(self, speeds: dict[int, dict[int, float]]) -> None:
+        super().__init__()
+        self.frame, self.speeds, self.on_tick = 99, speeds, {}
+
+    def tick(self, timeout: float) -> int:
+        self.frame += 1
+        self.on_tick.get(self.frame, lambda: None)()
+        return self.frame
+
+    def get_snapshot(self):
+        return _Snapshot(self.speeds[self.frame])
+
+
+def _bare_simulation(backend, world):
+    """A CarlaSimulation with an ego (CARLA id 10) and a lead (id 11), set up by hand on a fake world."""
+    import threading
+
+    from genesis_rl.knobs import Weather
+    from genesis_rl.sim.interface import VehicleControl
+
+    sim = object.__new__(CarlaSimulation)
+    sim._backend, sim.world, sim._destroyed, sim._step = backend, world, False, 0
+    sim._weather = sim._applied_weather = Weather.default()
+    sim._control = sim._applied_control = VehicleControl()
+    sim._actors = {0: SimpleNamespace(id=10), 1: SimpleNamespace(id=11)}
+    sim._index_of, sim._queues, sim._images, sim._history, sim._boxes = {10: 0, 11: 1}, {}, {}, {}, {}
+    sim._hits, sim._hits_lock, sim._contacts, sim._counted = [], threading.Lock(), ContactTracker(), None
+    return sim
+
+
+def test_a_late_collision_event_gets_the_speeds_and_step_of_its_own_frame(fake_server) -> None:
+    # the ego drives at 10 m/s into a lead at 4 m/s; the impact is frame 102 (step 2), after which the snapshot
+    # holds the crash's speeds (3 and 5 m/s). Its event reaches the client only during the next tick.
+    speeds = {100: {10: 10.0, 11: 4.0}, 101: {10: 10.0, 11: 4.0}, 102: {10: 3.0, 11: 5.0}, 103: {10: 2.0, 11: 5.0}}
+    b = CarlaBackend("localhost", 2000)
+    world = TickingWorld(speeds)
+    sim = _bare_simulation(b, world)
+    world.on_tick[103] = lambda: sim._on_collision(SimpleNamespace(frame=102, other_actor=SimpleNamespace(id=11)))
+    sim._advance(0)  # frame 100, step 0
+    assert sim.tick().collisions == [] and sim.tick().collisions == []  # frames 101, 102: no event yet
+    (hit,) = sim.tick().collisions  # frame 103: the event of frame 102 arrives
+    assert (hit.step, hit.vehicle_b) == (2, 1)
+    assert (hit.speed_a, hit.speed_b, hit.relative_speed) == (10.0, 4.0, 6.0)  # before the fix: 3, 5, 2 at step 3
+
+
+# -- issue 36: one traffic-manager port per run -----------------------------------------------------------------
+def test_each_run_gets_the_traffic_manager_port_of_its_server(fake_server) -> None:
+    """Two runs on one machine against servers 2000 and 3000 both opened a traffic manager on 8000, and the
+    second failed with CARLA's bind error; the port now follows the server's (PORT + 6000) unless given."""
+    import argparse
+
+    from genesis_rl.backends import add_backend_arguments, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_backend_arguments(parser)
+    ports = []
+    for rpc in ("2000", "3000"):
+        settings = settings_from_args(parser.parse_args(["--backend", "carla", "--carla-port", rpc]))
+        b = CarlaBackend.from_settings(settings)
+        ports.append(b.traffic_manager().port)
+        b.close()
+    assert ports == [8000, 9000]
+    given = CarlaBackend.from_settings(settings_from_args(parser.parse_args(["--carla-port", "3000",
+                                                                              "--carla-tm-port", "8123"])))
+    assert given.tm_port == 8123
+
+
+def _listening_port():
+    import socket
+
+    sock = socket.socket()
+    sock.bind(("", 0))
+    sock.listen(1)
+    return sock, sock.getsockname()[1]
+
+
+def test_a_traffic_manager_port_taken_on_this_machine_fails_at_once_by_name(fake_server) -> None:
+    from genesis_rl.carla_backend.ports import TrafficManagerPortBusy
+
+    sock, port = _listening_port()  # another run's traffic manager
+    try:
+        b = CarlaBackend("localhost", 2000, tm_port=port)
+        with pytest.raises(TrafficManagerPortBusy, match=f"traffic manager's port {port} is taken on this machine"):
+            b.traffic_manager()
+        assert fake_server.clients[-1].tms == []  # the client was never asked
+    finally:
+        sock.close()
+
+
+def test_carlas_bind_error_is_named(fake_server) -> None:
+    """When the port is taken between the check and the client's bind, CARLA's raw RuntimeError (which no
+    connection check recognised) is turned into the same named error (exit status 2)."""
+    from genesis_rl.carla_backend.ports import TrafficManagerPortBusy
+
+    b = CarlaBackend("localhost", 2000)
+
+    def bind_error(port):
+        raise RuntimeError("trying to create rpc server for traffic manager; but the system failed to create "
+                           "because of bind error.")
+
+    b.client.get_trafficmanager = bind_error
+    with pytest.raises(TrafficManagerPortBusy, match="port 8000 is taken on this machine .*CARLA: trying") as err:
+        b.traffic_manager()
+    assert err.value.exit_code == 2
+
+
+# -- issue 36: a map is known by its OpenDRIVE, not its name ----------------------------------------------------
+class MapWorld(FakeWorld):
+    """A server world running ``cmap`` (a real carla.Map: what generate_opendrive_world leaves loaded)."""
+
+    def __init__(self, cmap, world_id: int) -> None:
+        super().__init__()
+        self.cmap, self.id = cmap, world_id
+
+    def get_map(self):
+        return self.cmap
+
+
+def test_a_catalog_runs_only_on_the_map_it_was_made_on(fake_server) -> None:
+    """Regression (issue 36): catalogs made on the urban and the highway exports both said 'OpenDriveMap',
+    and load_map took any world of that name: one's scenes ran on the other's roads."""
+    import hashlib
+    import json
+
+    import carla
+
+    from genesis_rl.carla_backend.scenes import generate_catalog
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.lite.maps import load_map
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.scenes.catalog import parse_catalog
+
+    urban, highway = (to_opendrive(load_map(n)) for n in ("urban", "highway"))
+    made = generate_catalog(carla.Map("OpenDriveMap", urban), "OpenDriveMap", 2, seed=0, n_vehicles=3)
+    digest = hashlib.sha256(urban.encode()).hexdigest()
+    assert made.map_digest == digest and made.to_json()["map_digest"] == digest
+    as_json = json.loads(json.dumps(made.to_json()))
+    scene = parse_catalog(as_json).scene(1)
+    assert scene.map_digest == digest
+
+    b = CarlaBackend("localhost", 2000)
+    b.client.world = MapWorld(carla.Map("OpenDriveMap", highway), world_id=7)
+    with pytest.raises(UserInputError, match=f"digest {digest[:12]}, but the server localhost:2000 runs a map of "
+                                             "that name with digest"):
+        b.load_map(scene.map, scene.map_digest)
+    b.client.world = right = MapWorld(carla.Map("OpenDriveMap", urban), world_id=8)
+    assert b.load_map(scene.map, scene.map_digest) is right
+    with pytest.raises(UserInputError, match="'map_digest' = 'x'; allowed: the SHA-256"):
+        parse_catalog({**as_json, "map_digest": "x"})
+
+
+# -- issue 36: a second live client is not taken for a dead one ---------------------------------------------------
+class DrivenWorld(MapWorld):
+    """A world in synchronous mode; ``ticker`` is what wait_for_tick meets: a frame (another client ticks)
+    or the client's time-out (nobody does)."""
+
+    def __init__(self, cmap, ticker) -> None:
+        super().__init__(cmap, world_id=9)
+        self.ticker, self.applied, self.watched = ticker, [], []
+
+    def get_settings(self):
+        return SimpleNamespace(synchronous_mode=True, fixed_delta_seconds=0.05, no_rendering_mode=False)
+
+    def apply_settings(self, settings) -> None:
+        self.applied.append(settings)
+
+    def wait_for_tick(self, seconds: float):
+        self.watched.append(seconds)
+        return self.ticker()
+
+
+@pytest.fixture(scope="module")
+def urban_scene():
+    import carla
+
+    from genesis_rl.carla_backend.scenes import generate_catalog
+    from genesis_rl.lite.maps import load_map
+    from genesis_rl.lite.maps.opendrive import to_opendrive
+
+    cmap = carla.Map("OpenDriveMap", to_opendrive(load_map("urban")))
+    return cmap, generate_catalog(cmap, "OpenDriveMap", 1, seed=3, n_vehicles=3).scene(0)
+
+
+def test_a_server_another_client_ticks_is_refused_before_anything_is_changed(fake_server, urban_scene) -> None:
+    """Regression (issue 36): any server in synchronous mode was taken for orphaned; a second run then ticked
+    a server that another run drives, reseeded its traffic manager and at close made it asynchronous."""
+    from genesis_rl.carla_backend.backend import ORPHAN_WATCH_S, ServerInUse
+
+    cmap, scene = urban_scene
+    b = CarlaBackend("localhost", 2000)
+    b.client.world = world = DrivenWorld(cmap, lambda: SimpleNamespace(frame=5123))
+    with pytest.raises(ServerInUse, match="another client ticks it \\(frame 5123") as err:
+        CarlaSimulation(b, scene, 0, Weather.default(), CameraConfig(), render=False)
+    assert err.value.exit_code == 2 and world.watched == [ORPHAN_WATCH_S]
+    assert world.applied == [] and b.client.tms == []  # settings and traffic manager untouched
+
+
+def test_a_server_nobody_ticks_is_taken_over_as_orphaned(fake_server, urban_scene) -> None:
+    from genesis_rl.carla_backend.backend import check_not_driven
+
+    def timeout():
+        raise TIMEOUT
+
+    world = DrivenWorld(urban_scene[0], timeout)
+    assert check_not_driven(world, "localhost:2000", 0.5) is None and world.watched == [0.5]
+
+    def refused():
+        raise RuntimeError("rpc::rpc_error during call in function get_settings")
+
+    with pytest.raises(RuntimeError, match="rpc_error"):  # a broken connection is not a quiet server
+        check_not_driven(DrivenWorld(urban_scene[0], refused), "localhost:2000", 0.5)
+
+
+def _free_tcp_port() -> int:
+    from genesis_rl.carla_backend.ports import free_port
+
+    return free_port()
+
+
+def test_a_vehicle_without_a_bounding_box_gets_its_makes_size(fake_server) -> None:
+    """Guard (issue 36, suspected): CARLA's one bus blueprint reported a zero bounding box in older releases,
+    which would drop its ground-truth box and make a lead gap from its centre."""
+    import carla
+
+    from genesis_rl.scenes.vehicles import MAKES
+
+    b = CarlaBackend("localhost", 2000)
+    sim = _bare_simulation(b, FakeWorld())
+    sim.scene = SimpleNamespace(vehicles=[SimpleNamespace(make="sedan"), SimpleNamespace(make="bus")])
+    sim._actors[0].bounding_box = carla.BoundingBox(carla.Location(0, 0, 0.7), carla.Vector3D(2.4, 1.0, 0.7))
+    sim._actors[1] = SimpleNamespace(id=11, type_id="vehicle.mitsubishi.fusorosa",
+                                     bounding_box=carla.BoundingBox(carla.Location(), carla.Vector3D(0, 0, 0)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert sim._box(0).extent.x == pytest.approx(2.4)  # a real box is kept as it is
+    with pytest.warns(RuntimeWarning, match="zero bounding box for vehicle 1 \\(vehicle.mitsubishi.fusorosa\\)"):
+        bus = sim._box(1)
+    bus_make = MAKES["bus"]
+    assert (bus.extent.x, bus.extent.y, bus.extent.z) == pytest.approx(
+        (bus_make.length / 2, bus_make.width / 2, bus_make.height / 2))
+
+
+def test_a_second_connection_of_this_process_shares_its_open_traffic_manager(fake_server) -> None:
+    """A campaign's counterfactual (oracle) env connects to the same server from the same process: the client
+    hands it the traffic manager this process already runs on that port, which is not 'taken'."""
+    import socket
+
+    port = _free_tcp_port()
+    listening = []
+
+    def opens_port(p):  # the traffic manager's RPC server listens on its port
+        sock = socket.socket()
+        sock.bind(("", p))
+        sock.listen(1)
+        listening.append(sock)
+        return FakeTM(p)
+
+    try:
+        first = CarlaBackend("localhost", 2000, tm_port=port)
+        first.client.get_trafficmanager = opens_port
+        first.traffic_manager()
+        oracle = CarlaBackend("localhost", 2000, tm_port=port)
+        assert oracle.traffic_manager().port == port  # not TrafficManagerPortBusy
+        first.close()
+        oracle.close()
+    finally:
+        for sock in listening:
+            sock.close()

@@ -300,7 +300,8 @@ def test_backend_flags_and_factory():
     parser = argparse.ArgumentParser()
     add_backend_arguments(parser)
     args = parser.parse_args(["--backend", "carla", "--carla-host", "sim.local", "--carla-port", "2345"])
-    assert (args.backend, args.carla_host, args.carla_port, args.carla_tm_port) == ("carla", "sim.local", (2345,), 8000)
+    # the traffic manager's port follows the server's unless given (issue 36: 8000 for every run collided)
+    assert (args.backend, args.carla_host, args.carla_port, args.carla_tm_port) == ("carla", "sim.local", (2345,), None)
     with pytest.raises(UserInputError, match="allowed: lite, carla"):
         make_backend("unreal")
 

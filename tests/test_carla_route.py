@@ -263,3 +263,76 @@ def test_routes_keep_every_stop_line_and_never_step_sideways(exported) -> None:
                 for k in passed[passed < len(xy) - 50]:  # each stop line the route crosses has its stop
                     assert len(stops) and np.min(np.abs(stops - k)) <= 4, (seed, road, lane, int(k))
     assert changes > 10
+
+
+# -- lane-change markings, read per waypoint as CARLA's planner reads them ------------------------------------
+def _marked(text: str, marks) -> str:
+    """The export with each broken lane mark replaced by ``marks(road length)``: (sOffset, allowed) pairs,
+    a forbidding stretch drawn solid with laneChange="none"."""
+    root = ET.fromstring(text)
+    for road in root.iter("road"):
+        length = float(road.get("length"))
+        for lane in road.iter("lane"):
+            for rm in [m for m in lane.findall("roadMark") if m.get("type") == "broken"]:
+                at = list(lane).index(rm)
+                lane.remove(rm)
+                for k, (s0, allowed) in enumerate(marks(length)):
+                    attrs = {**rm.attrib, "sOffset": f"{s0:g}", "laneChange": "both" if allowed else "none",
+                             "type": "broken" if allowed else "solid"}
+                    lane.insert(at + k, ET.Element("roadMark", attrs))
+    return ET.tostring(root, encoding="unicode")
+
+
+def _change_edges(planner) -> int:
+    return sum(1 for *_, kind in planner.graph.edges(data="kind") if kind != "follow")
+
+
+@pytest.mark.parametrize("name", MAPS)
+def test_export_writes_each_marks_lane_change(exported, name) -> None:
+    """Without a laneChange attribute CARLA allows changes both ways across every mark, solid or not: the
+    export says 'none' at the road's edge and the centre line, 'both' between lanes of one direction."""
+    lite, _, cmap = exported[name]
+    n_each = {int(r.get("id")): max(abs(int(ln.get("id"))) for ln in r.iter("lane"))
+              for r in ET.fromstring(to_opendrive(lite)).iter("road") if r.get("junction") == "-1"}
+    wrong, seen = 0, 0
+    for w in cmap.generate_waypoints(10.0):
+        if w.is_junction:
+            continue
+        n, k = n_each[w.road_id], abs(w.lane_id)
+        expected = (carla.LaneChange.Left if k > 1 else 0) | (carla.LaneChange.Right if k < n else 0)
+        seen += 1
+        wrong += int(w.lane_change) != int(expected)
+    assert seen > 500 and wrong == 0
+
+
+def test_a_lane_change_edge_is_kept_where_its_section_starts_forbidden(exported) -> None:
+    """Regression (issue 36): the marking was read at a section's first waypoint only; with the first 8 m
+    of every road marked 'none', half the lane-change edges (48 of 96 on urban) disappeared."""
+    lite, text, cmap = exported["urban"]
+    full = _change_edges(RoutePlanner(cmap))
+    late = _change_edges(RoutePlanner(carla.Map("urban", _marked(text, lambda length: [(0, False), (8, True)]))))
+    none = _change_edges(RoutePlanner(carla.Map("urban", _marked(text, lambda length: [(0, False)]))))
+    assert full == late == 96 and none == 0
+
+
+def test_lane_changes_happen_only_where_the_marking_allows_them(exported) -> None:
+    """Regression (issue 36): a change was always blended over a section's last 20 m; with the last 30 m
+    (in s) of every road marked 'none', 279 of 280 lane-change points lay where changing is forbidden."""
+    lite, text, _ = exported["urban"]
+    cmap = carla.Map("urban", _marked(text, lambda length: [(0, True), (max(length - 30.0, 0.0), False)]))
+    lengths = {int(r.get("id")): float(r.get("length")) for r in ET.fromstring(text).iter("road")}
+    planner, ids = RoutePlanner(cmap), odr_lane_ids(lite)
+    points, forbidden = 0, 0
+    for seed in range(3):
+        for road in range(0, len(lite.roads), 2):
+            r, lane = ids[lite.roads[road].forward_lanes[0]]
+            route = CarlaRoute(cmap, cmap.get_waypoint_xodr(r, lane, 5.0), np.random.default_rng(seed),
+                               signal_plan(lite), planner=planner)
+            for _ in range(4):
+                route.update(*route.xy[min(route.index + 600, len(route.xy) - 1)])
+            for k in np.flatnonzero([o in ("left", "right") for o in route.options]):
+                x, y = route.xy[k]
+                wp = cmap.get_waypoint(carla.Location(float(x), float(-y), 0.0))
+                points += 1
+                forbidden += int(wp.s > lengths[wp.road_id] - 30.0 + 1.0)
+    assert points > 200 and forbidden == 0

@@ -136,8 +136,12 @@ def test_carla_workers_need_one_server_each(tmp_path, capsys) -> None:
     assert servers_for_workers("lite", (), 4) == [None] * 4
     with pytest.raises(UserInputError, match="names the RPC port a:2000 twice"):
         parse_servers("a:2000,a:2000:9000")
-    with pytest.raises(UserInputError, match="traffic-manager port a:8000 twice"):
+    with pytest.raises(UserInputError, match="traffic-manager port 8000 to two workers"):
         parse_servers("a:2000,a:3000:8000")
+    # issue 36: traffic managers listen on this machine, so two hosts' servers on one port would share 8000
+    with pytest.raises(UserInputError, match=r"port 8000 to two workers \(hostA:2000:8000, hostB:2000:8000\)"):
+        parse_servers("hostA:2000,hostB:2000")
+    assert parse_servers("hostA:2000,hostB:2000:8001")[1].tm_port == 8001
     with pytest.raises(UserInputError, match="has port 'x'"):
         parse_servers("a:x")
     rc, out = _evaluate(tmp_path, "--backend", "carla", "--workers", "2")

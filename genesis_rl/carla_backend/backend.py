@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -20,10 +21,26 @@ from typing import Any, TypeVar
 import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
-from genesis_rl.carla_backend.connection import CarlaServerLost, check_numbers, connect, guarded
+from genesis_rl.carla_backend.connection import (
+    CarlaServerLost,
+    check_numbers,
+    connect,
+    guarded,
+    is_connection_error,
+    start_hint,
+)
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
+from genesis_rl.carla_backend.identity import opendrive_digest, short
 from genesis_rl.carla_backend.lead import lane_path, lead_on_path
+from genesis_rl.carla_backend.ports import (
+    TrafficManagerPortBusy,
+    busy_message,
+    default_tm_port,
+    ensure_free,
+    free_port,
+    is_bind_error,
+)
 from genesis_rl.carla_backend.projection import ground_truth_boxes
 from genesis_rl.carla_backend.sensors import FrameQueue, bgra_to_rgb, decode_depth
 from genesis_rl.carla_backend.spawn import SpawnSpec, initial_velocity, plan_scene, spawn_commands
@@ -31,6 +48,7 @@ from genesis_rl.carla_backend.weather import to_carla
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import Weather
 from genesis_rl.scenes.catalog import Scene
+from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import (
     ActorState,
     Backend,
@@ -43,14 +61,25 @@ from genesis_rl.sim.interface import (
     TickResult,
     VehicleControl,
 )
+from genesis_rl.sim.watchdog import SimulatorHung, Watchdog, deadline_for
 
 T = TypeVar("T")
 
 DEFAULT_HOST = "localhost"
 DEFAULT_PORT = 2000
-DEFAULT_TM_PORT = 8000
 DEFAULT_TIMEOUT = 10.0  # [s] per client call (a tick with 30 vehicles and two cameras takes well under 1 s)
 LOAD_TIMEOUT = 120.0  # [s] loading a town takes tens of seconds on a cold server
+#: traffic-manager ports of this process whose traffic manager was abandoned with a lost server: it still
+#: listens there (shutting it down would call the dead server from a noexcept destructor: the process aborts)
+_ABANDONED_TM_PORTS: set[int] = set()
+#: traffic-manager ports this process has open: another connection of this process (a campaign's oracle env)
+#: gets the same traffic manager back from the client, so the port is not free and need not be
+_OPEN_TM_PORTS: set[int] = set()
+#: live episodes of this process per server (host, port): a server one of them holds in synchronous mode is
+#: neither orphaned nor driven by another run
+_OUR_EPISODES: dict[tuple[str, int], int] = {}
+MIN_EXTENT = 0.05  # [m] a half extent this small is no bounding box (see CarlaSimulation._box)
+VELOCITY_HISTORY = 32  # [frames] snapshots' velocities kept for collision events that arrive late
 
 
 #: The RGB camera adapts its exposure at once instead of over seconds (CARLA's default, 'histogram' with speeds
@@ -63,16 +92,51 @@ CAMERA_ATTRIBUTES = {
 }
 
 
+#: [s] how long a server found in synchronous mode is watched for another client's tick before it is taken
+#: for orphaned (a live run ticks many times a second; one that pauses longer between episodes is missed)
+ORPHAN_WATCH_S = 3.0
+
+
+class ServerInUse(UserInputError):
+    """Another live client drives this server (it ticks it in synchronous mode): each run needs its own."""
+
+
+def check_not_driven(world: Any, where: str, watch_s: float = ORPHAN_WATCH_S) -> None:
+    """A server in synchronous mode advances only when a client ticks it: wait ``watch_s`` for a tick that
+    is not ours (``world.wait_for_tick``). One that comes means a live run drives the server, which this run
+    would tick under it, reseed its traffic manager and, at close, put into asynchronous mode: refuse."""
+    t0 = time.monotonic()
+    try:
+        snapshot = world.wait_for_tick(watch_s)
+    except RuntimeError as err:
+        if is_connection_error(err) and "time" in str(err).lower():
+            return  # no tick within watch_s: nobody drives it, the server was orphaned
+        raise
+    raise ServerInUse(
+        f"CARLA server {where} is in synchronous mode and another client ticks it (frame {snapshot.frame} came "
+        f"{time.monotonic() - t0:.1f} s into a {watch_s:g} s watch): another run drives this server. Give this run "
+        "a server of its own (--carla-port, --carla-servers), or stop the other run")
+
+
 def original_settings(settings: Any, where: str) -> Any:
-    """The settings to restore after an episode. A server found in synchronous mode was left so by a client
-    that died (a live one would still be ticking it, and CARLA takes one): restoring that would freeze it
-    again, so it is restored to asynchronous mode, with a warning."""
+    """The settings to restore after an episode. A server found in synchronous mode (and not ticked by anyone:
+    :func:`check_not_driven`) was left so by a client that died: restoring that would freeze it again, so it
+    is restored to asynchronous mode, with a warning."""
     if settings.synchronous_mode:
         warnings.warn(f"CARLA server {where} was in synchronous mode (left by a killed client?); it is put back "
                       "in asynchronous mode after the run", RuntimeWarning, stacklevel=3)
         settings.synchronous_mode = False
         settings.fixed_delta_seconds = None
     return settings
+
+
+def _tm_setup(tm: Any, seed: int) -> None:
+    """The traffic manager of an episode: synchronous (deterministic NPCs), seeded, full physics for every
+    NPC (the same dynamics near and far), no respawning of dormant vehicles."""
+    tm.set_synchronous_mode(True)
+    tm.set_random_device_seed(seed)
+    tm.set_hybrid_physics_mode(False)
+    tm.set_respawn_dormant_vehicles(False)
 
 
 def map_basename(path: str) -> str:
@@ -94,13 +158,16 @@ class CarlaBackend(Backend):
     needs_catalog = True  # scenes are generated on a server, once: genesis-rl scenes --backend carla
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, timeout: float = DEFAULT_TIMEOUT,
-                 tm_port: int = DEFAULT_TM_PORT, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
-        self.host, self.port, self.tm_port = str(host), int(port), int(tm_port)
+                 tm_port: int | None = None, map: str | None = None, load_timeout: float = LOAD_TIMEOUT) -> None:
+        self.host, self.port = str(host), int(port)
         self.timeout, self.load_timeout = float(timeout), float(load_timeout)
-        check_numbers(self.port, self.timeout, self.tm_port)  # --carla-tm-port 70000, --carla-timeout inf
+        check_numbers(self.port, self.timeout, tm_port)  # --carla-tm-port 70000, --carla-timeout inf
+        self.watchdog = Watchdog(f"CARLA server {self.host}:{self.port}")
         self.client = connect(self.host, self.port, self.timeout)
+        self.tm_port = default_tm_port(self.port, tm_port)  # one per run: two runs never share a port
         self._live: set[CarlaSimulation] = set()
         self._map_cache: tuple[int, Any] | None = None
+        self._digest_cache: tuple[int, str] | None = None
         self._planner: tuple[tuple[int, str], Any, dict[int, float]] | None = None
         self._tm: Any = None
         if map is not None:
@@ -111,27 +178,75 @@ class CarlaBackend(Backend):
         return cls(settings.host, settings.port, settings.timeout, settings.tm_port)
 
     def call(self, what: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
-        """Run a client call; a lost server becomes :class:`CarlaServerLost` naming ``what``."""
-        return guarded(self.host, self.port, what, fn, *args, **kwargs)
+        """Run a client call under the watchdog (:mod:`genesis_rl.sim.watchdog`); a lost or hung server becomes
+        :class:`CarlaServerLost` naming ``what``."""
+        return self.call_within(what, deadline_for(self.timeout), fn, *args, **kwargs)
+
+    def call_within(self, what: str, seconds: float, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """:meth:`call` with the watchdog's deadline ``seconds`` (loading a map takes longer than a tick)."""
+        try:
+            return self.watchdog.call(what, seconds, guarded, self.host, self.port, what, fn, *args, **kwargs)
+        except SimulatorHung as err:
+            self._give_up()
+            raise CarlaServerLost(f"{err}. Check the server's log and restart it if it is stuck; "
+                                  + start_hint(self.host, self.port)) from err
+
+    @property
+    def lost(self) -> bool:
+        """The watchdog gave this connection up: nothing more is asked of its server."""
+        return self.watchdog.lost is not None
+
+    def _give_up(self) -> None:
+        """Keep the client and its traffic manager alive for good (a thread is still inside the client; the
+        traffic manager's destructor would call the dead server), and its port taken for this process."""
+        self.watchdog.abandon(self.client, self._tm)
+        if self._tm is not None:
+            _ABANDONED_TM_PORTS.add(self.tm_port)
 
     def map_names(self) -> list[str]:
         return sorted({map_basename(m) for m in self.call("listing maps", self.client.get_available_maps)})
 
-    def load_map(self, name: str) -> Any:
-        """The world with map ``name`` (loaded only when the server runs another one)."""
+    def load_map(self, name: str, digest: str | None = None) -> Any:
+        """The world with map ``name`` (loaded only when the server runs another one). With ``digest`` (a
+        catalog's ``map_digest``) the map is the one whose OpenDRIVE has that SHA-256, whatever its name:
+        every generated world is called "OpenDriveMap", so a name alone would run one export's scenes on
+        another's roads."""
         world = self.call("reading the world", self.client.get_world)
-        if map_basename(self.map_of(world).name) == name:  # cached per world: the map is the whole OpenDRIVE
+        if map_basename(self.map_of(world).name) == name and self._is(world, digest):
             return world  # already loaded (also a world made with generate_opendrive_world, which no list holds)
         names = self.map_names()
         if name not in names:
+            if map_basename(self.map_of(world).name) == name:  # a generated world: only its content tells
+                raise self._other_map(name, digest, world)
             raise UserInputError(f"CARLA map '{name}' is not on the server {self.host}:{self.port}; "
                                  f"available: {', '.join(names)}")
         self.client.set_timeout(self.load_timeout)
         try:
-            self.call(f"loading map {name}", self.client.load_world, name)
+            self.call_within(f"loading map {name}", deadline_for(self.load_timeout), self.client.load_world, name)
         finally:
             self.client.set_timeout(self.timeout)
-        return self.call("reading the world", self.client.get_world)
+        world = self.call("reading the world", self.client.get_world)
+        if not self._is(world, digest):
+            raise self._other_map(name, digest, world)
+        return world
+
+    def map_digest(self, world: Any) -> str:
+        """SHA-256 of the world's OpenDRIVE (cached per world: the text is the whole map)."""
+        if self._digest_cache is None or self._digest_cache[0] != world.id:
+            carla_map = self.map_of(world)
+            self._digest_cache = (world.id, opendrive_digest(self.call("reading the OpenDRIVE map",
+                                                                       carla_map.to_opendrive)))
+        return self._digest_cache[1]
+
+    def _is(self, world: Any, digest: str | None) -> bool:
+        return digest is None or self.map_digest(world) == digest
+
+    def _other_map(self, name: str, digest: str | None, world: Any) -> UserInputError:
+        return UserInputError(
+            f"the catalog's map '{name}' has OpenDRIVE digest {short(digest or '')}, but the server "
+            f"{self.host}:{self.port} runs a map of that name with digest {short(self.map_digest(world))}: another "
+            "map under the same name (CARLA names every generated world 'OpenDriveMap'). Load the map the catalog "
+            "was made on (the same .xodr), or make the catalog again on this one (genesis-rl scenes --backend carla)")
 
     def map_of(self, world: Any) -> Any:
         """The world's ``carla.Map`` (fetching it transfers the OpenDRIVE file: cached per world)."""
@@ -156,10 +271,24 @@ class CarlaBackend(Backend):
         return CarlaSimulation(self, scene, seed, weather or Weather.default(), camera or CameraConfig(), render)
 
     def traffic_manager(self) -> Any:
-        """This connection's traffic manager (started on ``tm_port`` once, shut down by :meth:`close`)."""
+        """This connection's traffic manager (started on ``tm_port`` once, shut down by :meth:`close`); a port
+        taken on this machine fails at once, by name (:mod:`~genesis_rl.carla_backend.ports`)."""
         if self._tm is None:
-            self._tm = self.call(f"starting the traffic manager on port {self.tm_port}", self.client.get_trafficmanager,
-                                 self.tm_port)
+            if self.tm_port in _ABANDONED_TM_PORTS:  # a lost server's traffic manager of this process holds it
+                port = free_port()
+                warnings.warn(f"CARLA traffic manager port {self.tm_port} is held by the traffic manager of a lost "
+                              f"server; this connection uses port {port}", RuntimeWarning, stacklevel=2)
+                self.tm_port = port
+            if self.tm_port not in _OPEN_TM_PORTS:
+                ensure_free(self.tm_port)
+            try:
+                self._tm = self.call(f"starting the traffic manager on port {self.tm_port}",
+                                     self.client.get_trafficmanager, self.tm_port)
+            except RuntimeError as err:
+                if not is_bind_error(err):
+                    raise
+                raise TrafficManagerPortBusy(busy_message(self.tm_port, f"CARLA: {err}")) from None
+            _OPEN_TM_PORTS.add(self.tm_port)
         return self._tm
 
     def close(self) -> None:
@@ -168,10 +297,13 @@ class CarlaBackend(Backend):
         for sim in list(self._live):
             sim.destroy()
         self._live.clear()
-        if self._tm is not None:
+        if self._tm is not None and self.lost:
+            self._tm = None  # abandoned, never shut down: see _give_up
+        elif self._tm is not None:
             tm, self._tm = self._tm, None
+            _OPEN_TM_PORTS.discard(self.tm_port)
             try:
-                tm.shut_down()
+                self.call(f"shutting the traffic manager on port {self.tm_port} down", tm.shut_down)
             except RuntimeError as err:
                 warnings.warn(f"CARLA traffic manager on port {self.tm_port}: shutting down failed ({err})",
                               RuntimeWarning, stacklevel=2)
@@ -198,6 +330,9 @@ class CarlaSimulation(Simulation):
         self._hits: list[tuple[int, int]] = []  # (frame, other actor id) from the collision sensor
         self._hits_lock = threading.Lock()
         self._contacts = ContactTracker()
+        self._history: dict[int, tuple[int, dict[int, np.ndarray]]] = {}  # frame -> (step, velocities)
+        self._boxes: dict[int, Any] = {}  # scene index -> bounding box (see _box)
+        self._counted: tuple[str, int] | None = None  # the server this live episode is counted on
         self._blueprints: Any = None
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
@@ -215,22 +350,24 @@ class CarlaSimulation(Simulation):
     def _setup(self) -> None:
         carla = require_carla()
         b, scene = self._backend, self.scene
-        self.world = b.load_map(scene.map)
+        self.world = b.load_map(scene.map, scene.map_digest)
         self.map = b.map_of(self.world)
         specs = plan_scene(scene, self.map)  # fails on a foreign catalog before the server is touched
-        self._original_settings = original_settings(b.call("reading settings", self.world.get_settings),
-                                                    f"{b.host}:{b.port}")
+        found = b.call("reading settings", self.world.get_settings)
+        server = (b.host, b.port)
+        if found.synchronous_mode and not _OUR_EPISODES.get(server):  # a dead client's, or another live run's
+            b.call("watching for another client's ticks", check_not_driven, self.world, f"{b.host}:{b.port}")
+        _OUR_EPISODES[server] = _OUR_EPISODES.get(server, 0) + 1
+        self._counted = server
+        self._original_settings = original_settings(found, f"{b.host}:{b.port}")
         settings = b.call("reading settings", self.world.get_settings)
         settings.synchronous_mode = True
         settings.fixed_delta_seconds = self.dt
         settings.no_rendering_mode = not self.render
         b.call("switching to synchronous mode", self.world.apply_settings, settings)
         tm_seed = episode_seed(scene, self.seed)
-        self._tm = b.traffic_manager()
-        self._tm.set_synchronous_mode(True)
-        self._tm.set_random_device_seed(tm_seed)
-        self._tm.set_hybrid_physics_mode(False)  # full physics for every NPC: the same dynamics near and far
-        self._tm.set_respawn_dormant_vehicles(False)
+        self._tm = tm = b.traffic_manager()
+        b.call("setting the traffic manager up", _tm_setup, tm, tm_seed)
         self._spawn(specs, tm_seed)
         ego = self._actors[0]
         if self.render:
@@ -240,9 +377,9 @@ class CarlaSimulation(Simulation):
         hit = b.call("spawning the collision sensor", self.world.spawn_actor,
                      library.find("sensor.other.collision"), carla.Transform(), attach_to=ego)
         self._sensors.append(hit)
-        hit.listen(self._on_collision)
+        b.call("listening to the collision sensor", hit.listen, self._on_collision)
         self._k = self.camera.intrinsics()
-        self._advance()  # first frame for observe() at step 0; the spawned cars settle onto the road
+        self._advance(0)  # first frame for observe() at step 0; the spawned cars settle onto the road
         with self._hits_lock:
             self._hits.clear()
 
@@ -282,9 +419,9 @@ class CarlaSimulation(Simulation):
             ap = by_index[i].autopilot
             if ap:  # the traffic manager honours target speed and standstill gap; stops and noise are lite-only
                 if "target_speed" in ap:
-                    self._tm.set_desired_speed(actor, float(ap["target_speed"]) * 3.6)
+                    b.call("setting an NPC's speed", self._tm.set_desired_speed, actor, float(ap["target_speed"]) * 3.6)
                 if "min_gap" in ap:
-                    self._tm.distance_to_leading_vehicle(actor, float(ap["min_gap"]))
+                    b.call("setting an NPC's gap", self._tm.distance_to_leading_vehicle, actor, float(ap["min_gap"]))
         if batch:
             b.call("setting initial speeds", b.client.apply_batch_sync, batch, False)
 
@@ -302,7 +439,7 @@ class CarlaSimulation(Simulation):
         self._sensors.append(sensor)
         q = FrameQueue(name)
         self._queues[name] = q
-        sensor.listen(q.put)
+        self._backend.call(f"listening to the {name} camera", sensor.listen, q.put)
 
     def _on_collision(self, event: Any) -> None:
         with self._hits_lock:
@@ -312,8 +449,8 @@ class CarlaSimulation(Simulation):
     def apply_ego_control(self, control: VehicleControl) -> None:
         self._control = control
 
-    def _advance(self) -> int:
-        """Push weather and control, tick the server, and collect this frame's sensor data."""
+    def _advance(self, step: int) -> int:
+        """Push weather and control, tick the server, and collect this frame's sensor data (the frame of ``step``)."""
         carla = require_carla()
         b = self._backend
         if self._weather != self._applied_weather:
@@ -321,10 +458,14 @@ class CarlaSimulation(Simulation):
             self._applied_weather = self._weather
         if self._control != self._applied_control:
             c = self._control
-            self._actors[0].apply_control(carla.VehicleControl(throttle=c.throttle, steer=c.steer, brake=c.brake))
+            b.call("applying the ego's control", self._actors[0].apply_control,
+                   carla.VehicleControl(throttle=c.throttle, steer=c.steer, brake=c.brake))
             self._applied_control = c
         frame = b.call(f"ticking (step {self._step})", self.world.tick, b.timeout)
         self._snapshot = self.world.get_snapshot()
+        self._history[int(frame)] = (step, self._velocities())
+        for old in sorted(self._history)[:-VELOCITY_HISTORY]:
+            del self._history[old]
         for name, q in self._queues.items():
             try:
                 self._images[name] = q.get(frame, b.timeout)
@@ -344,25 +485,34 @@ class CarlaSimulation(Simulation):
     def tick(self) -> TickResult:
         if self._destroyed:
             raise RuntimeError("this simulation was destroyed")
-        before = self._velocities()
-        frame = self._advance()
+        frame = self._advance(self._step + 1)
         self._step += 1
-        return TickResult(self._step, self._step * self.dt, self._collisions(frame, before))
+        return TickResult(self._step, self._step * self.dt, self._collisions(frame))
 
-    def _collisions(self, frame: int, before: dict[int, np.ndarray]) -> list[Collision]:
+    def _before(self, frame: int) -> tuple[int, dict[int, np.ndarray]]:
+        """The step of ``frame`` and the velocities just before it (the snapshot of the frame before: the
+        impact's own snapshot already holds post-impact speeds). The oldest held when ``frame`` is older."""
+        held = sorted(self._history)
+        prior = [f for f in held if f < frame] or held[:1]
+        step = self._history[frame][0] if frame in self._history else self._step
+        return step, self._history[prior[-1]][1] if prior else {}
+
+    def _collisions(self, frame: int) -> list[Collision]:
         """The ego's new contacts this tick (the sensor reports every frame of a contact, on its own stream;
         :class:`~genesis_rl.carla_backend.contacts.ContactTracker` reports each contact's start once, as the lite
-        backend does). Static objects have vehicle id -1."""
+        backend does). Static objects have vehicle id -1. A contact's speeds and step are those of the event's
+        own frame: an event that arrives a tick late is not given the post-impact speeds of the tick it is
+        read at."""
         with self._hits_lock:
             now = [h for h in self._hits if h[0] <= frame]
             self._hits = [h for h in self._hits if h[0] > frame]
-        new = self._contacts.update(now)
         zero = np.zeros(3)
         out = []
-        for other in new:
+        for hit_frame, other in self._contacts.starts(now):
+            step, before = self._before(hit_frame)
             j = self._index_of.get(other, -1)
             va, vb = before.get(0, zero), before.get(j, zero) if j >= 0 else zero
-            out.append(Collision(self._step, 0, j, float(np.linalg.norm(va[:2])), float(np.linalg.norm(vb[:2])),
+            out.append(Collision(step, 0, j, float(np.linalg.norm(va[:2])), float(np.linalg.norm(vb[:2])),
                                  float(np.linalg.norm((va - vb)[:2]))))
         return out
 
@@ -378,7 +528,7 @@ class CarlaSimulation(Simulation):
         for i, a in self._actors.items():
             s = self._snapshot.find(a.id)
             if i != 0 and s is not None:
-                vehicles.append((i, a.bounding_box, s.get_transform()))
+                vehicles.append((i, self._box(i), s.get_transform()))
         boxes = ground_truth_boxes(vehicles, depth_img.transform, self._k, depth, cam.max_range)
         return SensorFrame(self._step, rgb, depth, boxes)
 
@@ -389,7 +539,7 @@ class CarlaSimulation(Simulation):
             s = self._snapshot.find(a.id)
             if s is None:
                 continue
-            v, ext, spec = s.get_velocity(), a.bounding_box.extent, self.scene.vehicles[i]
+            v, ext, spec = s.get_velocity(), self._box(i).extent, self.scene.vehicles[i]
             out.append(ActorState(i, spec.role, spec.make, *pose_from_carla(s.get_transform()), math.hypot(v.x, v.y),
                                   2.0 * ext.x, 2.0 * ext.y, 2.0 * ext.z))
         return out
@@ -409,9 +559,9 @@ class CarlaSimulation(Simulation):
             loc, v = s.get_transform().location, s.get_velocity()
             ids.append(i)
             xy.append((loc.x, loc.y))
-            half.append(a.bounding_box.extent.x)
+            half.append(self._box(i).extent.x)
             speed.append(math.hypot(v.x, v.y))
-        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), ego.bounding_box.extent.x,
+        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), self._box(0).extent.x,
                             np.array(xy).reshape(-1, 2), np.array(half), np.array(speed), np.array(ids),
                             lane_half_width=wp.lane_width / 2.0)
 
@@ -438,6 +588,22 @@ class CarlaSimulation(Simulation):
         states = {carla.TrafficLightState.Red: "red", carla.TrafficLightState.Yellow: "yellow"}
         return states.get(light.state, "green")
 
+    def _box(self, i: int) -> Any:
+        """Vehicle ``i``'s bounding box; where the blueprint reports none (CARLA's one bus had a zero box in
+        older releases: no ground-truth box, no lead gap) a box of its catalog make's size, with a warning."""
+        if i not in self._boxes:
+            box = self._actors[i].bounding_box
+            if min(box.extent.x, box.extent.y, box.extent.z) <= MIN_EXTENT:
+                carla = require_carla()
+                make = MAKES[self.scene.vehicles[i].make]
+                warnings.warn(f"CARLA reports a zero bounding box for vehicle {i} ({self._actors[i].type_id}); "
+                              f"using its make's size ({make.length:g} x {make.width:g} x {make.height:g} m)",
+                              RuntimeWarning, stacklevel=3)
+                box = carla.BoundingBox(carla.Location(0.0, 0.0, make.height / 2.0),
+                                        carla.Vector3D(make.length / 2.0, make.width / 2.0, make.height / 2.0))
+            self._boxes[i] = box
+        return self._boxes[i]
+
     def carla_actor_ids(self) -> list[int]:
         """CARLA ids of everything this episode spawned (vehicles, then sensors), e.g. to check teardown."""
         return list(self._index_of) + [s.id for s in self._sensors]
@@ -451,29 +617,38 @@ class CarlaSimulation(Simulation):
             return
         self._destroyed = True
         self._backend._live.discard(self)
+        if self._counted is not None:
+            _OUR_EPISODES[self._counted] -= 1
+            self._counted = None
         carla = require_carla()
         b, problems = self._backend, []
+        if b.lost:  # the watchdog gave the server up: asking it anything would only wait again
+            self._sensors, self._actors, self._queues, self._index_of = [], {}, {}, {}
+            warnings.warn(f"CARLA server {b.host}:{b.port} was given up ({b.watchdog.lost}): this episode's actors "
+                          "and settings are left on it; restart the server", RuntimeWarning, stacklevel=2)
+            return
         for s in self._sensors:
             try:
-                s.stop()
+                b.call(f"stopping sensor {s.id}", s.stop)
             except RuntimeError as err:
                 problems.append(f"stopping sensor {s.id}: {err}")
         ids = [s.id for s in self._sensors] + list(self._index_of)
         if ids:
             try:  # tick with it in synchronous mode, so the server processes the removal now
                 sync = self._original_settings is not None
-                b.client.apply_batch_sync([carla.command.DestroyActor(i) for i in ids], sync)
+                b.call("destroying the episode's actors", b.client.apply_batch_sync,
+                       [carla.command.DestroyActor(i) for i in ids], sync)
             except RuntimeError as err:
                 problems.append(f"destroying actors {ids}: {err}")
         if self._original_settings is not None:
             try:
-                self.world.apply_settings(self._original_settings)
+                b.call("restoring world settings", self.world.apply_settings, self._original_settings)
             except RuntimeError as err:
                 problems.append(f"restoring world settings: {err}")
         if self._tm is not None:
             try:
                 was_sync = self._original_settings is not None and self._original_settings.synchronous_mode
-                self._tm.set_synchronous_mode(bool(was_sync))
+                b.call("restoring the traffic manager", self._tm.set_synchronous_mode, bool(was_sync))
             except RuntimeError as err:
                 problems.append(f"restoring the traffic manager: {err}")
         self._sensors, self._actors, self._queues, self._index_of = [], {}, {}, {}

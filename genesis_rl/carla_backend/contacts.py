@@ -21,10 +21,15 @@ class ContactTracker:
 
     def update(self, events: list[tuple[int, int]]) -> list[int]:
         """New contacts among ``events``, in order of their first frame (each actor at most once)."""
-        new: list[int] = []
+        return [other for _, other in self.starts(events)]
+
+    def starts(self, events: list[tuple[int, int]]) -> list[tuple[int, int]]:
+        """(frame, other actor) of each contact that starts among ``events``: the frame is the event's own,
+        which a late event carries, not the tick it was read at."""
+        new: dict[int, int] = {}
         for frame, other in sorted(events):
             last = self._last.get(other)
             if (last is None or frame - last > self.gap) and other not in new:
-                new.append(other)
+                new[other] = frame
             self._last[other] = frame if last is None else max(last, frame)
-        return new
+        return [(frame, other) for other, frame in new.items()]

@@ -6,9 +6,13 @@ destination, and a dense path of waypoints with road options (follow, turn at a 
 :class:`RoutePlanner` builds that graph from ``carla_map.get_topology()`` with networkx, and
 :class:`CarlaRoute` keeps the controller's :class:`~genesis_rl.system.route.PolylineRoute` interface filled
 ahead of the ego: it draws a destination with the episode's seeded generator, plans to it, samples the
-lanes every :data:`~genesis_rl.lite.maps.lane_graph.DS` metres (lane changes blend over
-:data:`LANE_CHANGE_LENGTH`), and draws the next destination when the plan runs short, so the ego roams as
-long as the episode lasts.
+lanes every :data:`~genesis_rl.sim.spacing.DS` metres, and draws the next destination when the plan runs
+short, so the ego roams as long as the episode lasts.
+
+Lane changes are decided per waypoint, as CARLA's planner decides them (``_lane_change_link``): a section
+has a lane-change edge when the marking allows the change at any of its waypoints, and the route changes at
+the first waypoint from where it stands that allows it, blending over at most :data:`LANE_CHANGE_LENGTH` of
+waypoints that all allow it (a marking that forbids changing halfway ends the blend there).
 
 Everything here reads only the map (``carla.Map``: it works on a map built from OpenDRIVE text without a
 server). The traffic lights are the map's signal landmarks of type 1000001 on the route's lanes; their
@@ -29,7 +33,7 @@ import numpy as np
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.lanes import lane_from_key
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.maps.lane_graph import DS
+from genesis_rl.sim.spacing import DS
 from genesis_rl.system.route import PLAN_AHEAD, PolylineRoute
 
 LANE_CHANGE_LENGTH = 20.0  # [m] a lane change blends from one lane centre to the next over this distance
@@ -75,21 +79,23 @@ def speed_limits(xodr: str) -> dict[int, float]:
 
 class RoutePlanner:
     """The topology graph of a ``carla.Map``: follow edges (one lane flows into the next) and lane-change
-    edges (same road section, same direction, driving lanes side by side, and the lane's marking at the
-    section's start allows the change: ``waypoint.lane_change``)."""
+    edges (same road, same direction, driving lanes side by side, where the marking at some waypoint of the
+    section allows the change: ``waypoint.lane_change``, read at every waypoint)."""
 
     def __init__(self, carla_map: Any) -> None:
-        carla = require_carla()
+        require_carla()
         self.map = carla_map
         self.segments: list[Segment] = []
         self.by_key: dict[tuple[int, int, int], int] = {}
         follows: list[tuple[tuple[int, int, int], tuple[int, int, int]]] = []
         # get_topology() pairs each lane section's start with the start of each lane it flows into (or with
         # its own end where it flows nowhere)
+        samples: dict[int, list[Any]] = {}
         for entry, nxt in carla_map.get_topology():
             key = _key(entry)
             if key not in self.by_key:
-                end = _samples(entry)[-1]
+                samples[len(self.segments)] = _samples(entry)
+                end = samples[len(self.segments)][-1]
                 self.by_key[key] = len(self.segments)
                 self.segments.append(Segment(len(self.segments), key, entry, end, max(abs(end.s - entry.s), DS),
                                              bool(entry.is_junction)))
@@ -105,13 +111,9 @@ class RoutePlanner:
         for seg in self.segments:
             if seg.junction:
                 continue
-            allowed = seg.entry.lane_change
-            for side, neighbour, flag in (("left", seg.entry.get_left_lane(), carla.LaneChange.Left),
-                                          ("right", seg.entry.get_right_lane(), carla.LaneChange.Right)):
-                if (neighbour is None or neighbour.lane_type != carla.LaneType.Driving
-                        or neighbour.lane_id * seg.entry.lane_id <= 0 or not (allowed & flag)):
-                    continue
-                side_seg = self.by_key.get(_key(neighbour))
+            for side in ("left", "right"):
+                first = _first_change(samples[seg.index], side)
+                side_seg = self.by_key.get(_key(first[1])) if first is not None else None
                 if side_seg is not None:
                     cost = self.segments[side_seg].length + LANE_CHANGE_COST
                     g.add_edge(seg.index, side_seg, weight=cost, kind=side)
@@ -124,11 +126,20 @@ class RoutePlanner:
                                  "the map's topology")
         return self.by_key[key]
 
-    def plan(self, start: int, rng: np.random.Generator) -> list[tuple[int, str]]:
+    def plan(self, start: int, rng: np.random.Generator, here: Any = None) -> list[tuple[int, str]]:
         """Segments from ``start`` to a destination drawn with ``rng`` among those whose shortest route is
         within :data:`DESTINATION_RANGE` (the farthest reachable one when none is), each with how it is
-        entered ('start', 'follow', 'left', 'right')."""
-        dist = nx.single_source_dijkstra_path_length(self.graph, start, weight="weight")
+        entered ('start', 'follow', 'left', 'right'). ``here`` (a waypoint of ``start``): a lane change out of
+        ``start`` is planned only where the marking allows one from there on."""
+        graph = self.graph
+        if here is not None:
+            ahead = _samples(here)
+            blocked = {(start, b) for b in self.graph.successors(start)
+                       if self.graph.edges[start, b]["kind"] != "follow"
+                       and _first_change(ahead, self.graph.edges[start, b]["kind"]) is None}
+            if blocked:
+                graph = nx.restricted_view(self.graph, [], list(blocked))
+        dist = nx.single_source_dijkstra_path_length(graph, start, weight="weight")
         lo, hi = DESTINATION_RANGE
         targets = sorted(i for i, d in dist.items() if lo <= d <= hi and not self.segments[i].junction)
         if targets:
@@ -136,12 +147,12 @@ class RoutePlanner:
         else:
             goal = max(dist, key=lambda i: (dist[i], -i))
         if goal == start:
-            succ = sorted(self.graph.successors(start))
+            succ = sorted(graph.successors(start))
             if not succ:
                 raise UserInputError(f"lane {self.segments[start].key} of the CARLA map leads nowhere (a dead end)")
             goal = succ[int(rng.integers(len(succ)))]
-        path = nx.dijkstra_path(self.graph, start, goal, weight="weight")
-        steps = [(b, self.graph.edges[a, b]["kind"]) for a, b in zip(path, path[1:], strict=False)]
+        path = nx.dijkstra_path(graph, start, goal, weight="weight")
+        steps = [(b, graph.edges[a, b]["kind"]) for a, b in zip(path, path[1:], strict=False)]
         if steps and steps[-1][1] != "follow":
             # a leg never ends on a lane change: the next leg would start at the section's end, with no road
             # left to blend over. Go on into a lane that follows.
@@ -166,6 +177,28 @@ def _samples(wp: Any) -> list[Any]:
     except RuntimeError:  # the client refuses when wp already stands at the lane's end
         pass
     return out
+
+
+def _change_target(wp: Any, side: str) -> Any:
+    """The neighbour waypoint that ``wp``'s marking allows changing into on ``side`` (a driving lane of the
+    same road, same direction), or None: CARLA's planner's test, at one waypoint."""
+    carla = require_carla()
+    if not wp.lane_change & (carla.LaneChange.Left if side == "left" else carla.LaneChange.Right):
+        return None
+    nb = wp.get_left_lane() if side == "left" else wp.get_right_lane()
+    if (nb is None or nb.lane_type != carla.LaneType.Driving or nb.lane_id * wp.lane_id <= 0
+            or nb.road_id != wp.road_id):
+        return None
+    return nb
+
+
+def _first_change(wps: list[Any], side: str) -> tuple[int, Any] | None:
+    """(index, neighbour) of the first of ``wps`` whose marking allows the change to ``side``, or None."""
+    for k, w in enumerate(wps):
+        nb = _change_target(w, side)
+        if nb is not None:
+            return k, nb
+    return None
 
 
 def _next_on_lane(wp: Any) -> Any:
@@ -285,48 +318,55 @@ class CarlaRoute(PolylineRoute):
         return sorted(found.values(), key=lambda t: t[0])
 
     def _change_lane(self, side: str) -> Any:
-        """Blend from the current lane into its ``side`` neighbour over the next LANE_CHANGE_LENGTH (what is
-        left of the section when less) and return the neighbour's waypoint where the blend ends."""
+        """Blend from the current lane (where the marking allows the change) into its ``side`` neighbour
+        over the next LANE_CHANGE_LENGTH, or over fewer waypoints where the marking forbids changing sooner
+        or the section ends, and return the neighbour's waypoint where the blend ends."""
         here = self._last_wp
         n = max(int(LANE_CHANGE_LENGTH / DS), 1)
-        ahead = _samples(here)[1 : n + 1]
+        ahead = []
+        for w in _samples(here)[1 : n + 1]:
+            if _change_target(w, side) is None:
+                break
+            ahead.append(w)
         raw, roads, landed, pairs = [], [], None, []
         for k, w in enumerate(ahead):
-            nb = w.get_left_lane() if side == "left" else w.get_right_lane()
-            if nb is None:
-                break
+            nb = _change_target(w, side)
             a = (k + 1) / len(ahead)
             (x0, y0), (x1, y1) = _xy(w), _xy(nb)
             raw.append(((1 - a) * x0 + a * x1, (1 - a) * y0 + a * y1))
             roads.append(int(w.road_id))
             pairs.append((w, nb))
             landed = nb
-        if landed is None:  # at the section's very end: step across at this s
-            landed = here.get_left_lane() if side == "left" else here.get_right_lane()
+        if landed is None:  # the marking allows it here only (or the section ends): step across at this s
+            landed = _change_target(here, side) or (here.get_left_lane() if side == "left" else here.get_right_lane())
             raw, roads, pairs = [_xy(landed)], [int(landed.road_id)], [(here, landed)]
         self._add(raw, roads, [side] * len(raw), self._lights_along(pairs))
         self._last_wp = landed
         return landed
 
-    def _emit(self, wp: Any, changes_next: int, drop_first: bool) -> None:
-        """Sample the section from ``wp`` on; when lane changes follow, stop LANE_CHANGE_LENGTH before the
-        section's end for each of them, where the blends start."""
+    def _emit(self, wp: Any, change_next: str | None, drop_first: bool) -> bool:
+        """Sample the section from ``wp`` on; when a lane change follows, stop at the first waypoint whose
+        marking allows it, where its blend starts. False (nothing added) when none from ``wp`` on does."""
         samples = _samples(wp)[1 if drop_first else 0 :]
-        if changes_next:
-            samples = samples[: max(len(samples) - changes_next * int(LANE_CHANGE_LENGTH / DS), 1)]
+        if change_next is not None:
+            first = _first_change(samples, change_next)
+            if first is None:
+                return False
+            samples = samples[: first[0] + 1]
         self._append(samples, "follow")
+        return True
 
     def _plan_more(self) -> None:
         """Plan legs to drawn destinations until PLAN_AHEAD metres lie ahead. The last segment of a leg is
         left pending, so the next leg can change lanes out of it."""
         while (len(self._points) - 1 - self.index) * DS < PLAN_AHEAD:
             before = len(self._points)
-            steps = self.planner.plan(self._segment, self.rng)
+            here = self._pending if self._pending is not None else self._last_wp
+            steps = self.planner.plan(self._segment, self.rng, here)
             for k, (seg, kind) in enumerate(steps):
                 last = k == len(steps) - 1
-                changes_next = 0  # lane changes right after this step, all within this section
-                while k + 1 + changes_next < len(steps) and steps[k + 1 + changes_next][1] in ("left", "right"):
-                    changes_next += 1
+                following = steps[k + 1][1] if not last else "follow"
+                change_next = following if following in ("left", "right") else None
                 if kind == "start":
                     wp, drop = self._pending, False
                 elif kind == "follow":
@@ -338,8 +378,11 @@ class CarlaRoute(PolylineRoute):
                     self._pending = wp if not drop else _next_on_lane(wp)
                     break
                 self._pending = None
-                if wp is not None:
-                    self._emit(wp, changes_next, drop)
+                if wp is not None and not self._emit(wp, change_next, drop):
+                    # past every waypoint that allows the next change (it lands mid-section after another
+                    # change): plan again from here, where the planner leaves that change out
+                    self._pending = wp if not drop else _next_on_lane(wp)
+                    break
             if len(self._points) == before and self._pending is None:
                 key = self.planner.segments[self._segment].key
                 raise UserInputError(f"the route planner found no way on from lane {key}")

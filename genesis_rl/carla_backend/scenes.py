@@ -26,10 +26,11 @@ from tqdm import tqdm
 from genesis_rl.carla_backend._carla import require_carla
 from genesis_rl.carla_backend.backend import CarlaBackend
 from genesis_rl.carla_backend.frames import pose_from_carla
+from genesis_rl.carla_backend.identity import opendrive_digest
 from genesis_rl.carla_backend.lanes import lane_key
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.scenes import draw_autopilot, draw_make, fits
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+from genesis_rl.scenes.placement import draw_autopilot, draw_make, fits
 from genesis_rl.scenes.vehicles import PALETTE
 from genesis_rl.sim.interface import ConnectionSettings
 
@@ -80,7 +81,7 @@ def _ahead(rng: np.random.Generator, wp: Any, distance: float) -> Any:
 
 
 def generate_scene(carla_map: Any, map_name: str, egos: Sequence[Any], pool: Sequence[Any], index: int, seed: int,
-                   n_vehicles: int = N_VEHICLES, radius: float = RADIUS) -> Scene:
+                   n_vehicles: int = N_VEHICLES, radius: float = RADIUS, map_digest: str | None = None) -> Scene:
     """One scene: ``egos`` are the ego's candidate waypoints, ``pool`` the candidates for the others."""
     rng = np.random.default_rng(seed)
     with_right = [w for w in egos if _right_neighbour(w) is not None]
@@ -115,7 +116,7 @@ def generate_scene(carla_map: Any, map_name: str, egos: Sequence[Any], pool: Seq
     if len(placed) < n_vehicles:
         raise RuntimeError(f"scene {index}: could only place {len(placed)} of {n_vehicles} vehicles within "
                            f"{radius:g} m of the ego on {map_name}")
-    return Scene(index, map_name, int(rng.integers(2**31)), 0.0, tuple(placed))
+    return Scene(index, map_name, int(rng.integers(2**31)), 0.0, tuple(placed), map_digest)
 
 
 def iter_scenes(carla_map: Any, map_name: str, count: int, seed: int, spawn_points: Sequence[Any] | None = None,
@@ -123,17 +124,21 @@ def iter_scenes(carla_map: Any, map_name: str, count: int, seed: int, spawn_poin
     """Scenes 0..count-1; scene i depends only on (map, seed, i), as in the lite generator."""
     egos = ego_candidates(carla_map, spawn_points)
     pool = [w for w in carla_map.generate_waypoints(GRID) if _driving(w)]
+    digest = opendrive_digest(carla_map.to_opendrive())
     for i, ss in enumerate(np.random.SeedSequence(seed).spawn(count)):
-        yield generate_scene(carla_map, map_name, egos, pool, i, int(ss.generate_state(1)[0]), n_vehicles, radius)
+        yield generate_scene(carla_map, map_name, egos, pool, i, int(ss.generate_state(1)[0]), n_vehicles, radius,
+                             digest)
 
 
 def generate_catalog(carla_map: Any, map_name: str, count: int, seed: int, spawn_points: Sequence[Any] | None = None,
                      n_vehicles: int = N_VEHICLES, progress: bool = False) -> Catalog:
-    """A catalog of ``count`` scenes on ``carla_map`` (offline or a server's)."""
+    """A catalog of ``count`` scenes on ``carla_map`` (offline or a server's), with the digest of its
+    OpenDRIVE (:mod:`~genesis_rl.carla_backend.identity`): episodes check that the server runs this map."""
     scenes: Iterator[Scene] = iter_scenes(carla_map, map_name, count, seed, spawn_points, n_vehicles)
     if progress:
         scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
-    return Catalog(map_name, seed, "carla", tuple(scenes))
+    made = tuple(scenes)
+    return Catalog(map_name, seed, "carla", made, made[0].map_digest if made else None)
 
 
 def generate_catalog_from_server(map_name: str, count: int, seed: int, *, host: str = "localhost", port: int = 2000,

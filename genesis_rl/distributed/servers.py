@@ -16,10 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from genesis_rl.carla_backend.ports import TM_PORT_OFFSET
 from genesis_rl.errors import UserInputError
 
-#: CARLA's defaults put the traffic manager 6000 above the RPC port (2000 -> 8000)
-TM_PORT_OFFSET = 6000
 FORMAT = "HOST:PORT[:TM_PORT],... (e.g. localhost:2000,localhost:3000), or ray[:PORT[:TM_PORT]]"
 #: the Ray resource a node offers per CARLA server it runs
 RAY_RESOURCE = "carla_server"
@@ -93,12 +92,18 @@ def parse_servers(text: str | None, flag: str = "--carla-servers") -> tuple[Carl
         servers.append(CarlaServer(parts[0], port, tm))
     if not servers:
         raise UserInputError(f"{flag} is empty; allowed: {FORMAT}")
-    for kind, key in (("RPC", lambda s: (s.host, s.port)), ("traffic-manager", lambda s: (s.host, s.tm_port))):
-        seen = [key(s) for s in servers]
-        dup = next((k for k in seen if seen.count(k) > 1), None)
-        if dup is not None:
-            raise UserInputError(f"{flag} names the {kind} port {dup[0]}:{dup[1]} twice; each worker needs a "
-                                 "server of its own")
+    seen = [(s.host, s.port) for s in servers]
+    dup = next((k for k in seen if seen.count(k) > 1), None)
+    if dup is not None:
+        raise UserInputError(f"{flag} names the RPC port {dup[0]}:{dup[1]} twice; each worker needs a server of "
+                             "its own")
+    # every worker's traffic manager listens on this machine, whichever host its server is on
+    tms = [s.tm_port for s in servers]
+    shared = next((p for p in tms if tms.count(p) > 1), None)
+    if shared is not None:
+        twice = ", ".join(str(s) for s in servers if s.tm_port == shared)
+        raise UserInputError(f"{flag} gives the traffic-manager port {shared} to two workers ({twice}); traffic "
+                             "managers run on this machine, one per port: give each its own as HOST:PORT:TM_PORT")
     return tuple(servers)
 
 

@@ -53,6 +53,8 @@ ENV_RANGES: dict[str, ranges.Ranged] = {
     "carla_tm_port": ranges.PORT,
     "carla_timeout": ranges.TIMEOUT,
 }
+#: keys of ENV_RANGES that may be None (carla_tm_port: carla_port + 6000)
+OPTIONAL_RANGED = frozenset({"carla_tm_port"})
 
 
 @dataclass(frozen=True)
@@ -91,13 +93,14 @@ class EnvConfig:
     backend: str = "lite"  # simulator: a name in genesis_rl.backends.BACKENDS (lite, carla) or package.module:Class
     carla_host: str = "localhost"
     carla_port: int = 2000  # RPC port
-    carla_tm_port: int = 8000  # traffic manager port
+    carla_tm_port: int | None = None  # traffic manager port; None: carla_port + 6000 (one per run)
     carla_timeout: float = 10.0  # [s] per client call
 
     def __post_init__(self) -> None:
         import_modules(self.plugins, "env.plugins")  # before the knob checks below
         for k, rng in ENV_RANGES.items():  # an int or a number before the comparisons below
-            ranges.check_type(getattr(self, k), f"env.{k}", rng)
+            if getattr(self, k) is not None or k not in OPTIONAL_RANGED:
+                ranges.check_type(getattr(self, k), f"env.{k}", rng)
         if self.system not in BUILTIN_SYSTEMS and ":" in self.system:  # refused here, before env processes start
             check_import(self.system.partition(":")[0], f"env.system '{self.system}'")
         if self.rulebook is not None and gate_held():
@@ -127,7 +130,7 @@ class EnvConfig:
             raise UserInputError(f"env.disabled_knobs {list(self.disabled_knobs)} disable every knob the agent "
                                  f"turns ({', '.join(self.knobs)}); leave at least one")
         for k in ("carla_port", "carla_tm_port"):
-            if not 1 <= getattr(self, k) <= 65535:
+            if getattr(self, k) is not None and not 1 <= getattr(self, k) <= 65535:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be a port in 1..65535")
         if not self.carla_timeout > 0:
             raise UserInputError(f"env.carla_timeout = {self.carla_timeout} must be > 0 [s]")
@@ -137,7 +140,8 @@ class EnvConfig:
         if not 0.0 <= self.start_spread <= 1.0:
             raise UserInputError(f"env.start_spread = {self.start_spread} must be in 0..1 (0: start_weather)")
         for k, rng in ENV_RANGES.items():  # finite, in its physical range (docs/reliability.md)
-            rng.check(getattr(self, k), f"env.{k}")
+            if getattr(self, k) is not None or k not in OPTIONAL_RANGED:
+                rng.check(getattr(self, k), f"env.{k}")
         start = parse_weather(self.start_weather)
         if self.odd is not None:
             odd = self.load_odd()

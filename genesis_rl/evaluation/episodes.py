@@ -91,7 +91,10 @@ class CampaignRunner:
 
 
 def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, policy: str, scene: int,
-                  episode_seed: int, outcome: EpisodeOutcome, seconds: float) -> dict[str, Any]:
+                  episode_seed: int, outcome: EpisodeOutcome, seconds: float,
+                  lost: Sequence[str] = ()) -> dict[str, Any]:
+    """Write one episode's files (its row last). ``lost``: why earlier attempts lost the simulator (the row's
+    ``simulator_lost``, present only when the episode was retried)."""
     env = runner.env
     name = episode_name(scene)
     records = outcome.records
@@ -99,6 +102,8 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     row = episode_row(policy, scene, episode_seed, outcome, env.rulebook, env.config.knobs)
     add_natural_fields(row, runner, scene, episode_seed, records)
     row["seconds"] = round(seconds, 2)
+    if lost:
+        row["simulator_lost"] = list(lost)
     for step, rgb in sorted(outcome.frames.items()):
         _write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
     failed = row["collision_events"] > 0 or any(row["violations"][r.name] > 0 for r in env.rulebook.rules if r.in_total)

@@ -71,6 +71,7 @@ def run_task(task: Task) -> dict[str, Any]:
     runner = _runner()
     retries = int(spec.options.get("retries", 2))
     t0 = time.perf_counter()
+    lost: list[str] = []  # why each earlier attempt was lost: the row says the episode was retried
     for attempt in range(retries + 1):
         try:
             outcome = _policy(policy_name).run_episode(runner, scene, episode_seed)
@@ -78,6 +79,7 @@ def run_task(task: Task) -> dict[str, Any]:
         except SimulatorLost as err:  # nothing of this episode was written yet: reconnect and run it again
             if attempt == retries:
                 raise
+            lost.append(str(err))
             warnings.warn(f"{policy_name} scene {scene}: simulator lost ({err}); reconnecting, retry "
                           f"{attempt + 1} of {retries}", stacklevel=1)
             try:
@@ -87,4 +89,4 @@ def run_task(task: Task) -> dict[str, Any]:
             _WORKER["runner"] = None
             runner = _runner()
     seconds = time.perf_counter() - t0
-    return write_episode(folder, spec, runner, policy_name, scene, episode_seed, outcome, seconds)
+    return write_episode(folder, spec, runner, policy_name, scene, episode_seed, outcome, seconds, lost)

@@ -4,23 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from genesis_rl.scenes.placement import box_corners, boxes_overlap
 
-def box_corners(x: float, y: float, yaw: float, length: float, width: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    hl, hw = length / 2, width / 2
-    local = np.array([[hl, hw], [hl, -hw], [-hl, -hw], [-hl, hw]])
-    return local @ np.array([[c, s], [-s, c]]) + np.array([x, y])
-
-
-def boxes_overlap(a: np.ndarray, b: np.ndarray) -> bool:
-    """True when two convex quads (4x2 corners) overlap (touching counts as no overlap)."""
-    for poly in (a, b):
-        edges = np.roll(poly, -1, axis=0) - poly
-        axes = np.column_stack([-edges[:, 1], edges[:, 0]])
-        pa, pb = a @ axes.T, b @ axes.T
-        if np.any((pa.max(0) <= pb.min(0)) | (pb.max(0) <= pa.min(0))):
-            return False
-    return True
+__all__ = ["all_corners", "box_corners", "boxes_overlap", "colliding_pairs"]
 
 
 def all_corners(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:

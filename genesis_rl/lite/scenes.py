@@ -15,10 +15,11 @@ import numpy as np
 from tqdm import tqdm
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.lite.collisions import box_corners, boxes_overlap, colliding_pairs
+from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps import MAP_NAMES, load_map
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
+from genesis_rl.scenes.placement import draw_autopilot, draw_make, fits
 from genesis_rl.scenes.vehicles import MAKES, PALETTE
 from genesis_rl.sim.interface import ConnectionSettings
 
@@ -29,21 +30,6 @@ RADIUS = 90.0  # others are placed within this distance of the ego [m]
 POSE_TOLERANCE_M = 1.0  # a vehicle's x, y may differ this much from its lane's point at s
 
 
-def draw_autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
-    """An NPC's seeded driving style (lite's AutopilotParams; CARLA's traffic manager reads target_speed
-    and min_gap), around the lane's speed ``limit`` [m/s]."""
-    return {
-        "target_speed": float(limit * rng.uniform(0.75, 1.05)),
-        "time_gap": float(rng.uniform(1.0, 2.0)),
-        "min_gap": float(rng.uniform(1.5, 3.0)),
-        "max_accel": float(rng.uniform(1.2, 2.5)),
-        "comfort_decel": float(rng.uniform(2.0, 3.5)),
-        # the lead brakes to a stop now and then so the ego must react
-        "stop_rate": float(rng.uniform(1.5, 3.0) if role == "lead" else rng.uniform(0.0, 0.5)),
-        "speed_noise": float(rng.uniform(0.1, 0.4)),
-    }
-
-
 def _vehicle(rng, road_map, role, lane, s, make, speed_frac) -> VehicleSpec:
     x, y, _, yaw = road_map.pose(lane, s)
     succ = road_map.lanes[lane].successors
@@ -52,32 +38,6 @@ def _vehicle(rng, road_map, role, lane, s, make, speed_frac) -> VehicleSpec:
     ap = None if role == "ego" else draw_autopilot(rng, limit, role)
     return VehicleSpec(role, make, color_name, PALETTE[color_name], int(lane), float(s), x, y, yaw,
                        float(limit * speed_frac), int(succ[int(rng.integers(len(succ)))]), ap)
-
-
-def draw_make(rng: np.random.Generator) -> str:
-    """A vehicle make, drawn by the makes' weights."""
-    names = list(MAKES)
-    w = np.array([MAKES[n].weight for n in names])
-    return str(names[int(rng.choice(len(names), p=w / w.sum()))])
-
-
-def fits(spec: VehicleSpec, placed: list[VehicleSpec], search_radius: float = 15.0) -> bool:
-    """No overlap with the ``placed`` vehicles within ``search_radius`` metres, with a 1 m margin front and
-    back and 0.2 m at the sides."""
-    m = MAKES[spec.make]
-    r = 0.5 * math.hypot(m.length + 2.0, m.width + 0.4)  # the padded box's bounding circle
-    a: np.ndarray | None = None
-    for other in placed:
-        d2 = (other.x - spec.x) ** 2 + (other.y - spec.y) ** 2
-        mo = MAKES[other.make]
-        ro = 0.5 * math.hypot(mo.length + 2.0, mo.width + 0.4)
-        if d2 > search_radius**2 or d2 > (r + ro + 1e-6) ** 2:  # apart: the boxes cannot overlap, no SAT needed
-            continue
-        if a is None:
-            a = box_corners(spec.x, spec.y, spec.yaw, m.length + 2.0, m.width + 0.4)
-        if boxes_overlap(a, box_corners(other.x, other.y, other.yaw, mo.length + 2.0, mo.width + 0.4)):
-            return False
-    return True
 
 
 def _safe_headway(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:

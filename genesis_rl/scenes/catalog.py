@@ -49,6 +49,9 @@ class Scene:
     seed: int
     signal_offset: float  # [s] added to every junction's signal clock
     vehicles: tuple[VehicleSpec, ...]
+    #: SHA-256 of the map's OpenDRIVE text where the backend's map names are not unique (CARLA names every
+    #: generated world "OpenDriveMap"): the simulation checks the loaded map's content against it
+    map_digest: str | None = None
 
     @property
     def ego(self) -> VehicleSpec:
@@ -61,13 +64,16 @@ class Catalog:
     seed: int
     backend: str
     scenes: tuple[Scene, ...]
+    map_digest: str | None = None  # see Scene.map_digest; written only when set
 
     def to_json(self) -> dict[str, Any]:
+        digest = {"map_digest": self.map_digest} if self.map_digest is not None else {}
         return {
             "schema": SCHEMA_NAME,
             "version": SCHEMA_VERSION,
             "backend": self.backend,
             "map": self.map,
+            **digest,
             "seed": self.seed,
             "scenes": [
                 {
@@ -191,6 +197,11 @@ def parse_catalog(data: Any) -> Catalog:
     map_name = _req(data, "map", str, "catalog")
     if not map_name:
         raise UserInputError("catalog field 'map' is empty; expected the map's name (e.g. urban, highway)")
+    digest = data.get("map_digest")
+    if digest is not None and not (isinstance(digest, str) and len(digest) == 64
+                                   and all(c in "0123456789abcdef" for c in digest)):
+        raise UserInputError(f"catalog field 'map_digest' = {digest!r}; allowed: the SHA-256 of the map's OpenDRIVE "
+                             "as 64 lowercase hex digits, or no field")
     seed = _number(data, "seed", "catalog", ranges.SEED)
     scene_list = _req(data, "scenes", list, "catalog")
     if not scene_list:
@@ -212,8 +223,8 @@ def parse_catalog(data: Any) -> Catalog:
             raise UserInputError(f"catalog: '{where}.vehicles[{egos[1]}].role' = 'ego'; a scene has one ego, "
                                  f"vehicles[0]; allowed for the others: {', '.join(ROLES[1:])}")
         offset = _number(sd, "signal_offset", where, ranges.SIGNAL_OFFSET)
-        scenes.append(Scene(index, scene_map, scene_seed, offset, vehicles))
-    return Catalog(map_name, seed, backend, tuple(scenes))
+        scenes.append(Scene(index, scene_map, scene_seed, offset, vehicles, digest))
+    return Catalog(map_name, seed, backend, tuple(scenes), digest)
 
 
 def read_catalog(path: Path | str) -> Catalog:

@@ -229,7 +229,7 @@ class ConnectionSettings:
 
     host: str = "localhost"
     port: int = 2000  # RPC port
-    tm_port: int = 8000  # traffic manager port
+    tm_port: int | None = None  # traffic manager port; None: the server's port + 6000 (one per run)
     timeout: float = 10.0  # [s] per client call
 
 

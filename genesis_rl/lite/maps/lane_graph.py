@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-DS = 0.5  # lane sample spacing [m]
+from genesis_rl.sim.spacing import DS  # shared with the CARLA backend's routes
+
 GRID_CELL = 25.0  # spatial hash cell for nearest-lane queries [m]
 _MAX_RINGS = 6  # beyond ~150 m from every lane the nearest-lane search scans the whole map
 LANE_WIDTH = 3.5  # [m]

@@ -159,8 +159,9 @@ class _Writer:
 
     @staticmethod
     def _lane(parent: ET.Element, lane_id: int, n: int, pred: int | None = None, succ: int | None = None) -> None:
-        """Lane ``lane_id`` of ``n`` on its side. Its road mark is on its outer border: broken between lanes
-        (CARLA then allows lane changes across it), solid at the road's edge."""
+        """Lane ``lane_id`` of ``n`` on its side. Its road mark is on its outer border: broken between lanes,
+        solid at the road's edge, each with an explicit ``laneChange`` (CARLA reads a mark without one as
+        allowing changes both ways, solid or not)."""
         ln = ET.SubElement(parent, "lane", id=str(lane_id), type="driving", level="false")
         link = ET.SubElement(ln, "link")
         if pred is not None:
@@ -168,8 +169,9 @@ class _Writer:
         if succ is not None:
             ET.SubElement(link, "successor", id=str(succ))
         ET.SubElement(ln, "width", sOffset="0", a=_f(LANE_WIDTH), b="0", c="0", d="0")
-        ET.SubElement(ln, "roadMark", sOffset="0", type="solid" if abs(lane_id) == n else "broken",
-                      weight="standard", color="standard", width="0.15")
+        edge = abs(lane_id) == n
+        ET.SubElement(ln, "roadMark", sOffset="0", type="solid" if edge else "broken", weight="standard",
+                      color="standard", width="0.15", laneChange="none" if edge else "both")
 
     def _speed(self, road: ET.Element, lane: int) -> None:
         kind = "motorway" if self.map.speed_limit(lane) > 20.0 else "town"
@@ -199,7 +201,7 @@ class _Writer:
         c = ET.SubElement(center, "lane", id="0", type="none", level="false")
         ET.SubElement(c, "link")
         ET.SubElement(c, "roadMark", sOffset="0", type="solid solid", weight="standard", color="yellow",
-                      width="0.15")
+                      width="0.15", laneChange="none")
         right = ET.SubElement(sec, "right")
         for k in range(r.lanes_each_way):
             self._lane(right, -(k + 1), r.lanes_each_way)
