@@ -13,8 +13,9 @@ import pytest
 
 from genesis_rl.knobs import Weather
 from genesis_rl.lite.render import labels as L
+from genesis_rl.lite.render import weather_effects
 from genesis_rl.lite.render.lighting import lighting_for
-from genesis_rl.lite.render.weather_effects import WeatherCompositor
+from genesis_rl.lite.render.weather_effects import WeatherCompositor, exposure_gain
 
 W, H, FOV = 160, 120, 90.0
 NEAR = (slice(62, 80), slice(30, 60))  # vehicle at 10 m
@@ -118,7 +119,9 @@ def test_wet_road_darkens_only_the_road() -> None:
         assert np.abs(wet[region] - dry[region]).mean() < 1.5
 
 
-def test_puddles_mirror_when_deep() -> None:
+def test_puddles_mirror_when_deep(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the puddle is compared with road farther from the centre: without vignetting, which darkens that
+    monkeypatch.setattr(weather_effects, "VIGNETTE", 0.0)
     rgb, depth, lab = _scene()
     lab[95:110, 80:120] = L.PUDDLE
     comp = WeatherCompositor(W, H, FOV, 3)
@@ -231,3 +234,17 @@ def test_exp_floor_leaves_every_pixel_as_it_was(monkeypatch, partial) -> None:
     floored = _render(wx, step=3)
     monkeypatch.setattr(weather_effects, "_EXP_FLOOR", np.float32(-np.inf))
     np.testing.assert_array_equal(floored, _render(wx, step=3))
+
+
+def test_camera_vignetting_and_exposure() -> None:
+    """Corners darker than the centre on a flat grey frame; exposure 1 at noon, brighter in dim light."""
+    flat = np.full((H, W, 3), 120, np.uint8)
+    depth = np.full((H, W), 5.0, np.float32)
+    lab = np.full((H, W), L.ROAD, np.uint8)
+    wx = Weather.from_partial(NOON)
+    out = WeatherCompositor(W, H, FOV, 1).apply(flat, depth, lab, wx, lighting_for(wx), 0.0, 0.0, 0)
+    lum = _lum(out.astype(np.float64))
+    centre, corner = lum[H // 2 - 8 : H // 2 + 8, W // 2 - 8 : W // 2 + 8].mean(), lum[:12, :12].mean()
+    assert corner < 0.92 * centre
+    assert exposure_gain(0.81) == pytest.approx(1.0)
+    assert 1.0 < exposure_gain(0.3) < exposure_gain(0.03) <= weather_effects.EXPOSURE_RANGE[1]

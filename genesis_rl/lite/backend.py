@@ -111,7 +111,9 @@ class LiteBackend(Backend):
     #: 3: roads and markings on simplified polylines, coarser ground in far blocks (<= 0.14 % of pixels).
     #: 4: opaque geometry drawn in scene-graph order, not Panda3D's state order, which hung on memory
     #: addresses and so on the process's history (surfaces at one depth; 15 of 15,360 steps detected otherwise).
-    render_version = 4
+    #: 5: darker, fuller contact shadows, lighter rear windows; the camera's vignetting and auto-exposure
+    #: (docs/realism_render.md).
+    render_version = 5
 
     def __init__(self) -> None:
         self._renderers: dict[tuple, list] = {}

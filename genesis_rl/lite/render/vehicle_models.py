@@ -396,7 +396,7 @@ def _cabin(m: _Mesh, sp: _Spec, hw: float, height: float) -> None:
         m.quad(*q, role=BODY, out=_unit_normal(*q))
     glass_shades = (0.85, 0.85, 1.9, 1.9)  # lighter towards the top: sky reflection
     if sp.rear_window[1] > sp.rear_window[0]:
-        _decal(m, rear, *sp.rear_window, role=GLASS, shades=glass_shades)
+        _decal(m, rear, *sp.rear_window, role=GLASS, shades=(1.5, 1.5, 3.4, 3.4))
     _decal(m, front, *sp.windshield, role=GLASS, shades=glass_shades)
     v0, v1 = sp.side_v
     for u0, u1 in sp.side_windows:
@@ -583,7 +583,7 @@ def _shadow_rings(half_w: float, half_l: float) -> tuple[np.ndarray, np.ndarray]
     """Rounded-rectangle rings (core, middle, edge) as (3, K, 2) xy points and their weights (1 .. 0)."""
     corners = ((1, 1), (-1, 1), (-1, -1), (1, -1))
     rings = []
-    for inset_w, inset_l, rad in ((0.85, 0.92, 0.0), (1.0, 1.0, 0.18), (1.0, 1.0, 0.45)):
+    for inset_w, inset_l, rad in ((0.97, 0.98, 0.0), (1.0, 1.0, 0.15), (1.0, 1.0, 0.40)):
         pts = []
         for k, (sx, sy) in enumerate(corners):
             cx, cy = sx * half_w * inset_w, sy * half_l * inset_l
@@ -592,7 +592,7 @@ def _shadow_rings(half_w: float, half_l: float) -> tuple[np.ndarray, np.ndarray]
                 a = a0 + j * math.pi / 4
                 pts.append((cx + rad * math.cos(a), cy + rad * math.sin(a)))
         rings.append(pts)
-    return np.array(rings, np.float32), np.array([1.0, 0.55, 0.0], np.float32)
+    return np.array(rings, np.float32), np.array([1.0, 0.7, 0.0], np.float32)
 
 
 class VehicleModel:
@@ -673,7 +673,7 @@ class VehicleModel:
             # vertices on the sun side stay, those on the far side move with the full offset
             t = np.clip((xy @ d) / 0.3 + 0.5, 0.0, 1.0)
             xy = xy + t[:, None] * off[None, :]
-        mult = 1.0 - 0.75 * darkness * self._shadow_w
+        mult = 1.0 - 0.92 * darkness * self._shadow_w
         rec = self._shadow_rec
         rec["pos"][:, :2] = xy
         rec["col"][:, :3] = np.clip(np.rint(mult * 255.0), 0, 255).astype(np.uint8)[:, None]
