@@ -131,7 +131,11 @@ def _cmd_realism(args: argparse.Namespace) -> int:
     check_inputs(out, [args.weights], folder=True, files=names)
     for name in names:
         ensure_writable(out / name, args.force)
-    kwargs = {"weights": args.weights} if args.weights else {}
+    kwargs: dict = {"weights": args.weights} if args.weights else {}
+    if args.image_size is not None:
+        if args.system != "coco":
+            raise UserInputError("--image-size applies to --system coco only")
+        kwargs["image_size"] = args.image_size
     system = load_system(args.system, **kwargs)
     detector = getattr(system, "detector", None)
     if detector is None or not hasattr(detector, "detect_batch"):
@@ -159,6 +163,8 @@ def _cmd_realism(args: argparse.Namespace) -> int:
         from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
 
         env = env_settings_for(None, None, args.system, args.weights)
+        if args.image_size is not None:
+            env["system_kwargs"] = {**env.get("system_kwargs", {}), "image_size": args.image_size}
         campaign = CampaignSpec(policies=("sunny",), map="highway", scenes=spec.closed_loop_scenes,
                                 seed=spec.closed_loop_seed, steps=spec.closed_loop_steps, env=env)
         summary = run_campaign(campaign, out / "closed_loop", force=args.force, resume=args.resume,
@@ -185,6 +191,9 @@ def add_realism_command(subparsers: argparse._SubParsersAction) -> argparse.Argu
     rp.add_argument("--system", default="coco", help="system whose detector is scored and which drives the "
                                                      "closed loop: coco (default), builtin, yolo, or a plug-in")
     rp.add_argument("--weights", default=None, help="its weights (builtin/yolo: a file; coco: a model folder)")
+    rp.add_argument("--image-size", type=int, default=None,
+                    help="coco: the detector's input long side in px, a multiple of 32 (default 416, darknet's; "
+                         "640 runs a 640x480 frame at its own size)")
     rp.add_argument("--maps", default="highway,urban", help="comma-separated maps (default: highway,urban)")
     rp.add_argument("--sizes", default="320x240,640x480", help="frame sizes (default: 320x240,640x480)")
     rp.add_argument("--scenes", type=int, default=60, help="held-out scenes per map (default 60)")
