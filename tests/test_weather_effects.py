@@ -15,7 +15,7 @@ from genesis_rl.knobs import Weather
 from genesis_rl.lite.render import labels as L
 from genesis_rl.lite.render import weather_effects
 from genesis_rl.lite.render.lighting import lighting_for
-from genesis_rl.lite.render.weather_effects import WeatherCompositor, exposure_gain
+from genesis_rl.lite.render.weather_effects import WeatherCompositor, exposure_gain, tone_curve
 
 W, H, FOV = 160, 120, 90.0
 NEAR = (slice(62, 80), slice(30, 60))  # vehicle at 10 m
@@ -248,3 +248,10 @@ def test_camera_vignetting_and_exposure() -> None:
     assert corner < 0.92 * centre
     assert exposure_gain(0.81) == pytest.approx(1.0)
     assert 1.0 < exposure_gain(0.3) < exposure_gain(0.03) <= weather_effects.EXPOSURE_RANGE[1]
+
+
+def test_camera_tone_contrast_in_daylight_only() -> None:
+    """The tone curve steepens mid-tones at noon and leaves a night frame's dark values alone."""
+    noon, night = tone_curve(0.81).astype(int), tone_curve(0.03).astype(int)
+    assert noon[200] > 200 and noon[60] < 60
+    assert (night == np.arange(256)).all()

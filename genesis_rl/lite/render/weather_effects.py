@@ -55,11 +55,14 @@ EXPOSURE_LIGHT = 0.8
 EXPOSURE_ADAPT = 0.2
 EXPOSURE_RANGE = (1.0, 1.4)
 #: The camera's tone: saturation (HSV S times this) and contrast (this slope about TONE_PIVOT, 0..255), after
-#: the sensor noise. Measured with the COCO detector at clear noon (docs/realism_render.md): recall at
-#: 10-30 m rose with them; applied before the noise (and about the frame's mean) they lowered it.
+#: the sensor noise; the contrast fades in with the scene's light from TONE_LIGHT[0] (none) to TONE_LIGHT[1]
+#: (full), so that a night frame is not clipped to black. Measured with the COCO detector at clear noon
+#: (docs/realism_render.md): recall at 10-30 m rose with them; applied before the noise (and about the
+#: frame's mean) they lowered it, and an S-curve that keeps the shadows lost the gain.
 TONE_SATURATION = 0.75
 TONE_CONTRAST = 1.25
 TONE_PIVOT = 118.0
+TONE_LIGHT = (0.15, 0.6)
 #: Lens vignetting: brightness falls by this share at the image corners (quadratically with the radius).
 VIGNETTE = 0.15
 #: Scale of the uint8-coded noise bank (128 + scale * N(0, 1)).
@@ -82,6 +85,14 @@ def exposure_gain(light: float) -> float:
     """The camera's exposure gain in a scene whose light (ambient luma + half the sun's) is ``light``."""
     g = (EXPOSURE_LIGHT / max(light, 1e-3)) ** EXPOSURE_ADAPT
     return float(min(max(g, EXPOSURE_RANGE[0]), EXPOSURE_RANGE[1]))
+
+
+def tone_curve(light: float) -> np.ndarray:
+    """The camera's contrast curve as a uint8 LUT in a scene whose light is ``light``: slope TONE_CONTRAST
+    about TONE_PIVOT in daylight, fading to none in dim light (where it would clip the whole frame to black)."""
+    k = 1.0 + (TONE_CONTRAST - 1.0) * smoothstep(*TONE_LIGHT, light)
+    curve = TONE_PIVOT + k * (np.arange(256, dtype=np.float64) - TONE_PIVOT)
+    return np.clip(np.rint(curve), 0, 255).astype(np.uint8)
 
 
 def _three(plane: np.ndarray, dst: np.ndarray | None = None) -> np.ndarray:
@@ -161,8 +172,6 @@ class WeatherCompositor:
         self._u8b = np.empty((h, w, 3), np.uint8)
         self._mx = np.empty((h, w), np.uint8)
         self._mx3 = np.empty((h, w, 3), np.uint8)
-        curve = TONE_PIVOT + TONE_CONTRAST * (np.arange(256, dtype=np.float64) - TONE_PIVOT)
-        self._tone_lut = np.clip(np.rint(curve), 0, 255).astype(np.uint8)
         self._sky_lut = np.zeros(256, np.float32)
         self._sky_lut[L.SKY] = 1.0
         self._puddle_lut = np.zeros(256, np.float32)
@@ -423,7 +432,7 @@ class WeatherCompositor:
         ch_r, ch_g, ch_b = cv2.split(raw)
         mx = cv2.max(cv2.max(ch_r, ch_g, dst=self._mx), ch_b, dst=self._mx)
         mixed = cv2.addWeighted(raw, TONE_SATURATION, _three(mx, self._mx3), 1.0 - TONE_SATURATION, 0.0)
-        return cv2.LUT(mixed, self._tone_lut)
+        return cv2.LUT(mixed, tone_curve(light))  # 256 entries: ~10 us a frame
 
     # ------------------------------------------------------------------ helpers
     def _sky(
