@@ -52,17 +52,21 @@ def test_a_040_campaign_reports_and_exports(old_campaign: Path, tmp_path: Path) 
 
 
 @pytest.mark.render
-def test_a_040_record_replays_bit_for_bit(tmp_path: Path, capsys) -> None:
-    """Bit for bit on a CPU like the one that wrote it (AVX2 vector math); where numpy and torch dispatch to
-    other extensions (AVX-512) the float math differs in its last bits: then the same collision, the same
-    violations to 1e-9, and a message naming the cause, not a silent mismatch."""
+def test_a_040_record_replays_and_names_the_renderer_that_changed(tmp_path: Path, capsys) -> None:
+    """0.4.0 drew with lite renderer version 3; since 0.12.0 (render_version 5: contact shadows, rear windows,
+    the camera's vignetting, exposure and tone) the detector sees other pixels, so the old episode is not
+    reproduced. The replay still runs the recorded scene, schedule and seed, and says which renderer made the
+    record and what to do (replay with that genesis-rl), exit status 1; not a silent mismatch. (Up to
+    render_version 4 it replayed to the last bit on a CPU like the one that wrote it.)"""
     record = FIXTURE / "records" / "sunny_scene_0000.json"
     rc = main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet", "--no-gif"])
     rep = json.loads((tmp_path / "r" / "replay.json").read_text())
-    assert rep["first_collision_step"] == 97
-    assert all(abs(rep["violations"][k] - v) <= 1e-9 * max(1.0, abs(v)) for k, v in rep["recorded_violations"].items())
-    if rc == 0:
-        assert rep["reproduced"] and rep["steps_identical"]
+    assert rep["recorded_render_version"] == 3 and rep["render_version"] >= 5
+    assert rep["steps"] == 100 and set(rep["violations"]) == set(rep["recorded_violations"])
+    if rc == 0:  # the new pixels could, by chance, leave every detection as it was
+        assert rep["reproduced"]
     else:
-        assert rc == 1 and not rep["steps_identical"]
-        assert "does not name the machine that made it" in capsys.readouterr().out
+        assert rc == 1 and not rep["reproduced"]
+        out = capsys.readouterr().out
+        assert "made by lite renderer version 3 (genesis-rl 0.4.0)" in out
+        assert "replay with the recorded genesis-rl version" in out

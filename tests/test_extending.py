@@ -200,7 +200,9 @@ def test_a_record_from_before_a_knob_existed_replays_with_it_at_its_default(requ
     request.getfixturevalue("user_knob")  # now the knob is declared
     replay = replay_record(record, keep_frames=False)
     assert replay["step_digest"] == without["step_digest"] and replay["violations"] == without["violations"]
-    assert all(abs(replay["violations"][k] - v) <= 1e-9 * max(1.0, abs(v)) for k, v in record["violations"].items())
+    if replay["render_version"] == replay["recorded_render_version"]:  # else the pixels differ (test_compat)
+        assert all(abs(replay["violations"][k] - v) <= 1e-9 * max(1.0, abs(v))
+                   for k, v in record["violations"].items())
     assert replay["reproduced"] == without["reproduced"]
     assert {r.knobs["lens_dirt"] for r in replay["records"]} == {0.0}
     assert all("lens_dirt" not in r.knobs for r in without["records"])
