@@ -221,3 +221,17 @@ def test_the_coco_detector_sees_lite_cars_up_close() -> None:
     assert counted >= 20
     assert found / counted >= 0.6
     assert all(b.shape[1] == 5 and (b[:, 4] >= det.score_threshold).all() for b in det.detect_batch(data.images[:2]))
+
+
+@needs_model
+def test_detector_eval_scores_the_coco_detector(tmp_path: Path) -> None:
+    from genesis_rl.cli import main
+
+    out = tmp_path / "eval"
+    assert main(["detector", "eval", "--system", "coco", "--frames-per-condition", "2", "--conditions", "clear",
+                 "--maps", "highway", "--out", str(out), "--quiet"]) == 0
+    data = json.loads((out / "detector_eval.json").read_text())
+    assert data["detector"] == "coco" and data["weights_sha256"] == model_store.COCO_YOLOV3_TINY.sha256[
+        "yolov3-tiny.weights"]
+    (row,) = data["rows"]
+    assert row["frames"] == 2 and row["tp"] + row["fn"] == row["counted"]

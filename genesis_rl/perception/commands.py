@@ -11,6 +11,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 from genesis_rl import limits
 from genesis_rl.cli_args import seed_int
@@ -73,12 +74,20 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     check_inputs(out, [args.weights], folder=True, files=names)
     for name in names:
         ensure_writable(out / name, args.force)
-    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
-    det = VehicleDetector(weights)
+    det: Any
+    if args.system == "coco":
+        from genesis_rl.perception.coco_detector import CocoDetector
+
+        det = CocoDetector(args.weights)
+        weights = det.weights_path
+    else:
+        weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
+        det = VehicleDetector(weights)
     t0 = time.perf_counter()
     rows = evaluate_detector(det, maps, conds, args.frames_per_condition, args.seed, progress=not args.quiet)
-    speed = measure_speed(det)
-    extra = {"weights": str(weights), "weights_sha256": det.weights_sha256, "score_threshold": det.score_threshold,
+    speed = measure_speed(det, size=(320, 240))  # the system's camera: what a campaign pays per step
+    extra = {"detector": args.system, "weights": str(weights), "weights_sha256": det.weights_sha256,
+             "score_threshold": det.score_threshold,
              "seed": args.seed, "frames_per_condition": args.frames_per_condition, "speed": speed,
              "eval_seconds": round(time.perf_counter() - t0, 1)}
     paths = write_detector_report(rows, out, force=args.force, extra=extra)
@@ -269,7 +278,10 @@ def add_detector_commands(subparsers: argparse._SubParsersAction) -> argparse.Ar
     tr.set_defaults(func=_cmd_train)
 
     ev = dsub.add_parser("eval", help="precision/recall per map and weather condition; table, plot, JSON")
-    ev.add_argument("--weights", default=None, help="detector checkpoint (default: the shipped weights)")
+    ev.add_argument("--system", default="builtin", choices=["builtin", "coco"],
+                    help="builtin (our CNN, default) or coco (the photo-trained yolov3-tiny of --system coco)")
+    ev.add_argument("--weights", default=None, help="detector checkpoint (default: the shipped weights; coco: a "
+                                                    "model folder, default: the model store)")
     ev.add_argument("--frames-per-condition", type=int, default=200, help="frames per (map, condition)")
     ev.add_argument("--maps", default="urban,highway", help="comma-separated maps: urban, highway")
     ev.add_argument("--conditions", default=None,
