@@ -86,3 +86,25 @@ def test_traffic_conditions_parse_and_refuse_naming_field():
         parse_traffic_conditions({"min_cut_in_ttc": "short"})
     with pytest.raises(UserInputError, match="unknown field"):
         parse_traffic_conditions({"max_decel": 3})
+
+
+def test_weather_only_lite_episode_is_bit_identical_to_main():
+    """A seeded highway scene (200 ticks, throttle 0.3) hashes as it did on main at dc9ed91, before actor knobs."""
+    import hashlib
+
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.interface import VehicleControl
+
+    scene = generate_catalog("highway", 1, 3).scenes[0]
+    with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
+        sim.apply_ego_control(VehicleControl(throttle=0.3))
+        out = []
+        for _ in range(200):
+            sim.tick()
+            out.append(sim.poses()[:, :2].copy())
+    poses = np.array(out)
+    assert float(poses[-1, 0, 0]) == 55.8651522936967
+    assert float(poses[-1, 1, 0]) == 71.0090980840106
+    assert hashlib.sha256(poses.tobytes()).hexdigest() == (
+        "c7c1fe336b0f6834b5f63e4cef16a092ddda78404db22fd076321b9ec0c0f146")
