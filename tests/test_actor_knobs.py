@@ -108,3 +108,27 @@ def test_weather_only_lite_episode_is_bit_identical_to_main():
     assert float(poses[-1, 1, 0]) == 71.0090980840106
     assert hashlib.sha256(poses.tobytes()).hexdigest() == (
         "c7c1fe336b0f6834b5f63e4cef16a092ddda78404db22fd076321b9ec0c0f146")
+
+
+@pytest.mark.parametrize("steps_per_s", [20, 10])
+def test_forced_lead_braking_in_lite_traffic_follows_the_demand(steps_per_s):
+    """On a crafted highway scene the ego's leader brakes at CCRb's 6 m/s^2 from 1.025 s: its speed falls
+    by 6 m/s^2 after onset (within 1e-9), at two step lengths."""
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+
+    scene = generate_catalog("highway", 1, 3).scenes[0]
+    with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
+        tr = sim.traffic
+        tr.dt = 1.0 / steps_per_s
+        lead = tr.lead()
+        assert lead is not None
+        tr.forced_braking = (lead.vehicle_id, 6.0, 1.025)
+        v, t = [], []
+        for _ in range(3 * steps_per_s):
+            sim.tick()
+            v.append(float(tr.v[lead.vehicle_id]))
+            t.append(tr._episode_time)
+    v0 = v[int(1.0 * steps_per_s) - 1]  # speed at t = 1.0 s, before onset
+    at2 = v[2 * steps_per_s - 1]  # t = 2.0 s
+    assert at2 == pytest.approx(max(0.0, v0 - 6.0 * (2.0 - 1.025)), abs=1e-9)

@@ -95,6 +95,9 @@ class Traffic:
         #: set it with ``drive_ego_on_autopilot``, which also gives the ego a target speed
         self.ego_autopilot = False
         self.time = 0.0
+        #: actor knob (issue 32): (vehicle, deceleration [m/s^2], onset [s of episode time]); None: off
+        self.forced_braking: tuple[int, float, float] | None = None
+        self._episode_time = 0.0
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
         self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
@@ -235,6 +238,12 @@ class Traffic:
                 - 0.0004 * v_e * v_e
             )
             delta[0] = c.steer * MAX_STEER * -1.0  # CARLA: positive steer turns right (clockwise)
+        if self.forced_braking is not None:
+            i, decel, onset = self.forced_braking
+            # brake for the part of this step after onset, so the profile does not depend on dt
+            share = min(1.0, max(0.0, (self._episode_time + dt - onset) / dt))
+            if share > 0.0:
+                acc[i] = -decel * share
         self.braking = acc < -0.5
         self.accel = acc
         self.steer_angle = delta
@@ -264,6 +273,7 @@ class Traffic:
             self.v[hit] = 0.0
         self._advance_lanes()
         self.time += dt
+        self._episode_time += dt
         return collisions
 
     def _advance_lanes(self) -> None:
