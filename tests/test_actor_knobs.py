@@ -132,3 +132,23 @@ def test_forced_lead_braking_in_lite_traffic_follows_the_demand(steps_per_s):
     v0 = v[int(1.0 * steps_per_s) - 1]  # speed at t = 1.0 s, before onset
     at2 = v[2 * steps_per_s - 1]  # t = 2.0 s
     assert at2 == pytest.approx(max(0.0, v0 - 6.0 * (2.0 - 1.025)), abs=1e-9)
+
+
+def test_odd_file_traffic_table_is_read_and_bad_values_exit_2(tmp_path):
+    import subprocess
+    import sys
+
+    from genesis_rl.odd.domain import parse_odd
+
+    odd = parse_odd({"name": "hw", "traffic": {"max_lead_decel": 2.0, "min_cut_in_ttc": 1.18}}, "hw.toml")
+    assert odd.traffic == TrafficConditions(2.0, 1.18)
+    assert odd.describe()["traffic"] == {"max_lead_decel": 2.0, "min_cut_in_ttc": 1.18}
+    assert "traffic" not in parse_odd({"name": "hw"}, "hw.toml").describe()  # as before without a table
+    with pytest.raises(UserInputError, match=r"ODD 'hw.toml': traffic.min_cut_in_ttc"):
+        parse_odd({"name": "hw", "traffic": {"min_cut_in_ttc": 0.1}}, "hw.toml")
+    code = ("from genesis_rl.errors import UserInputError\n"
+            "from genesis_rl.odd.domain import parse_odd\n"
+            "try:\n    parse_odd({'name': 'x', 'traffic': {'max_lead_decel': 99}}, 'x.toml')\n"
+            "except UserInputError as e:\n    print(e); raise SystemExit(e.exit_code)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert run.returncode == 2 and "traffic.max_lead_decel" in run.stdout
