@@ -152,3 +152,29 @@ def test_odd_file_traffic_table_is_read_and_bad_values_exit_2(tmp_path):
             "except UserInputError as e:\n    print(e); raise SystemExit(e.exit_code)\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
     assert run.returncode == 2 and "traffic.max_lead_decel" in run.stdout
+
+
+def test_forced_cut_in_in_lite_traffic_ends_centred_in_the_ego_lane():
+    """Vehicle 2 of a seeded highway scene drives 3.5 m beside the ego's lane, 16 m ahead; told to cut in at
+    0.5 s it takes the ego's lane and pure pursuit steers it across: 3.5 m to go before, < 0.1 m after 5 s."""
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+
+    scene = generate_catalog("highway", 1, 3).scenes[0]
+    with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
+        tr = sim.traffic
+        c, s = np.cos(tr.yaw[0]), np.sin(tr.yaw[0])
+
+        def lateral() -> float:
+            return float(-(tr.x[2] - tr.x[0]) * s + (tr.y[2] - tr.y[0]) * c)
+
+        assert tr.lane[2] != tr.lane[0] and lateral() == pytest.approx(-3.5, abs=0.01)
+        tr.forced_cut_in = (2, 0.5)
+        path = []
+        for _ in range(100):
+            sim.tick()
+            path.append(lateral())
+    assert tr.lane[2] == tr.lane[0]
+    assert path[9] == pytest.approx(-3.5, abs=0.01)  # before onset: in its own lane
+    assert abs(path[-1]) < 0.1
+    assert all(b >= a - 1e-6 for a, b in zip(path, path[1:], strict=False))  # moves steadily across

@@ -97,6 +97,8 @@ class Traffic:
         self.time = 0.0
         #: actor knob (issue 32): (vehicle, deceleration [m/s^2], onset [s of episode time]); None: off
         self.forced_braking: tuple[int, float, float] | None = None
+        #: actor knob (issue 32): (vehicle, onset [s]): at onset it takes the ego's lane and steers into it
+        self.forced_cut_in: tuple[int, float] | None = None
         self._episode_time = 0.0
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
@@ -225,8 +227,20 @@ class Traffic:
         self.ego_autopilot = True
         self.v0_base[0] = self.v0[0] = target_speed
 
+    def _start_cut_in(self) -> None:
+        """Put the cutter on the ego's lane at its longitudinal position (pure pursuit then steers it in)."""
+        assert self.forced_cut_in is not None
+        i, onset = self.forced_cut_in
+        if self.lane[i] == self.lane[0] or self._episode_time + 1e-9 < onset:
+            return
+        d = (self.x[i] - self.x[0]) * np.cos(self.yaw[0]) + (self.y[i] - self.y[0]) * np.sin(self.yaw[0])
+        self.lane[i], self.next_lane[i] = self.lane[0], self.next_lane[0]
+        self.s[i] = self.s[0] + d
+
     def step(self, step_index: int) -> list[Collision]:
         dt = self.dt
+        if self.forced_cut_in is not None:
+            self._start_cut_in()
         acc, delta = self._autopilot()
         if not self.ego_autopilot:
             c = self.ego_control
