@@ -95,6 +95,11 @@ class Traffic:
         #: set it with ``drive_ego_on_autopilot``, which also gives the ego a target speed
         self.ego_autopilot = False
         self.time = 0.0
+        #: actor knob (issue 32): (vehicle, deceleration [m/s^2], onset [s of episode time]); None: off
+        self.forced_braking: tuple[int, float, float] | None = None
+        #: actor knob (issue 32): (vehicle, onset [s]): at onset it takes the ego's lane and steers into it
+        self.forced_cut_in: tuple[int, float] | None = None
+        self._episode_time = 0.0
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
         self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
@@ -222,8 +227,20 @@ class Traffic:
         self.ego_autopilot = True
         self.v0_base[0] = self.v0[0] = target_speed
 
+    def _start_cut_in(self) -> None:
+        """Put the cutter on the ego's lane at its longitudinal position (pure pursuit then steers it in)."""
+        assert self.forced_cut_in is not None
+        i, onset = self.forced_cut_in
+        if self.lane[i] == self.lane[0] or self._episode_time + 1e-9 < onset:
+            return
+        d = (self.x[i] - self.x[0]) * np.cos(self.yaw[0]) + (self.y[i] - self.y[0]) * np.sin(self.yaw[0])
+        self.lane[i], self.next_lane[i] = self.lane[0], self.next_lane[0]
+        self.s[i] = self.s[0] + d
+
     def step(self, step_index: int) -> list[Collision]:
         dt = self.dt
+        if self.forced_cut_in is not None:
+            self._start_cut_in()
         acc, delta = self._autopilot()
         if not self.ego_autopilot:
             c = self.ego_control
@@ -235,6 +252,12 @@ class Traffic:
                 - 0.0004 * v_e * v_e
             )
             delta[0] = c.steer * MAX_STEER * -1.0  # CARLA: positive steer turns right (clockwise)
+        if self.forced_braking is not None:
+            i, decel, onset = self.forced_braking
+            # brake for the part of this step after onset, so the profile does not depend on dt
+            share = min(1.0, max(0.0, (self._episode_time + dt - onset) / dt))
+            if share > 0.0:
+                acc[i] = -decel * share
         self.braking = acc < -0.5
         self.accel = acc
         self.steer_angle = delta
@@ -264,6 +287,7 @@ class Traffic:
             self.v[hit] = 0.0
         self._advance_lanes()
         self.time += dt
+        self._episode_time += dt
         return collisions
 
     def _advance_lanes(self) -> None:

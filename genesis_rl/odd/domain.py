@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl import ranges
+from genesis_rl.actor_knobs import TrafficConditions, parse_traffic_conditions
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.odd.conditions import LIGHTS, ROAD_STATES, Conditions, ConditionsModel
@@ -31,7 +32,7 @@ NUMERIC_RANGES = {"visibility": ranges.Ranged(0.0, 100_000.0, "m"), "rain_rate":
 CATEGORICAL = {"road_state": (ROAD_STATES, "road_state"), "light": (LIGHTS, "light")}
 QUANTITIES = (*NUMERIC, *CATEGORICAL, "sun_glare")
 STATUSES = ("inside", "boundary", "outside")
-_TOP_KEYS = {"name", "description", "boundary_margin", *QUANTITIES}
+_TOP_KEYS = {"name", "description", "boundary_margin", "traffic", *QUANTITIES}
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,8 @@ class ODD:
     sun_glare_allowed: bool = True
     boundary_margin: float = 0.1
     source: str = ""
+    #: traffic conditions the system is released for (issue 32); None: the file has no [traffic] table
+    traffic: TrafficConditions | None = None
 
     # -- labelling -----------------------------------------------------------------------------------------
     def violations(self, c: Conditions) -> list[str]:
@@ -134,6 +137,9 @@ class ODD:
         for q, allowed in self.allowed.items():
             d[q] = {"allowed": list(allowed)}
         d["sun_glare"] = {"allowed": self.sun_glare_allowed}
+        if self.traffic is not None:  # only then, so domains without one describe as before
+            d["traffic"] = {"max_lead_decel": self.traffic.max_lead_decel,
+                            "min_cut_in_ttc": self.traffic.min_cut_in_ttc}
         return d
 
 
@@ -215,7 +221,9 @@ def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | Non
             raise UserInputError(f"ODD '{source}': sun_glare must be a table with allowed = true or false")
         glare = t["allowed"]
     odd = ODD(name=name, description=str(data.get("description", "")), ranges=ranges, allowed=allowed,
-              sun_glare_allowed=glare, boundary_margin=margin, source=source)
+              sun_glare_allowed=glare, boundary_margin=margin, source=source,
+              traffic=parse_traffic_conditions(data["traffic"], f"ODD '{source}': traffic")
+              if "traffic" in data else None)
     if model is not None and "visibility" in ranges:
         lo, hi = model.visibility_range_m
         r = ranges["visibility"]
