@@ -457,7 +457,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_scale_arguments(tr, "--envs")
     tr.set_defaults(func=_cmd_train)
 
-    from genesis_rl.perception.commands import add_detector_commands, add_model_commands, add_realism_command
+    from genesis_rl.perception.commands import add_detector_commands, add_model_commands
+    from genesis_rl.realism_cmd import add_realism_command
 
     add_detector_commands(sub)
     add_model_commands(sub)

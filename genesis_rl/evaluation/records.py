@@ -26,6 +26,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.lite.backend import LiteBackend
+from genesis_rl.perception.detector import archived_weights
 from genesis_rl.provenance import numeric_platform
 from genesis_rl.rules.rulebook import build_rulebook
 from genesis_rl.sim.interface import CameraConfig
@@ -169,17 +170,21 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
                                  "map": rec["scene"]["map"], "seed": rec["catalog"]["seed"],
                                  "scenes": [rec["scene"]]})
     scene = catalog.scenes[0]
+    rulebook = build_rulebook(rec["rulebook"], "record rulebook")  # refuses import paths before any system loads
     kwargs = dict(rec["system"].get("kwargs") or {})
+    recorded_id = rec["system"].get("identity", {})
     if weights:
         kwargs["weights"] = weights
+    elif "weights" not in kwargs and recorded_id.get("weights_sha256"):
+        shipped = archived_weights(recorded_id["weights_sha256"])  # an older record: the weights it was made with
+        if shipped is not None:
+            kwargs["weights"] = str(shipped)
     system = load_system(rec["system"]["spec"], **kwargs)
-    recorded_id = rec["system"].get("identity", {})
     now_id = system.identity()
     if recorded_id.get("weights_sha256") and recorded_id.get("weights_sha256") != now_id.get("weights_sha256"):
         raise UserInputError(f"the record's system used weights sha256 {recorded_id['weights_sha256'][:12]}…, "
                              f"these are {str(now_id.get('weights_sha256'))[:12]}…; pass --weights with the "
                              "recorded file to replay it")
-    rulebook = build_rulebook(rec["rulebook"], "record rulebook")
     names = rec["knobs"]
     start = Weather.from_recorded(rec["start_weather"])
     camera = CameraConfig(width=rec["camera"]["width"], height=rec["camera"]["height"])

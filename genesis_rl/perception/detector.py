@@ -19,8 +19,19 @@ from genesis_rl.errors import UserInputError
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 #: the shipped checkpoint (see docs/detector.md for the command that made it)
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "vehicle_detector.pt"
+#: earlier shipped checkpoints, named by the first 12 hex digits of their sha256, so that a record written with
+#: them replays with them (docs/detector.md, "Earlier weights")
+ARCHIVE_DIR = WEIGHTS_DIR / "archive"
 CHECKPOINT_FORMAT = "genesis-rl/vehicle-detector"
 CHECKPOINT_VERSION = 1
+
+
+def archived_weights(sha256: str) -> Path | None:
+    """The shipped checkpoint (current or archived) whose file has this sha256, or None."""
+    if not isinstance(sha256, str) or len(sha256) < 12:
+        return None
+    candidates = [DEFAULT_WEIGHTS, ARCHIVE_DIR / f"vehicle_detector_{sha256[:12]}.pt"]
+    return next((p for p in candidates if p.is_file() and file_sha256(p) == sha256), None)
 
 
 @runtime_checkable
