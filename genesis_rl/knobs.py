@@ -28,9 +28,10 @@ class KnobSpec:
     does), how each backend realises it, and the values the contact sheet sweeps.
 
     ``carla_field``: the ``carla.WeatherParameters`` field it sets (None: CARLA has no such field).
-    ``lite``: how the embedded renderer shows it: ``lighting`` (sun, sky, clouds, fog extinction),
-    ``weather_pass`` (rain streaks, wet road, fog distance), ``hook`` (``frame_hook``, a user's own effect)
-    or ``none`` (a CARLA-only field that lite does not draw).
+    ``lite``: how the embedded simulator realises it: ``lighting`` (sun, sky, clouds, fog extinction),
+    ``weather_pass`` (rain streaks, wet road, fog distance), ``hook`` (``frame_hook``, a user's own effect),
+    ``traffic`` (an actor knob: the traffic model acts on it, see ``genesis_rl.actor_knobs``) or ``none`` (a
+    CARLA-only field that lite does not draw).
     ``sweep``: the values of its row in ``genesis-rl render --sweep`` (empty: no row), each on top of clear
     noon changed by ``sweep_base``."""
 
@@ -69,8 +70,13 @@ class KnobSpec:
     def span(self) -> float:
         return self.high - self.low
 
+    @property
+    def is_actor(self) -> bool:
+        """An actor knob (other road users' behaviour), not a weather one."""
+        return self.lite == "traffic"
 
-LITE_EFFECTS = ("lighting", "weather_pass", "hook", "none")
+
+LITE_EFFECTS = ("lighting", "weather_pass", "hook", "traffic", "none")
 #: the largest magnitude a knob's bound may have (CARLA's largest range is 0..360 deg)
 KNOB_MAGNITUDE = 1e9
 #: a step fraction below this freezes the agent (a knob would need over 1,000 steps to cross its range)
@@ -112,6 +118,24 @@ KNOBS: dict[str, KnobSpec] = {
         _k("dust_storm", 0, 100, "%", 0, "dust storm strength (CARLA only)"),
     )
 }
+
+
+def _actor_knob(name: str) -> KnobSpec:
+    """An actor knob the step loop turns like a weather knob: declared once in ``actor_knobs.ACTOR_KNOBS``
+    (unit, range, natural rate, source), carried by every :class:`Weather` at its default (the actor does
+    nothing unusual), realised by lite's traffic model."""
+    from genesis_rl.actor_knobs import ACTOR_KNOBS
+
+    a = ACTOR_KNOBS[name]
+    return KnobSpec(a.name, a.low, a.high, a.unit, a.default, description=a.description, lite="traffic")
+
+
+#: Actor knobs that act step by step (issue 32): ``lead_decel`` > 0 makes the vehicle ahead of the ego brake at
+#: that deceleration for as long as it stays > 0 (docs/actors.md). The others in ``actor_knobs`` are declared
+#: but not yet turned by the step loop.
+STEP_ACTOR_KNOBS: tuple[str, ...] = ("lead_decel",)
+for _name in STEP_ACTOR_KNOBS:
+    KNOBS[_name] = _actor_knob(_name)
 
 
 #: The module that declared each knob added with ``register_knob`` (workers import it again).

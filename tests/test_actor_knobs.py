@@ -20,12 +20,16 @@ from genesis_rl.knobs import KNOBS
 from genesis_rl.lite.actors import CUT_IN_DURATION, cut_in_offset, cut_in_start_gap, lead_speed
 
 
-def test_tm_names_and_sources_are_declared_and_weather_untouched():
+def test_tm_names_and_sources_are_declared_and_only_lead_decel_is_turned():
     for name in ("lead_decel", "lead_brake_onset", "cut_in_ttc", "cut_in_onset", "distance_to_leading_vehicle",
                  "vehicle_percentage_speed_difference", "ignore_lights_percentage", "auto_lane_change",
                  "random_left_lanechange_percentage", "random_right_lanechange_percentage"):
         assert name in ACTOR_KNOBS and ACTOR_KNOBS[name].source
-        assert name not in KNOBS  # the weather registry, and so every existing weather and record, is unchanged
+        # only the knobs the step loop turns join the knob registry, as actor knobs at their harmless default
+        assert (name in KNOBS) == (name == "lead_decel")
+    spec = KNOBS["lead_decel"]
+    assert spec.is_actor and spec.default == 0.0 and (spec.low, spec.high, spec.unit) == (0.0, 8.0, "m/s^2")
+    assert spec.carla_field is None and not any(k.is_actor for n, k in KNOBS.items() if n != "lead_decel")
     assert "R157" in ACTOR_KNOBS["cut_in_ttc"].source and "CCRb" in ACTOR_KNOBS["lead_decel"].source
 
 

@@ -46,7 +46,7 @@ from genesis_rl.carla_backend.sensors import FrameQueue, bgra_to_rgb, decode_dep
 from genesis_rl.carla_backend.spawn import SpawnSpec, initial_velocity, plan_scene, spawn_commands
 from genesis_rl.carla_backend.weather import to_carla
 from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import Weather
+from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import (
@@ -446,6 +446,15 @@ class CarlaSimulation(Simulation):
             self._hits.append((int(event.frame), int(event.other_actor.id) if event.other_actor else -1))
 
     # -- stepping ----------------------------------------------------------------------------------------
+    def set_weather(self, weather: Weather) -> None:
+        """Every knob for the next tick. Actor knobs (``lite = 'traffic'``) have no CARLA realisation yet:
+        one away from its default is refused rather than silently ignored."""
+        moved = [k.name for k in KNOBS.values() if k.is_actor and weather[k.name] != k.default]
+        if moved:
+            raise UserInputError(f"actor knob(s) {moved} act on lite's traffic only for now; CARLA's per-actor "
+                                 "control is not wired yet (docs/actors.md)")
+        self._weather = weather
+
     def apply_ego_control(self, control: VehicleControl) -> None:
         self._control = control
 

@@ -21,7 +21,13 @@ from gymnasium import spaces
 from genesis_rl import limits, ranges
 from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.drive import ClosedLoop
-from genesis_rl.env.observation import OBSERVATIONS, FeatureHistory, observation_space, step_features
+from genesis_rl.env.observation import (
+    OBSERVATIONS,
+    FeatureHistory,
+    has_actor_knobs,
+    observation_space,
+    step_features,
+)
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.odd.conditions import conditions_model
@@ -149,6 +155,10 @@ class EnvConfig:
                 check_start(odd, start, conditions_model(self.backend))
             except UserInputError as err:
                 raise UserInputError(f"env.odd: {err}") from None
+        actors = [k for k in self.knobs if KNOBS[k].is_actor]
+        if actors and self.backend != "lite":
+            raise UserInputError(f"env.knobs: actor knob(s) {actors} act on lite's traffic only for now; with "
+                                 f"env.backend = '{self.backend}' turn weather knobs only (docs/actors.md)")
         check_backend_setting(self.backend, self.catalog, "env.backend", "env.catalog")
 
     @property
@@ -238,9 +248,11 @@ class GenesisEnv(gym.Env):
         self.backend = make_backend(c.backend, ConnectionSettings(c.carla_host, c.carla_port, c.carla_tm_port,
                                                                   c.carla_timeout))
 
+        #: actor knobs among the knobs: the features add what a tester measures of the actor (observation.py)
+        self.actor_features = has_actor_knobs(c.knobs)
         self.observation_space = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs),
-                                                   c.obs_history)
-        self._history = FeatureHistory(len(c.knobs), c.obs_history)
+                                                   c.obs_history, self.actor_features)
+        self._history = FeatureHistory(len(c.knobs), c.obs_history, self.actor_features)
         self.action_space = spaces.Box(-1.0, 1.0, (self.mapper.action_dim,), np.float32)
 
         self._sim: Simulation | None = None
@@ -267,7 +279,7 @@ class GenesisEnv(gym.Env):
         if mode in ("features", "image+features"):
             loop = self._loop
             row = step_features(self.weather, tuple(c.knobs), loop.ego.speed, loop.sim.step_count * loop.sim.dt,
-                                loop.output)
+                                loop.output, loop.sim.lead() if self.actor_features else None, self.actor_features)
             out["features"] = self._history.push(row)
         if mode == "image":
             return out["image"]
@@ -312,9 +324,9 @@ class GenesisEnv(gym.Env):
         rng = np.random.default_rng([int(episode_seed), 0x57A27])
         moved = dict(self.start_weather.values)
         for name, delta in zip(self.mapper.knobs, self.mapper.max_delta, strict=True):
-            if name in c.disabled_knobs:
-                continue
             spec = KNOBS[name]
+            if name in c.disabled_knobs or spec.is_actor:  # traffic starts as the scene has it
+                continue
             reach = min(spec.span, float(delta) * c.episode_steps) * c.start_spread
             base = moved[name]
             lo, hi = (base - reach, base + reach) if spec.wraps else \
@@ -345,7 +357,7 @@ class GenesisEnv(gym.Env):
         self.weather = weather
         rec = self._loop.advance(weather)
         if self.odd is not None and rec.conditions is not None:
-            rec = replace(rec, odd_status=self.odd.status(rec.conditions))
+            rec = replace(rec, odd_status=self.odd.status(rec.conditions, weather))
         rule_terms = self.rulebook.step_terms(rec)
         surprise = self.weather_model.surprise(before.values, weather.values, self.dt) \
             if self.config.reward.naturalness_weight > 0 else 0.0

@@ -8,6 +8,9 @@ The system under test is a black box except for what it reports, so the feature 
   perceives to the vehicle it follows (and whether it follows one), and its reported state (cruise,
   follow, red_light, emergency; the built-in controller's vocabulary, other states read as none).
 
+With actor knobs among the knobs (``lead_decel``), also what a test engineer measures of the actor they drive,
+as a target vehicle on a proving ground is measured: its true gap to the ego and the closing speed.
+
 Never the other vehicles' true states, the ground-truth boxes or the detector's loss: an agent that saw those
 would find failures no tester could reproduce against a real black-box system. The last ``history`` feature
 vectors are stacked (oldest first, zeros before the episode's first step), so a policy can see trends: the
@@ -25,7 +28,8 @@ from collections import deque
 import numpy as np
 from gymnasium import spaces
 
-from genesis_rl.knobs import Weather
+from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.sim.interface import LeadInfo
 from genesis_rl.system.protocol import SystemOutput
 
 OBSERVATIONS = ("image", "image+knobs", "features", "image+features")
@@ -39,14 +43,24 @@ FEATURES = ("ego_speed", "time", "n_detections", "follows", "perceived_gap", "th
             *(f"state_{s}" for s in STATES))
 
 
-def feature_size(n_knobs: int) -> int:
-    return n_knobs + len(FEATURES)
+#: appended when the knobs include an actor knob: the true gap to the vehicle ahead (the actor the tester
+#: drives) and the closing speed, mapped from [-SPEED_SCALE, SPEED_SCALE] to [0, 1] (0.5: not closing)
+ACTOR_FEATURES = ("actor_gap", "actor_closing_speed")
+
+
+def has_actor_knobs(knobs: tuple[str, ...] | list[str]) -> bool:
+    return any(KNOBS[k].is_actor for k in knobs if k in KNOBS)
+
+
+def feature_size(n_knobs: int, actors: bool = False) -> int:
+    return n_knobs + len(FEATURES) + (len(ACTOR_FEATURES) if actors else 0)
 
 
 def step_features(weather: Weather, knobs: tuple[str, ...], ego_speed: float, time_s: float,
-                  output: SystemOutput | None) -> np.ndarray:
-    """One step's features in [0, 1] (see the module doc); ``output`` None: the system has not answered."""
-    out = np.zeros(feature_size(len(knobs)), np.float32)
+                  output: SystemOutput | None, lead: LeadInfo | None = None, actors: bool = False) -> np.ndarray:
+    """One step's features in [0, 1] (see the module doc); ``output`` None: the system has not answered;
+    ``actors``: append :data:`ACTOR_FEATURES` from ``lead`` (None: nobody ahead, gap 1 and not closing)."""
+    out = np.zeros(feature_size(len(knobs), actors), np.float32)
     k = len(knobs)
     out[:k] = weather.normalized(knobs)
     out[k] = min(max(ego_speed / SPEED_SCALE, 0.0), 1.0)
@@ -61,14 +75,19 @@ def step_features(weather: Weather, knobs: tuple[str, ...], ego_speed: float, ti
         out[k + 6] = output.control.brake
         if output.status in STATES:
             out[k + 7 + STATES.index(output.status)] = 1.0
+    if actors:
+        a = k + len(FEATURES)
+        gap, closing = (GAP_SCALE, 0.0) if lead is None else (lead.gap, ego_speed - lead.speed)
+        out[a] = min(max(gap / GAP_SCALE, 0.0), 1.0)
+        out[a + 1] = min(max(0.5 + 0.5 * closing / SPEED_SCALE, 0.0), 1.0)
     return out
 
 
 class FeatureHistory:
     """The last ``history`` feature vectors, oldest first, flattened; zeros before the first."""
 
-    def __init__(self, n_knobs: int, history: int) -> None:
-        self.size = feature_size(n_knobs)
+    def __init__(self, n_knobs: int, history: int, actors: bool = False) -> None:
+        self.size = feature_size(n_knobs, actors)
         self.history = int(history)
         self._rows: deque[np.ndarray] = deque(maxlen=self.history)
         self.reset()
@@ -86,9 +105,10 @@ class FeatureHistory:
         return np.concatenate(list(self._rows))
 
 
-def observation_space(mode: str, obs_height: int, obs_width: int, n_knobs: int, history: int) -> spaces.Space:
+def observation_space(mode: str, obs_height: int, obs_width: int, n_knobs: int, history: int,
+                      actors: bool = False) -> spaces.Space:
     image = spaces.Box(0, 255, (obs_height, obs_width, 3), np.uint8)
-    features = spaces.Box(0.0, 1.0, (history * feature_size(n_knobs),), np.float32)
+    features = spaces.Box(0.0, 1.0, (history * feature_size(n_knobs, actors),), np.float32)
     if mode == "image":
         return image
     if mode == "image+knobs":

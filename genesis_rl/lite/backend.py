@@ -53,6 +53,11 @@ class LiteSimulation(Simulation):
             self._renderer.set_vehicles([(i, v.make, v.color) for i, v in enumerate(vs)])
         self._destroyed = False
 
+    def set_weather(self, weather: Weather) -> None:
+        """Every knob for the next frame; actor knobs (``lite = 'traffic'``) act on the traffic from the next tick."""
+        self._weather = weather
+        self.traffic.set_lead_braking(float(weather["lead_decel"]))
+
     def apply_ego_control(self, control: VehicleControl) -> None:
         self.traffic.ego_control = control
 

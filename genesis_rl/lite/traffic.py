@@ -227,6 +227,26 @@ class Traffic:
         self.ego_autopilot = True
         self.v0_base[0] = self.v0[0] = target_speed
 
+    def set_lead_braking(self, decel: float) -> None:
+        """The ``lead_decel`` actor knob: with ``decel`` > 0 the ego's current leader brakes at ``decel`` m/s^2
+        from now on; later calls change the deceleration of that same vehicle (it stays the braking one even
+        if the ego changes lanes); 0 releases it to its autopilot. No leader in range: nothing brakes."""
+        if decel <= 0.0:
+            self.forced_braking = None
+            return
+        if self.forced_braking is not None:
+            i, _, onset = self.forced_braking
+            self.forced_braking = (i, float(decel), onset)
+            return
+        lead = self.lead()
+        if lead is not None:
+            self.forced_braking = (lead.vehicle_id, float(decel), self._episode_time)
+
+    @property
+    def braking_vehicle(self) -> int:
+        """The vehicle the ``lead_decel`` knob brakes (-1: none)."""
+        return -1 if self.forced_braking is None else int(self.forced_braking[0])
+
     def _start_cut_in(self) -> None:
         """Put the cutter on the ego's lane at its longitudinal position (pure pursuit then steers it in)."""
         assert self.forced_cut_in is not None

@@ -64,9 +64,11 @@ class ODD:
     traffic: TrafficConditions | None = None
 
     # -- labelling -----------------------------------------------------------------------------------------
-    def violations(self, c: Conditions) -> list[str]:
-        """The quantities of ``c`` outside the domain, each with its value and bound (empty: inside)."""
-        out = []
+    def violations(self, c: Conditions, weather: Weather | None = None) -> list[str]:
+        """The quantities of ``c`` outside the domain, each with its value and bound (empty: inside); with
+        ``weather``, also its actor knobs against the traffic conditions (the file's ``[traffic]``, else
+        :class:`TrafficConditions`' defaults: CCRb's 6 m/s^2, R157's 1.64 s)."""
+        out = [] if weather is None else self.traffic_violations(weather)
         for q, r in self.ranges.items():
             v = getattr(c, NUMERIC[q][1])
             if not r.contains(v):
@@ -79,11 +81,19 @@ class ODD:
             out.append("sun_glare")
         return out
 
-    def contains(self, c: Conditions) -> bool:
-        return not self.violations(c)
+    def traffic_violations(self, weather: Weather) -> list[str]:
+        """The actor knobs of ``weather`` beyond the traffic conditions the system is released for."""
+        traffic = self.traffic or TrafficConditions()
+        decel = float(weather.values.get("lead_decel", 0.0))
+        if decel > traffic.max_lead_decel:
+            return [f"lead_decel {decel:g} m/s^2 > {traffic.max_lead_decel:g}"]
+        return []
 
-    def status(self, c: Conditions) -> str:
-        if not self.contains(c):
+    def contains(self, c: Conditions, weather: Weather | None = None) -> bool:
+        return not self.violations(c, weather)
+
+    def status(self, c: Conditions, weather: Weather | None = None) -> str:
+        if not self.contains(c, weather):
             return "outside"
         near = any(r.near_bound(getattr(c, NUMERIC[q][1]), self.boundary_margin) for q, r in self.ranges.items())
         return "boundary" if near else "inside"
@@ -95,9 +105,9 @@ class ODD:
         toward its proposed value as the domain allows (a bisection per knob), so a policy pushing fog
         against the visibility bound still turns the road wet. ``before`` is returned as it is when it is
         outside already (e.g. the road turned the camera into a low sun: no knob move undoes that)."""
-        if self.contains(model.conditions(proposed, heading_deg)):
+        if self.contains(model.conditions(proposed, heading_deg), proposed):
             return proposed
-        if not self.contains(model.conditions(before, heading_deg)):
+        if not self.contains(model.conditions(before, heading_deg), before):
             return before
         best = before
         for name, spec in KNOBS.items():
@@ -109,17 +119,18 @@ class ODD:
             if spec.wraps:  # the short way round, as the mapper moved it
                 delta = (delta + spec.span / 2) % spec.span - spec.span / 2
             full = _with(best, name, start + delta)
-            if self.contains(model.conditions(full, heading_deg)):
+            if self.contains(model.conditions(full, heading_deg), full):
                 best = full
                 continue
             # a knob held at its bound (the usual case when a policy pushes against it) costs one more look
-            if not self.contains(model.conditions(_with(best, name, start + _FIRST_LOOK * delta), heading_deg)):
+            look = _with(best, name, start + _FIRST_LOOK * delta)
+            if not self.contains(model.conditions(look, heading_deg), look):
                 continue
             lo, hi = _FIRST_LOOK, 1.0
             for _ in range(iterations):
                 mid = (lo + hi) / 2
                 w = _with(best, name, start + mid * delta)
-                if self.contains(model.conditions(w, heading_deg)):
+                if self.contains(model.conditions(w, heading_deg), w):
                     lo = mid
                 else:
                     hi = mid
@@ -246,7 +257,7 @@ def load_odd(path: str | Path, model: ConditionsModel | None = None) -> ODD:
 
 def check_start(odd: ODD, start: Weather, model: ConditionsModel) -> None:
     """The start weather must lie in the domain (glare aside: it depends on where the road points)."""
-    bad = odd.violations(model.conditions(start, None))
+    bad = odd.violations(model.conditions(start, None), start)
     if bad:
         raise UserInputError(f"the start weather is outside the ODD '{odd.name}' ({odd.source}): "
                              f"{'; '.join(bad)}; choose env.start_weather inside it")

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from genesis_rl.actor_knobs import ACTOR_KNOBS
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import KNOBS
 
@@ -49,7 +50,13 @@ DEFAULT_RATE_FRACTION = 0.01
 
 
 def natural_rate(knob: str) -> float:
-    return NATURAL_RATES.get(knob, DEFAULT_RATE_FRACTION * KNOBS[knob].span)
+    """Largest natural change per second [unit/s]: the table above, an actor knob's declared rate
+    (``actor_knobs``), else :data:`DEFAULT_RATE_FRACTION` of the range."""
+    if knob in NATURAL_RATES:
+        return NATURAL_RATES[knob]
+    if KNOBS[knob].is_actor and knob in ACTOR_KNOBS:
+        return ACTOR_KNOBS[knob].natural_rate
+    return DEFAULT_RATE_FRACTION * KNOBS[knob].span
 
 
 def max_deltas(knobs: Sequence[str], dynamics: str, dt: float, max_step_fraction: float) -> np.ndarray:

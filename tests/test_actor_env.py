@@ -1,0 +1,128 @@
+"""The lead's braking as a knob of the env (issue 32): it acts on lite's traffic as declared, the ODD's traffic
+conditions hold it, a tester's measurements of the actor are observed, and campaigns record and replay it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+from genesis_rl.env.observation import ACTOR_FEATURES, FEATURES, GAP_SCALE, SPEED_SCALE, feature_size
+from genesis_rl.errors import UserInputError
+
+HIGHWAY = dict(map="highway", scenes=8)
+
+
+def _env(tmp_path: Path | None = None, **kw) -> GenesisEnv:
+    cfg = dict(HIGHWAY, knobs=("fog_density", "lead_decel"), dynamics="natural", observation="features",
+               episode_steps=200)
+    cfg.update(kw)
+    return GenesisEnv(EnvConfig(**cfg))
+
+
+def test_lead_decel_brakes_the_lead_at_the_demanded_deceleration_and_releases_it():
+    env = _env()
+    try:
+        env.reset(seed=0, options={"scene": 3, "episode_seed": 11})
+        traffic = env._sim.traffic  # type: ignore[union-attr]
+        assert traffic.braking_vehicle == -1
+        lead_id = env._sim.lead().vehicle_id  # type: ignore[union-attr]
+        checked = 0
+        for k in range(60):
+            v_before = float(traffic.v[lead_id])
+            _, _, _, _, info = env.step(np.array([0.0, 1.0], np.float32))
+            decel = info["knobs"]["lead_decel"]
+            # natural rate 4 m/s^2 per s: 0.2 per 0.05 s step, from 0
+            assert decel == pytest.approx(min(8.0, 0.2 * (k + 1)), abs=1e-9)
+            assert traffic.braking_vehicle == lead_id
+            v_after = float(traffic.v[lead_id])
+            if v_after > 0.0:
+                assert (v_before - v_after) / env.dt == pytest.approx(decel, abs=1e-9)
+                checked += 1
+        assert checked >= 20
+        for _ in range(40):  # the knob back to 0: the lead is the autopilot's again
+            _, _, _, _, info = env.step(np.array([0.0, -1.0], np.float32))
+        assert info["knobs"]["lead_decel"] == 0.0 and traffic.braking_vehicle == -1
+    finally:
+        env.close()
+
+
+def _odd(tmp_path: Path, max_decel: float) -> str:
+    src = Path(__file__).resolve().parents[1] / "configs" / "odd" / "highway_day.toml"
+    path = tmp_path / "odd.toml"
+    path.write_text(src.read_text() + f"\n[traffic]\nmax_lead_decel = {max_decel}\n")
+    return str(path)
+
+
+def test_the_odd_holds_lead_braking_at_its_traffic_bound_and_labels_beyond_it(tmp_path):
+    odd = _odd(tmp_path, 3.0)
+    for keep_inside in (True, False):
+        env = _env(odd=odd, odd_keep_inside=keep_inside)
+        try:
+            env.reset(seed=0, options={"scene": 3, "episode_seed": 11})
+            for _ in range(40):
+                env.step(np.array([0.0, 1.0], np.float32))
+            decels = [r.knobs["lead_decel"] for r in env.records]
+            status = [r.odd_status for r in env.records]
+        finally:
+            env.close()
+        if keep_inside:
+            assert max(decels) == pytest.approx(3.0, abs=0.01) and max(decels) <= 3.0
+            assert "outside" not in status
+        else:
+            assert max(decels) == pytest.approx(8.0) and status[-1] == "outside"
+            assert all((s == "outside") == (d > 3.0) for d, s in zip(decels, status, strict=True))
+
+
+def test_a_start_weather_braking_harder_than_the_odd_allows_is_refused(tmp_path):
+    with pytest.raises(UserInputError, match=r"lead_decel 7 m/s\^2 > 3"):
+        EnvConfig(**HIGHWAY, knobs=("lead_decel",), odd=_odd(tmp_path, 3.0), start_weather="clear_noon,lead_decel=7")
+
+
+def test_features_add_what_a_tester_measures_of_the_actor():
+    env = _env()
+    try:
+        obs, _ = env.reset(seed=0, options={"scene": 3, "episode_seed": 11})
+        n = feature_size(2, actors=True)
+        assert n == 2 + len(FEATURES) + len(ACTOR_FEATURES) and obs.shape == (env.config.obs_history * n,)
+        for _ in range(30):
+            obs, *_ = env.step(np.array([0.0, 1.0], np.float32))
+        lead = env._sim.lead()  # type: ignore[union-attr]
+        ego_speed = env._loop.ego.speed  # type: ignore[union-attr]
+        row = obs[-n:]
+        assert row[-2] == pytest.approx(min(lead.gap / GAP_SCALE, 1.0), abs=1e-6)
+        assert row[-1] == pytest.approx(0.5 + 0.5 * (ego_speed - lead.speed) / SPEED_SCALE, abs=1e-6)
+        assert row[-1] > 0.5  # the braking lead is being closed on
+    finally:
+        env.close()
+    weather_only = GenesisEnv(EnvConfig(**HIGHWAY, knobs=("fog_density",), observation="features"))
+    try:  # weather-only agents keep their observation
+        assert weather_only.observation_space.shape == (weather_only.config.obs_history * feature_size(1),)
+    finally:
+        weather_only.close()
+
+
+def test_carla_refuses_actor_knobs_naming_the_setting():
+    with pytest.raises(UserInputError, match=r"env.knobs: actor knob\(s\) \['lead_decel'\] act on lite"):
+        EnvConfig(knobs=("fog_density", "lead_decel"), backend="carla", catalog=None)
+
+
+@pytest.mark.render
+def test_a_campaign_turning_the_lead_records_it_and_replays_it(tmp_path):
+    from genesis_rl.evaluation.campaign import run_campaign
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.evaluation.records import load_record, replay_record
+
+    env = {"knobs": ["fog_density", "lead_decel"], "dynamics": "natural"}
+    spec = CampaignSpec(policies=("constant",), map="highway", scenes=1, seed=0, steps=80, env=env,
+                        options={"constant_action": [0.0, 1.0]}, records="all")
+    run_campaign(spec, tmp_path / "camp", workers=1, progress=False)
+    record = load_record(next((tmp_path / "camp" / "records").glob("*.json")))
+    col = record["knobs"].index("lead_decel")  # a record keeps every knob, the actor's among them
+    assert [row[col] for row in record["schedule"][:3]] == pytest.approx([0.2, 0.4, 0.6], abs=1e-9)
+    assert record["schedule"][-1][col] == pytest.approx(8.0)
+    replay = replay_record(record, keep_frames=False)
+    assert [r.knobs["lead_decel"] for r in replay["records"]][-1] == pytest.approx(8.0)
+    assert replay["reproduced"]
