@@ -13,5 +13,5 @@ echo "[test] ruff"
 .venv/bin/ruff check genesis_rl tests
 echo "[test] mypy"
 .venv/bin/mypy genesis_rl
-echo "[test] pytest (all tests, slow and render ones included)"
-.venv/bin/python -m pytest -q "$@"
+echo "[test] pytest (all tests, slow and render ones included; two workers, see tests/conftest.py)"
+.venv/bin/python -m pytest -q -n "${GENESIS_TEST_WORKERS:-2}" --dist loadgroup "$@"

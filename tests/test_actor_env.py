@@ -126,3 +126,21 @@ def test_a_campaign_turning_the_lead_records_it_and_replays_it(tmp_path):
     replay = replay_record(record, keep_frames=False)
     assert [r.knobs["lead_decel"] for r in replay["records"]][-1] == pytest.approx(8.0)
     assert replay["reproduced"]
+
+
+def test_a_collision_with_a_lead_the_tester_braked_is_its_own_kind_of_failure():
+    """Distinct-failure clustering keeps the actor event: the hit is 'lead braked by the tester'."""
+    from genesis_rl.evaluation.distinct import what_was_hit
+
+    env = _env(system="blind", episode_steps=400)
+    try:
+        env.reset(seed=0, options={"scene": 3, "episode_seed": 11})
+        for _ in range(400):
+            *_, info = env.step(np.array([0.0, 1.0], np.float32))
+            if info["collision"]:
+                break
+        hit_at = len(env.records) - 1
+        assert env.records[hit_at].collision.collided
+        assert what_was_hit(env.records, hit_at, env.dt) == "lead braked by the tester"
+    finally:
+        env.close()

@@ -41,12 +41,16 @@ def rain_band(rain_mm_h: float) -> str:
 
 
 def what_was_hit(records: Sequence[StepRecord], hit_at: int, dt: float = 0.05) -> str:
-    """``braking lead``, ``lead`` or ``other vehicle`` (the hit vehicle was not the lead just before)."""
+    """``lead braked by the tester`` (the ``lead_decel`` actor knob was on in the window: an actor event, not
+    the traffic's own), ``braking lead``, ``lead`` or ``other vehicle`` (the hit vehicle was not the lead
+    just before)."""
     vid = records[hit_at].collision.other_id
     before = records[max(0, hit_at - 1)]
     if before.lead.vehicle_id != vid:
         return "other vehicle"
     back = max(0, hit_at - int(round(LEAD_BRAKING_S / dt)))
+    if any(r.knobs.get("lead_decel", 0.0) > 0.0 for r in records[back:hit_at + 1]):
+        return "lead braked by the tester"
     speeds = [r.lead.speed for r in records[back:hit_at + 1] if r.lead.vehicle_id == vid and np.isfinite(r.lead.speed)]
     return "braking lead" if speeds and max(speeds) - speeds[-1] >= LEAD_BRAKING_DROP else "lead"
 
