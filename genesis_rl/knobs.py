@@ -154,6 +154,11 @@ def register_knob(spec: KnobSpec) -> KnobSpec:
     return spec
 
 
+def weather_knob_names() -> tuple[str, ...]:
+    """The weather knobs (every knob but the actor knobs), in declaration order."""
+    return tuple(n for n, k in KNOBS.items() if not k.is_actor)
+
+
 def frame_hooks() -> list[KnobSpec]:
     """The knobs with a lite frame hook, in declaration order."""
     return [k for k in KNOBS.values() if k.frame_hook is not None]

@@ -41,7 +41,7 @@ from genesis_rl.carla_backend.weather import (  # noqa: E402
     to_carla,
 )
 from genesis_rl.errors import UserInputError  # noqa: E402
-from genesis_rl.knobs import KNOBS, PRESETS, Weather  # noqa: E402
+from genesis_rl.knobs import KNOBS, PRESETS, Weather, weather_knob_names  # noqa: E402
 from genesis_rl.scenes.catalog import Scene, VehicleSpec  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
 
@@ -81,19 +81,22 @@ def straight_map():
 
 
 # -- weather -------------------------------------------------------------------------------------------------
+WEATHER_KNOBS = weather_knob_names()  # the actor knobs (lead_decel) have no WeatherParameters field
+
+
 def test_knobs_are_exactly_the_weather_parameters_fields():
-    assert set(carla_weather_fields()) == set(KNOBS)
-    assert len(KNOBS) == 14
+    assert set(carla_weather_fields()) == set(WEATHER_KNOBS)
+    assert len(WEATHER_KNOBS) == 14 and set(KNOBS) - set(WEATHER_KNOBS) == {"lead_decel"}
 
 
-@pytest.mark.parametrize("name", sorted(KNOBS))
+@pytest.mark.parametrize("name", sorted(WEATHER_KNOBS))
 def test_each_knob_sets_its_field_and_reads_back(name):
     spec = KNOBS[name]
     value = round(spec.low + 0.37 * spec.span, 2)
     weather = Weather.default().replace(**{name: value})
     params = to_carla(weather)
     assert getattr(params, name) == pytest.approx(value, abs=1e-4)
-    for other in KNOBS:  # every other field carries its own knob, not CARLA's constructor default
+    for other in WEATHER_KNOBS:  # every other field carries its own knob, not CARLA's constructor default
         assert getattr(params, other) == pytest.approx(weather[other], abs=1e-4)
     assert from_carla(params) == weather
 
@@ -110,7 +113,8 @@ def test_carla_presets_read_as_knobs():
     for name in names:
         params = getattr(carla.WeatherParameters, name)
         weather = carla_preset(name)
-        for field, spec in KNOBS.items():
+        for field in WEATHER_KNOBS:
+            spec = KNOBS[field]
             raw = float(getattr(params, field))
             expected = raw % 360.0 if spec.wraps else min(max(raw, spec.low), spec.high)
             assert weather[field] == pytest.approx(expected, abs=1e-4), (name, field)
