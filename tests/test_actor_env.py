@@ -104,9 +104,45 @@ def test_features_add_what_a_tester_measures_of_the_actor():
         weather_only.close()
 
 
-def test_carla_refuses_actor_knobs_naming_the_setting():
-    with pytest.raises(UserInputError, match=r"env.knobs: actor knob\(s\) \['lead_decel'\] act on lite"):
+def test_a_backend_that_does_not_realise_an_actor_knob_is_refused_naming_the_setting(tmp_path, monkeypatch):
+    from genesis_rl.carla_backend.backend import CarlaBackend
+
+    monkeypatch.setattr(CarlaBackend, "actor_knobs", ())
+    with pytest.raises(UserInputError, match=r"env.knobs: actor knob\(s\) \['lead_decel'\] are not realised by "
+                                             r"env.backend = 'carla'; it realises: none"):
         EnvConfig(knobs=("fog_density", "lead_decel"), backend="carla", catalog=None)
+
+
+def test_on_carla_the_lead_leaves_the_traffic_manager_brakes_by_target_velocity_and_rejoins():
+    """``lead_decel`` on a CARLA server, offline with the client's real command types."""
+    carla = pytest.importorskip("carla")
+    from genesis_rl.carla_backend.actor_control import LeadBraking
+    from genesis_rl.sim.interface import LeadInfo
+
+    braking = LeadBraking(tm_port=8003)
+    ids = {0: 100, 4: 104, 7: 107}
+    asked: list[int] = []
+
+    def lead():
+        asked.append(1)
+        return LeadInfo(4, 20.0, 10.0)
+
+    velocity = {4: (6.0, 8.0, 0.0)}  # 10 m/s
+    cmds = braking.commands(carla, 0.0, 0.05, lead, ids.get, velocity.get)
+    assert cmds == [] and not asked  # no braking: nothing asked of the server
+    cmds = braking.commands(carla, 6.0, 0.05, lead, ids.get, velocity.get)
+    assert [type(c).__name__ for c in cmds] == ["SetAutopilot", "ApplyTargetVelocity"]
+    assert (cmds[0].actor_id, cmds[0].enabled, cmds[0].tm_port) == (104, False, 8003)
+    v = cmds[1].velocity  # 10 m/s - 6 m/s^2 * 0.05 s = 9.7 m/s, along (0.6, 0.8)
+    assert (cmds[1].actor_id, v.x, v.y, v.z) == (104, pytest.approx(5.82), pytest.approx(7.76), 0.0)
+    velocity[4] = (0.03, 0.04, 0.0)  # 0.05 m/s: the next step stops it, never reverses it
+    cmds = braking.commands(carla, 8.0, 0.05, lead, ids.get, velocity.get)
+    assert [type(c).__name__ for c in cmds] == ["ApplyTargetVelocity"] and len(asked) == 1  # the same vehicle
+    assert (cmds[0].velocity.x, cmds[0].velocity.y) == (0.0, 0.0)
+    cmds = braking.commands(carla, 0.0, 0.05, lead, ids.get, velocity.get)
+    assert [(type(c).__name__, c.actor_id, c.enabled) for c in cmds] == [("SetAutopilot", 104, True)]
+    assert braking.vehicle == -1
+    assert braking.commands(carla, 3.0, 0.05, lambda: None, ids.get, velocity.get) == []  # nobody ahead
 
 
 @pytest.mark.render
@@ -144,3 +180,44 @@ def test_a_collision_with_a_lead_the_tester_braked_is_its_own_kind_of_failure():
         assert what_was_hit(env.records, hit_at, env.dt) == "lead braked by the tester"
     finally:
         env.close()
+
+
+def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
+    carla = pytest.importorskip("carla")
+    from types import SimpleNamespace
+
+    from genesis_rl.carla_backend.actor_control import LeadBraking
+    from genesis_rl.carla_backend.backend import CarlaSimulation
+    from genesis_rl.knobs import Weather
+    from genesis_rl.sim.interface import LeadInfo, VehicleControl
+
+    calls: list[str] = []
+    batches: list[list] = []
+    vel = SimpleNamespace(x=10.0, y=0.0, z=0.0)
+    snapshot = SimpleNamespace(find=lambda aid: SimpleNamespace(get_velocity=lambda: vel))
+
+    def tick(timeout):
+        calls.append("tick")
+        return 7
+
+    def apply_batch_sync(cmds, due_tick):
+        calls.append("batch")
+        batches.append(cmds)
+
+    backend = SimpleNamespace(call=lambda what, fn, *a: fn(*a), timeout=1.0,
+                              client=SimpleNamespace(apply_batch_sync=apply_batch_sync))
+    sim = object.__new__(CarlaSimulation)
+    sim._backend, sim._step = backend, 0
+    sim._weather = Weather.default().replace(lead_decel=5.0)
+    sim._applied_weather = sim._weather
+    sim._control = sim._applied_control = VehicleControl()
+    sim._actors = {0: SimpleNamespace(id=100), 3: SimpleNamespace(id=103)}
+    sim._snapshot, sim._history, sim._queues, sim._images = snapshot, {}, {}, {}
+    sim.world = SimpleNamespace(tick=tick, get_snapshot=lambda: snapshot)
+    sim._lead_braking = LeadBraking(8000)
+    sim.lead = lambda: LeadInfo(3, 15.0, 10.0)  # type: ignore[method-assign]
+    sim._advance(1)
+    assert calls == ["batch", "tick"]
+    assert [(type(c).__name__, c.actor_id) for c in batches[0]] == [("SetAutopilot", 103), ("ApplyTargetVelocity", 103)]
+    assert batches[0][1].velocity.x == pytest.approx(10.0 - 5.0 * sim.dt)
+

@@ -21,6 +21,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
+from genesis_rl.carla_backend.actor_control import CARLA_ACTOR_KNOBS, LeadBraking
 from genesis_rl.carla_backend.connection import (
     CarlaServerLost,
     check_numbers,
@@ -155,6 +156,7 @@ class CarlaBackend(Backend):
 
     name = "carla"
     catalog_kind = "carla"
+    actor_knobs = CARLA_ACTOR_KNOBS  # actor_control.py
     needs_catalog = True  # scenes are generated on a server, once: genesis-rl scenes --backend carla
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, timeout: float = DEFAULT_TIMEOUT,
@@ -337,6 +339,7 @@ class CarlaSimulation(Simulation):
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
         self._tm: Any = None
+        self._lead_braking = LeadBraking(backend.tm_port)  # the lead_decel knob (actor_control.py)
         self._destroyed = False
         self.skipped: list[int] = []  # scene indices that could not be spawned
         backend._live.add(self)
@@ -367,6 +370,7 @@ class CarlaSimulation(Simulation):
         b.call("switching to synchronous mode", self.world.apply_settings, settings)
         tm_seed = episode_seed(scene, self.seed)
         self._tm = tm = b.traffic_manager()
+        self._lead_braking.tm_port = b.tm_port  # the port the traffic manager really took
         b.call("setting the traffic manager up", _tm_setup, tm, tm_seed)
         self._spawn(specs, tm_seed)
         ego = self._actors[0]
@@ -447,13 +451,25 @@ class CarlaSimulation(Simulation):
 
     # -- stepping ----------------------------------------------------------------------------------------
     def set_weather(self, weather: Weather) -> None:
-        """Every knob for the next tick. Actor knobs (``lite = 'traffic'``) have no CARLA realisation yet:
-        one away from its default is refused rather than silently ignored."""
-        moved = [k.name for k in KNOBS.values() if k.is_actor and weather[k.name] != k.default]
+        """Every knob for the next tick: weather fields go to ``world.set_weather``, ``lead_decel`` to per-actor
+        control (``actor_control.py``). An actor knob this backend does not realise is refused, not ignored."""
+        moved = [k.name for k in KNOBS.values() if k.is_actor and k.name not in CARLA_ACTOR_KNOBS
+                 and weather[k.name] != k.default]
         if moved:
-            raise UserInputError(f"actor knob(s) {moved} act on lite's traffic only for now; CARLA's per-actor "
-                                 "control is not wired yet (docs/actors.md)")
+            raise UserInputError(f"actor knob(s) {moved} have no CARLA realisation yet; realised: "
+                                 f"{', '.join(CARLA_ACTOR_KNOBS)} (docs/actors.md)")
         self._weather = weather
+
+    def _actor_id(self, index: int) -> int | None:
+        actor = self._actors.get(index)
+        return None if actor is None else int(actor.id)
+
+    def _velocity(self, index: int) -> tuple[float, float, float]:
+        s = self._snapshot.find(self._actors[index].id)
+        if s is None:
+            return (0.0, 0.0, 0.0)
+        v = s.get_velocity()
+        return (float(v.x), float(v.y), float(v.z))
 
     def apply_ego_control(self, control: VehicleControl) -> None:
         self._control = control
@@ -465,6 +481,10 @@ class CarlaSimulation(Simulation):
         if self._weather != self._applied_weather:
             b.call("setting the weather", self.world.set_weather, to_carla(self._weather))
             self._applied_weather = self._weather
+        brake = self._lead_braking.commands(carla, float(self._weather["lead_decel"]), self.dt, self.lead,
+                                            self._actor_id, self._velocity) if self._actors else []
+        if brake:
+            b.call("braking the lead (lead_decel)", b.client.apply_batch_sync, brake, False)
         if self._control != self._applied_control:
             c = self._control
             b.call("applying the ego's control", self._actors[0].apply_control,

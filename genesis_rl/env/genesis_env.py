@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium import spaces
 
 from genesis_rl import limits, ranges
-from genesis_rl.backends import catalog_or_generate, check_backend_setting, make_backend
+from genesis_rl.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.env.observation import (
     OBSERVATIONS,
@@ -155,10 +155,12 @@ class EnvConfig:
                 check_start(odd, start, conditions_model(self.backend))
             except UserInputError as err:
                 raise UserInputError(f"env.odd: {err}") from None
-        actors = [k for k in self.knobs if KNOBS[k].is_actor]
-        if actors and self.backend != "lite":
-            raise UserInputError(f"env.knobs: actor knob(s) {actors} act on lite's traffic only for now; with "
-                                 f"env.backend = '{self.backend}' turn weather knobs only (docs/actors.md)")
+        backend_cls = backend_class(self.backend, "env.backend")
+        unrealised = [k for k in self.knobs if KNOBS[k].is_actor and k not in backend_cls.actor_knobs]
+        if unrealised:
+            raise UserInputError(f"env.knobs: actor knob(s) {unrealised} are not realised by env.backend = "
+                                 f"'{self.backend}'; it realises: {', '.join(backend_cls.actor_knobs) or 'none'} "
+                                 "(docs/actors.md)")
         check_backend_setting(self.backend, self.catalog, "env.backend", "env.catalog")
 
     @property

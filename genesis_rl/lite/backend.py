@@ -111,6 +111,7 @@ class LiteBackend(Backend):
 
     name = "lite"
     catalog_kind = "lite"
+    actor_knobs = ("lead_decel",)  # Traffic.set_lead_braking
     #: Bumped whenever a change to the renderer changes pixels (records keep it: replay says when it
     #: differs, since the detector then sees slightly different frames). 2: tiled, two-level static scene.
     #: 3: roads and markings on simplified polylines, coarser ground in far blocks (<= 0.14 % of pixels).

@@ -245,6 +245,8 @@ class Backend(abc.ABC):
     catalog_kind: ClassVar[str] = ""
     #: True when scenes cannot be generated on the fly: every command then needs a catalog file
     needs_catalog: ClassVar[bool] = False
+    #: the actor knobs (``knobs.KnobSpec.is_actor``) its simulations realise; the env refuses the others
+    actor_knobs: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def from_settings(cls, settings: ConnectionSettings) -> Backend:
