@@ -183,7 +183,7 @@ def test_a_collision_with_a_lead_the_tester_braked_is_its_own_kind_of_failure():
 
 
 def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
-    carla = pytest.importorskip("carla")
+    pytest.importorskip("carla")
     from types import SimpleNamespace
 
     from genesis_rl.carla_backend.actor_control import LeadBraking
