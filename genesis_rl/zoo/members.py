@@ -57,7 +57,8 @@ class ZooMember:
 
 
 def env_settings(member: ZooMember) -> dict[str, Any]:
-    """The ``EnvConfig`` fields a campaign on ``member`` plays under (``CampaignSpec.env``); a fresh dict."""
+    """The ``EnvConfig`` fields a campaign on ``member`` plays under (``CampaignSpec.env``); a fresh dict. A
+    campaign sets ``episode_steps`` from its own ``steps`` (and the catalog's map): pass the member's there."""
     return {"map": member.map, "system": member.system, "system_kwargs": dict(member.system_kwargs),
             "odd": str(member.odd_path), **member.env}
 
@@ -75,9 +76,11 @@ _LOW_SUN = ZooMember(
 
 _BUILTIN_HIGHWAY = ZooMember(
     name="builtin_highway", kind="control", system="builtin", odd="highway_day.toml", map="highway",
-    summary=("The built-in system inside highway_day on the highway: the in-ODD protocol found no weather "
-             "failure of it there (docs/results.md, section 7). A control: every in-ODD failure an adversary "
-             "reports on it is a false alarm candidate."),
+    summary=("The built-in system inside highway_day on the highway: no adversary found a weather failure of it "
+             "there under natural dynamics in 50 scenes (docs/results.md, section 6; section 7 in the wider "
+             "urban_all_day). Its one in-ODD collision there (scene 39) is weather-independent: sunny has it too "
+             "and the oracle replay crashes as well. A control: every in-ODD failure an adversary reports on it "
+             "is a false alarm candidate."),
     trigger=EMPTY,
     env={"dynamics": "natural"},
 )
