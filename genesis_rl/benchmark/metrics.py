@@ -1,0 +1,185 @@
+"""The metrics of a falsifier on one zoo member: one campaign folder, per policy, over its episodes (one
+episode = one scene = one trial under the campaign's simulator-step budget).
+
+What the fields that measure their tools against ground truth report (ARCH-COMP's falsification rate and
+simulations to the first falsification, Magma's reached/triggered canaries and time-to-bug survival curves,
+the SBST tool competition's distinct failures), for a driving system inside its ODD:
+
+- an *in-ODD failure* is a collision whose first step is labelled ``inside`` or ``boundary`` of the ODD;
+- *falsification rate*: the share of trials with one;
+- *reached*: the trial entered the member's trigger region; *triggered*: an in-ODD failure at or after the
+  first reached step. Never reached says exploration; reached but not triggered says timing or naturalness;
+- *steps to the first in-ODD failure*, censored at the trial's steps when it had none, and their
+  Kaplan-Meier curve;
+- *distinct in-ODD failures*: the campaign's own clusters (``evaluation.distinct``, over each episode's
+  labelled first collision, as the summary counts them);
+- on a *control* every in-ODD failure is a false alarm candidate (with its blame and oracle replay, where the
+  campaign ran one).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from genesis_rl.benchmark.survival import kaplan_meier, median_time
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign_files import read_step_records, steps_path
+from genesis_rl.evaluation.distinct import IN_ODD, KEY_FIELDS, natural_summary
+from genesis_rl.evaluation.stats import clopper_pearson
+from genesis_rl.odd.domain import load_odd
+from genesis_rl.step_record import StepRecord
+from genesis_rl.zoo.members import ZooMember, zoo_member
+from genesis_rl.zoo.trigger import TriggerRegion
+
+
+def in_odd_failure_at(records: Sequence[StepRecord]) -> int | None:
+    """The index of the first step at which a collision began inside the ODD (or on its boundary)."""
+    for i, rec in enumerate(records):
+        began = rec.collision.collided and (i == 0 or not records[i - 1].collision.collided)
+        if began and rec.odd_status in IN_ODD:
+            return i
+    return None
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One episode against the member: its steps, when it first entered the trigger region and when it first
+    failed inside the ODD (step indices; None: never)."""
+
+    scene: int
+    steps: int
+    reached_at: int | None
+    failure_at: int | None
+
+    @property
+    def failed(self) -> bool:
+        return self.failure_at is not None
+
+    @property
+    def reached(self) -> bool:
+        return self.reached_at is not None
+
+    @property
+    def triggered(self) -> bool:
+        return self.failure_at is not None and self.reached_at is not None and self.failure_at >= self.reached_at
+
+    @property
+    def steps_to_failure(self) -> int:
+        """Simulator steps up to and including the failure's; the trial's steps when it had none (censored)."""
+        return self.steps if self.failure_at is None else self.failure_at + 1
+
+
+def trial_of(scene: int, records: Sequence[StepRecord], region: TriggerRegion) -> Trial:
+    return Trial(scene, len(records), region.reached(records), in_odd_failure_at(records))
+
+
+@dataclass(frozen=True)
+class PolicyMetrics:
+    """One policy's figures on one member (see the module docstring); ``survival`` the Kaplan-Meier curve
+    as (steps, share without an in-ODD failure) points."""
+
+    policy: str
+    member: str
+    kind: str
+    trials: tuple[Trial, ...]
+    falsified: int
+    falsification_rate: float | None
+    falsification_ci: tuple[float | None, float | None]
+    reached: int
+    reached_share: float | None
+    triggered: int
+    triggered_share: float | None
+    survival: tuple[tuple[float, float], ...]
+    median_steps_to_failure: float | None
+    distinct_in_odd_failures: int
+    clusters: tuple[dict[str, Any], ...]
+    false_alarm_candidates: tuple[dict[str, Any], ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["trials"] = [{**asdict(t), "triggered": t.triggered, "steps_to_failure": t.steps_to_failure}
+                       for t in self.trials]
+        d["falsification_ci"] = list(self.falsification_ci)
+        d["survival"] = [list(p) for p in self.survival]
+        d["clusters"] = list(self.clusters)
+        d["false_alarm_candidates"] = list(self.false_alarm_candidates)
+        return d
+
+
+def _share(k: int, n: int) -> float | None:
+    return k / n if n else None
+
+
+def policy_metrics(policy: str, member: ZooMember, trials: Sequence[Trial],
+                   rows: Sequence[Mapping[str, Any]]) -> PolicyMetrics:
+    """The figures of one policy's trials; ``rows``: their episode rows (for the distinct failures and the
+    false alarms' blame), in the trials' order."""
+    n = len(trials)
+    falsified = sum(t.failed for t in trials)
+    t, s = kaplan_meier([tr.steps_to_failure for tr in trials], [tr.failed for tr in trials])
+    natural = natural_summary(policy, rows) if rows else None
+    if rows and natural is None:
+        raise UserInputError(f"policy '{policy}': its episodes carry no natural-edge-case fields (a campaign from "
+                             "before genesis-rl 0.6.0); run the campaign again")
+    clusters = tuple({k: c[k] for k in (*KEY_FIELDS, "count")} for c in (natural or {}).get("clusters", []))
+    ci = clopper_pearson(falsified, n)
+    alarms: list[dict[str, Any]] = []
+    if member.kind == "control":
+        for tr, row in zip(trials, rows, strict=True):
+            if tr.failure_at is None:
+                continue
+            labelled = row.get("failure") or {}
+            same = labelled.get("odd_status") in IN_ODD  # the row labels the episode's first collision
+            alarms.append({"scene": tr.scene, "step_index": tr.failure_at,
+                           "blame": labelled.get("blame") if same else None,
+                           "oracle_collides": labelled.get("oracle_collides") if same else None})
+    return PolicyMetrics(
+        policy=policy, member=member.name, kind=member.kind, trials=tuple(trials),
+        falsified=falsified, falsification_rate=_share(falsified, n),
+        falsification_ci=(ci["ci_low"], ci["ci_high"]),
+        reached=sum(tr.reached for tr in trials), reached_share=_share(sum(tr.reached for tr in trials), n),
+        triggered=sum(tr.triggered for tr in trials), triggered_share=_share(sum(tr.triggered for tr in trials), n),
+        survival=tuple((float(a), float(b)) for a, b in zip(t, s, strict=True)),
+        median_steps_to_failure=median_time(t, s),
+        distinct_in_odd_failures=len(clusters), clusters=clusters, false_alarm_candidates=tuple(alarms),
+    )
+
+
+def check_campaign_member(folder: Path, meta: Mapping[str, Any], member: ZooMember) -> None:
+    """The campaign must have run the member's system inside its ODD on its map: figures of another setup
+    would be reported as the member's."""
+    spec = meta["spec"]
+    env = spec.get("env") or {}
+    found = {
+        "system": env.get("system", "builtin"),
+        "system_kwargs": dict(env.get("system_kwargs") or {}),
+        "map": meta.get("catalog", {}).get("map", spec.get("map")),
+        "odd": (meta.get("identity", {}).get("odd") or {}).get("name"),
+    }
+    wanted = {"system": member.system, "system_kwargs": dict(member.system_kwargs), "map": member.map,
+              "odd": load_odd(member.odd_path).name}
+    for key, value in wanted.items():
+        if found[key] != value:
+            raise UserInputError(f"campaign '{folder}' was not run on zoo member '{member.name}': its {key} is "
+                                 f"{found[key]!r}, the member's {value!r}; run it with CampaignSpec(map="
+                                 f"'{member.map}', env=env_settings(zoo_member('{member.name}')))")
+
+
+def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, PolicyMetrics]:
+    """Every policy's figures in the campaign ``folder`` run on ``member`` (a member or its name), over its
+    finished episodes."""
+    from genesis_rl.evaluation.summary import load_campaign  # local: the summary's imports are heavy
+
+    m = zoo_member(member) if isinstance(member, str) else member
+    folder = Path(folder)
+    meta, rows = load_campaign(folder)
+    check_campaign_member(folder, meta, m)
+    out: dict[str, PolicyMetrics] = {}
+    for policy, eps in rows.items():
+        trials = [trial_of(r["scene"], read_step_records(steps_path(folder, policy, r["scene"])), m.trigger)
+                  for r in eps]
+        out[policy] = policy_metrics(policy, m, trials, eps)
+    return out

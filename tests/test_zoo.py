@@ -1,0 +1,136 @@
+"""The zoo's registry and trigger regions: members load by name into a valid env inside their shipped ODD, a
+weakness states a region that the records say a step is in or not, a control states none."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from genesis_rl.env.genesis_env import EnvConfig
+from genesis_rl.errors import UserInputError
+from genesis_rl.knobs import Weather
+from genesis_rl.odd.conditions import Conditions, conditions_model
+from genesis_rl.odd.domain import load_odd
+from genesis_rl.perception.dataset import _typical
+from genesis_rl.step_record import StepRecord, synthetic_step
+from genesis_rl.zoo import EMPTY, ZOO, Bound, TriggerRegion, ZooMember, env_settings, zoo_member
+from genesis_rl.zoo.members import ODD_DIR
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _sun(altitudes: list[float]) -> list[StepRecord]:
+    return [synthetic_step(i + 1, knobs={"sun_altitude_angle": a, "sun_azimuth_angle": 0.0})
+            for i, a in enumerate(altitudes)]
+
+
+def _seen(visibilities: list[float]) -> list[StepRecord]:
+    return [replace(synthetic_step(i + 1), conditions=Conditions(v, 0.0, "dry", "day", False), odd_status="inside")
+            for i, v in enumerate(visibilities)]
+
+
+def test_registry_names_kinds_and_regions() -> None:
+    assert list(ZOO) == ["low_sun", "builtin_highway", "oracle_highway"]
+    assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "builtin_highway": "control",
+                                                    "oracle_highway": "control"}
+    assert zoo_member("low_sun").trigger.describe() == "0 <= sun_altitude_angle < 15 deg"
+    for name in ("builtin_highway", "oracle_highway"):
+        assert zoo_member(name).trigger.empty and zoo_member(name).map == "highway"
+    assert (zoo_member("oracle_highway").system, zoo_member("builtin_highway").system) == ("oracle", "builtin")
+
+
+def test_unknown_member_is_refused_naming_the_members() -> None:
+    with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, builtin_highway, "
+                                             "oracle_highway"):
+        zoo_member("nope")
+
+
+@pytest.mark.parametrize("name", list(ZOO))
+def test_env_settings_make_a_valid_env_inside_the_members_odd(name: str) -> None:
+    member = ZOO[name]
+    settings = env_settings(member)
+    cfg = EnvConfig(**settings)  # checks every field, loads the ODD, checks the start weather lies inside it
+    assert (cfg.map, cfg.system, cfg.dynamics) == (member.map, member.system, "natural")
+    assert Path(cfg.odd or "").parent == ODD_DIR and cfg.load_odd().name == load_odd(member.odd_path).name
+    settings["system_kwargs"]["x"] = 1  # a fresh dict: the registry's member is untouched
+    assert env_settings(member)["system_kwargs"] == {}
+
+
+def test_every_shipped_odd_loads_and_is_package_data() -> None:
+    model = conditions_model("lite")
+    shipped = sorted(p.name for p in ODD_DIR.glob("*.toml"))
+    assert shipped == ["highway_day.toml", "urban_day.toml"]
+    assert {m.odd for m in ZOO.values()} == set(shipped)
+    for name in shipped:
+        load_odd(ODD_DIR / name, model)
+    # the controls' domain is the one docs/results.md section 7 measured them in
+    ours, theirs = load_odd(ODD_DIR / "highway_day.toml").describe(), load_odd(ROOT / "configs/odd/highway_day.toml")
+    assert ours == theirs.describe()
+    globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["genesis_rl"]
+    assert "zoo/odd/*.toml" in globs
+
+
+def test_low_sun_region_is_inside_the_day_odd_and_outside_the_detectors_training_data() -> None:
+    odd, model = load_odd(ODD_DIR / "urban_day.toml"), conditions_model("lite")
+    for altitude, inside in ((0.0, True), (5.0, True), (14.9, True), (-1.0, False)):  # day: the sun >= 0 deg
+        c = model.conditions(Weather.default().replace(sun_altitude_angle=altitude), None)
+        assert odd.contains(c) is inside, altitude
+    rng = np.random.default_rng(0)
+    drawn = [_typical(rng, 0.0)["sun_altitude_angle"] for _ in range(2000)]
+    low = zoo_member("low_sun").trigger.bounds[0]
+    assert min(drawn) >= low.high  # the detector never saw a sun in the region
+    assert low.low == 0.0 and low.high == 15.0
+
+
+def test_reached_is_the_first_step_inside_a_half_open_region() -> None:
+    region = zoo_member("low_sun").trigger
+    assert region.reached(_sun([40.0, 15.0, 14.9, 5.0])) == 2  # 15 deg is outside: the bound is [0, 15)
+    assert region.reached(_sun([40.0, 20.0, -3.0, 15.0])) is None  # below the horizon is not the region either
+    assert region.reached([]) is None
+    fog = TriggerRegion((Bound("visibility_m", high=150.0),))
+    assert fog.describe() == "visibility_m < 150 m"
+    assert fog.reached(_seen([3000.0, 400.0, 150.0, 120.0, 80.0])) == 3
+    both = TriggerRegion((Bound("visibility_m", high=150.0), Bound("rain_mm_h", 2.5)))
+    assert both.describe() == "visibility_m < 150 m and rain_mm_h >= 2.5 mm/h"
+    assert both.reached(_seen([100.0])) is None  # no rain: a conjunction needs every bound
+
+
+def test_empty_region_is_never_reached() -> None:
+    assert EMPTY.empty and EMPTY.reached(_sun([5.0, 0.0])) is None
+    assert EMPTY.describe().startswith("empty")
+
+
+def test_an_actor_knob_missing_from_old_records_sits_at_its_default() -> None:
+    braking = TriggerRegion((Bound("lead_decel", 3.0),))
+    assert braking.describe() == "lead_decel >= 3 m/s^2"
+    assert braking.reached(_sun([50.0, 50.0])) is None  # lead_decel 0 (its default) in records without it
+    recs = [synthetic_step(1, knobs={"lead_decel": 0.0}), synthetic_step(2, knobs={"lead_decel": 4.0})]
+    assert braking.reached(recs) == 1
+
+
+def test_bad_bounds_and_members_are_refused_naming_the_field() -> None:
+    with pytest.raises(UserInputError, match="quantity = 'sun' is unknown; allowed: a knob .*sun_altitude_angle"):
+        Bound("sun", 0.0, 1.0)
+    with pytest.raises(UserInputError, match="low 15 must be below high 15"):
+        Bound("sun_altitude_angle", 15.0, 15.0)
+    with pytest.raises(UserInputError, match="low nan"):
+        Bound("sun_altitude_angle", math.nan, 1.0)
+    with pytest.raises(UserInputError, match="carries no conditions: run the campaign with an ODD"):
+        TriggerRegion((Bound("visibility_m", high=150.0),)).reached(_sun([5.0]))
+    base = zoo_member("builtin_highway")
+    with pytest.raises(UserInputError, match="kind = 'weak'; allowed: weakness, control"):
+        replace(base, kind="weak")
+    with pytest.raises(UserInputError, match="map = 'town10'; allowed: urban, highway"):
+        replace(base, map="town10")
+    with pytest.raises(UserInputError, match="a control's trigger region must be empty"):
+        replace(base, trigger=zoo_member("low_sun").trigger)
+    with pytest.raises(UserInputError, match="a weakness's trigger region must be non-empty"):
+        replace(base, kind="weakness")
+    with pytest.raises(UserInputError, match=r"env key\(s\) \['system'\] are the member's own fields"):
+        ZooMember(name="x", kind="control", summary="", system="builtin", odd="highway_day.toml", map="highway",
+                  trigger=EMPTY, env={"system": "oracle"})
