@@ -411,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--weather", default="clear_noon", help=_weather_help() + ". The base of --schedule.")
     dr.add_argument("--schedule", default=None, help="CSV of per-step knob values: one row a step, one column a knob")
     dr.add_argument("--system", default="builtin",
-                    help="system under test: builtin, blind, oracle, yolo, coco, or package.module:Class "
+                    help="system under test: builtin, blind, oracle, yolo, coco, latency, or package.module:Class "
                          "(default: builtin)")
     dr.add_argument("--weights", default=None,
                     help="detector weights for --system builtin or yolo (default: the shipped ones), or the "

@@ -221,3 +221,35 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
     assert [(type(c).__name__, c.actor_id) for c in batches[0]] == [("SetAutopilot", 103), ("ApplyTargetVelocity", 103)]
     assert batches[0][1].velocity.x == pytest.approx(10.0 - 5.0 * sim.dt)
 
+
+
+def test_a_slow_perception_pipeline_acts_on_detections_a_latency_late():
+    """The timing member's system (issue 33): the controller gets each frame's detections 0.3 s (6 steps)
+    late, and none at all from dropped frames; the fresh perception is the built-in system's."""
+    from genesis_rl.system.protocol import load_system
+
+    env = _env(system="latency", system_kwargs={"latency_s": 0.3}, knobs=("lead_decel",))
+    try:
+        env.reset(seed=0, options={"scene": 3, "episode_seed": 11})
+        system = env.system
+        fresh: list[list] = []
+        original = system.perceive
+
+        def spy(frame):
+            fresh.append(original(frame))
+            return fresh[-1]
+
+        system.perceive = spy  # type: ignore[method-assign]
+        for _ in range(20):
+            env.step(np.array([0.0], np.float32))
+        delivered = [r.perception.n_detections for r in env.records]
+        # reset perceived frame 0 and delivered nothing; frame 0 arrives 6 steps later, at record 5, then
+        # record k brings frame k - 5, the one perceived at step k - 6 of the spied steps
+        assert delivered[:5] == [0] * 5 and delivered[5] > 0
+        assert delivered[6:] == [len(f) for f in fresh[:14]]
+    finally:
+        env.close()
+    dropping = load_system("latency", latency_s=0.0, drop_rate=1.0)
+    assert dropping.identity()["drop_rate"] == 1.0
+    with pytest.raises(UserInputError, match=r"latency_s"):
+        load_system("latency", latency_s=-1.0)

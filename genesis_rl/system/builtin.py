@@ -58,7 +58,8 @@ class PerceptionDrivenSystem:
         """(N, 5) x0, y0, x1, y1, score."""
         raise NotImplementedError
 
-    def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
+    def perceive(self, frame: SensorFrame) -> list[Detection]:
+        """This frame's detections, each localised in the ego frame from the depth under its box."""
         assert self.context is not None, "call reset() first"
         cam = self.context.camera
         detections = []
@@ -67,6 +68,10 @@ class PerceptionDrivenSystem:
             d = box_depth(frame.depth, box, cam.max_range)
             pos = localise(box, d, cam) if np.isfinite(d) else None
             detections.append(Detection(*box, float(score), pos))
+        return detections
+
+    def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
+        detections = self.perceive(frame)
         control, gap = self.controller.step(ego, detections, time_s)
         return SystemOutput(control, detections, gap, self.controller.status)
 

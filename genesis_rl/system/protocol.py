@@ -95,13 +95,14 @@ BUILTIN_SYSTEMS = {
     "oracle": "genesis_rl.system.builtin:OracleSystem",
     "yolo": "genesis_rl.system.yolo_adapter:YoloSystem",
     "coco": "genesis_rl.system.coco:CocoSystem",
+    "latency": "genesis_rl.system.latency:LatencySystem",
 }
 #: built-in systems that read a weights file (or, for coco, a model folder) given by --weights
-WEIGHTED_SYSTEMS = ("builtin", "yolo", "coco")
+WEIGHTED_SYSTEMS = ("builtin", "yolo", "coco", "latency")
 
 
 def load_system(spec: str, **kwargs: Any) -> SystemUnderTest:
-    """Instantiate a system from ``package.module:Class`` or a built-in name (builtin, blind, oracle, yolo, coco).
+    """Instantiate a system from ``package.module:Class`` or a built-in name (``BUILTIN_SYSTEMS``).
 
     Errors name what is wrong: a malformed path, a module that does not import, a missing class, a class
     that lacks the protocol's methods, or a constructor that fails.

@@ -77,7 +77,7 @@ def weights_file(env: Mapping[str, Any]) -> Path | None:
         return (Path(given) if isinstance(given, str) and given else model_dir("coco")) / "yolov3-tiny.weights"
     if isinstance(given, str) and given:
         return Path(given)
-    if env.get("system", "builtin") == "builtin":
+    if env.get("system", "builtin") in ("builtin", "latency"):  # latency: the built-in detector, slowed
         from genesis_rl.perception.detector import DEFAULT_WEIGHTS
 
         return DEFAULT_WEIGHTS
