@@ -65,8 +65,8 @@ def env_settings(member: ZooMember) -> dict[str, Any]:
 
 _LOW_SUN = ZooMember(
     name="low_sun", kind="weakness", system="builtin", odd="urban_day.toml", map="urban",
-    summary=("The built-in system (its HOG+SVM detector behind the ACC controller) in city traffic by day. Its "
-             "detector's training data drew the sun's altitude from 15 to 90 deg only "
+    summary=("The built-in system (its CNN vehicle detector behind the IDM following controller) in city "
+             "traffic by day. Its detector's training data drew the sun's altitude from 15 to 90 deg only "
              "(perception/dataset.py, _typical), so a sun lower than 15 deg is a condition it never saw; the "
              "day ODD (urban_day) allows it, glare included. The region touches the ODD's altitude bound (0 deg), "
              "so a constant schedule reaches it: a corner weakness, not an interior band."),
