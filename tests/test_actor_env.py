@@ -253,3 +253,21 @@ def test_a_slow_perception_pipeline_acts_on_detections_a_latency_late():
     assert dropping.identity()["drop_rate"] == 1.0
     with pytest.raises(UserInputError, match=r"latency_s"):
         load_system("latency", latency_s=-1.0)
+
+
+def test_the_episode_likelihood_covers_the_lead_braking_with_its_declared_rate():
+    """Weather and actors in one log-likelihood: a hand-checked two-knob step (odd/dynamics.py's random walk,
+    sigma = the natural rate: fog 4 %/s, lead_decel 4 m/s^2/s)."""
+    import math
+
+    from genesis_rl.odd.dynamics import WeatherModel, natural_rate
+
+    assert natural_rate("lead_decel") == 4.0
+    model = WeatherModel(("fog_density", "lead_decel"))
+    dt = 0.05
+    before, after = {"fog_density": 10.0, "lead_decel": 0.0}, {"fog_density": 10.1, "lead_decel": 0.2}
+    z_fog, z_lead = 0.1 / (4.0 * math.sqrt(dt)), 0.2 / (4.0 * math.sqrt(dt))
+    by_hand = -0.5 * sum(math.log(2 * math.pi * 16.0 * dt) + z * z for z in (z_fog, z_lead))
+    assert model.step_log_likelihood(before, after, dt) == pytest.approx(by_hand, rel=1e-12)
+    assert model.surprise(before, after, dt) == pytest.approx(-0.5 * (z_fog**2 + z_lead**2), rel=1e-12)
+    assert model.start_log_likelihood() == pytest.approx(-math.log(100.0) - math.log(8.0))
