@@ -147,11 +147,21 @@ class TrafficConditions:
     max_lead_decel: float = 6.0  # Euro NCAP CCRb's hard case
     min_cut_in_ttc: float = 1.64  # UN R157 at 60 km/h relative speed (the longest of its boundary TTCs)
 
+    def violations(self, values: Mapping[str, float]) -> list[str]:
+        """The actor knob values beyond these conditions, each with its bound (empty: inside; knobs not given
+        count as their default)."""
+        decel = float(values.get("lead_decel", ACTOR_KNOBS["lead_decel"].default))
+        ttc = float(values.get("cut_in_ttc", ACTOR_KNOBS["cut_in_ttc"].default))
+        out = []
+        if decel > self.max_lead_decel:
+            out.append(f"lead_decel {decel:g} m/s^2 > {self.max_lead_decel:g}")
+        if ttc < self.min_cut_in_ttc:
+            out.append(f"cut_in_ttc {ttc:g} s < {self.min_cut_in_ttc:g}")
+        return out
+
     def contains(self, values: Mapping[str, float]) -> bool:
         """Whether actor knob values lie inside these conditions (knobs not given count as their default)."""
-        decel = values.get("lead_decel", ACTOR_KNOBS["lead_decel"].default)
-        ttc = values.get("cut_in_ttc", ACTOR_KNOBS["cut_in_ttc"].default)
-        return decel <= self.max_lead_decel and ttc >= self.min_cut_in_ttc
+        return not self.violations(values)
 
 
 TRAFFIC_FIELDS = ("max_lead_decel", "min_cut_in_ttc")

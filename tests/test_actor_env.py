@@ -119,7 +119,7 @@ def test_on_carla_the_lead_leaves_the_traffic_manager_brakes_by_target_velocity_
     from genesis_rl.carla_backend.actor_control import LeadBraking
     from genesis_rl.sim.interface import LeadInfo
 
-    braking = LeadBraking(tm_port=8003)
+    braking = LeadBraking()
     ids = {0: 100, 4: 104, 7: 107}
     asked: list[int] = []
 
@@ -128,21 +128,21 @@ def test_on_carla_the_lead_leaves_the_traffic_manager_brakes_by_target_velocity_
         return LeadInfo(4, 20.0, 10.0)
 
     velocity = {4: (6.0, 8.0, 0.0)}  # 10 m/s
-    cmds = braking.commands(carla, 0.0, 0.05, lead, ids.get, velocity.get)
+    cmds = braking.commands(carla, 8003, 0.0, 0.05, lead, ids.get, velocity.get)
     assert cmds == [] and not asked  # no braking: nothing asked of the server
-    cmds = braking.commands(carla, 6.0, 0.05, lead, ids.get, velocity.get)
+    cmds = braking.commands(carla, 8003, 6.0, 0.05, lead, ids.get, velocity.get)
     assert [type(c).__name__ for c in cmds] == ["SetAutopilot", "ApplyTargetVelocity"]
     assert (cmds[0].actor_id, cmds[0].enabled, cmds[0].tm_port) == (104, False, 8003)
     v = cmds[1].velocity  # 10 m/s - 6 m/s^2 * 0.05 s = 9.7 m/s, along (0.6, 0.8)
     assert (cmds[1].actor_id, v.x, v.y, v.z) == (104, pytest.approx(5.82), pytest.approx(7.76), 0.0)
     velocity[4] = (0.03, 0.04, 0.0)  # 0.05 m/s: the next step stops it, never reverses it
-    cmds = braking.commands(carla, 8.0, 0.05, lead, ids.get, velocity.get)
+    cmds = braking.commands(carla, 8003, 8.0, 0.05, lead, ids.get, velocity.get)
     assert [type(c).__name__ for c in cmds] == ["ApplyTargetVelocity"] and len(asked) == 1  # the same vehicle
     assert (cmds[0].velocity.x, cmds[0].velocity.y) == (0.0, 0.0)
-    cmds = braking.commands(carla, 0.0, 0.05, lead, ids.get, velocity.get)
+    cmds = braking.commands(carla, 8003, 0.0, 0.05, lead, ids.get, velocity.get)
     assert [(type(c).__name__, c.actor_id, c.enabled) for c in cmds] == [("SetAutopilot", 104, True)]
     assert braking.vehicle == -1
-    assert braking.commands(carla, 3.0, 0.05, lambda: None, ids.get, velocity.get) == []  # nobody ahead
+    assert braking.commands(carla, 8003, 3.0, 0.05, lambda: None, ids.get, velocity.get) == []  # nobody ahead
 
 
 @pytest.mark.render
@@ -204,7 +204,7 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
         calls.append("batch")
         batches.append(cmds)
 
-    backend = SimpleNamespace(call=lambda what, fn, *a: fn(*a), timeout=1.0,
+    backend = SimpleNamespace(call=lambda what, fn, *a: fn(*a), timeout=1.0, tm_port=8000,
                               client=SimpleNamespace(apply_batch_sync=apply_batch_sync))
     sim = object.__new__(CarlaSimulation)
     sim._backend, sim._step = backend, 0
@@ -214,7 +214,7 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
     sim._actors = {0: SimpleNamespace(id=100), 3: SimpleNamespace(id=103)}
     sim._snapshot, sim._history, sim._queues, sim._images = snapshot, {}, {}, {}
     sim.world = SimpleNamespace(tick=tick, get_snapshot=lambda: snapshot)
-    sim._lead_braking = LeadBraking(8000)
+    sim._lead_braking = LeadBraking()
     sim.lead = lambda: LeadInfo(3, 15.0, 10.0)  # type: ignore[method-assign]
     sim._advance(1)
     assert calls == ["batch", "tick"]

@@ -298,7 +298,7 @@ def _bare_simulation(backend, world):
     sim._actors = {0: SimpleNamespace(id=10), 1: SimpleNamespace(id=11)}
     sim._index_of, sim._queues, sim._images, sim._history, sim._boxes = {10: 0, 11: 1}, {}, {}, {}, {}
     sim._hits, sim._hits_lock, sim._contacts, sim._counted = [], threading.Lock(), ContactTracker(), None
-    sim._lead_braking = LeadBraking(8000)  # lead_decel stays 0: it sends nothing
+    sim._lead_braking = LeadBraking()  # lead_decel stays 0: it sends nothing
     return sim
 
 

@@ -25,21 +25,21 @@ CARLA_ACTOR_KNOBS: tuple[str, ...] = ("lead_decel",)
 class LeadBraking:
     """State of the ``lead_decel`` knob on one CARLA episode: which vehicle brakes (scene index, -1: none)."""
 
-    def __init__(self, tm_port: int) -> None:
-        self.tm_port = int(tm_port)
+    def __init__(self) -> None:
         self.vehicle = -1
 
-    def commands(self, carla: Any, decel: float, dt: float, lead: Callable[[], LeadInfo | None],
+    def commands(self, carla: Any, tm_port: int, decel: float, dt: float, lead: Callable[[], LeadInfo | None],
                  actor_id: Callable[[int], int | None], velocity: Callable[[int], tuple[float, float, float]]
                  ) -> list[Any]:
-        """The batch of ``carla.command`` to send before the next tick. ``lead`` finds the ego's leader (asked
-        only when braking starts), ``actor_id`` maps a scene index to the server's actor id (None: gone),
-        ``velocity`` gives a vehicle's current velocity [m/s] (x, y, z)."""
+        """The batch of ``carla.command`` to send before the next tick. ``tm_port``: the traffic manager the
+        vehicle leaves and rejoins; ``lead`` finds the ego's leader (asked only when braking starts),
+        ``actor_id`` maps a scene index to the server's actor id (None: gone), ``velocity`` gives a vehicle's
+        current velocity [m/s] (x, y, z)."""
         if decel <= 0.0:
             if self.vehicle < 0:
                 return []
             aid, self.vehicle = actor_id(self.vehicle), -1
-            return [] if aid is None else [carla.command.SetAutopilot(aid, True, self.tm_port)]
+            return [] if aid is None else [carla.command.SetAutopilot(aid, True, tm_port)]
         out: list[Any] = []
         if self.vehicle < 0:
             found = lead()
@@ -50,7 +50,7 @@ class LeadBraking:
             if aid is None:
                 self.vehicle = -1
                 return []
-            out.append(carla.command.SetAutopilot(aid, False, self.tm_port))
+            out.append(carla.command.SetAutopilot(aid, False, tm_port))
         aid = actor_id(self.vehicle)
         if aid is None:  # the braking vehicle is gone (destroyed by the server): nothing left to brake
             self.vehicle = -1

@@ -339,7 +339,7 @@ class CarlaSimulation(Simulation):
         self._lights: dict[str, Any] = {}  # landmark id -> carla.TrafficLight (None: no actor for it)
         self._original_settings: Any = None
         self._tm: Any = None
-        self._lead_braking = LeadBraking(backend.tm_port)  # the lead_decel knob (actor_control.py)
+        self._lead_braking = LeadBraking()  # the lead_decel knob (actor_control.py)
         self._destroyed = False
         self.skipped: list[int] = []  # scene indices that could not be spawned
         backend._live.add(self)
@@ -370,7 +370,6 @@ class CarlaSimulation(Simulation):
         b.call("switching to synchronous mode", self.world.apply_settings, settings)
         tm_seed = episode_seed(scene, self.seed)
         self._tm = tm = b.traffic_manager()
-        self._lead_braking.tm_port = b.tm_port  # the port the traffic manager really took
         b.call("setting the traffic manager up", _tm_setup, tm, tm_seed)
         self._spawn(specs, tm_seed)
         ego = self._actors[0]
@@ -481,8 +480,8 @@ class CarlaSimulation(Simulation):
         if self._weather != self._applied_weather:
             b.call("setting the weather", self.world.set_weather, to_carla(self._weather))
             self._applied_weather = self._weather
-        brake = self._lead_braking.commands(carla, float(self._weather["lead_decel"]), self.dt, self.lead,
-                                            self._actor_id, self._velocity) if self._actors else []
+        brake = self._lead_braking.commands(carla, b.tm_port, float(self._weather["lead_decel"]), self.dt,
+                                            self.lead, self._actor_id, self._velocity) if self._actors else []
         if brake:
             b.call("braking the lead (lead_decel)", b.client.apply_batch_sync, brake, False)
         if self._control != self._applied_control:

@@ -1,7 +1,8 @@
 """How lite realises the actor knobs on one vehicle: a braking lead's speed and a cut-in's lateral path.
 
-Pure kinematics over one step, so the traffic model (and tests on crafted scenes) can call them; wiring
-them into ``Traffic.step`` for the lead and the neighbour is the next slice of issue 32.
+Pure kinematics over one step, as references for tests on crafted scenes: ``Traffic.step`` realises the
+lead's braking itself (``forced_braking``, the same profile) and the cut-in by pure pursuit; placing the
+cutter at ``cut_in_start_gap`` and following ``cut_in_offset`` is not wired yet (docs/actors.md).
 """
 
 from __future__ import annotations

@@ -55,7 +55,7 @@ class LiteSimulation(Simulation):
 
     def set_weather(self, weather: Weather) -> None:
         """Every knob for the next frame; actor knobs (``lite = 'traffic'``) act on the traffic from the next tick."""
-        self._weather = weather
+        super().set_weather(weather)
         self.traffic.set_lead_braking(float(weather["lead_decel"]))
 
     def apply_ego_control(self, control: VehicleControl) -> None:

@@ -83,11 +83,7 @@ class ODD:
 
     def traffic_violations(self, weather: Weather) -> list[str]:
         """The actor knobs of ``weather`` beyond the traffic conditions the system is released for."""
-        traffic = self.traffic or TrafficConditions()
-        decel = float(weather.values.get("lead_decel", 0.0))
-        if decel > traffic.max_lead_decel:
-            return [f"lead_decel {decel:g} m/s^2 > {traffic.max_lead_decel:g}"]
-        return []
+        return (self.traffic or TrafficConditions()).violations(weather.values)
 
     def contains(self, c: Conditions, weather: Weather | None = None) -> bool:
         return not self.violations(c, weather)

@@ -36,12 +36,11 @@ class LatencySystem(BuiltinSystem):
                                              note="the share of frames lost"))
         self._queue: deque[list[Detection]] = deque()
         self._rng = np.random.default_rng(0)
-        self._delay_steps = 0
 
     def reset(self, context: EpisodeContext) -> None:
         super().reset(context)
-        self._delay_steps = int(round(self.latency_s / context.dt))
-        self._queue = deque([[] for _ in range(self._delay_steps)])  # nothing has arrived yet
+        delay_steps = int(round(self.latency_s / context.dt))
+        self._queue = deque([[] for _ in range(delay_steps)])  # nothing has arrived yet
         self._rng = np.random.default_rng(np.random.SeedSequence([context.seed, 0x1A7E]))
 
     def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
