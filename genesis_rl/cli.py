@@ -457,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_scale_arguments(tr, "--envs")
     tr.set_defaults(func=_cmd_train)
 
+    from genesis_rl.export_cmd import add_export_command
     from genesis_rl.perception.commands import add_detector_commands, add_model_commands
     from genesis_rl.realism_cmd import add_realism_command
 
@@ -467,6 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
     from genesis_rl.evaluation.commands import add_evaluation_commands
 
     add_evaluation_commands(sub)
+    add_export_command(sub)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
     bench.add_argument("what", choices=["sim", "system", "train", "campaign"],

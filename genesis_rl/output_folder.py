@@ -43,7 +43,7 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
                  r"records", r"damaged", r"episodes\.csv", r"summary\.json", r"run_time\.json",
                  r"report[\w.-]*\.html", r"reactivity_[\w.-]*\.json"),
     "export": (r"\.genesis-rl\.json", r"images", r"labels", r"data\.yaml", r"annotations\.json",
-               r"metadata\.jsonl", r"export\.json"),
+               r"metadata\.jsonl", r"export\.json", r"scenarios", r"scenarios\.json"),
 }
 
 

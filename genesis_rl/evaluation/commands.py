@@ -1,4 +1,4 @@
-"""``genesis-rl evaluate | report | replay | export``.
+"""``genesis-rl evaluate | report | replay`` (``export`` is ``export_cmd``, above this package).
 
 Each subcommand imports what it runs inside its handler (local imports on purpose): ``genesis-rl --help`` and
 a mistyped flag answer in 0.45 s instead of 3.2 s (what importing torch, Panda3D and the campaign code costs)."""
@@ -224,17 +224,6 @@ def _explain_platform(recorded: dict | None, now: dict) -> None:
               "bit", flush=True)
 
 
-def _cmd_export(args: argparse.Namespace) -> int:
-    from genesis_rl.evaluation.export import export_dataset
-
-    policies = [p.strip() for p in args.policies.split(",")] if args.policies else None
-    if policies is not None and not all(policies):
-        raise UserInputError(f"--policies '{args.policies}' has an empty name; give a comma list such as agent,random")
-    result = export_dataset(Path(args.campaign), args.format, Path(args.out), args.force, policies)
-    print(json.dumps(result, indent=2))
-    return 0
-
-
 def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev = sub.add_parser("evaluate", help="evaluation campaign: weather policies on held-out scenes; summary, report")
     ev.add_argument("--agent", default=None, help="trained run folder (runs/NAME) or agent .zip")
@@ -307,10 +296,3 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     rl.add_argument("--quiet", action="store_true", help="no progress bar")
     rl.set_defaults(func=_cmd_replay)
 
-    ex = sub.add_parser("export", help="export failure frames with ground-truth labels (YOLO or COCO)")
-    ex.add_argument("campaign", help="campaign folder")
-    ex.add_argument("--format", default="yolo", help="yolo or coco")
-    ex.add_argument("--policies", default=None, help="comma list of policies to export (default: all)")
-    ex.add_argument("--out", required=True, help="output directory")
-    ex.add_argument("--force", action="store_true", help="replace an existing output")
-    ex.set_defaults(func=_cmd_export)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +45,11 @@ def _frames(folder: Path) -> list[tuple[str, int, int, Path]]:
 
 
 def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
-                   policies: list[str] | None = None) -> dict[str, Any]:
+                   policies: list[str] | None = None,
+                   add_to_export: Callable[[Path], dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The failure frames of campaign ``folder`` as a YOLO or COCO set in ``out``; ``add_to_export`` writes more
+    into the export before it is put in place (the OpenSCENARIO files of the failures) and returns what to add to
+    ``export.json``."""
     if fmt not in FORMATS:
         raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
     output_folder.check_inputs(out, [folder])  # before reading: export CAMP --out CAMP --force wiped CAMP
@@ -66,13 +71,14 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     with output_folder.claim(out, "export", force, inputs=[folder]):
         tmp = out.with_name(f".{out.name}.partial")
         try:
-            return _write(folder, fmt, out, tmp, meta, frames, modes)
+            return _write(folder, fmt, out, tmp, meta, frames, modes, add_to_export)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)  # a failed export leaves no partial folder behind
 
 
 def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
-           frames: list[tuple[str, int, int, Path]], modes: dict[tuple[str, int], Any]) -> dict[str, Any]:
+           frames: list[tuple[str, int, int, Path]], modes: dict[tuple[str, int], Any],
+           add_to_export: Callable[[Path], dict[str, Any]] | None = None) -> dict[str, Any]:
     """Build the export in ``tmp`` beside ``out``, then put it in place of ``out``."""
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
@@ -142,6 +148,8 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
     atomic_write_text(tmp / "metadata.jsonl", "".join(json.dumps(m) + "\n" for m in metadata))
     result = {"out": str(out), "format": fmt, "images": len(frames), "labels": n_labels, "ignored_boxes": n_ignored,
               "episodes": len({(f[0], f[1]) for f in frames})}
+    if add_to_export is not None:
+        result.update(add_to_export(tmp))
     atomic_write_json(tmp / "export.json", result, indent=2)
     if out.exists():  # replaced only now that the new export is complete
         remove_tree(out)

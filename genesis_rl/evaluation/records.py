@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.perception.detector import archived_weights
 from genesis_rl.provenance import numeric_platform
 from genesis_rl.rules.rulebook import build_rulebook
-from genesis_rl.sim.interface import CameraConfig
+from genesis_rl.sim.interface import CameraConfig, Simulation
 from genesis_rl.step_record import RULE_PREFIX, StepRecord
 from genesis_rl.system.protocol import load_system
 
@@ -157,10 +157,32 @@ def _check_record(rec: dict[str, Any], path: Path) -> None:
             raise bad(f"violations.{k}", "a number")
 
 
+def load_recorded_system(recorded: dict[str, Any], weights: str | None = None) -> Any:
+    """The system a record names (``{"spec", "kwargs", "identity"}``), with the weights it was made with: the
+    given ``weights``, else the record's own, else the shipped archive's copy with the recorded sha256.
+    Refuses weights whose sha256 differs from the recorded one."""
+    kwargs = dict(recorded.get("kwargs") or {})
+    recorded_id = recorded.get("identity") or {}
+    if weights:
+        kwargs["weights"] = weights
+    elif "weights" not in kwargs and recorded_id.get("weights_sha256"):
+        shipped = archived_weights(recorded_id["weights_sha256"])  # an older record: the weights it was made with
+        if shipped is not None:
+            kwargs["weights"] = str(shipped)
+    system = load_system(recorded["spec"], **kwargs)
+    now_id = system.identity()
+    if recorded_id.get("weights_sha256") and recorded_id.get("weights_sha256") != now_id.get("weights_sha256"):
+        raise UserInputError(f"the record's system used weights sha256 {recorded_id['weights_sha256'][:12]}…, "
+                             f"these are {str(now_id.get('weights_sha256'))[:12]}…; pass --weights with the "
+                             "recorded file to replay it")
+    return system
+
+
 def replay_record(rec: dict[str, Any], weights: str | None = None, progress: bool = False,
-                  keep_frames: bool = True) -> dict[str, Any]:
+                  keep_frames: bool = True, observer: Callable[[Simulation], None] | None = None) -> dict[str, Any]:
     """Drive the record's episode again; returns the step records, frames, violations and whether they
-    equal the recorded ones (to 1e-9)."""
+    equal the recorded ones (to 1e-9). ``observer`` sees the simulation after the start and after every step
+    (the OpenSCENARIO export reads every vehicle's pose there)."""
     import torch  # local: start-up cost
 
     if rec.get("backend", "lite") != "lite":
@@ -171,20 +193,8 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
                                  "scenes": [rec["scene"]]})
     scene = catalog.scenes[0]
     rulebook = build_rulebook(rec["rulebook"], "record rulebook")  # refuses import paths before any system loads
-    kwargs = dict(rec["system"].get("kwargs") or {})
-    recorded_id = rec["system"].get("identity", {})
-    if weights:
-        kwargs["weights"] = weights
-    elif "weights" not in kwargs and recorded_id.get("weights_sha256"):
-        shipped = archived_weights(recorded_id["weights_sha256"])  # an older record: the weights it was made with
-        if shipped is not None:
-            kwargs["weights"] = str(shipped)
-    system = load_system(rec["system"]["spec"], **kwargs)
+    system = load_recorded_system(rec["system"], weights)
     now_id = system.identity()
-    if recorded_id.get("weights_sha256") and recorded_id.get("weights_sha256") != now_id.get("weights_sha256"):
-        raise UserInputError(f"the record's system used weights sha256 {recorded_id['weights_sha256'][:12]}…, "
-                             f"these are {str(now_id.get('weights_sha256'))[:12]}…; pass --weights with the "
-                             "recorded file to replay it")
     names = rec["knobs"]
     start = Weather.from_recorded(rec["start_weather"])
     camera = CameraConfig(width=rec["camera"]["width"], height=rec["camera"]["height"])
@@ -195,9 +205,13 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
         with backend.create_simulation(scene, seed=rec["episode_seed"], weather=start, camera=camera) as sim:
             loop = ClosedLoop(sim, system, backend.name, rec["episode_seed"])
             loop.start(start)
+            if observer is not None:
+                observer(sim)
             for row in tqdm(rec["schedule"], desc="replay", unit="step", disable=not progress):
                 r = loop.advance(Weather.from_recorded(dict(zip(names, row, strict=True))))
                 records.append(r.scored(rulebook.step_terms(r)))
+                if observer is not None:
+                    observer(sim)
                 if keep_frames:
                     assert loop.frame is not None
                     frames.append(loop.frame.rgb)

@@ -26,6 +26,23 @@ GREEN, YELLOW, RED = 0, 1, 2
 
 
 @dataclass(frozen=True)
+class ScriptedMotion:
+    """A vehicle's motion given from outside: its pose and speed after every step (row k: after step k + 1,
+    so row 0 is the pose one ``dt`` into the episode) and whether its brake lights are lit. A scripted vehicle
+    still collides (contacts are reported as for any vehicle), but its pose after a step is always the
+    script's: it moves as recorded, whatever the ego does."""
+
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    speed: np.ndarray
+    braking: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+@dataclass(frozen=True)
 class AutopilotParams:
     """Per-vehicle autopilot settings (catalog fields; units in the names' comments)."""
 
@@ -99,6 +116,9 @@ class Traffic:
         self.forced_braking: tuple[int, float, float] | None = None
         #: actor knob (issue 32): (vehicle, onset [s]): at onset it takes the ego's lane and steers into it
         self.forced_cut_in: tuple[int, float] | None = None
+        #: vehicles that follow a given motion instead of their autopilot (an OpenSCENARIO trajectory replayed
+        #: on lite): vehicle index -> its script; see ``ScriptedMotion``
+        self.scripted: dict[int, ScriptedMotion] = {}
         self._episode_time = 0.0
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
@@ -291,6 +311,7 @@ class Traffic:
         self.y = self.y + v_mid * np.sin(self.yaw + beta) * dt
         self.yaw = self.yaw + v_mid / (0.5 * self.wheelbase) * np.sin(beta) * dt
         self.v = v_new
+        scripted = self._apply_scripts(step_index)
 
         pairs = colliding_pairs(self.x, self.y, self.yaw, self.length, self.width)
         # a collision is reported once, when contact begins; vehicles in contact stay stopped
@@ -302,13 +323,22 @@ class Traffic:
         ]
         self._contacts = set(pairs)
         if pairs:
-            hit = np.unique(np.array(pairs).ravel())
+            hit = np.setdiff1d(np.unique(np.array(pairs).ravel()), scripted)  # a script already holds its pose
             self.x[hit], self.y[hit], self.yaw[hit] = prev[0][hit], prev[1][hit], prev[2][hit]
             self.v[hit] = 0.0
         self._advance_lanes()
         self.time += dt
         self._episode_time += dt
         return collisions
+
+    def _apply_scripts(self, step_index: int) -> np.ndarray:
+        """Put every scripted vehicle at its script's pose after this step (held at the script's last row once
+        it ends); returns their indices."""
+        for i, m in self.scripted.items():
+            k = min(step_index, len(m) - 1)
+            self.x[i], self.y[i], self.yaw[i], self.v[i] = m.x[k], m.y[k], m.yaw[k], m.speed[k]
+            self.braking[i] = bool(m.braking[k])
+        return np.array(sorted(self.scripted), dtype=np.int64)
 
     def _advance_lanes(self) -> None:
         m = self.map

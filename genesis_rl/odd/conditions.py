@@ -64,6 +64,11 @@ def rain_rate_mm_h(precipitation: float) -> float:
     return _interp(RAIN_RATE_TABLE, precipitation)
 
 
+def precipitation_for_rain_rate(rain_mm_h: float) -> float:
+    """The precipitation knob [%] whose rain rate is ``rain_mm_h`` (the inverse of :func:`rain_rate_mm_h`)."""
+    return _interp(tuple((r, p) for p, r in RAIN_RATE_TABLE), rain_mm_h)
+
+
 def road_state(deposits: float, wetness: float) -> str:
     """Standing water needs water on the road (lite draws puddles from deposits); wetness alone wets it."""
     if deposits >= 60.0:

@@ -14,7 +14,8 @@ What maps to what:
   line is the connector shifted half a lane to the left, with the lane links of the lite successor lists;
 - the light at the end of a signalised lane -> a dynamic signal of type 1000001 ("OpenDRIVE" country, as
   CARLA's towns) at the stop line, named ``junction<J>_group<G>`` after the lite phase group, valid for the
-  road's lanes in that direction, and one controller per (junction, group);
+  road's lanes in that direction, and one controller per (junction, group); a light has no ``unit`` (ASAM's
+  schema allows only real units there, and CARLA reads a missing unit as the empty one);
 - the planView is a chain of arcs through the centre line every :data:`ARC_STEP` metres, each starting with
   the centre line's tangent (exact at the joints, heading steps of ~1e-5 rad between arcs);
 - the elevation is the lite terrain along the centre line, linear between the same points;
@@ -220,7 +221,7 @@ class _Writer:
             name = f"junction{junction}_group{group}"
             se = ET.SubElement(signals, "signal", s=_f(s), t=_f(t), id=str(sid), name=name,
                                dynamic="yes", orientation="+" if sign < 0 else "-", zOffset="0", country="OpenDRIVE",
-                               type=SIGNAL_TYPE, subtype="-1", value="-1", unit="", height="1.0", width="0.3",
+                               type=SIGNAL_TYPE, subtype="-1", value="-1", height="1.0", width="0.3",
                                text="", hOffset="0", pitch="0", roll="0")
             ET.SubElement(se, "validity", fromLane=str(sign), toLane=str(sign * n))
 

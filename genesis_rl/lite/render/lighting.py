@@ -98,6 +98,18 @@ def fog_visibility_m(fog_density: float) -> float:
     return _FOG_VISIBILITY_TABLE[-1][1]
 
 
+def fog_density_for_visibility(visibility_m: float) -> float:
+    """The fog_density whose fog alone gives ``visibility_m`` (the inverse of :func:`fog_visibility_m`, clamped
+    to the table: 3000 m and more is density 0, 12 m and less is 100)."""
+    table = _FOG_VISIBILITY_TABLE
+    v = min(table[0][1], max(table[-1][1], float(visibility_m)))
+    for (d0, v0), (d1, v1) in zip(table, table[1:], strict=False):
+        if v >= v1:
+            t = (math.log(v) - math.log(v0)) / (math.log(v1) - math.log(v0))
+            return d0 + (d1 - d0) * t
+    return table[-1][0]
+
+
 def extinctions(fog_density: float, precipitation: float) -> tuple[float, float]:
     """beta of fog + clear-air haze and beta of falling rain [1/m] (visibility = KOSCHMIEDER / their sum)."""
     rain = float(precipitation) / 100.0
