@@ -2,10 +2,11 @@
 # The main job on the embedded simulator: set up, generate both scene catalogs (the paper's counts),
 # render the showcase pictures, drive the system under test in clear weather and in fog, train a small
 # weather agent, evaluate it against the sunny and random baselines on held-out highway scenes and write
-# the report. Outputs go to out/quickstart/ (about 10 minutes on 2 CPU cores).
+# the report, its failures exported as OpenSCENARIO files (checked against ASAM's schema and driven again on
+# lite from the files) and linked from the report. Outputs go to out/quickstart/ (about 10 minutes on 2 CPU cores).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+GENESIS_EXTRAS="${GENESIS_EXTRAS:-dev,openscenario}" bash scripts/setup.sh
 OUT="${OUT:-out/quickstart}"
 mkdir -p "$OUT"
 .venv/bin/genesis-rl scenes --map urban --seed 0 --out "$OUT/urban_scenes.json" --force
@@ -24,4 +25,8 @@ mkdir -p "$OUT"
 .venv/bin/genesis-rl evaluate --agent "$OUT/run" --catalog "$OUT/highway_scenes.json" --scenes 10 --steps 256 \
     --policies sunny,random,agent --odd configs/odd/highway_day.toml --odd-label-only --workers 2 \
     --out "$OUT/eval" --force
-echo "[quickstart] done. Report: $OUT/eval/report.html"
+# every failure as an OpenSCENARIO 1.0 file beside the map's OpenDRIVE (docs/openscenario.md), then the report
+# again, linking them
+.venv/bin/genesis-rl export "$OUT/eval" --format openscenario --out "$OUT/scenarios" --force --quiet
+.venv/bin/genesis-rl report "$OUT/eval" --scenarios "$OUT/scenarios" --force
+echo "[quickstart] done. Report: $OUT/eval/report.html; scenarios: $OUT/scenarios/scenarios.json"

@@ -257,3 +257,23 @@ def test_a_moved_vehicle_changes_the_replay(failing_campaign: Path, tmp_path) ->
 def test_bad_export_input_exits_2(failing_campaign: Path, tmp_path, capsys, argv, message) -> None:
     assert main(["export", str(failing_campaign), "--out", str(tmp_path / "x"), *argv]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_dataset_export_carries_the_scenarios_and_the_report_links_them(failing_campaign: Path, tmp_path,
+                                                                        capsys) -> None:
+    out = tmp_path / "yolo"
+    assert main(["export", str(failing_campaign), "--format", "yolo", "--scenarios", "--no-check", "--out", str(out),
+                 "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["scenarios"] >= 1 and "not checked" in result["scenarios_summary"]
+    metadata = [json.loads(line) for line in (out / "metadata.jsonl").read_text().splitlines()]
+    linked = {m["scenario"] for m in metadata if "scenario" in m}
+    assert linked and all((out / s).is_file() for s in linked)  # each failure's frames beside its scenario
+    report = tmp_path / "report.html"
+    assert main(["report", str(failing_campaign), "--out", str(report), "--scenarios", str(out)]) == 0
+    page = report.read_text()
+    name = Path(sorted(linked)[0]).name
+    assert f">{name}</a>" in page and "href='yolo/scenarios/" in page
+    plain = tmp_path / "plain.html"
+    assert main(["report", str(failing_campaign), "--out", str(plain)]) == 0
+    assert "--format openscenario --out scenarios_" in plain.read_text()  # no export: the command that makes one

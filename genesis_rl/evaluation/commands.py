@@ -129,7 +129,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
         return 0
     from genesis_rl.output_paths import is_stdout
 
-    path = build_report(Path(args.campaign), args.out, force=args.force)
+    path = build_report(Path(args.campaign), args.out, force=args.force,
+                        scenarios=Path(args.scenarios) if args.scenarios else None)
     print(f"report: {path}", file=sys.stderr if is_stdout(args.out) else sys.stdout)
     return 0
 
@@ -271,6 +272,9 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--out", default=None, help="report file (default: CAMPAIGN/report.html)")
     rp.add_argument("--force", action="store_true", help="overwrite an existing report")
     rp.add_argument("--markdown", action="store_true", help="print the summary tables as Markdown instead")
+    rp.add_argument("--scenarios", default=None,
+                    help="an OpenSCENARIO export of this campaign (export --format openscenario --out DIR): each "
+                         "failure links its .xosc and says whether it validated and replayed")
     rp.set_defaults(func=_cmd_report)
 
     cp = sub.add_parser("compare", help="policies from different campaigns, paired scene by scene (Markdown)",

@@ -145,11 +145,14 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
                      "campaign": meta["spec"], "version": meta.get("package_version")},
             "categories": [{"id": 1, "name": CLASSES[0], "supercategory": "vehicle"}],
             "images": images, "annotations": annotations}, indent=None)
+    added = add_to_export(tmp) if add_to_export is not None else {}
+    for m in metadata:  # an image's scenario, when the export holds one (records are named POLICY_scene_NNNN)
+        xosc = Path("scenarios") / f"{m['policy']}_scene_{m['scene']:04d}.xosc"
+        if (tmp / xosc).is_file():
+            m["scenario"] = xosc.as_posix()
     atomic_write_text(tmp / "metadata.jsonl", "".join(json.dumps(m) + "\n" for m in metadata))
     result = {"out": str(out), "format": fmt, "images": len(frames), "labels": n_labels, "ignored_boxes": n_ignored,
-              "episodes": len({(f[0], f[1]) for f in frames})}
-    if add_to_export is not None:
-        result.update(add_to_export(tmp))
+              "episodes": len({(f[0], f[1]) for f in frames}), **added}
     atomic_write_json(tmp / "export.json", result, indent=2)
     if out.exists():  # replaced only now that the new export is complete
         remove_tree(out)

@@ -18,6 +18,7 @@ import base64
 import html
 import io
 import json
+import os
 import sys
 import textwrap
 from pathlib import Path
@@ -208,10 +209,34 @@ def _fmt_ci(s: dict[str, Any]) -> str:
 REPORT_PRODUCTS = (r"report[\w.-]*\.html",)
 
 
+def _scenario_line(folder: Path, record: str, scenarios: Path | None, report: Path) -> str:
+    """The failure's OpenSCENARIO file, linked from the report when an export holds it, else the command that
+    writes it."""
+    stem = Path(record).stem
+    if scenarios is not None:
+        index = scenarios / "scenarios.json"
+        xosc = scenarios / "scenarios" / f"{stem}.xosc"
+        if xosc.is_file():
+            checked = ""
+            if index.is_file():
+                entries = {Path(e["scenario"]).stem: e for e in json.loads(index.read_text()).get("scenarios", [])}
+                entry = entries.get(stem, {})
+                if "schema" in entry:
+                    valid = "valid" if entry["schema"]["valid"] else "INVALID"
+                    same = "same failure" if entry["replay"]["reproduced"] else "NOT the same failure"
+                    checked = f" (ASAM schema: {valid}; lite driven from the file: {same})"
+            link = os.path.relpath(xosc.resolve(), report.resolve().parent)
+            return (f"<p class=meta>OpenSCENARIO: <a href='{html.escape(link)}'>{html.escape(xosc.name)}</a>"
+                    f"{html.escape(checked)}</p>")
+    return (f"<p class=meta>OpenSCENARIO: <code>genesis-rl export {html.escape(str(folder / record))} --format "
+            f"openscenario --out scenarios_{html.escape(stem)}</code></p>")
+
+
 def build_report(folder: Path, out: Path | str | None = None, force: bool = False,
-                 max_examples: int = 5) -> Path | str:
+                 max_examples: int = 5, scenarios: Path | None = None) -> Path | str:
     """Write ``report.html`` in the campaign folder (or ``out``: a file, or '-' for standard output); returns
-    where it went. ``out`` may not be, or lie inside, the campaign (but for ``report*.html``)."""
+    where it went. ``out`` may not be, or lie inside, the campaign (but for ``report*.html``). ``scenarios``: an
+    OpenSCENARIO export of the campaign (``export --format openscenario``), whose files the failures link."""
     from genesis_rl.output_paths import check_inputs, is_stdout, output_file
 
     folder = Path(folder)
@@ -306,6 +331,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
         if e.get("record"):
             h.append(f"<p class=meta>Replay: <code>genesis-rl replay {html.escape(str(folder / e['record']))} "
                      f"--out replay_{p}_{e['scene']}</code></p>")
+            h.append(_scenario_line(folder, e["record"], scenarios, out))
         h.append("</div>")
     if shown == 0:
         h.append("<p>No collisions in this campaign.</p>")

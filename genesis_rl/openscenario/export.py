@@ -175,7 +175,7 @@ def export_scenarios(source: Path, out: Path, version: str = "1.0", check: bool 
             "schema_valid": sum(e["schema"]["valid"] for e in entries),
             "read_back_ok": sum(e["read_back"]["ok"] for e in entries),
             "reproduced_on_lite": sum(e["replay"]["reproduced"] for e in entries),
-            "maps_valid": sum(bool(m["valid"]) for m in maps.values()),
+            "maps_valid": sum(bool(m["valid"]) for m in maps.values()) if maps else None,
             "tolerances": TOLERANCES}
     atomic_write_json(out / INDEX, index, indent=2)
     return index
@@ -184,6 +184,8 @@ def export_scenarios(source: Path, out: Path, version: str = "1.0", check: bool 
 def summary_line(index: dict[str, Any]) -> str:
     c = index.get("checked")
     n = len(index["scenarios"])
+    if n == 0:
+        return "no failing episode to export (pass --all-records to export every record)"
     if c is None:
         return f"{n} scenario(s) written (not checked: --no-check)"
     return (f"{n} scenario(s): {c['schema_valid']} valid against ASAM's XSD, {c['read_back_ok']} read back within "
@@ -204,9 +206,7 @@ def export_openscenario(source: Path, out: Path, force: bool = False, version: s
     if version not in VERSIONS:
         raise UserInputError(f"--osc-version '{version}' is unknown; allowed: {', '.join(VERSIONS)}")
     output_folder.check_inputs(out, [source])
-    if not failing_records(source, every):
-        raise UserInputError(f"'{source}' has no record of a failing episode (records/*.json with a failure); "
-                             "pass --all-records to export every record")
+    failing_records(source, every)  # refuses a source that is neither a record nor a campaign with records/
     with output_folder.claim(out, "export", force, inputs=[source]):
         tmp = out.with_name(f".{out.name}.partial")
         try:
