@@ -20,11 +20,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if args.format not in formats:
         raise UserInputError(f"--format '{args.format}' is unknown; allowed: {', '.join(formats)}")
     if args.format == "openscenario" or args.scenarios:
-        from genesis_rl.openscenario.export import VERSIONS
+        from genesis_rl.openscenario.export import minor_version
         from genesis_rl.openscenario.schema import require_scenariogeneration
 
-        if args.osc_version not in VERSIONS:
-            raise UserInputError(f"--osc-version '{args.osc_version}' is unknown; allowed: {', '.join(VERSIONS)}")
+        minor_version(args.osc_version)
         require_scenariogeneration()
     if args.format == "openscenario":
         if args.policies or args.scenarios:

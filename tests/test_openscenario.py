@@ -174,9 +174,37 @@ def test_lite_weather_from_a_parsed_file_follows_the_events(crafted) -> None:
     trace, files = crafted
     start, weathers, sources = scenario_weathers(read_scenario(files[0]), DT, len(trace.schedule))
     assert start["fog_density"] == 0.0
-    assert [w["fog_density"] for w in weathers[:3]] == pytest.approx([0.0, 2.0, 4.0], abs=1e-6)
+    fog = trace.knob_names.index("fog_density")
+    # row k of the schedule before step k + 1, also after the last event (the fog holds at 100 from step 50)
+    assert [w["fog_density"] for w in weathers] == pytest.approx(list(trace.schedule[:, fog]), abs=1e-6)
     assert weathers[40]["wetness"] == 40.0 and weathers[40]["lead_decel"] == 0.0  # actors move by their paths
     assert sources["fog_density"] == "standard" and sources["wetness"] == "genesis"
+
+
+def test_scripted_vehicles_are_where_the_file_puts_them_after_every_step(crafted) -> None:
+    """Row k of a script is the pose after step k + 1 (the trace's sample k + 1), box centre, with its speed."""
+    from genesis_rl.openscenario.lite_replay import _script
+
+    trace, files = crafted
+    lead = read_scenario(files[0]).vehicle("vehicle_1")
+    script = _script(lead, DT, len(trace.schedule))
+    track = trace.vehicles[1]
+    assert np.max(np.abs(script.x - track.x[1:])) < 0.003 and np.max(np.abs(script.y - track.y[1:])) < 0.003
+    assert script.speed == pytest.approx(track.speed[1:], abs=0.16)  # means of the chords around each sample
+    assert script.speed[-1] == pytest.approx(track.speed[-1], abs=0.16)  # the last step too
+    assert not script.braking[:15].any() and script.braking[25:].all()  # lit from 1 s, when the lead brakes
+
+
+def test_a_file_of_another_step_length_is_refused(crafted, tmp_path) -> None:
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.openscenario.lite_replay import scene_of
+
+    _, files = crafted
+    path = tmp_path / "slow.xosc"
+    path.write_text(files[0].read_text().replace('name="GenesisStepSeconds" parameterType="double" value="0.05"',
+                                                 'name="GenesisStepSeconds" parameterType="double" value="0.1"'))
+    with pytest.raises(UserInputError, match="GenesisStepSeconds = 0.1; allowed: 0.05"):
+        scene_of(read_scenario(path))
 
 
 @pytest.mark.parametrize("name", ["urban", "highway"])
@@ -223,7 +251,27 @@ def test_export_validates_reads_back_and_reproduces_the_collision(failing_campai
     assert index["maps"]["highway"]["valid"] and (out / "scenarios" / "highway.xodr").is_file()
     assert (out / entry["scenario"]).is_file()
     # the second time without --force: refused, nothing lost
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert main(["export", str(failing_campaign), "--format", "openscenario", "--out", str(out), "--quiet"]) == 2
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    # the read-back check can fail: a file missing one weather event gives lite the step before's weather
+    from genesis_rl.evaluation.records import load_record
+    from genesis_rl.openscenario.export import roundtrip_errors
+    from genesis_rl.openscenario.trace import trace_record
+
+    record = Path(entry["record"])
+    trace, _ = trace_record(load_record(record), record.stem)
+    assert roundtrip_errors(trace, read_scenario(out / entry["scenario"]))["ok"]
+    root = ET.parse(out / entry["scenario"]).getroot()
+    rows = trace.schedule
+    changing = [k for k in range(1, len(rows)) if not np.array_equal(rows[k], rows[k - 1])]
+    for parent in root.iter("Maneuver"):
+        for event in list(parent):
+            if event.get("name") == f"weather_step_{changing[0]}":
+                parent.remove(event)
+    ET.ElementTree(root).write(tmp_path / "gap.xosc")
+    errors = roundtrip_errors(trace, read_scenario(tmp_path / "gap.xosc"))
+    assert not errors["ok"] and errors["knob_share"] > 1e-7
 
 
 def test_a_moved_vehicle_changes_the_replay(failing_campaign: Path, tmp_path) -> None:

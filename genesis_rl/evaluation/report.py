@@ -33,7 +33,7 @@ from genesis_rl.evaluation.campaign_spec import run_folder_of
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.evaluation.report_natural import section as natural_section
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
-from genesis_rl.io_utils import os_error_message
+from genesis_rl.io_utils import os_error_message, read_json
 from genesis_rl.knobs import PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
 from genesis_rl.step_record import StepRecord
@@ -209,25 +209,39 @@ def _fmt_ci(s: dict[str, Any]) -> str:
 REPORT_PRODUCTS = (r"report[\w.-]*\.html",)
 
 
-def _scenario_line(folder: Path, record: str, scenarios: Path | None, report: Path) -> str:
-    """The failure's OpenSCENARIO file, linked from the report when an export holds it, else the command that
+#: an OpenSCENARIO export's index and folder (openscenario.export.INDEX, SCENARIO_FOLDER: that package replays
+#: records through this one, so this one names them instead of importing them)
+SCENARIO_INDEX, SCENARIO_FOLDER = "scenarios.json", "scenarios"
+
+
+def _scenario_index(scenarios: Path | None) -> dict[str, dict[str, Any]]:
+    """The export's scenarios by record name; {} without ``--scenarios``."""
+    if scenarios is None:
+        return {}
+    index = scenarios / SCENARIO_INDEX
+    if not index.is_file():
+        raise UserInputError(f"--scenarios '{scenarios}' holds no {SCENARIO_INDEX}; give the folder of "
+                             "`genesis-rl export CAMPAIGN --format openscenario --out DIR`")
+    entries = read_json(index, "scenario index").get("scenarios", [])
+    return {Path(e["scenario"]).stem: e for e in entries if isinstance(e, dict) and "scenario" in e}
+
+
+def _scenario_line(folder: Path, record: str, scenarios: Path | None, index: dict[str, dict[str, Any]],
+                   report: Path) -> str:
+    """The failure's OpenSCENARIO file, linked from the report when the export holds it, else the command that
     writes it."""
     stem = Path(record).stem
-    if scenarios is not None:
-        index = scenarios / "scenarios.json"
-        xosc = scenarios / "scenarios" / f"{stem}.xosc"
-        if xosc.is_file():
-            checked = ""
-            if index.is_file():
-                entries = {Path(e["scenario"]).stem: e for e in json.loads(index.read_text()).get("scenarios", [])}
-                entry = entries.get(stem, {})
-                if "schema" in entry:
-                    valid = "valid" if entry["schema"]["valid"] else "INVALID"
-                    same = "same failure" if entry["replay"]["reproduced"] else "NOT the same failure"
-                    checked = f" (ASAM schema: {valid}; lite driven from the file: {same})"
-            link = os.path.relpath(xosc.resolve(), report.resolve().parent)
-            return (f"<p class=meta>OpenSCENARIO: <a href='{html.escape(link)}'>{html.escape(xosc.name)}</a>"
-                    f"{html.escape(checked)}</p>")
+    entry = index.get(stem)
+    if scenarios is not None and entry is not None and (scenarios / entry["scenario"]).is_file():
+        xosc = scenarios / entry["scenario"]
+        checked = ""
+        if "schema" in entry:
+            valid = "valid" if entry["schema"]["valid"] else "INVALID"
+            same = "same failure" if entry["replay"]["reproduced"] else "NOT the same failure"
+            checked = f" (ASAM schema: {valid}; lite driven from the file: {same})"
+        link = os.path.relpath(xosc.resolve(), report.resolve().parent)
+        return (f"<p class=meta>OpenSCENARIO: <a href='{html.escape(link)}'>{html.escape(xosc.name)}</a>"
+                f"{html.escape(checked)}</p>")
     return (f"<p class=meta>OpenSCENARIO: <code>genesis-rl export {html.escape(str(folder / record))} --format "
             f"openscenario --out scenarios_{html.escape(stem)}</code></p>")
 
@@ -246,6 +260,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
         raise UserInputError(f"report '{given}' exists; pass --force to rebuild it")
     target = output_file(given, force, inputs=[folder], products=REPORT_PRODUCTS)
     meta, rows = load_campaign(folder)
+    scenario_index = _scenario_index(scenarios)
     out = target.path if target.path is not None else Path(str(given))
     if not any(rows.values()):
         raise UserInputError(f"campaign '{folder}' has no finished episodes yet; nothing to report")
@@ -331,7 +346,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
         if e.get("record"):
             h.append(f"<p class=meta>Replay: <code>genesis-rl replay {html.escape(str(folder / e['record']))} "
                      f"--out replay_{p}_{e['scene']}</code></p>")
-            h.append(_scenario_line(folder, e["record"], scenarios, out))
+            h.append(_scenario_line(folder, e["record"], scenarios, scenario_index, out))
         h.append("</div>")
     if shown == 0:
         h.append("<p>No collisions in this campaign.</p>")

@@ -22,6 +22,7 @@ from genesis_rl.sim.interface import Collision, LeadInfo, VehicleControl
 MAX_STEER = np.radians(35.0)  # front wheel angle at steer = 1 [rad]
 MAX_BRAKE = 8.0  # deceleration at brake = 1 [m/s^2]
 LEAD_RANGE = 80.0  # how far ahead a leader is looked for [m]
+BRAKE_LIGHT_DECEL = 0.5  # brake lights are lit above this deceleration [m/s^2]
 GREEN, YELLOW, RED = 0, 1, 2
 
 
@@ -298,7 +299,7 @@ class Traffic:
             share = min(1.0, max(0.0, (self._episode_time + dt - onset) / dt))
             if share > 0.0:
                 acc[i] = -decel * share
-        self.braking = acc < -0.5
+        self.braking = acc < -BRAKE_LIGHT_DECEL
         self.accel = acc
         self.steer_angle = delta
 

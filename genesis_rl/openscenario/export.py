@@ -26,12 +26,10 @@ from tqdm import tqdm
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, atomic_write_text, read_json
-from genesis_rl.openscenario.environment import knobs_from_environment
 from genesis_rl.openscenario.reader import ParsedScenario, read_scenario
 from genesis_rl.openscenario.schema import validate_opendrive, validate_scenario
 from genesis_rl.openscenario.trace import EpisodeTrace, trace_record
 from genesis_rl.openscenario.writer import (
-    STEP_WEATHER_EVENT,
     VERTEX_TOLERANCE,
     rear_axle,
     vehicle_name,
@@ -46,6 +44,13 @@ TOLERANCES = {"position_m": math.sqrt(2.0) * float(VERTEX_TOLERANCE[0]) + 1e-4,
               "heading_rad": float(VERTEX_TOLERANCE[3]) + 1e-6,
               "speed_m_s": 1e-5, "knob_share": 1e-7}
 VERSIONS = {"1.0": 0, "1.1": 1, "1.2": 2, "1.3": 3}
+
+
+def minor_version(version: str) -> int:
+    """The minor version of ``--osc-version`` (1.0 -> 0)."""
+    if version not in VERSIONS:
+        raise UserInputError(f"--osc-version '{version}' is unknown; allowed: {', '.join(VERSIONS)}")
+    return VERSIONS[version]
 
 
 def failing_records(folder: Path, every: bool = False) -> list[Path]:
@@ -82,17 +87,18 @@ def roundtrip_errors(trace: EpisodeTrace, parsed: ParsedScenario) -> dict[str, A
         h = np.interp(trace.times, v.times, np.unwrap(v.poses[:, 3]))
         pos = max(pos, float(np.max(np.hypot(x - xr, y - yr))))
         head = max(head, float(np.max(np.abs(np.remainder(h - track.yaw + np.pi, 2 * np.pi) - np.pi))))
+    # the weather lite gets from the file at the start and before every step, against what was recorded
+    from genesis_rl.openscenario.lite_replay import scenario_weathers
+
+    start, weathers, _ = scenario_weathers(parsed, trace.dt, len(trace.schedule))
+    written = [trace.start_weather] + [dict(zip(trace.knob_names, map(float, row), strict=True))
+                                       for row in trace.schedule]
     knob = 0.0
-    events = {w.name: w for w in parsed.weather}
-    for k, row in enumerate(trace.schedule):
-        event = events.get(f"{STEP_WEATHER_EVENT}{k}")
-        if event is None or event.environment is None:
-            continue
-        back = knobs_from_environment(event.environment, parsed.minor)
-        written = dict(zip(trace.knob_names, row, strict=True))
-        for name, value in back.items():
-            spec = KNOBS[name]
-            diff = abs(value - written[name])
+    for got, want in zip([start, *weathers], written, strict=True):
+        for name, spec in KNOBS.items():
+            if spec.is_actor or name not in want:
+                continue
+            diff = abs(got[name] - want[name])
             if spec.wraps:
                 diff = min(diff, spec.span - diff)
             knob = max(knob, diff / spec.span)
@@ -133,9 +139,7 @@ def export_scenarios(source: Path, out: Path, version: str = "1.0", check: bool 
     from genesis_rl.lite.maps import load_map
     from genesis_rl.lite.maps.opendrive import to_opendrive
 
-    if version not in VERSIONS:
-        raise UserInputError(f"--osc-version '{version}' is unknown; allowed: {', '.join(VERSIONS)}")
-    minor = VERSIONS[version]
+    minor = minor_version(version)
     paths = failing_records(source, every)
     folder = out / SCENARIO_FOLDER
     folder.mkdir(parents=True, exist_ok=True)
@@ -203,8 +207,7 @@ def export_openscenario(source: Path, out: Path, force: bool = False, version: s
     from genesis_rl import output_folder
     from genesis_rl.io_utils import remove_tree
 
-    if version not in VERSIONS:
-        raise UserInputError(f"--osc-version '{version}' is unknown; allowed: {', '.join(VERSIONS)}")
+    minor_version(version)
     output_folder.check_inputs(out, [source])
     failing_records(source, every)  # refuses a source that is neither a record nor a campaign with records/
     with output_folder.claim(out, "export", force, inputs=[source]):

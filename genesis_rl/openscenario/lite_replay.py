@@ -28,18 +28,19 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.lite.maps import MAP_NAMES, load_map
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
-from genesis_rl.lite.traffic import ScriptedMotion
+from genesis_rl.lite.traffic import BRAKE_LIGHT_DECEL, ScriptedMotion
 from genesis_rl.openscenario.environment import expressed_knobs, knobs_from_environment
 from genesis_rl.openscenario.reader import ParsedScenario, ParsedVehicle, WeatherEvent
 from genesis_rl.openscenario.trace import first_collision
-from genesis_rl.openscenario.writer import BLUEPRINT, START_KNOBS_EVENT
+from genesis_rl.openscenario.writer import BLUEPRINT, KNOBS_COMMAND, START_KNOBS_EVENT
 from genesis_rl.scenes.catalog import Scene, VehicleSpec
 from genesis_rl.scenes.vehicles import MAKES, PALETTE
+from genesis_rl.sim.interface import FIXED_DELTA_SECONDS
 from genesis_rl.step_record import StepRecord
 
 MAX_PROPERTY_OFFSET = 1.0  # [m] how far the genesis.lane/s start may lie from the file's position
-BRAKE_LIGHT_DECEL = 0.5  # [m/s^2] lite lights the brake lights above this deceleration (traffic.Traffic.step)
 STANDING = 0.05  # [m/s]
+MAX_OFF_LANE = 5.0  # [m] a start farther than this from every lane is not on this map
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,9 @@ def _lane_start(road_map: RoadMap, v: ParsedVehicle, x: float, y: float, yaw: fl
     except (KeyError, ValueError, IndexError):
         pass
     k = road_map.nearest_lane_point(x, y, yaw)
+    if math.hypot(road_map.points[k, 0] - x, road_map.points[k, 1] - y) > MAX_OFF_LANE:
+        raise UserInputError(f"vehicle '{v.name}' starts at ({x:.1f}, {y:.1f}), over {MAX_OFF_LANE:g} m from every "
+                             f"lane of lite's map '{road_map.name}'")
     lane = int(road_map.point_lane[k])
     s = (k - int(road_map.offset[lane])) * DS
     h = road_map.headings[k]
@@ -101,30 +105,33 @@ def _lane_start(road_map: RoadMap, v: ParsedVehicle, x: float, y: float, yaw: fl
 
 
 def _script(v: ParsedVehicle, dt: float, steps: int) -> ScriptedMotion:
-    """The vehicle's pose after every step (times dt, 2 dt, ...) from its polyline."""
+    """The vehicle's pose after every step (row k: time (k + 1) dt) from its polyline."""
     assert v.times is not None and v.poses is not None
-    t = (np.arange(steps + 2)) * dt  # one sample past the end for the last step's speed
+    t = np.arange(steps + 1) * dt  # the start and after every step
     yaw_path = np.unwrap(v.poses[:, 3])
     pose = np.column_stack([np.interp(t, v.times, v.poses[:, 0]), np.interp(t, v.times, v.poses[:, 1]),
                             np.interp(t, v.times, v.poses[:, 2]), np.interp(t, v.times, yaw_path)])
     x, y, yaw = _centre(v, pose)
     chord = np.hypot(np.diff(x), np.diff(y)) / dt  # mean speed over each step
     speed = np.empty(steps + 1)
-    speed[0] = chord[0]
-    speed[1:] = 0.5 * (chord[:-1] + chord[1:])  # at a sample: the mean of the steps before and after it
+    speed[0], speed[-1] = chord[0], chord[-1]  # the ends: the one step beside them
+    speed[1:-1] = 0.5 * (chord[:-1] + chord[1:])  # inside: the mean of the steps before and after the sample
     speed = np.where(speed < 1e-6, 0.0, speed)
     slowing = np.diff(speed, prepend=speed[0]) / dt < -BRAKE_LIGHT_DECEL
-    standing = speed < STANDING
-    braking = slowing | standing
-    return ScriptedMotion(x=x[1:steps + 1], y=y[1:steps + 1], yaw=yaw[1:steps + 1], speed=speed[1:],
-                          braking=braking[1:])
+    braking = slowing | (speed < STANDING)
+    return ScriptedMotion(x=x[1:], y=y[1:], yaw=yaw[1:], speed=speed[1:], braking=braking[1:])
 
 
 def _knobs(event_env: Any, other: dict[str, float], minor: int, base: Weather) -> tuple[Weather, dict[str, str]]:
+    """``base`` with what an event sets: its Environment's knobs, then the other knobs of our command (actor
+    knobs excepted). What the event does not carry stays as it was."""
     values = base.as_dict()
-    sources = dict.fromkeys(values, "default")
+    sources: dict[str, str] = {}
     for name, value in other.items():
-        if name in KNOBS and not KNOBS[name].is_actor:
+        if name not in KNOBS:
+            raise UserInputError(f"CustomCommandAction {KNOBS_COMMAND}: unknown knob '{name}'; allowed: "
+                                 f"{', '.join(KNOBS)}")
+        if not KNOBS[name].is_actor:
             values[name] = value
             sources[name] = "genesis"
     if event_env is not None:
@@ -135,26 +142,48 @@ def _knobs(event_env: Any, other: dict[str, float], minor: int, base: Weather) -
 
 
 def scenario_weathers(parsed: ParsedScenario, dt: float, steps: int) -> tuple[Weather, list[Weather], dict[str, str]]:
-    """The start weather and the weather set before every step, and each knob's source."""
+    """The start weather and the weather set before every step (an event's weather holds from the step at whose
+    time it has fired), and each knob's source (``standard``, ``genesis`` or ``default``)."""
     start_other = next((w.other_knobs for w in parsed.weather if w.name == START_KNOBS_EVENT), {})
     start, sources = _knobs(parsed.start_environment, start_other, parsed.minor, Weather.default())
+    sources = {**dict.fromkeys(KNOBS, "default"), **sources}
     events: list[WeatherEvent] = [w for w in parsed.weather if w.name != START_KNOBS_EVENT]
     out = []
     current, j = start, 0
     for k in range(steps):
         while j < len(events) and events[j].after_s < k * dt - 1e-9:
-            current, s = _knobs(events[j].environment, events[j].other_knobs, parsed.minor, Weather.default())
-            sources.update({n: v for n, v in s.items() if v != "default"})
+            current, s = _knobs(events[j].environment, events[j].other_knobs, parsed.minor, current)
+            sources.update(s)
             j += 1
         out.append(current)
     return start, out, sources
+
+
+def _parameter(parsed: ParsedScenario, name: str, default: str, kind: type, allowed: str) -> Any:
+    value = parsed.parameters.get(name, default)
+    try:
+        return kind(value)
+    except ValueError:
+        raise UserInputError(f"{parsed.path}: parameter {name} = '{value}'; allowed: {allowed}") from None
+
+
+def _camera(parsed: ParsedScenario) -> tuple[int, int]:
+    value = parsed.parameters.get("GenesisCamera", "320x240")
+    parts = value.split("x")
+    if len(parts) != 2 or not all(p.isdigit() and 16 <= int(p) <= 4096 for p in parts):
+        raise UserInputError(f"{parsed.path}: parameter GenesisCamera = '{value}'; allowed: WIDTHxHEIGHT, each "
+                             "16..4096")
+    return int(parts[0]), int(parts[1])
 
 
 def scene_of(parsed: ParsedScenario) -> tuple[Scene, dict[int, ScriptedMotion], float, int]:
     """The lite scene, the scripts of the vehicles with trajectories, the step length and the step count."""
     map_name = _map_name(parsed)
     road_map = load_map(map_name)
-    dt = float(parsed.parameters.get("GenesisStepSeconds", "0.05"))
+    dt = _parameter(parsed, "GenesisStepSeconds", str(FIXED_DELTA_SECONDS), float, f"{FIXED_DELTA_SECONDS}")
+    if abs(dt - FIXED_DELTA_SECONDS) > 1e-9:
+        raise UserInputError(f"{parsed.path}: parameter GenesisStepSeconds = {dt}; allowed: {FIXED_DELTA_SECONDS} "
+                             "(lite's step)")
     if parsed.stop_after_s is None:
         raise UserInputError(f"{parsed.path}: the storyboard has no SimulationTime stop trigger; lite needs the "
                              "episode's length")
@@ -175,8 +204,9 @@ def scene_of(parsed: ParsedScenario) -> tuple[Scene, dict[int, ScriptedMotion], 
                                  s, x, y, yaw, v.start_speed, nxt, autopilot))
         if i > 0 and v.times is not None:
             scripts[i] = _script(v, dt, steps)
-    scene = Scene(index=0, map=map_name, seed=int(parsed.parameters.get("GenesisSceneSeed", "0")),
-                  signal_offset=float(parsed.parameters.get("GenesisSignalOffset", "0")), vehicles=tuple(specs))
+    scene = Scene(index=0, map=map_name, seed=_parameter(parsed, "GenesisSceneSeed", "0", int, "an integer >= 0"),
+                  signal_offset=_parameter(parsed, "GenesisSignalOffset", "0", float, "a number of seconds"),
+                  vehicles=tuple(specs))
     return scene, scripts, dt, steps
 
 
@@ -199,8 +229,8 @@ def drive_scenario(parsed: ParsedScenario, system_spec: str | None = None, weigh
     if system_spec is not None:
         recorded = {"spec": system_spec}
     system = load_recorded_system(recorded, weights)
-    width, height = (int(v) for v in parsed.parameters.get("GenesisCamera", "320x240").split("x"))
-    seed = int(parsed.parameters.get("GenesisEpisodeSeed", "0"))
+    width, height = _camera(parsed)
+    seed = _parameter(parsed, "GenesisEpisodeSeed", "0", int, "an integer >= 0")
     backend = LiteBackend()
     records: list[StepRecord] = []
     try:

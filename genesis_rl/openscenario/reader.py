@@ -93,7 +93,8 @@ def _float(el: ET.Element, attr: str, where: str) -> float:
 
 
 def _pose(world: ET.Element, where: str) -> list[float]:
-    return [float(world.get(f, "0")) if f in ("z", "h", "p") else _float(world, f, where) for f in POSE_FIELDS]
+    """x, y, z, h, p of a WorldPosition (z, h and p are optional: 0)."""
+    return [_float(world, f, where) if f in ("x", "y") or world.get(f) is not None else 0.0 for f in POSE_FIELDS]
 
 
 def _environment(env: ET.Element, minor: int, where: str) -> OscEnvironment:
@@ -105,18 +106,20 @@ def _environment(env: ET.Element, minor: int, where: str) -> OscEnvironment:
     sun, fog, rain = weather.find("Sun"), weather.find("Fog"), weather.find("Precipitation")
     if sun is None or fog is None or rain is None:
         raise UserInputError(f"{where}: Weather needs Sun, Fog and Precipitation to set lite's weather")
-    intensity = sun.get("intensity", sun.get("illuminance"))
-    rate = rain.get("intensity", rain.get("precipitationIntensity"))
+    sun_key = "intensity" if "intensity" in sun.attrib else "illuminance"  # renamed in 1.2
+    rain_key = "intensity" if "intensity" in rain.attrib else "precipitationIntensity"  # renamed in 1.1
     wind = weather.find("Wind")
     hour = 12
-    if time_of_day is not None and "T" in time_of_day.get("dateTime", ""):
-        hour = int(time_of_day.get("dateTime", "T12").split("T")[1][:2])
+    stamp = "" if time_of_day is None else time_of_day.get("dateTime", "")
+    if "T" in stamp and stamp.split("T")[1][:2].isdigit():
+        hour = int(stamp.split("T")[1][:2])
     return OscEnvironment(
-        sun_intensity=float(intensity or 1.0), sun_azimuth=_float(sun, "azimuth", where),
-        sun_elevation=_float(sun, "elevation", where),
+        sun_intensity=_float(sun, sun_key, where) if sun_key in sun.attrib else 1.0,
+        sun_azimuth=_float(sun, "azimuth", where), sun_elevation=_float(sun, "elevation", where),
         cloud_state=weather.get("cloudState", weather.get("fractionalCloudCover", "free")),
         fog_visual_range=_float(fog, "visualRange", where), precipitation_type=rain.get("precipitationType", "dry"),
-        precipitation_intensity=float(rate or 0.0), friction_scale_factor=_float(road, "frictionScaleFactor", where),
+        precipitation_intensity=_float(rain, rain_key, where) if rain_key in rain.attrib else 0.0,
+        friction_scale_factor=_float(road, "frictionScaleFactor", where),
         wetness=road.get("wetness"), wind_speed=None if wind is None else _float(wind, "speed", where), hour=hour)
 
 
@@ -131,9 +134,9 @@ def _knobs_command(action: ET.Element, where: str) -> dict[str, float]:
     return {str(k): float(v) for k, v in values.items()}
 
 
-def _trigger_after(event: ET.Element) -> float | None:
+def _trigger_after(event: ET.Element, where: str) -> float | None:
     cond = event.find("StartTrigger/ConditionGroup/Condition/ByValueCondition/SimulationTimeCondition")
-    return None if cond is None else float(cond.get("value", "0"))
+    return None if cond is None else _float(cond, "value", f"{where}: event '{event.get('name')}'")
 
 
 def read_scenario(path: Path | str) -> ParsedScenario:
@@ -194,7 +197,7 @@ def read_scenario(path: Path | str) -> ParsedScenario:
                 other: dict[str, float] = {}
                 for action in event.iterfind("Action"):
                     other.update(_knobs_command(action, where))
-                after = _trigger_after(event)
+                after = _trigger_after(event, where)
                 weather.append(WeatherEvent(name, -1.0 if after is None else after,
                                             None if env_el is None else _environment(env_el, minor, where), other))
 
@@ -224,4 +227,4 @@ def read_scenario(path: Path | str) -> ParsedScenario:
         road_file="" if logic is None else logic.get("filepath", ""), parameters=params, vehicles=tuple(vehicles),
         start_environment=_environment(start_env, minor, where),
         weather=tuple(sorted(weather, key=lambda w: w.after_s)),
-        stop_after_s=None if stop is None else float(stop.get("value", "0")))
+        stop_after_s=None if stop is None else _float(stop, "value", f"{where}: the StopTrigger"))

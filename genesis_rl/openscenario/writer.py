@@ -23,7 +23,6 @@ What goes where (docs/openscenario.md has the full mapping):
 from __future__ import annotations
 
 import json
-import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,8 @@ import numpy as np
 
 from genesis_rl import __version__
 from genesis_rl.io_utils import atomic_write_text
+from genesis_rl.lite.maps.opendrive import _wrap
+from genesis_rl.lite.traffic import MAX_BRAKE, MAX_STEER
 from genesis_rl.openscenario.environment import DATE, OscEnvironment, environment_of, expressed_knobs
 from genesis_rl.openscenario.trace import EpisodeTrace, VehicleTrack
 from genesis_rl.scenes.vehicles import MAKES
@@ -46,9 +47,7 @@ BLUEPRINT = {"sedan": "vehicle.tesla.model3", "hatchback": "vehicle.mini.cooper_
              "van": "vehicle.volkswagen.t2_2021", "truck": "vehicle.carlamotors.european_hgv",
              "bus": "vehicle.mitsubishi.fusorosa"}
 CATEGORY = {"sedan": "car", "hatchback": "car", "suv": "car", "van": "van", "truck": "truck", "bus": "bus"}
-MAX_DECELERATION = 8.0  # [m/s^2] lite's full brake (traffic.MAX_BRAKE)
 WHEEL_DIAMETER = 0.7  # [m]
-MAX_STEER = math.radians(35.0)  # lite's wheel angle at full lock (traffic.MAX_STEER)
 
 
 def vehicle_name(vehicle_id: int) -> str:
@@ -59,10 +58,6 @@ def rear_axle(track: VehicleTrack) -> tuple[np.ndarray, np.ndarray]:
     """The rear axle's centre (the standard's vehicle reference point) of a track's box centres."""
     half = 0.5 * MAKES[track.make].wheelbase
     return track.x - half * np.cos(track.yaw), track.y - half * np.sin(track.yaw)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def _position(xosc: Any, x: float, y: float, z: float, yaw: float, pitch: float) -> Any:
@@ -78,14 +73,14 @@ def _vehicle(xosc: Any, track: VehicleTrack) -> Any:
     v = xosc.Vehicle(
         BLUEPRINT[track.make], getattr(xosc.VehicleCategory, CATEGORY[track.make]),
         xosc.BoundingBox(make.width, make.length, make.height, 0.5 * make.wheelbase, 0.0, 0.5 * make.height),
-        xosc.Axle(MAX_STEER, WHEEL_DIAMETER, track_width, make.wheelbase, 0.5 * WHEEL_DIAMETER),
+        xosc.Axle(float(MAX_STEER), WHEEL_DIAMETER, track_width, make.wheelbase, 0.5 * WHEEL_DIAMETER),
         xosc.Axle(0.0, WHEEL_DIAMETER, track_width, 0.0, 0.5 * WHEEL_DIAMETER),
-        make.max_speed, make.max_accel, MAX_DECELERATION)
+        make.max_speed, make.max_accel, MAX_BRAKE)
     if track.vehicle_id == 0:
         v.add_property("type", "ego_vehicle")
     for key, value in (("genesis.make", track.make), ("genesis.color", track.color_name),
                        ("genesis.vehicle_id", track.vehicle_id), ("genesis.lane", track.lane),
-                       ("genesis.s", repr(track.s)), ("genesis.next_lane", track.next_lane)):
+                       ("genesis.s", repr(float(track.s))), ("genesis.next_lane", track.next_lane)):
         v.add_property(key, str(value))
     return v
 
@@ -124,9 +119,9 @@ def _time_trigger(xosc: Any, name: str, after_s: float) -> Any:
 
 
 def polyline_vertices(times: np.ndarray, path: np.ndarray, tolerance: np.ndarray) -> list[int]:
-    """The samples to keep of a time-stamped path (rows of times, columns x, y, z, yaw, ...): the fewest, chosen
-    greedily, such that interpolating linearly in time between kept ones reproduces every dropped sample within
-    ``tolerance`` (per column). The first and last are always kept."""
+    """The samples to keep of a time-stamped path (rows of times, columns x, y, z, yaw, ...): few, chosen
+    greedily (each segment grows until one more sample would put a dropped one outside ``tolerance``, per
+    column, of the linear interpolation in time). The first and last are always kept."""
     keep = [0]
     start = 0
     n = len(times)
@@ -181,8 +176,8 @@ def build_scenario(trace: EpisodeTrace, xodr_file: str, minor: int = 0) -> Any:
             ("GenesisMap", xosc.ParameterType.string, trace.map),
             ("GenesisEpisodeSeed", integer, str(trace.episode_seed)),
             ("GenesisSceneSeed", integer, str(trace.scene_seed)),
-            ("GenesisSignalOffset", xosc.ParameterType.double, repr(trace.signal_offset)),
-            ("GenesisStepSeconds", xosc.ParameterType.double, repr(trace.dt)),
+            ("GenesisSignalOffset", xosc.ParameterType.double, repr(float(trace.signal_offset))),
+            ("GenesisStepSeconds", xosc.ParameterType.double, repr(float(trace.dt))),
             ("GenesisCamera", xosc.ParameterType.string, f"{trace.camera[0]}x{trace.camera[1]}"),
             ("GenesisSystem", xosc.ParameterType.string, json.dumps(trace.system, sort_keys=True)),
             ("GenesisRulebook", xosc.ParameterType.string, json.dumps(trace.rulebook, sort_keys=True))):
