@@ -23,6 +23,13 @@ import numpy as np
 from genesis_rl import ranges
 from genesis_rl.errors import UserInputError
 
+#: a cut-in is made into the gap ``cut_in_ttc`` asks for, at most this much time-to-collision [s] below it
+#: (the gap closes by one step's worth each step; a knob lowered past a gap does not cut into it)
+CUT_IN_TTC_WINDOW = 0.25
+#: UN R157 Annex 4 Appendix 3's lateral wandering distance [m]: a careful driver can perceive a cut-in once the
+#: cutter has moved this far toward the ego's lane
+CUT_IN_WANDER_M = 0.375
+
 
 @dataclass(frozen=True)
 class ActorKnobSpec:

@@ -20,16 +20,18 @@ from genesis_rl.knobs import KNOBS
 from genesis_rl.lite.actors import CUT_IN_DURATION, cut_in_offset, cut_in_start_gap, lead_speed
 
 
-def test_tm_names_and_sources_are_declared_and_only_lead_decel_is_turned():
+def test_tm_names_and_sources_are_declared_and_only_lead_decel_and_the_cut_in_are_turned():
+    turned = ("lead_decel", "cut_in_ttc")
     for name in ("lead_decel", "lead_brake_onset", "cut_in_ttc", "cut_in_onset", "distance_to_leading_vehicle",
                  "vehicle_percentage_speed_difference", "ignore_lights_percentage", "auto_lane_change",
                  "random_left_lanechange_percentage", "random_right_lanechange_percentage"):
         assert name in ACTOR_KNOBS and ACTOR_KNOBS[name].source
         # only the knobs the step loop turns join the knob registry, as actor knobs at their harmless default
-        assert (name in KNOBS) == (name == "lead_decel")
+        assert (name in KNOBS) == (name in turned)
     spec = KNOBS["lead_decel"]
     assert spec.is_actor and spec.default == 0.0 and (spec.low, spec.high, spec.unit) == (0.0, 8.0, "m/s^2")
-    assert spec.carla_field is None and not any(k.is_actor for n, k in KNOBS.items() if n != "lead_decel")
+    assert spec.carla_field is None and not any(k.is_actor for n, k in KNOBS.items() if n not in turned)
+    assert KNOBS["cut_in_ttc"].is_actor and KNOBS["cut_in_ttc"].carla_field is None
     assert "R157" in ACTOR_KNOBS["cut_in_ttc"].source and "CCRb" in ACTOR_KNOBS["lead_decel"].source
 
 
@@ -92,26 +94,34 @@ def test_traffic_conditions_parse_and_refuse_naming_field():
         parse_traffic_conditions({"max_decel": 3})
 
 
-def test_weather_only_lite_episode_is_bit_identical_to_main():
-    """A seeded highway scene (200 ticks, throttle 0.3) hashes as it did on main at dc9ed91, before actor knobs."""
-    import hashlib
-
+def test_weather_only_lite_episode_is_bit_identical_with_the_actor_knobs_at_their_defaults():
+    """A seeded highway scene (200 ticks, throttle 0.3): setting every knob each tick, the actor knobs at their
+    defaults, moves no vehicle by a single bit against ticking without them; the ego ends where it did on main
+    at dc9ed91, before actor knobs. (A hash of every pose, which this test held before, changed with the
+    numpy build: numpy 2.4.6 rounds some NPC's trigonometry differently, on main as well.)"""
+    from genesis_rl.knobs import Weather
     from genesis_rl.lite.backend import LiteBackend
     from genesis_rl.lite.scenes import generate_catalog
     from genesis_rl.sim.interface import VehicleControl
 
     scene = generate_catalog("highway", 1, 3).scenes[0]
-    with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
-        sim.apply_ego_control(VehicleControl(throttle=0.3))
-        out = []
-        for _ in range(200):
-            sim.tick()
-            out.append(sim.poses()[:, :2].copy())
-    poses = np.array(out)
-    assert float(poses[-1, 0, 0]) == 55.8651522936967
-    assert float(poses[-1, 1, 0]) == 71.0090980840106
-    assert hashlib.sha256(poses.tobytes()).hexdigest() == (
-        "c7c1fe336b0f6834b5f63e4cef16a092ddda78404db22fd076321b9ec0c0f146")
+
+    def run(set_knobs: bool) -> np.ndarray:
+        with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
+            sim.apply_ego_control(VehicleControl(throttle=0.3))
+            out = []
+            for _ in range(200):
+                if set_knobs:
+                    sim.set_weather(Weather.default())
+                sim.tick()
+                out.append(sim.poses()[:, :2].copy())
+            assert sim.actor_events() == []
+        return np.array(out)
+
+    plain, with_knobs = run(False), run(True)
+    assert np.array_equal(plain, with_knobs)
+    assert float(plain[-1, 0, 0]) == pytest.approx(55.8651522936967, abs=1e-9)
+    assert float(plain[-1, 1, 0]) == pytest.approx(71.0090980840106, abs=1e-9)
 
 
 @pytest.mark.parametrize("steps_per_s", [20, 10])

@@ -81,12 +81,12 @@ def straight_map():
 
 
 # -- weather -------------------------------------------------------------------------------------------------
-WEATHER_KNOBS = weather_knob_names()  # the actor knobs (lead_decel) have no WeatherParameters field
+WEATHER_KNOBS = weather_knob_names()  # the actor knobs (lead_decel, cut_in_ttc) have no WeatherParameters field
 
 
 def test_knobs_are_exactly_the_weather_parameters_fields():
     assert set(carla_weather_fields()) == set(WEATHER_KNOBS)
-    assert len(WEATHER_KNOBS) == 14 and set(KNOBS) - set(WEATHER_KNOBS) == {"lead_decel"}
+    assert len(WEATHER_KNOBS) == 14 and set(KNOBS) - set(WEATHER_KNOBS) == {"lead_decel", "cut_in_ttc"}
 
 
 @pytest.mark.parametrize("name", sorted(WEATHER_KNOBS))

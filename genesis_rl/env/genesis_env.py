@@ -36,7 +36,7 @@ from genesis_rl.odd.dynamics import DYNAMICS, WeatherModel, max_deltas
 from genesis_rl.plugins import check_import, gate_held, import_modules
 from genesis_rl.rules.reward import PaperReward, RewardConfig
 from genesis_rl.rules.rulebook import Rulebook, check_rulebook_imports, rulebook_for
-from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, CameraConfig, ConnectionSettings, Simulation
+from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, ActorEvent, CameraConfig, ConnectionSettings, Simulation
 from genesis_rl.step_record import StepRecord
 from genesis_rl.system.protocol import BUILTIN_SYSTEMS, load_system
 from genesis_rl.viz.frames import annotate_frame
@@ -388,6 +388,10 @@ class GenesisEnv(gym.Env):
         if self.records:
             return annotate_frame(self._loop.frame.rgb, self.records[-1])
         return self._loop.frame.rgb.copy()
+
+    def actor_events(self) -> list[ActorEvent]:
+        """What the actor knobs made happen in the current episode (``Simulation.actor_events``)."""
+        return [] if self._sim is None else self._sim.actor_events()
 
     def _close_sim(self) -> None:
         if self._sim is not None:

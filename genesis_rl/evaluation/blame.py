@@ -15,7 +15,9 @@ Measured, not guessed, from three pieces of evidence:
 
 The label (:func:`blame_label`): ``perception`` when the oracle replay avoids the collision; else
 ``control`` when the vehicle was visible and stoppable, or when the ego drove too fast for the visibility
-(a driver would have slowed down); else ``unavoidable``.
+(a driver would have slowed down); else ``unavoidable``. When the tester's actor knob acted on the vehicle
+hit (a cut-in, the lead braking), the careful-driver reference of UN R157 decides avoidable or not instead
+of the visibility evidence (``evaluation.careful_driver``), and the failure names it as its ``reference``.
 """
 
 from __future__ import annotations
@@ -77,11 +79,28 @@ def visibility_evidence(records: Sequence[StepRecord], hit_at: int, dt: float = 
             "stoppable": bool(d0 >= needed and visible_s >= reaction_s)}
 
 
-def blame_label(evidence: dict[str, Any], oracle_collides: bool | None) -> str:
+def blame_label(evidence: dict[str, Any], oracle_collides: bool | None,
+                careful_driver: dict[str, Any] | None = None) -> str:
     """perception / control / unavoidable from the evidence (module docstring). Without a counterfactual
-    (``oracle_collides`` None), a visible, stoppable collision is charged to control."""
+    (``oracle_collides`` None), a visible, stoppable collision is charged to control. When an actor knob
+    acted on the vehicle hit, the careful-driver reference (``evaluation.careful_driver``) decides whether it
+    was avoidable: unavoidable when that driver collides too; else perception or control as above, never
+    unavoidable (a careful driver avoided it)."""
+    if careful_driver is not None:
+        if careful_driver["collides"]:
+            return "unavoidable"
+        return "perception" if oracle_collides is False else "control"
     if oracle_collides is False:
         return "perception"
     if evidence.get("stoppable") or evidence.get("too_fast_for_visibility_m_s", 0.0) > TOO_FAST_TOLERANCE:
         return "control"
     return "unavoidable"
+
+
+#: what decides avoidable or not when no actor knob acted on the vehicle hit
+VISIBILITY_REFERENCE = "visible and stoppable (UK Highway Code stopping distances)"
+
+
+def reference_name(careful_driver: dict[str, Any] | None) -> str:
+    """The reference that decided whether a collision was avoidable, as the report names it."""
+    return VISIBILITY_REFERENCE if careful_driver is None else str(careful_driver["reference"])

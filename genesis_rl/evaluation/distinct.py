@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
 
 #: visibility bands [m]: fog warnings (< 50), dense fog to mist (50-150), haze (150-500), clear
@@ -27,6 +28,8 @@ RAIN_BANDS = ((0.0, "no rain"), (2.5, "light rain"), (7.6, "moderate rain"), (50
 #: the lead "brakes" when its speed fell by at least this much [m/s] in LEAD_BRAKING_S before the impact
 LEAD_BRAKING_DROP = 3.0
 LEAD_BRAKING_S = 3.0
+#: a collision with a vehicle the tester made cut in within this long [s] is that cut-in's failure
+CUT_IN_WINDOW_S = 10.0
 KEY_FIELDS = ("mode", "blame", "odd_status", "visibility", "rain", "light", "road_state", "hit")
 
 
@@ -40,11 +43,17 @@ def rain_band(rain_mm_h: float) -> str:
     return next(name for upper, name in RAIN_BANDS[1:] if rain_mm_h < upper)
 
 
-def what_was_hit(records: Sequence[StepRecord], hit_at: int, dt: float = 0.05) -> str:
-    """``lead braked by the tester`` (the ``lead_decel`` actor knob was on in the window: an actor event, not
-    the traffic's own), ``braking lead``, ``lead`` or ``other vehicle`` (the hit vehicle was not the lead
-    just before)."""
+def what_was_hit(records: Sequence[StepRecord], hit_at: int, dt: float = 0.05,
+                 actor_events: Sequence[ActorEvent] = ()) -> str:
+    """``cut in by the tester`` (the ``cut_in_ttc`` knob made the vehicle hit cut in within the last
+    ``CUT_IN_WINDOW_S``), ``lead braked by the tester`` (the ``lead_decel`` actor knob was on in the window: an
+    actor event, not the traffic's own), ``braking lead``, ``lead`` or ``other vehicle`` (the hit vehicle was
+    not the lead just before)."""
     vid = records[hit_at].collision.other_id
+    t_hit = records[hit_at].time_s
+    if any(e.kind == "cut_in" and e.vehicle_id == vid and t_hit - CUT_IN_WINDOW_S <= e.onset_s <= t_hit
+           for e in actor_events):
+        return "cut in by the tester"
     before = records[max(0, hit_at - 1)]
     if before.lead.vehicle_id != vid:
         return "other vehicle"
@@ -105,18 +114,25 @@ def natural_summary(policy: str, rows: Sequence[Mapping[str, Any]]) -> dict[str,
     steps = {s: sum(r.get("odd", {}).get(s, 0) for r in rows) for s in ("inside", "boundary", "outside")}
     total_steps = sum(steps.values())
     groups = clusters(in_odd)
+    avoidable = [f for f in in_odd if f.get("blame") != "unavoidable"]
     return {
         "odd": has_odd,
         "collisions": len(failures),
         "in_odd_collisions": len(in_odd),
         "in_odd_collision_rate": clopper_pearson(len(in_odd), len(rows)),
         "distinct_in_odd_failures": len(groups),
+        # the system's own failures: an unavoidable collision (the reference collides too) is not one
+        "avoidable_in_odd_collisions": len(avoidable),
+        "distinct_avoidable_in_odd_failures": sum(1 for c in groups if c["blame"] != "unavoidable"),
+        "references": {ref: sum(1 for f in in_odd if f.get("reference") == ref)
+                       for ref in sorted({str(f["reference"]) for f in in_odd if f.get("reference")})},
         "blame": _blame_counts(in_odd),
         "outside_odd_blame": _blame_counts([f for f in failures if f not in in_odd]),
         "naturalness_mean": round(float(np.mean([r["naturalness"]["ratio_to_held"] for r in rows])), 3),
         "failure_naturalness_mean": round(float(np.mean([f["naturalness"] for f in in_odd])), 3) if in_odd else None,
         "odd_steps": {s: round(n / total_steps, 4) for s, n in steps.items()} if has_odd and total_steps else None,
         "clusters": [{**{k: c[k] for k in (*KEY_FIELDS, "count")},
+                      "reference": c["members"][0].get("reference"),
                       "members": [{k: m.get(k) for k in ("scene", "episode_seed", "naturalness", "record", "step")}
                                   for m in c["members"]]} for c in groups],
     }

@@ -19,9 +19,10 @@ from PIL import Image
 from genesis_rl.config import from_mapping
 from genesis_rl.drive import write_telemetry
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
-from genesis_rl.evaluation.blame import blame_label, visibility_evidence
+from genesis_rl.evaluation.blame import blame_label, reference_name, visibility_evidence
 from genesis_rl.evaluation.campaign_files import episode_name, episode_path, steps_path
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
+from genesis_rl.evaluation.careful_driver import careful_driver_evidence, event_for_collision
 from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
 from genesis_rl.evaluation.failure_modes import LABELLER_VERSION, label_collision
 from genesis_rl.evaluation.policies import EpisodeOutcome
@@ -30,6 +31,7 @@ from genesis_rl.io_utils import atomic_write, atomic_write_json
 from genesis_rl.knobs import Weather
 from genesis_rl.odd.domain import STATUSES
 from genesis_rl.rules.rulebook import Rulebook
+from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
 
 #: after the recorded impact, how long the counterfactual replay drives on looking for a collision [s]
@@ -68,7 +70,7 @@ class CampaignRunner:
                 frames[rec.step] = rgb
             if terminated or truncated:
                 break
-        return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records))
+        return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records), actor_events=env.actor_events())
 
     def oracle_collides(self, scene: int, episode_seed: int, records: Sequence[StepRecord], hit_at: int) -> bool:
         """The counterfactual: the same scene, seeds and weather trajectory, driven by the ``oracle`` system
@@ -100,7 +102,9 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     records = outcome.records
     write_telemetry(steps_path(folder, policy, scene), records)
     row = episode_row(policy, scene, episode_seed, outcome, env.rulebook, env.config.knobs)
-    add_natural_fields(row, runner, scene, episode_seed, records)
+    if outcome.actor_events:
+        row["actor_events"] = [e.as_dict() for e in outcome.actor_events]
+    add_natural_fields(row, runner, scene, episode_seed, records, outcome.actor_events)
     row["seconds"] = round(seconds, 2)
     if lost:
         row["simulator_lost"] = list(lost)
@@ -116,11 +120,13 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
 
 
 def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, episode_seed: int,
-                       records: Sequence[StepRecord]) -> None:
+                       records: Sequence[StepRecord], actor_events: Sequence[ActorEvent] = ()) -> None:
     """What makes a failure a natural edge case, added to the episode's row: its steps' ODD labels, the
     weather trajectory's log-likelihood, and for a collision the conditions and ODD status at the impact,
     the visibility evidence, the counterfactual oracle replay (when ``counterfactual`` is on: by default with
-    an ODD), the blame, what was hit and the failure's cluster fields (``evaluation.distinct``)."""
+    an ODD), the careful-driver reference when an actor knob acted on the vehicle hit (``careful_driver``),
+    the blame and the reference that decided it, what was hit and the failure's cluster fields
+    (``evaluation.distinct``)."""
     env = runner.env
     if not records:
         return
@@ -138,6 +144,8 @@ def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, 
     evidence = visibility_evidence(records, hit_at, env.dt)
     run_oracle = bool(runner.spec.options.get("counterfactual", env.odd is not None))
     oracle = runner.oracle_collides(scene, episode_seed, records, hit_at) if run_oracle else None
+    event = event_for_collision(actor_events, records, hit_at)
+    careful = None if event is None else careful_driver_evidence(records, hit_at, event, env.dt)
     c = at.conditions
     failure.update(
         naturalness=round(model.naturalness(trajectory[:hit_at + 2], env.dt), 3),
@@ -147,11 +155,14 @@ def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, 
         rain=None if c is None else rain_band(c.rain_mm_h),
         light=None if c is None else c.light,
         road_state=None if c is None else c.road_state,
-        hit=what_was_hit(records, hit_at, env.dt),
+        hit=what_was_hit(records, hit_at, env.dt, actor_events),
         evidence=evidence,
         oracle_collides=oracle,
-        blame=blame_label(evidence, oracle),
+        blame=blame_label(evidence, oracle, careful),
+        reference=reference_name(careful),
     )
+    if careful is not None:
+        failure["careful_driver"] = careful
 
 
 def _write_jpeg(path: Path, rgb: np.ndarray) -> None:

@@ -26,6 +26,7 @@ import numpy as np
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.plugins import load_class
+from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
 
 POLICIES: dict[str, type[WeatherPolicy]] = {}
@@ -45,6 +46,8 @@ class EpisodeOutcome:
     frames: dict[int, np.ndarray] = field(default_factory=dict)
     sim_steps: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    #: what the actor knobs made happen (cut-ins, a lead braking), for the careful-driver reference
+    actor_events: list[ActorEvent] = field(default_factory=list)
 
     @property
     def total_reward(self) -> float:

@@ -45,9 +45,15 @@ def lead_lines(summary: dict[str, Any]) -> list[str]:
         if outside:
             split = ", ".join(f"{k} {v}" for k, v in n.get("outside_odd_blame", {}).items() if v)
             beyond = f"; <b>{outside} more outside the ODD</b>" + (f" (blame: {split})" if split else "")
+        unavoidable = n["blame"].get("unavoidable", 0)
+        refs = ", ".join(f"{html.escape(k)} {v}" for k, v in n.get("references", {}).items())
+        own = "" if not unavoidable else \
+            (f"; {n.get('distinct_avoidable_in_odd_failures', '?')} distinct avoidable: {unavoidable} unavoidable "
+             "collision(s) are not counted against the system")
+        decided = f" (decided by: {refs})" if refs else ""
         out.append(f"<b>{html.escape(policy)}</b>: <b>{n['distinct_in_odd_failures']} distinct {where} "
                    f"failure(s)</b> ({n['in_odd_collisions']} {where} collisions in {rate['n']} episodes{ci}); "
-                   f"blame: {blame}{nat}{beyond}")
+                   f"blame: {blame}{decided}{own}{nat}{beyond}")
     return out
 
 
@@ -103,6 +109,13 @@ def fig_odd_coverage(summary: dict[str, Any], rows: dict[str, list[dict[str, Any
     return png(fig)
 
 
+def _short_reference(reference: Any) -> str:
+    """The reference's name as the table shows it ("–" for campaigns written before references existed)."""
+    if not reference:
+        return "–"
+    return "R157 careful driver" if "R157" in str(reference) else "visibility, stopping distance"
+
+
 def cluster_rows(summary: dict[str, Any]) -> list[dict[str, Any]]:
     """Every policy's clusters in one list, ordered by rule priority (all are collisions), blame and
     naturalness (most natural first)."""
@@ -140,19 +153,24 @@ def section(folder: Path, summary: dict[str, Any], rows: dict[str, list[dict[str
     if not clusters:
         h.append("<p>No collision inside the ODD.</p>")
         return h
-    head = ["#", "policy", "failure mode", "blame", "ODD", "visibility", "rain", "light", "road", "hit", "count",
-            "most natural: scene", "naturalness [nats]"]
+    head = ["#", "policy", "failure mode", "blame", "decided by", "ODD", "visibility", "rain", "light", "road", "hit",
+            "count", "most natural: scene", "naturalness [nats]"]
     h.append("<table><tr>" + "".join(f"<th class=l>{c}</th>" for c in head) + "</tr>")
     for i, c in enumerate(clusters, 1):
         rep = c["members"][0]
-        cells = [str(i), c["policy"], c["mode"], c["blame"], c["odd_status"], c["visibility"], c["rain"], c["light"],
+        cells = [str(i), c["policy"], c["mode"], c["blame"], _short_reference(c.get("reference")), c["odd_status"],
+                 c["visibility"], c["rain"], c["light"],
                  c["road_state"], c["hit"], str(c["count"]), str(rep["scene"]),
                  "–" if rep["naturalness"] is None else f"{rep['naturalness']:.3g}"]
         h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in cells) + "</tr>")
     h.append("</table><p class=meta>Two failures are the same when mode, blame, ODD status, the conditions' bands "
              "and what was hit agree (docs/odd.md). Blame: <i>perception</i>, ground-truth perception (the oracle "
              "replay) avoids it; <i>control</i>, the vehicle was visible with room to stop, or the ego drove too "
-             "fast for the visibility; <i>unavoidable</i>, neither.</p>")
+             "fast for the visibility; <i>unavoidable</i>, neither. When the tester's actor knob acted on the "
+             "vehicle hit (a cut-in, the lead braking), UN R157's competent and careful driver decides instead: "
+             "perceives after 0.4 s, reacts after 0.75 s more, brakes at up to 0.774 g; the collision is "
+             "<i>unavoidable</i> when that driver collides too, and is then not the system's failure "
+             "(docs/actors.md).</p>")
     for i, c in enumerate(clusters[:max_frames], 1):
         rep = c["members"][0]
         strip = frame_strip(c["policy"], rep["scene"], steps_of(c["policy"], rep["scene"]))

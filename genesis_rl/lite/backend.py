@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import Weather, frame_hooks
+from genesis_rl.knobs import KNOBS, Weather, frame_hooks
 from genesis_rl.lite.maps import MAP_NAMES, load_map
 from genesis_rl.lite.traffic import AutopilotParams, Traffic
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import (
+    ActorEvent,
     ActorState,
     Backend,
     CameraConfig,
@@ -57,6 +58,10 @@ class LiteSimulation(Simulation):
         """Every knob for the next frame; actor knobs (``lite = 'traffic'``) act on the traffic from the next tick."""
         super().set_weather(weather)
         self.traffic.set_lead_braking(float(weather["lead_decel"]))
+        self.traffic.set_cut_in(float(weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default)
+
+    def actor_events(self) -> list[ActorEvent]:
+        return self.traffic.actor_events()
 
     def apply_ego_control(self, control: VehicleControl) -> None:
         self.traffic.ego_control = control
@@ -111,7 +116,7 @@ class LiteBackend(Backend):
 
     name = "lite"
     catalog_kind = "lite"
-    actor_knobs = ("lead_decel",)  # Traffic.set_lead_braking
+    actor_knobs = ("lead_decel", "cut_in_ttc")  # Traffic.set_lead_braking, Traffic.set_cut_in
     #: Bumped whenever a change to the renderer changes pixels (records keep it: replay says when it
     #: differs, since the detector then sees slightly different frames). 2: tiled, two-level static scene.
     #: 3: roads and markings on simplified polylines, coarser ground in far blocks (<= 0.14 % of pixels).

@@ -14,10 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from genesis_rl.actor_knobs import CUT_IN_TTC_WINDOW, CUT_IN_WANDER_M
 from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.scenes.vehicles import MAKES
-from genesis_rl.sim.interface import Collision, LeadInfo, VehicleControl
+from genesis_rl.sim.interface import ActorEvent, Collision, LeadInfo, VehicleControl
 
 MAX_STEER = np.radians(35.0)  # front wheel angle at steer = 1 [rad]
 MAX_BRAKE = 8.0  # deceleration at brake = 1 [m/s^2]
@@ -121,6 +122,8 @@ class Traffic:
         #: on lite): vehicle index -> its script; see ``ScriptedMotion``
         self.scripted: dict[int, ScriptedMotion] = {}
         self._episode_time = 0.0
+        #: what the actor knobs made happen, oldest first (``actor_events``): dicts until they are reported
+        self._events: list[dict[str, float | int | str | None]] = []
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
         self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
@@ -262,11 +265,83 @@ class Traffic:
         lead = self.lead()
         if lead is not None:
             self.forced_braking = (lead.vehicle_id, float(decel), self._episode_time)
+            # its brake lights come on with the braking: a careful driver perceives it at once
+            self._events.append({"kind": "lead_braking", "vehicle_id": lead.vehicle_id,
+                                 "onset_s": self._episode_time, "perceivable_s": self._episode_time})
 
     @property
     def braking_vehicle(self) -> int:
         """The vehicle the ``lead_decel`` knob brakes (-1: none)."""
         return -1 if self.forced_braking is None else int(self.forced_braking[0])
+
+    def set_cut_in(self, ttc: float, off: float) -> None:
+        """The ``cut_in_ttc`` actor knob: below ``off`` (its default), the nearest slower vehicle ahead in a
+        neighbouring lane of the ego's starts a lane change in front of the ego once the gap it would cut
+        into closes to ``ttc`` seconds at the current closing speed (within ``CUT_IN_TTC_WINDOW`` below it).
+        One cut-in at a time: the next may start once the cutter is in the ego's lane. Nobody suitable:
+        nothing happens (the knob asks, the traffic decides whether it can)."""
+        if ttc >= off - 1e-9 or (self.forced_cut_in is not None and not self._cut_in_done()):
+            return
+        candidate = self._cut_in_candidate(ttc)
+        if candidate is None:
+            return
+        j, gap, closing = candidate
+        self.forced_cut_in = (j, self._episode_time)
+        self._events.append({"kind": "cut_in", "vehicle_id": j, "onset_s": self._episode_time,
+                             "perceivable_s": None, "ttc_s": gap / closing, "gap_m": gap, "closing_m_s": closing})
+
+    def _cut_in_candidate(self, ttc: float) -> tuple[int, float, float] | None:
+        """(vehicle, bumper gap [m], closing speed [m/s]) of the vehicle to cut in (see ``set_cut_in``)."""
+        lane = self.map.lanes[int(self.lane[0])]
+        neighbours = {lane.left, lane.right} - {-1}
+        if not neighbours or self.v[0] < 1.0:
+            return None
+        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
+        best: tuple[int, float, float] | None = None
+        for j in range(1, self.n):
+            if int(self.lane[j]) not in neighbours or j in self.scripted:
+                continue
+            lon = (self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
+            gap = float(lon - 0.5 * (self.length[0] + self.length[j]))
+            closing = float(self.v[0] - self.v[j] * np.cos(self.yaw[j] - self.yaw[0]))
+            if gap <= 1.0 or closing <= 0.5:
+                continue
+            if ttc - CUT_IN_TTC_WINDOW <= gap / closing <= ttc and (best is None or gap < best[1]):
+                best = (j, gap, closing)
+        return best
+
+    def _lateral_offset(self, i: int) -> float:
+        """Signed distance [m] of vehicle ``i`` from the centre line of its lane (left positive)."""
+        k = int(self.map.point_index(self.lane[i], self.s[i]))
+        h = self.map.headings[k]
+        return float(-(self.x[i] - self.map.points[k, 0]) * np.sin(h) + (self.y[i] - self.map.points[k, 1]) * np.cos(h))
+
+    def _cut_in_done(self) -> bool:
+        assert self.forced_cut_in is not None
+        i = self.forced_cut_in[0]
+        return bool(self.lane[i] == self.lane[0] and abs(self._lateral_offset(i)) < 0.5)
+
+    def _note_cut_in_wander(self) -> None:
+        """Mark the running cut-in perceivable once the cutter has wandered ``CUT_IN_WANDER_M`` toward the
+        ego's lane (R157's lateral wandering distance)."""
+        ev = self._events[-1] if self._events and self._events[-1]["kind"] == "cut_in" else None
+        if ev is None or ev["perceivable_s"] is not None:
+            return
+        i = int(ev["vehicle_id"])  # type: ignore[arg-type]
+        if self.lane[i] != self.lane[0]:
+            return
+        if float(ev.get("offset0_m", 0.0)) - abs(self._lateral_offset(i)) >= CUT_IN_WANDER_M:  # type: ignore[arg-type]
+            ev["perceivable_s"] = self._episode_time
+
+    def actor_events(self) -> list[ActorEvent]:
+        """What the actor knobs made happen so far (see :class:`~genesis_rl.sim.interface.ActorEvent`)."""
+        out = []
+        for e in self._events:
+            p = e["perceivable_s"]
+            out.append(ActorEvent(str(e["kind"]), int(e["vehicle_id"]), float(e["onset_s"]),  # type: ignore[arg-type]
+                                  None if p is None else float(p),
+                                  *(float(e.get(k, np.nan)) for k in ("ttc_s", "gap_m", "closing_m_s"))))  # type: ignore[arg-type]
+        return out
 
     def _start_cut_in(self) -> None:
         """Put the cutter on the ego's lane at its longitudinal position (pure pursuit then steers it in)."""
@@ -277,6 +352,9 @@ class Traffic:
         d = (self.x[i] - self.x[0]) * np.cos(self.yaw[0]) + (self.y[i] - self.y[0]) * np.sin(self.yaw[0])
         self.lane[i], self.next_lane[i] = self.lane[0], self.next_lane[0]
         self.s[i] = self.s[0] + d
+        ev = self._events[-1] if self._events and self._events[-1]["kind"] == "cut_in" else None
+        if ev is not None and int(ev["vehicle_id"]) == i:  # type: ignore[arg-type]
+            ev["offset0_m"] = abs(self._lateral_offset(i))  # how far it has to go: about a lane's width
 
     def step(self, step_index: int) -> list[Collision]:
         dt = self.dt
@@ -330,6 +408,8 @@ class Traffic:
         self._advance_lanes()
         self.time += dt
         self._episode_time += dt
+        if self.forced_cut_in is not None:
+            self._note_cut_in_wander()
         return collisions
 
     def _apply_scripts(self, step_index: int) -> np.ndarray:

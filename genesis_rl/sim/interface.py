@@ -216,10 +216,48 @@ class Simulation(abc.ABC):
     def ego(self) -> ActorState:
         return self.actors()[0]
 
+    def actor_events(self) -> list[ActorEvent]:
+        """The events the actor knobs caused so far in this episode (cut-ins, a lead braking), oldest first;
+        none by default (a backend that realises no actor knob)."""
+        return []
+
     def context_extras(self) -> dict[str, Any]:
         """What this backend adds to the system's :class:`~genesis_rl.system.protocol.EpisodeContext`
         ``extras`` (e.g. CARLA's traffic-light states); nothing by default."""
         return {}
+
+
+@dataclass(frozen=True)
+class ActorEvent:
+    """An event an actor knob caused (issue 32), as the careful-driver reference needs it: what happened, to
+    which vehicle (scene index), when it began [s of episode time] and when a careful driver could first
+    perceive it [s] (a cut-in: when the cutter has wandered ``CUT_IN_WANDER_M`` toward the ego's lane; a
+    braking lead: the onset, its brake lights come on at once; None: not yet perceivable). ``ttc_s``,
+    ``gap_m`` and ``closing_m_s``: the gap the cut-in was made into, at its onset (NaN for braking)."""
+
+    kind: str  # "cut_in" or "lead_braking"
+    vehicle_id: int
+    onset_s: float
+    perceivable_s: float | None
+    ttc_s: float = math.nan
+    gap_m: float = math.nan
+    closing_m_s: float = math.nan
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "vehicle_id": self.vehicle_id, "onset_s": round(self.onset_s, 4),
+                "perceivable_s": None if self.perceivable_s is None else round(self.perceivable_s, 4),
+                **{k: (None if not math.isfinite(v) else round(v, 4))
+                   for k, v in (("ttc_s", self.ttc_s), ("gap_m", self.gap_m), ("closing_m_s", self.closing_m_s))}}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ActorEvent:
+        def num(key: str) -> float:
+            v = d.get(key)
+            return math.nan if v is None else float(v)
+
+        p = d.get("perceivable_s")
+        return cls(str(d["kind"]), int(d["vehicle_id"]), float(d["onset_s"]), None if p is None else float(p),
+                   num("ttc_s"), num("gap_m"), num("closing_m_s"))
 
 
 @dataclass(frozen=True)

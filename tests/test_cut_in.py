@@ -1,0 +1,187 @@
+"""The cut-in as a knob of the env and the careful-driver reference that blames actor-made collisions (issue 32).
+
+The cut-in moves a neighbour into the ego's lane at the time-to-collision the knob asks for; the reference
+(UN R157's competent and careful driver) is checked by hand on a braking lead; a cut-in no careful driver
+could avoid is labelled unavoidable, and one a careful driver avoids is the system's failure.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from genesis_rl.evaluation.blame import VISIBILITY_REFERENCE, blame_label, reference_name
+from genesis_rl.evaluation.careful_driver import R157, careful_driver_evidence, event_for_collision
+from genesis_rl.knobs import KNOBS
+from genesis_rl.sim.interface import ActorEvent
+from genesis_rl.step_record import CollisionStep, EgoStep, LeadStep, PerceptionStep, StepRecord
+
+DT = 0.05
+
+
+def _record(i: int, ego_speed: float, gap: float, lead_speed: float, lead_id: int, hit: bool) -> StepRecord:
+    return StepRecord(step=i + 1, time_s=round((i + 1) * DT, 3), ego=EgoStep(ego_speed, 0.0, 0.0, 0.0, "cruise"),
+                      lead=LeadStep(lead_id, max(gap, 0.0), lead_speed, math.nan, None),
+                      perception=PerceptionStep(0, 0, 0.0, (), ()),
+                      collision=CollisionStep(hit, ego_speed if hit else 0.0, lead_id if hit else -1), knobs={})
+
+
+def _blind_ego_behind_a_braking_lead(gap0: float, decel: float = 6.0, onset: float = 1.0,
+                                     speed: float = 20.0) -> list[StepRecord]:
+    """An ego that never brakes, at ``speed``, behind a lead (vehicle 5) at ``gap0`` and the same speed that
+    brakes at ``decel`` from ``onset``: records until the gap closes (the impact)."""
+    out = []
+    for i in range(2000):
+        t = (i + 1) * DT
+        tb = max(0.0, t - onset)
+        stop = speed / decel
+        lead_v = max(0.0, speed - decel * tb)
+        lead_x = speed * min(t, onset) + (speed * min(tb, stop) - 0.5 * decel * min(tb, stop) ** 2)
+        gap = gap0 + lead_x - speed * t
+        out.append(_record(i, speed, gap, lead_v, 5, gap <= 0.0))
+        if gap <= 0.0:
+            return out
+    raise AssertionError("no impact")
+
+
+def test_the_careful_driver_is_checked_by_hand_on_a_braking_lead():
+    """Both at 20 m/s, the lead brakes at 6 m/s^2 from 1 s. The careful driver brakes 0.4 + 0.75 s after the
+    onset, reaches 7.59 m/s^2 in 0.6 s: it needs 23 + 11.54 + 20.69 = 55.24 m to stop, the lead needs 33.33 m.
+    From 30 m it stops 8.1 m short of the lead; from 15 m it hits it."""
+    braking = ActorEvent("lead_braking", 5, 1.0, 1.0)
+    far = _blind_ego_behind_a_braking_lead(30.0)
+    ev = careful_driver_evidence(far, len(far) - 1, braking, DT)
+    assert ev["reference"] == R157.name and ev["brake_from_s"] == pytest.approx(2.15)
+    assert not ev["collides"] and ev["min_gap_m"] == pytest.approx(30.0 + 33.33 - 55.24, abs=0.15)
+    near = _blind_ego_behind_a_braking_lead(15.0)
+    ev = careful_driver_evidence(near, len(near) - 1, braking, DT)
+    assert ev["collides"] and ev["collision_s"] > near[-1].time_s  # it hits later and slower than the blind ego
+    # a later onset for the same lead is the event that counts; another vehicle's is not
+    events = [ActorEvent("lead_braking", 5, 0.2, 0.2), braking, ActorEvent("cut_in", 7, 1.5, 1.9)]
+    assert event_for_collision(events, near, len(near) - 1) == braking
+
+
+def test_blame_with_a_careful_driver_reference_never_calls_an_avoidable_collision_unavoidable():
+    unseen = {"visible": False, "stoppable": False, "too_fast_for_visibility_m_s": 0.0}
+    assert blame_label(unseen, oracle_collides=True) == "unavoidable"  # the visibility reference, as before
+    avoided = {"reference": R157.name, "collides": False}
+    assert blame_label(unseen, True, avoided) == "control"
+    assert blame_label(unseen, False, avoided) == "perception"
+    assert blame_label({"stoppable": True}, True, {"reference": R157.name, "collides": True}) == "unavoidable"
+    assert reference_name(avoided) == R157.name and reference_name(None) == VISIBILITY_REFERENCE
+
+
+def test_the_cut_in_is_a_knob_of_the_env_that_lite_realises():
+    from genesis_rl.lite.backend import LiteBackend
+
+    spec = KNOBS["cut_in_ttc"]
+    assert spec.is_actor and spec.default == 10.0 and (spec.low, spec.high, spec.unit) == (0.4, 10.0, "s")
+    assert "cut_in_ttc" in LiteBackend.actor_knobs
+
+
+def _cut_in_on_lite(knob: float, steps: int = 120):
+    """Seeded highway scene 3 of 4, the ego on lite's autopilot at up to 16 m/s, the knob held at ``knob``."""
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+
+    scene = generate_catalog("highway", 4, 3).scenes[3]
+    sim = LiteBackend().create_simulation(scene, seed=0, render=False)
+    tr = sim.traffic
+    tr.drive_ego_on_autopilot(16.0)
+    lanes = []
+    for _ in range(steps):
+        tr.set_cut_in(knob, KNOBS["cut_in_ttc"].default)
+        sim.tick()
+        lanes.append(int(tr.lane[2]))
+    return sim, tr, lanes
+
+
+def test_a_neighbour_cuts_in_at_the_time_to_collision_the_knob_asks_for():
+    """Vehicle 2 drives slower than the ego one lane over: asked for 3 s, it starts across when the gap ahead
+    of the ego closes to 3 s, and ends in the ego's lane."""
+    sim, tr, lanes = _cut_in_on_lite(3.0)
+    try:
+        events = sim.actor_events()
+        assert len(events) == 1
+        e = events[0]
+        assert e.kind == "cut_in" and e.vehicle_id == 2 and lanes[0] != tr.lane[0]
+        assert 3.0 - 0.25 <= e.ttc_s <= 3.0 and e.ttc_s == pytest.approx(e.gap_m / e.closing_m_s)
+        assert e.gap_m > 1.0 and e.closing_m_s > 0.5
+        # R157's careful driver perceives it once it has wandered 0.375 m: after the onset, within a second
+        assert e.perceivable_s is not None and 0.0 < e.perceivable_s - e.onset_s < 1.0
+        assert tr.lane[2] == tr.lane[0]
+    finally:
+        sim.destroy()
+    sim, tr, lanes = _cut_in_on_lite(KNOBS["cut_in_ttc"].default)  # at its default the knob asks for nothing
+    try:
+        assert sim.actor_events() == [] and set(lanes) == {lanes[0]} and lanes[0] != tr.lane[0]
+    finally:
+        sim.destroy()
+
+
+def _odd(tmp_path: Path, min_ttc: float) -> str:
+    src = Path(__file__).resolve().parents[1] / "configs" / "odd" / "highway_day.toml"
+    path = tmp_path / "odd.toml"
+    path.write_text(src.read_text() + f"\n[traffic]\nmin_cut_in_ttc = {min_ttc}\n")
+    return str(path)
+
+
+def test_the_odd_holds_the_cut_in_at_its_shortest_time_to_collision_and_labels_beyond_it(tmp_path):
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+
+    odd = _odd(tmp_path, 3.0)
+    for keep_inside in (True, False):
+        env = GenesisEnv(EnvConfig(map="highway", scenes=4, knobs=("fog_density", "cut_in_ttc"), dynamics="natural",
+                                   observation="features", episode_steps=400, odd=odd, odd_keep_inside=keep_inside))
+        try:
+            env.reset(seed=0, options={"scene": 1, "episode_seed": 3})
+            knob = []
+            for _ in range(400):
+                *_, info = env.step(np.array([0.0, -1.0], np.float32))
+                knob.append(info["knobs"]["cut_in_ttc"])
+            status = [r.odd_status for r in env.records]
+        finally:
+            env.close()
+        assert knob[0] == pytest.approx(10.0 - 0.025, abs=1e-9)  # natural rate 0.5 s per s: 0.025 per step
+        if keep_inside:
+            assert min(knob) == pytest.approx(3.0, abs=0.01) and "outside" not in status
+        else:  # a step is outside exactly when the knob asks for a shorter cut-in than the ODD releases
+            assert min(knob) == pytest.approx(0.4) and status[-1] == "outside"
+            assert all((s == "outside") == (k < 3.0) for k, s in zip(knob, status, strict=True))
+
+
+def _blind_cut_in_episode(scene: int) -> tuple[list[StepRecord], list[ActorEvent], int | None]:
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+
+    env = GenesisEnv(EnvConfig(map="highway", scenes=20, knobs=("fog_density", "cut_in_ttc"), dynamics="paper",
+                               observation="features", episode_steps=200, system="blind"))
+    try:
+        env.reset(seed=0, options={"scene": scene, "episode_seed": scene})
+        for _ in range(200):
+            *_, info = env.step(np.array([-1.0, -1.0], np.float32))
+            if info["collision"]:
+                return list(env.records), env.actor_events(), len(env.records) - 1
+        return list(env.records), env.actor_events(), None
+    finally:
+        env.close()
+
+
+def test_an_unavoidable_cut_in_is_labelled_unavoidable_and_an_avoidable_one_is_the_systems():
+    """A system that never brakes (``blind``) on two seeded highway scenes, the knob lowered at once: in scene 1
+    the neighbour cuts 2 m ahead (TTC 2.2 s at 0.9 m/s closing) and the careful driver hits it too; in scene 0
+    it cuts in 5 m ahead and the careful driver stops short of it."""
+    from genesis_rl.evaluation.distinct import what_was_hit
+
+    for scene, unavoidable in ((1, True), (0, False)):
+        records, events, hit_at = _blind_cut_in_episode(scene)
+        assert hit_at is not None
+        event = event_for_collision(events, records, hit_at)
+        assert event is not None and event.kind == "cut_in"
+        assert what_was_hit(records, hit_at, DT, events) == "cut in by the tester"
+        careful = careful_driver_evidence(records, hit_at, event, DT)
+        assert careful["collides"] == unavoidable
+        blame = blame_label({"stoppable": True}, True, careful)
+        assert blame == ("unavoidable" if unavoidable else "control")
