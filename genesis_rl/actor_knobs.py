@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -187,6 +187,20 @@ def parse_traffic_conditions(table: object, where: str = "odd.traffic") -> Traff
     ttc = ranges.number(table.get("min_cut_in_ttc", base.min_cut_in_ttc), f"{where}.min_cut_in_ttc",
                         ACTOR_KNOBS["cut_in_ttc"].low, ACTOR_KNOBS["cut_in_ttc"].high, "s")
     return TrafficConditions(float(decel), float(ttc))
+
+
+def pick_cut_in(candidates: Iterable[tuple[int, float, float]], ttc: float) -> tuple[int, float, float] | None:
+    """The vehicle to cut in for the ``cut_in_ttc`` knob at ``ttc``, from (vehicle, bumper gap [m], closing
+    speed [m/s]) of the vehicles ahead in the ego's neighbouring lanes: the nearest whose gap closes to within
+    ``CUT_IN_TTC_WINDOW`` below ``ttc`` seconds (more than 1 m of gap, closing faster than 0.5 m/s). One rule
+    for every backend: lite's traffic and CARLA's traffic manager cut in the same vehicle."""
+    best: tuple[int, float, float] | None = None
+    for vehicle, gap, closing in candidates:
+        if gap <= 1.0 or closing <= 0.5:
+            continue
+        if ttc - CUT_IN_TTC_WINDOW <= gap / closing <= ttc and (best is None or gap < best[1]):
+            best = (int(vehicle), float(gap), float(closing))
+    return best
 
 
 def cut_in_gap(ego_speed: float, cutter_speed: float, ttc: float) -> float:

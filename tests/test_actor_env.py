@@ -186,7 +186,7 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
     pytest.importorskip("carla")
     from types import SimpleNamespace
 
-    from genesis_rl.carla_backend.actor_control import LeadBraking
+    from genesis_rl.carla_backend.actor_control import CutIn, LeadBraking, TrafficBehaviour
     from genesis_rl.carla_backend.backend import CarlaSimulation
     from genesis_rl.knobs import Weather
     from genesis_rl.sim.interface import LeadInfo, VehicleControl
@@ -215,9 +215,13 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
     sim._snapshot, sim._history, sim._queues, sim._images = snapshot, {}, {}, {}
     sim.world = SimpleNamespace(tick=tick, get_snapshot=lambda: snapshot)
     sim._lead_braking = LeadBraking()
+    sim._cut_in, sim._traffic_behaviour, sim._braking_events = CutIn(), TrafficBehaviour(), []
+    sim._tm = SimpleNamespace()  # at their defaults the cut-in and traffic knobs ask nothing of it
     sim.lead = lambda: LeadInfo(3, 15.0, 10.0)  # type: ignore[method-assign]
     sim._advance(1)
     assert calls == ["batch", "tick"]
+    assert [(e.kind, e.vehicle_id, e.onset_s, e.perceivable_s) for e in sim.actor_events()] == [
+        ("lead_braking", 3, 0.0, 0.0)]
     assert [(type(c).__name__, c.actor_id) for c in batches[0]] == [("SetAutopilot", 103), ("ApplyTargetVelocity", 103)]
     assert batches[0][1].velocity.x == pytest.approx(10.0 - 5.0 * sim.dt)
 

@@ -185,3 +185,34 @@ def test_an_unavoidable_cut_in_is_labelled_unavoidable_and_an_avoidable_one_is_t
         assert careful["collides"] == unavoidable
         blame = blame_label({"stoppable": True}, True, careful)
         assert blame == ("unavoidable" if unavoidable else "control")
+
+
+def test_with_the_cut_in_the_agent_also_observes_the_neighbour_a_tester_would_cut_in():
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.env.observation import (
+        ACTOR_FEATURES,
+        FEATURES,
+        GAP_SCALE,
+        NEIGHBOUR_FEATURES,
+        SPEED_SCALE,
+        actor_feature_names,
+        feature_size,
+    )
+
+    assert actor_feature_names(("fog_density", "lead_decel")) == ACTOR_FEATURES  # as before the cut-in
+    assert actor_feature_names(("fog_density",)) == ()
+    env = GenesisEnv(EnvConfig(map="highway", scenes=4, knobs=("fog_density", "cut_in_ttc"), observation="features",
+                               episode_steps=20))
+    try:
+        obs, _ = env.reset(seed=0, options={"scene": 3, "episode_seed": 0})
+        n = feature_size(2, ACTOR_FEATURES + NEIGHBOUR_FEATURES)
+        assert obs.shape == (env.config.obs_history * n,)
+        neighbour = env._sim.neighbour_ahead()  # type: ignore[union-attr]
+        assert neighbour is not None and neighbour.vehicle_id == 2  # the car of the cut-in test above
+        row = obs[-n:]
+        at = 2 + len(FEATURES) + len(ACTOR_FEATURES)
+        ego_speed = env._sim.ego().speed  # type: ignore[union-attr]
+        assert row[at] == pytest.approx(neighbour.gap / GAP_SCALE, abs=1e-6)
+        assert row[at + 1] == pytest.approx(0.5 + 0.5 * (ego_speed - neighbour.speed) / SPEED_SCALE, abs=1e-6)
+    finally:
+        env.close()

@@ -1,4 +1,5 @@
-"""The actor knobs on a CARLA server: ``lead_decel`` by per-actor control (issue 32).
+"""The actor knobs on a CARLA server (issue 32): ``lead_decel`` by per-actor control, ``cut_in_ttc`` and the
+surrounding traffic's behaviour by the traffic manager's own calls.
 
 CARLA's TrafficManager has no "brake now at X m/s^2" call, so the braking lead leaves the traffic manager
 (``SetAutopilot(False)``) and is given each tick a target velocity that is its current one shortened by
@@ -8,18 +9,32 @@ the knob rises (``CarlaSimulation.lead``), as on lite; it stays the braking vehi
 
 Physics then acts on the commanded velocity (tyre friction, slopes), so the realised deceleration on a
 server can differ from the demand by what one tick of physics adds; on lite it is exact.
+
+The cut-in (:class:`CutIn`) picks the vehicle with the rule lite uses (``actor_knobs.pick_cut_in``) among the
+vehicles ahead in the ego's neighbouring lanes, and asks the traffic manager to move it over
+(``force_lane_change(actor, direction)``: True is the lane on the right, as the traffic manager's keep-right
+rule uses it in ``LocalizationStage``). The traffic manager then changes lanes when it finds room; the event's
+onset is when it was asked, and a careful driver can perceive it once the car has wandered 0.375 m.
+
+:class:`TrafficBehaviour` sends ``vehicle_percentage_speed_difference`` and ``ignore_lights_percentage`` to the
+traffic manager for every NPC when a value changes (nothing at their defaults).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
-from genesis_rl.sim.interface import LeadInfo
+from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in
+from genesis_rl.sim.interface import ActorEvent, LeadInfo
 
 #: the actor knobs a CARLA simulation realises
-CARLA_ACTOR_KNOBS: tuple[str, ...] = ("lead_decel",)
+CARLA_ACTOR_KNOBS: tuple[str, ...] = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference",
+                                      "ignore_lights_percentage")
+#: the traffic manager's per-vehicle calls, under the knobs' own names, with the knobs' defaults
+TM_BEHAVIOUR_KNOBS: dict[str, float] = {"vehicle_percentage_speed_difference": 0.0, "ignore_lights_percentage": 0.0}
 
 
 class LeadBraking:
@@ -60,3 +75,77 @@ class LeadBraking:
         scale = max(0.0, speed - decel * dt) / speed if speed > 1e-6 else 0.0
         out.append(carla.command.ApplyTargetVelocity(aid, carla.Vector3D(vx * scale, vy * scale, vz * scale)))
         return out
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    """A vehicle ahead of the ego in a neighbouring lane: its scene index, the bumper gap [m] and closing
+    speed [m/s] along the lane, and whether it moves right to reach the ego's lane."""
+
+    vehicle: int
+    gap: float
+    closing: float
+    to_right: bool
+
+
+class CutIn:
+    """State of the ``cut_in_ttc`` knob on one CARLA episode: the running cut-in (scene index, -1: none) and
+    the events so far (the same fields as lite's, ``sim.interface.ActorEvent``)."""
+
+    def __init__(self) -> None:
+        self.vehicle = -1
+        self._events: list[dict[str, Any]] = []
+
+    def step(self, tm: Any, ttc: float, off: float, now: float, neighbours: Callable[[], list[Neighbour]],
+             actor: Callable[[int], Any | None], offset: Callable[[int], float | None]) -> None:
+        """Before a tick at episode time ``now``: follow the running cut-in (perceivable once the car has
+        wandered ``CUT_IN_WANDER_M`` toward the ego's lane, over once it is within 0.5 m of the lane's centre
+        line), else, when the knob asks for one (``ttc`` below ``off``), pick the car and ask ``tm`` to move it.
+        ``offset(i)``: vehicle i's distance [m] from the centre line of the ego's lane (None: gone)."""
+        if self.vehicle >= 0:
+            ev = self._events[-1]
+            d = offset(self.vehicle)
+            if d is None:
+                self.vehicle = -1
+            else:
+                if ev["perceivable_s"] is None and ev["offset0_m"] - d >= CUT_IN_WANDER_M:
+                    ev["perceivable_s"] = now
+                if d < 0.5:
+                    self.vehicle = -1
+        if ttc >= off - 1e-9 or self.vehicle >= 0:
+            return
+        near = {n.vehicle: n for n in neighbours()}
+        pick = pick_cut_in(((n.vehicle, n.gap, n.closing) for n in near.values()), ttc)
+        if pick is None:
+            return
+        j, gap, closing = pick
+        a, d0 = actor(j), offset(j)
+        if a is None or d0 is None:
+            return
+        tm.force_lane_change(a, near[j].to_right)
+        self.vehicle = j
+        self._events.append({"kind": "cut_in", "vehicle_id": j, "onset_s": now, "perceivable_s": None,
+                             "ttc_s": gap / closing, "gap_m": gap, "closing_m_s": closing, "offset0_m": d0})
+
+    def events(self) -> list[ActorEvent]:
+        return [ActorEvent(e["kind"], e["vehicle_id"], e["onset_s"], e["perceivable_s"], e["ttc_s"], e["gap_m"],
+                           e["closing_m_s"]) for e in self._events]
+
+
+class TrafficBehaviour:
+    """The surrounding traffic's behaviour on CARLA: each of :data:`TM_BEHAVIOUR_KNOBS` is the traffic
+    manager's per-vehicle call of the same name, sent for every NPC when the knob's value changes."""
+
+    def __init__(self) -> None:
+        self.applied = dict(TM_BEHAVIOUR_KNOBS)
+
+    def apply(self, tm: Any, values: Mapping[str, float], npcs: Iterable[Any]) -> list[str]:
+        """Send the changed knobs to ``tm`` for each of ``npcs`` (carla.Actor); returns the knobs sent."""
+        changed = [k for k in TM_BEHAVIOUR_KNOBS if float(values[k]) != self.applied[k]]
+        if changed:
+            actors = list(npcs)
+            for k in changed:
+                for a in actors:
+                    getattr(tm, k)(a, float(values[k]))
+                self.applied[k] = float(values[k])
+        return changed

@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from genesis_rl.carla_backend._carla import require_carla
-from genesis_rl.carla_backend.actor_control import CARLA_ACTOR_KNOBS, LeadBraking
+from genesis_rl.carla_backend.actor_control import CARLA_ACTOR_KNOBS, CutIn, LeadBraking, Neighbour, TrafficBehaviour
 from genesis_rl.carla_backend.connection import (
     CarlaServerLost,
     check_numbers,
@@ -33,7 +33,7 @@ from genesis_rl.carla_backend.connection import (
 from genesis_rl.carla_backend.contacts import ContactTracker
 from genesis_rl.carla_backend.frames import camera_mount, pose_from_carla
 from genesis_rl.carla_backend.identity import opendrive_digest, short
-from genesis_rl.carla_backend.lead import lane_path, lead_on_path
+from genesis_rl.carla_backend.lead import PATH_LENGTH, lane_path, lead_on_path, path_offset
 from genesis_rl.carla_backend.ports import (
     TrafficManagerPortBusy,
     busy_message,
@@ -51,6 +51,7 @@ from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.scenes.catalog import Scene
 from genesis_rl.scenes.vehicles import MAKES
 from genesis_rl.sim.interface import (
+    ActorEvent,
     ActorState,
     Backend,
     CameraConfig,
@@ -340,6 +341,9 @@ class CarlaSimulation(Simulation):
         self._original_settings: Any = None
         self._tm: Any = None
         self._lead_braking = LeadBraking()  # the lead_decel knob (actor_control.py)
+        self._cut_in = CutIn()  # the cut_in_ttc knob
+        self._traffic_behaviour = TrafficBehaviour()  # the traffic manager's per-vehicle knobs
+        self._braking_events: list[ActorEvent] = []
         self._destroyed = False
         self.skipped: list[int] = []  # scene indices that could not be spawned
         backend._live.add(self)
@@ -480,10 +484,21 @@ class CarlaSimulation(Simulation):
         if self._weather != self._applied_weather:
             b.call("setting the weather", self.world.set_weather, to_carla(self._weather))
             self._applied_weather = self._weather
+        now = self._step * self.dt  # the episode time this tick starts from
+        braking_before = self._lead_braking.vehicle
         brake = self._lead_braking.commands(carla, b.tm_port, float(self._weather["lead_decel"]), self.dt,
                                             self.lead, self._actor_id, self._velocity) if self._actors else []
         if brake:
             b.call("braking the lead (lead_decel)", b.client.apply_batch_sync, brake, False)
+        if braking_before < 0 <= self._lead_braking.vehicle:  # brake lights on: perceivable at once
+            self._braking_events.append(ActorEvent("lead_braking", self._lead_braking.vehicle, now, now))
+        if self._actors:
+            b.call("changing a neighbour's lane (cut_in_ttc)", self._cut_in.step, self._tm,
+                   float(self._weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default, now, self._neighbours,
+                   self._actors.get, self._offset_from_ego_lane)
+            npcs = [a for i, a in sorted(self._actors.items()) if i != 0 and i != self._lead_braking.vehicle]
+            b.call("setting the traffic's behaviour (traffic manager)", self._traffic_behaviour.apply, self._tm,
+                   self._weather.values, npcs)
         if self._control != self._applied_control:
             c = self._control
             b.call("applying the ego's control", self._actors[0].apply_control,
@@ -573,12 +588,20 @@ class CarlaSimulation(Simulation):
         return out
 
     def lead(self) -> LeadInfo | None:
-        carla = require_carla()
-        ego = self._actors[0]
-        tf = self._snapshot.find(ego.id).get_transform()
-        wp = self.map.get_waypoint(tf.location, project_to_road=True, lane_type=carla.LaneType.Driving)
+        tf, wp = self._ego_waypoint()
         if wp is None:
             return None
+        ids, xy, half, speed = self._others()
+        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), self._box(0).extent.x,
+                            xy, half, speed, np.array(ids), lane_half_width=wp.lane_width / 2.0)
+
+    def _ego_waypoint(self) -> Any:
+        carla = require_carla()
+        tf = self._snapshot.find(self._actors[0].id).get_transform()
+        return tf, self.map.get_waypoint(tf.location, project_to_road=True, lane_type=carla.LaneType.Driving)
+
+    def _others(self) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+        """Scene index, (x, y), half length and speed of every vehicle but the ego."""
         ids, xy, half, speed = [], [], [], []
         for i, a in self._actors.items():
             s = self._snapshot.find(a.id)
@@ -589,9 +612,47 @@ class CarlaSimulation(Simulation):
             xy.append((loc.x, loc.y))
             half.append(self._box(i).extent.x)
             speed.append(math.hypot(v.x, v.y))
-        return lead_on_path(lane_path(wp), np.array([tf.location.x, tf.location.y]), self._box(0).extent.x,
-                            np.array(xy).reshape(-1, 2), np.array(half), np.array(speed), np.array(ids),
-                            lane_half_width=wp.lane_width / 2.0)
+        return ids, np.array(xy).reshape(-1, 2), np.array(half), np.array(speed)
+
+    def _neighbours(self) -> list[Neighbour]:
+        """The nearest vehicle ahead in each neighbouring lane of the ego's that runs its way (the cut-in's
+        candidates), measured along that lane."""
+        tf, wp = self._ego_waypoint()
+        if wp is None:
+            return []
+        ids, xy, half, speed = self._others()
+        ego_v = self._snapshot.find(self._actors[0].id).get_velocity()
+        ego_speed = math.hypot(ego_v.x, ego_v.y)
+        out = []
+        for side, to_right in ((wp.get_left_lane(), True), (wp.get_right_lane(), False)):
+            if side is None or side.lane_type != wp.lane_type or side.lane_id * wp.lane_id <= 0:
+                continue  # no lane there, not a driving lane, or the oncoming carriageway
+            found = lead_on_path(lane_path(side), np.array([tf.location.x, tf.location.y]), self._box(0).extent.x,
+                                 xy, half, speed, np.array(ids), lane_half_width=side.lane_width / 2.0)
+            if found is not None:
+                out.append(Neighbour(found.vehicle_id, found.gap, ego_speed - found.speed, to_right))
+        return out
+
+    def neighbour_ahead(self) -> LeadInfo | None:
+        near = self._neighbours() if self._actors else []
+        if not near:
+            return None
+        n = min(near, key=lambda x: x.gap)
+        ego_v = self._snapshot.find(self._actors[0].id).get_velocity()
+        return LeadInfo(n.vehicle, n.gap, math.hypot(ego_v.x, ego_v.y) - n.closing)
+
+    def _offset_from_ego_lane(self, index: int) -> float | None:
+        """Vehicle ``index``'s distance [m] from the centre line of the ego's lane (None: gone)."""
+        a = self._actors.get(index)
+        s = None if a is None else self._snapshot.find(a.id)
+        tf, wp = self._ego_waypoint()
+        if s is None or wp is None:
+            return None
+        loc = s.get_transform().location
+        return path_offset(lane_path(wp, length=PATH_LENGTH + 20.0), np.array([loc.x, loc.y]))
+
+    def actor_events(self) -> list[ActorEvent]:
+        return sorted(self._braking_events + self._cut_in.events(), key=lambda e: e.onset_s)
 
     def context_extras(self) -> dict[str, Any]:
         """For the built-in controller: how to plan its route on this map, the planner (built once per map),

@@ -32,6 +32,17 @@ def lane_path(waypoint: Any, length: float = PATH_LENGTH, step: float = PATH_STE
     return np.asarray(pts, dtype=np.float64)
 
 
+def path_offset(path: np.ndarray, point: np.ndarray) -> float | None:
+    """The distance [m] of ``point`` (x, y) from the polyline ``path`` (None: a path of fewer than 2 points)."""
+    if len(path) < 2:
+        return None
+    seg = np.diff(path, axis=0)
+    seg_len2 = np.maximum((seg**2).sum(axis=1), 1e-18)
+    rel = np.asarray(point, dtype=np.float64).reshape(1, 2) - path[:-1]
+    t = np.clip((rel * seg).sum(axis=1) / seg_len2, 0.0, 1.0)
+    return float(np.min(np.linalg.norm(rel - t[:, None] * seg, axis=1)))
+
+
 def lead_on_path(path: np.ndarray, ego_xy: np.ndarray, ego_half_length: float, others_xy: np.ndarray,
                  others_half_length: np.ndarray, others_speed: np.ndarray, others_id: np.ndarray,
                  lane_half_width: float = 1.75) -> LeadInfo | None:

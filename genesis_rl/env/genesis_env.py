@@ -22,9 +22,10 @@ from genesis_rl import limits, ranges
 from genesis_rl.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.env.observation import (
+    NEIGHBOUR_FEATURES,
     OBSERVATIONS,
     FeatureHistory,
-    has_actor_knobs,
+    actor_feature_names,
     observation_space,
     step_features,
 )
@@ -251,7 +252,7 @@ class GenesisEnv(gym.Env):
                                                                   c.carla_timeout))
 
         #: actor knobs among the knobs: the features add what a tester measures of the actor (observation.py)
-        self.actor_features = has_actor_knobs(c.knobs)
+        self.actor_features = actor_feature_names(c.knobs)
         self.observation_space = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs),
                                                    c.obs_history, self.actor_features)
         self._history = FeatureHistory(len(c.knobs), c.obs_history, self.actor_features)
@@ -280,8 +281,10 @@ class GenesisEnv(gym.Env):
             out["knobs"] = self.weather.normalized(c.knobs)
         if mode in ("features", "image+features"):
             loop = self._loop
+            neighbour = loop.sim.neighbour_ahead() if NEIGHBOUR_FEATURES[0] in self.actor_features else None
             row = step_features(self.weather, tuple(c.knobs), loop.ego.speed, loop.sim.step_count * loop.sim.dt,
-                                loop.output, loop.sim.lead() if self.actor_features else None, self.actor_features)
+                                loop.output, loop.sim.lead() if self.actor_features else None, self.actor_features,
+                                neighbour)
             out["features"] = self._history.push(row)
         if mode == "image":
             return out["image"]

@@ -9,7 +9,8 @@ The system under test is a black box except for what it reports, so the feature 
   follow, red_light, emergency; the built-in controller's vocabulary, other states read as none).
 
 With actor knobs among the knobs (``lead_decel``), also what a test engineer measures of the actor they drive,
-as a target vehicle on a proving ground is measured: its true gap to the ego and the closing speed.
+as a target vehicle on a proving ground is measured: its true gap to the ego and the closing speed; with the
+cut-in (``cut_in_ttc``), the same of the nearest vehicle ahead in a neighbouring lane, the one that would cut in.
 
 Never the other vehicles' true states, the ground-truth boxes or the detector's loss: an agent that saw those
 would find failures no tester could reproduce against a real black-box system. The last ``history`` feature
@@ -46,20 +47,39 @@ FEATURES = ("ego_speed", "time", "n_detections", "follows", "perceived_gap", "th
 #: appended when the knobs include an actor knob: the true gap to the vehicle ahead (the actor the tester
 #: drives) and the closing speed, mapped from [-SPEED_SCALE, SPEED_SCALE] to [0, 1] (0.5: not closing)
 ACTOR_FEATURES = ("actor_gap", "actor_closing_speed")
+#: appended too when the knobs include ``cut_in_ttc``: the same two of the nearest vehicle ahead in a
+#: neighbouring lane (the one a tester would have cut in)
+NEIGHBOUR_FEATURES = ("neighbour_gap", "neighbour_closing_speed")
 
 
 def has_actor_knobs(knobs: tuple[str, ...] | list[str]) -> bool:
     return any(KNOBS[k].is_actor for k in knobs if k in KNOBS)
 
 
-def feature_size(n_knobs: int, actors: bool = False) -> int:
-    return n_knobs + len(FEATURES) + (len(ACTOR_FEATURES) if actors else 0)
+def actor_feature_names(knobs: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """The actor features a knob set adds (none for weather alone; the neighbour's with ``cut_in_ttc``)."""
+    if not has_actor_knobs(knobs):
+        return ()
+    return ACTOR_FEATURES + (NEIGHBOUR_FEATURES if "cut_in_ttc" in knobs else ())
+
+
+def feature_size(n_knobs: int, actors: bool | tuple[str, ...] = False) -> int:
+    """``actors``: the actor features in use (``actor_feature_names``); True: :data:`ACTOR_FEATURES`."""
+    extra = ACTOR_FEATURES if actors is True else (actors or ())
+    return n_knobs + len(FEATURES) + len(extra)
+
+
+def _gap_and_closing(other: LeadInfo | None, ego_speed: float) -> tuple[float, float]:
+    gap, closing = (GAP_SCALE, 0.0) if other is None else (other.gap, ego_speed - other.speed)
+    return min(max(gap / GAP_SCALE, 0.0), 1.0), min(max(0.5 + 0.5 * closing / SPEED_SCALE, 0.0), 1.0)
 
 
 def step_features(weather: Weather, knobs: tuple[str, ...], ego_speed: float, time_s: float,
-                  output: SystemOutput | None, lead: LeadInfo | None = None, actors: bool = False) -> np.ndarray:
+                  output: SystemOutput | None, lead: LeadInfo | None = None, actors: bool | tuple[str, ...] = False,
+                  neighbour: LeadInfo | None = None) -> np.ndarray:
     """One step's features in [0, 1] (see the module doc); ``output`` None: the system has not answered;
-    ``actors``: append :data:`ACTOR_FEATURES` from ``lead`` (None: nobody ahead, gap 1 and not closing)."""
+    ``actors``: append :data:`ACTOR_FEATURES` from ``lead`` (None: nobody ahead, gap 1 and not closing), and
+    :data:`NEIGHBOUR_FEATURES` from ``neighbour`` when ``actors`` names them."""
     out = np.zeros(feature_size(len(knobs), actors), np.float32)
     k = len(knobs)
     out[:k] = weather.normalized(knobs)
@@ -77,16 +97,16 @@ def step_features(weather: Weather, knobs: tuple[str, ...], ego_speed: float, ti
             out[k + 7 + STATES.index(output.status)] = 1.0
     if actors:
         a = k + len(FEATURES)
-        gap, closing = (GAP_SCALE, 0.0) if lead is None else (lead.gap, ego_speed - lead.speed)
-        out[a] = min(max(gap / GAP_SCALE, 0.0), 1.0)
-        out[a + 1] = min(max(0.5 + 0.5 * closing / SPEED_SCALE, 0.0), 1.0)
+        out[a], out[a + 1] = _gap_and_closing(lead, ego_speed)
+        if isinstance(actors, tuple) and NEIGHBOUR_FEATURES[0] in actors:
+            out[a + 2], out[a + 3] = _gap_and_closing(neighbour, ego_speed)
     return out
 
 
 class FeatureHistory:
     """The last ``history`` feature vectors, oldest first, flattened; zeros before the first."""
 
-    def __init__(self, n_knobs: int, history: int, actors: bool = False) -> None:
+    def __init__(self, n_knobs: int, history: int, actors: bool | tuple[str, ...] = False) -> None:
         self.size = feature_size(n_knobs, actors)
         self.history = int(history)
         self._rows: deque[np.ndarray] = deque(maxlen=self.history)
@@ -106,7 +126,7 @@ class FeatureHistory:
 
 
 def observation_space(mode: str, obs_height: int, obs_width: int, n_knobs: int, history: int,
-                      actors: bool = False) -> spaces.Space:
+                      actors: bool | tuple[str, ...] = False) -> spaces.Space:
     image = spaces.Box(0, 255, (obs_height, obs_width, 3), np.uint8)
     features = spaces.Box(0.0, 1.0, (history * feature_size(n_knobs, actors),), np.float32)
     if mode == "image":

@@ -59,9 +59,14 @@ class LiteSimulation(Simulation):
         super().set_weather(weather)
         self.traffic.set_lead_braking(float(weather["lead_decel"]))
         self.traffic.set_cut_in(float(weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default)
+        self.traffic.set_traffic_behaviour(float(weather["vehicle_percentage_speed_difference"]),
+                                           float(weather["ignore_lights_percentage"]))
 
     def actor_events(self) -> list[ActorEvent]:
         return self.traffic.actor_events()
+
+    def neighbour_ahead(self) -> LeadInfo | None:
+        return self.traffic.neighbour_ahead()
 
     def apply_ego_control(self, control: VehicleControl) -> None:
         self.traffic.ego_control = control
@@ -116,7 +121,8 @@ class LiteBackend(Backend):
 
     name = "lite"
     catalog_kind = "lite"
-    actor_knobs = ("lead_decel", "cut_in_ttc")  # Traffic.set_lead_braking, Traffic.set_cut_in
+    #: Traffic.set_lead_braking, .set_cut_in, .set_traffic_behaviour
+    actor_knobs = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage")
     #: Bumped whenever a change to the renderer changes pixels (records keep it: replay says when it
     #: differs, since the detector then sees slightly different frames). 2: tiled, two-level static scene.
     #: 3: roads and markings on simplified polylines, coarser ground in far blocks (<= 0.14 % of pixels).

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from genesis_rl.actor_knobs import CUT_IN_TTC_WINDOW, CUT_IN_WANDER_M
+from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in
 from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.scenes.vehicles import MAKES
@@ -99,6 +99,11 @@ class Traffic:
         p = [q or AutopilotParams(0, 1.5, 2, 2, 3, 0, 0) for q in params]
         self.v0_base = np.array([q.target_speed for q in p], dtype=np.float64)
         self.v0 = self.v0_base.copy()
+        self._v0_catalog = self.v0_base.copy()  # the scene's own target speeds (the TM knobs scale them)
+        self._speed_factor = 1.0  # 1 - vehicle_percentage_speed_difference / 100
+        self.ignore_lights = 0.0  # ignore_lights_percentage [%]
+        #: NPCs that will run the red light at the end of their current lane (drawn as they enter it)
+        self.runs_red = np.zeros(n, bool)
         self.time_gap = np.array([q.time_gap for q in p], dtype=np.float64)
         self.min_gap = np.array([q.min_gap for q in p], dtype=np.float64)
         self.a_max = np.array([q.max_accel for q in p], dtype=np.float64)
@@ -228,7 +233,7 @@ class Traffic:
         occupied[cj[inside], self._conn_g[self.lane][inside]] = True
         cross_busy = occupied[np.maximum(sig_j, 0), 1 - self._lane_sig_g[self.lane]]
         red = (phase == RED) | ((phase == YELLOW) & can_stop) | (cross_busy & can_stop)
-        must_stop = (sig_j >= 0) & self.is_npc & (dist > -0.5) & red
+        must_stop = (sig_j >= 0) & self.is_npc & (dist > -0.5) & red & ~self.runs_red
         gap_light = np.where(must_stop, np.maximum(dist, 0.01), np.inf)
         use_light = gap_light < gap
         gap = np.where(use_light, gap_light, gap)
@@ -274,6 +279,21 @@ class Traffic:
         """The vehicle the ``lead_decel`` knob brakes (-1: none)."""
         return -1 if self.forced_braking is None else int(self.forced_braking[0])
 
+    def set_traffic_behaviour(self, speed_difference_pct: float, ignore_lights_pct: float) -> None:
+        """Two of CARLA TrafficManager's per-vehicle parameters, for every NPC alike, under their TM names:
+        ``vehicle_percentage_speed_difference`` (each NPC's target speed is its own times 1 - pct/100, as TM
+        scales the speed limit) and ``ignore_lights_percentage`` (the chance that an NPC runs the red light at
+        the end of a lane, drawn from the episode's seed as it enters the lane). At their defaults (0, 0)
+        nothing changes and nothing is drawn, so episodes without them are as before."""
+        factor = 1.0 - float(speed_difference_pct) / 100.0
+        if factor != self._speed_factor:
+            npc = self.is_npc & ~np.isin(np.arange(self.n), list(self.scripted))
+            new_base = self._v0_catalog * factor
+            self.v0[npc] += new_base[npc] - self.v0_base[npc]  # keep each one's wander around its target
+            self.v0_base[npc] = new_base[npc]
+            self._speed_factor = factor
+        self.ignore_lights = float(ignore_lights_pct)
+
     def set_cut_in(self, ttc: float, off: float) -> None:
         """The ``cut_in_ttc`` actor knob: below ``off`` (its default), the nearest slower vehicle ahead in a
         neighbouring lane of the ego's starts a lane change in front of the ego once the gap it would cut
@@ -291,23 +311,34 @@ class Traffic:
                              "perceivable_s": None, "ttc_s": gap / closing, "gap_m": gap, "closing_m_s": closing})
 
     def _cut_in_candidate(self, ttc: float) -> tuple[int, float, float] | None:
-        """(vehicle, bumper gap [m], closing speed [m/s]) of the vehicle to cut in (see ``set_cut_in``)."""
+        """(vehicle, bumper gap [m], closing speed [m/s]) of the vehicle to cut in (``actor_knobs.pick_cut_in``)."""
         lane = self.map.lanes[int(self.lane[0])]
         neighbours = {lane.left, lane.right} - {-1}
         if not neighbours or self.v[0] < 1.0:
             return None
         c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
-        best: tuple[int, float, float] | None = None
+        candidates = []
         for j in range(1, self.n):
             if int(self.lane[j]) not in neighbours or j in self.scripted:
                 continue
             lon = (self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
-            gap = float(lon - 0.5 * (self.length[0] + self.length[j]))
-            closing = float(self.v[0] - self.v[j] * np.cos(self.yaw[j] - self.yaw[0]))
-            if gap <= 1.0 or closing <= 0.5:
+            candidates.append((j, float(lon - 0.5 * (self.length[0] + self.length[j])),
+                               float(self.v[0] - self.v[j] * np.cos(self.yaw[j] - self.yaw[0]))))
+        return pick_cut_in(candidates, ttc)
+
+    def neighbour_ahead(self) -> LeadInfo | None:
+        """The nearest vehicle ahead of the ego in a neighbouring lane (the ``cut_in_ttc`` candidates' lanes)."""
+        lane = self.map.lanes[int(self.lane[0])]
+        neighbours = {lane.left, lane.right} - {-1}
+        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
+        best: LeadInfo | None = None
+        for j in range(1, self.n):
+            if int(self.lane[j]) not in neighbours:
                 continue
-            if ttc - CUT_IN_TTC_WINDOW <= gap / closing <= ttc and (best is None or gap < best[1]):
-                best = (j, gap, closing)
+            gap = float((self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
+                        - 0.5 * (self.length[0] + self.length[j]))
+            if 0.0 < gap < LEAD_RANGE and (best is None or gap < best.gap):
+                best = LeadInfo(j, gap, float(self.v[j] * np.cos(self.yaw[j] - self.yaw[0])))
         return best
 
     def _lateral_offset(self, i: int) -> float:
@@ -433,6 +464,9 @@ class Traffic:
             self.lane[i] = self.next_lane[i]
             succ = m.lanes[self.lane[i]].successors
             self.next_lane[i] = succ[int(self.rng.integers(len(succ)))]
+            # ignore_lights_percentage: drawn only while it is on, so the default draws nothing
+            self.runs_red[i] = bool(self.ignore_lights > 0.0 and self.is_npc[i]
+                                    and self.rng.random() < self.ignore_lights / 100.0)
         # the ego may leave its lane (its driver is the system under test): re-anchor it when it does
         i0 = int(m.point_index(self.lane[0], self.s[0]))
         if (self.x[0] - m.points[i0, 0]) ** 2 + (self.y[0] - m.points[i0, 1]) ** 2 > 4.0**2:

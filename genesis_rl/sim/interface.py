@@ -216,6 +216,11 @@ class Simulation(abc.ABC):
     def ego(self) -> ActorState:
         return self.actors()[0]
 
+    def neighbour_ahead(self) -> LeadInfo | None:
+        """The nearest vehicle ahead of the ego in a neighbouring lane of the same direction (the one a cut-in
+        would bring in front of it), or None; none by default (a backend without lanes to ask)."""
+        return None
+
     def actor_events(self) -> list[ActorEvent]:
         """The events the actor knobs caused so far in this episode (cut-ins, a lead braking), oldest first;
         none by default (a backend that realises no actor knob)."""

@@ -160,12 +160,12 @@ def model_spaces(cfg: RunConfig) -> tuple[spaces.Space, spaces.Box]:
     from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
     from stable_baselines3.common.vec_env import VecTransposeImage
 
-    from genesis_rl.env.observation import has_actor_knobs, observation_space
+    from genesis_rl.env.observation import actor_feature_names, observation_space
     from genesis_rl.knobs import KnobActionMapper
 
     c = cfg.env
     obs = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs), c.obs_history,
-                            has_actor_knobs(c.knobs))
+                            actor_feature_names(c.knobs))
     action = spaces.Box(-1.0, 1.0, (KnobActionMapper(c.knobs, c.max_step_fraction, c.disabled_knobs).action_dim,),
                         np.float32)
 
