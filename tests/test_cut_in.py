@@ -54,14 +54,28 @@ def test_the_careful_driver_is_checked_by_hand_on_a_braking_lead():
     braking = ActorEvent("lead_braking", 5, 1.0, 1.0)
     far = _blind_ego_behind_a_braking_lead(30.0)
     ev = careful_driver_evidence(far, len(far) - 1, braking, DT)
-    assert ev["reference"] == R157.name and ev["brake_from_s"] == pytest.approx(2.15)
+    # 1.5 s of headway is critical (under 2 s) as soon as the 0.4 s of perception are over
+    assert ev["reference"] == R157.name and ev["critical_s"] == pytest.approx(1.4)
+    assert ev["brake_from_s"] == pytest.approx(2.15)
     assert not ev["collides"] and ev["min_gap_m"] == pytest.approx(30.0 + 33.33 - 55.24, abs=0.15)
     near = _blind_ego_behind_a_braking_lead(15.0)
     ev = careful_driver_evidence(near, len(near) - 1, braking, DT)
     assert ev["collides"] and ev["collision_s"] > near[-1].time_s  # it hits later and slower than the blind ego
-    # a later onset for the same lead is the event that counts; another vehicle's is not
-    events = [ActorEvent("lead_braking", 5, 0.2, 0.2), braking, ActorEvent("cut_in", 7, 1.5, 1.9)]
+    # the first event with the vehicle hit counts (a driver has watched it since); another vehicle's does not
+    events = [ActorEvent("cut_in", 7, 0.5, 0.9), braking, ActorEvent("lead_braking", 5, 1.5, 1.5)]
     assert event_for_collision(events, near, len(near) - 1) == braking
+
+
+def test_the_careful_driver_holds_its_speed_until_the_situation_is_critical():
+    """A lead 60 m ahead at 20 m/s brakes gently (1 m/s^2): 3 s of headway is not critical, so the careful
+    driver keeps its speed until the time-to-collision or the headway falls under 2 s, then reacts."""
+    gentle = _blind_ego_behind_a_braking_lead(60.0, decel=1.0)
+    ev = careful_driver_evidence(gentle, len(gentle) - 1, ActorEvent("lead_braking", 5, 1.0, 1.0), DT)
+    # gap 60 - 0.5 t'^2 (t' after onset): the headway gap / 20 m/s falls under 2 s at t' = sqrt(40) = 6.32 s,
+    # before the time-to-collision gap / t' does (t' = 9.1 s)
+    assert ev["critical_s"] == pytest.approx(1.0 + 40**0.5, abs=0.05)
+    assert ev["brake_from_s"] == pytest.approx(ev["critical_s"] + 0.75)
+    assert not ev["collides"]
 
 
 def test_blame_with_a_careful_driver_reference_never_calls_an_avoidable_collision_unavoidable():

@@ -10,6 +10,8 @@ implements them (``ControllerALKS_R157SM``):
 - *perception*: a cut-in can be perceived once the cutter has wandered 0.375 m toward the ego's lane
   (``ActorEvent.perceivable_s``, measured by the simulator), a braking lead at its onset (its brake lights);
   the risk then takes 0.4 s to perceive;
+- *criticality*: it reacts only once the situation is critical, a time-to-collision or a time headway under
+  2 s (esmini's criterion), checked from the end of the perception time on; the speed is held until then;
 - *reaction*: 0.75 s more before the brake acts; the speed is held meanwhile;
 - *braking*: the deceleration rises at 12.65 m/s^3 to 0.774 g (7.59 m/s^2, reached after 0.6 s) and is held
   until the car stops.
@@ -48,6 +50,14 @@ class CarefulDriver:
     reaction_s: float = 0.75
     max_decel: float = 0.774 * G
     jerk: float = 0.774 * G / 0.6
+    critical_ttc_s: float = 2.0
+    critical_headway_s: float = 2.0
+
+    def critical(self, gap: float, speed: float, actor_speed: float) -> bool:
+        """Whether a gap [m] at these speeds [m/s] is critical: time-to-collision or time headway under 2 s."""
+        closing = speed - actor_speed
+        return ((closing > 0.0 and gap / closing < self.critical_ttc_s)
+                or (speed > 0.0 and gap / speed < self.critical_headway_s))
 
     def decel_at(self, since_brake_s: float) -> float:
         """Its deceleration [m/s^2] ``since_brake_s`` after the brake starts to act (0 before)."""
@@ -59,12 +69,14 @@ R157 = CarefulDriver()
 
 def event_for_collision(events: Sequence[ActorEvent], records: Sequence[StepRecord], hit_at: int,
                         window_s: float = 10.0) -> ActorEvent | None:
-    """The latest actor event with the vehicle the ego hit at ``records[hit_at]`` that began within
-    ``window_s`` before the impact (None: the tester did not act on that vehicle)."""
+    """The first actor event with the vehicle the ego hit at ``records[hit_at]`` that began within ``window_s``
+    before the impact (None: the tester did not act on that vehicle). The first, since a careful driver
+    perceived the actor from then on (a lead braked again after a pause was already being watched); when to
+    react is the criticality check's to say."""
     hit = records[hit_at]
     mine = [e for e in events if e.vehicle_id == hit.collision.other_id
             and hit.time_s - window_s <= e.onset_s <= hit.time_s + 1e-9]
-    return max(mine, key=lambda e: e.onset_s) if mine else None
+    return min(mine, key=lambda e: e.onset_s) if mine else None
 
 
 def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: ActorEvent, dt: float,
@@ -77,9 +89,15 @@ def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: A
     out: dict[str, Any] = {"reference": driver.name, "event": event.kind, "onset_s": round(event.onset_s, 3),
                            "perceivable_s": None if event.perceivable_s is None else round(t_seen, 3)}
     k0 = next((i for i in range(hit_at + 1) if records[i].time_s >= t_seen - 1e-9), hit_at)
-    brake_at = records[k0].time_s + driver.perception_s + driver.reaction_s
+    perceived = records[k0].time_s + driver.perception_s
+    brake_at = math.inf  # set once the situation is critical, after the perception time
     v_ref = float(records[k0].ego.speed)
-    out.update(speed_m_s=round(v_ref, 3), brake_from_s=round(brake_at, 3))
+    out["speed_m_s"] = round(v_ref, 3)
+
+    def check_critical(t: float, gap: float, actor_speed: float) -> None:
+        nonlocal brake_at
+        if math.isinf(brake_at) and t >= perceived - 1e-9 and driver.critical(gap, v_ref, actor_speed):
+            brake_at = t + driver.reaction_s
 
     x_rec = x_ref = 0.0  # distance driven since records[k0]: by the recorded ego, by the reference
     min_gap = math.inf
@@ -96,6 +114,7 @@ def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: A
         gap = position - x_ref
         accel = 0.0 if last is None else (r.lead.speed - last[2]) / max(r.time_s - last[0], dt)
         last = (r.time_s, position, float(r.lead.speed), accel)
+        check_critical(r.time_s, gap, float(r.lead.speed))
         min_gap = min(min_gap, gap)
         if gap <= 0.0 and collides_at is None:
             collides_at = r.time_s
@@ -117,6 +136,7 @@ def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: A
             v_ref, x_ref = _advance(driver, v_ref, x_ref, t_ref, brake_at, dt)
             t_ref += dt
             gap = position - x_ref
+            check_critical(t_ref, gap, v_a)
             min_gap = min(min_gap, gap)
             if gap <= 0.0:
                 collides_at = t_ref
@@ -125,7 +145,9 @@ def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: A
                 break
     elif last is None:  # the actor was never in the path before the impact: nothing to measure it by
         collides_at = t_hit
-    out.update(min_gap_m=None if not math.isfinite(min_gap) else round(min_gap, 3),
+    out.update(critical_s=None if math.isinf(brake_at) else round(brake_at - driver.reaction_s, 3),
+               brake_from_s=None if math.isinf(brake_at) else round(brake_at, 3),
+               min_gap_m=None if not math.isfinite(min_gap) else round(min_gap, 3),
                collides=collides_at is not None,
                collision_s=None if collides_at is None else round(collides_at, 3))
     return out
