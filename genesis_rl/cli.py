@@ -457,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_scale_arguments(tr, "--envs")
     tr.set_defaults(func=_cmd_train)
 
+    from genesis_rl.benchmark_cmd import add_benchmark_command
     from genesis_rl.export_cmd import add_export_command
     from genesis_rl.perception.commands import add_detector_commands, add_model_commands
     from genesis_rl.realism_cmd import add_realism_command
@@ -464,6 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_detector_commands(sub)
     add_model_commands(sub)
     add_realism_command(sub)
+    add_benchmark_command(sub)
 
     from genesis_rl.evaluation.commands import add_evaluation_commands
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 
 #: test module name prefix -> xdist group
-GROUPS = {"test_ray": "ray", "test_carla": "carla", "test_interrupts": "signals"}
+GROUPS = {"test_ray": "ray", "test_carla": "carla", "test_interrupts": "signals",
+          "test_benchmark_command": "benchmark"}  # one module-scoped matrix, built once
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

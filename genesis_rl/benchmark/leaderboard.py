@@ -1,0 +1,177 @@
+"""The benchmark's figures: per member and policy, the falsifier metrics pooled over the trials, and the ranks
+across the weakness members (``benchmark.ranks``); written as leaderboard.json and a page in the report's style.
+
+Pooled over trials: every episode is a trial of the falsifier in ``benchmark.metrics``' sense (one scene
+under the step budget), so the falsification rate, reached and triggered are shares of all episodes, with an
+exact interval, and the survival curve is one Kaplan-Meier over all of them. Each trial's own rate is kept
+too (its spread is what ARCH-COMP reports over its 10 runs). Distinct failures are counted over the union of
+the trials' clusters (the same cluster found in two trials is one finding).
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import Any
+
+from genesis_rl.benchmark.matrix import BenchmarkSpec, member_trials
+from genesis_rl.benchmark.metrics import PolicyMetrics, falsifier_metrics
+from genesis_rl.benchmark.ranks import compare_ranks
+from genesis_rl.benchmark.survival import kaplan_meier, median_time
+from genesis_rl.evaluation.distinct import KEY_FIELDS
+from genesis_rl.evaluation.stats import clopper_pearson
+from genesis_rl.io_utils import atomic_write, atomic_write_json
+from genesis_rl.zoo.members import zoo_member
+
+
+def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str, Any]:
+    """One policy's figures on one member over its trials (module docstring)."""
+    trials = [t for m in per_trial for t in m.trials]
+    n = len(trials)
+    falsified = sum(t.failed for t in trials)
+    ci = clopper_pearson(falsified, n)
+    t, s = kaplan_meier([tr.steps_to_failure for tr in trials], [tr.failed for tr in trials])
+    keys = {tuple(str(c.get(k)) for k in KEY_FIELDS) for m in per_trial for c in m.clusters}
+    alarms = [a for m in per_trial for a in m.false_alarm_candidates]
+    return {
+        "policy": policy, "member": member, "kind": zoo_member(member).kind, "trials": len(per_trial),
+        "episodes": n, "falsified": falsified,
+        "falsification_rate": None if n == 0 else round(falsified / n, 4),
+        "falsification_ci": [ci["ci_low"], ci["ci_high"]],
+        "falsification_rate_per_trial": [m.falsification_rate for m in per_trial],
+        "trials_with_a_failure": sum(m.falsified > 0 for m in per_trial),
+        "reached": sum(tr.reached for tr in trials), "triggered": sum(tr.triggered for tr in trials),
+        "survival": [[float(a), float(b)] for a, b in zip(t, s, strict=True)],
+        "budget_steps": max((tr.steps for tr in trials), default=0),
+        "median_steps_to_failure": median_time(t, s),
+        "distinct_in_odd_failures": len(keys),
+        "false_alarm_candidates": len(alarms),
+        "unconfirmed_false_alarms": sum(1 for a in alarms if a.get("oracle_collides") is False),
+    }
+
+
+def leaderboard(spec: BenchmarkSpec, out: Path) -> dict[str, Any]:
+    """Every (member, policy) pooled over the trials, and the ranks over the weakness members (score: the
+    falsification rate, ties broken by the median steps to the first failure, fewer first)."""
+    cells: dict[str, dict[str, Any]] = {}
+    for member in spec.members:
+        per_policy: dict[str, list[PolicyMetrics]] = {p: [] for p in spec.policies}
+        for folder in member_trials(spec, out, member):
+            for policy, metrics in falsifier_metrics(folder, member).items():
+                per_policy.setdefault(policy, []).append(metrics)
+        cells[member] = {p: pooled(p, member, per_policy[p]) for p in spec.policies}
+    weak = [m for m in spec.members if zoo_member(m).kind == "weakness"]
+
+    def score(c: dict[str, Any]) -> float:
+        rate = c["falsification_rate"] or 0.0
+        med = c["median_steps_to_failure"]
+        return rate - (0.0 if med is None else med * 1e-9)  # faster breaks a tie in the rate
+
+    ranks = compare_ranks({m: {p: score(cells[m][p]) for p in spec.policies} for m in weak}, spec.policies)
+    return {"spec": spec.to_json(), "cells": cells, "ranks": ranks,
+            "controls": [m for m in spec.members if zoo_member(m).kind == "control"], "weaknesses": weak}
+
+
+def write_leaderboard(out: Path, board: dict[str, Any]) -> None:
+    atomic_write_json(Path(out) / "leaderboard.json", board, indent=1)
+    page = render_page(board)
+    atomic_write(Path(out) / "leaderboard.html", lambda p: p.write_text(page))
+
+
+def _fig_survival(board: dict[str, Any], member: str) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from genesis_rl.evaluation.report import _color, _png
+
+    fig, ax = plt.subplots(figsize=(5.2, 3.2))
+    for k, (policy, c) in enumerate(board["cells"][member].items()):
+        pts = c["survival"]
+        xs = [p[0] for p in pts] + [float(c["budget_steps"])]  # flat to the budget, where the rest are censored
+        ys = [p[1] for p in pts] + [pts[-1][1]]
+        ax.step(xs, ys, where="post", color=_color(policy, k), label=f"{policy} ({c['falsified']}/{c['episodes']})")
+    ax.set_ylim(-0.03, 1.03)
+    ax.set_xlabel("simulator steps")
+    ax.set_ylabel("share without an in-ODD failure")
+    ax.set_title(member, fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    return _png(fig)
+
+
+def _fig_ranks(board: dict[str, Any]) -> str | None:
+    r = board["ranks"]
+    avg = {p: v for p, v in r["average_rank"].items() if v is not None}
+    if not avg:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from genesis_rl.evaluation.report import _color, _png
+
+    fig, ax = plt.subplots(figsize=(5.2, 1.6 + 0.25 * len(avg)))
+    order = sorted(avg, key=lambda p: avg[p])
+    for k, p in enumerate(order):
+        ax.plot([avg[p]], [k], "o", color=_color(p, k))
+        ax.annotate(p, (avg[p], k), xytext=(6, -3), textcoords="offset points", fontsize=8)
+    cd = r.get("critical_difference")
+    if cd:
+        ax.plot([1.0, 1.0 + cd], [-0.8, -0.8], color="#333", lw=2)
+        ax.annotate(f"CD = {cd:.2f}", (1.0, -0.8), xytext=(0, 4), textcoords="offset points", fontsize=8)
+    ax.set_yticks([])
+    ax.set_ylim(-1.3, len(order) - 0.4)
+    ax.set_xlim(0.8, len(r["average_rank"]) + 0.7)
+    ax.set_xlabel("average rank over the weakness members (1: best)")
+    ax.grid(axis="x", alpha=0.3)
+    return _png(fig)
+
+
+def render_page(board: dict[str, Any]) -> str:
+    """The leaderboard as one self-contained HTML page."""
+    from genesis_rl import __version__
+    from genesis_rl.evaluation.report import CSS
+
+    spec = board["spec"]
+    h = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL benchmark</title><style>{CSS}</style>"
+         "</head><body><h1>GENESIS-RL benchmark: adversaries against systems with known weaknesses</h1>",
+         f"<p class=meta>{len(spec['members'])} zoo members x {len(spec['policies'])} policies x {spec['trials']} "
+         f"trials (seeds {spec['seed']}..{spec['seed'] + spec['trials'] - 1}), {spec['scenes']} scene(s) a trial, "
+         f"{spec['steps'] or 'each member’s own'} steps an episode · genesis-rl {__version__} · docs/zoo.md</p>"]
+    r = board["ranks"]
+    if board["weaknesses"]:
+        h.append("<h2>Ranks over the weakness members</h2>")
+        img = _fig_ranks(board)
+        if img:
+            h.append(f"<img src='{img}'>")
+        p = r.get("friedman_p")
+        h.append("<p class=meta>Score on a member: the falsification rate (ties: fewer steps to the first failure). "
+                 + (f"Friedman's test over {len(r['systems'])} members: chi2 = {r['friedman_chi2']}, p = {p}; "
+                    f"Nemenyi critical difference at 5 %: {r['critical_difference']}." if p is not None else
+                    "Friedman's test needs at least 2 weakness members and 2 policies.") + "</p>")
+    head = ["policy", "episodes", "falsification rate [95 % CI]", "trials with a failure", "reached", "triggered",
+            "median steps to first failure", "distinct in-ODD failures", "false-alarm candidates (unconfirmed)"]
+    for member in spec["members"]:
+        m = zoo_member(member)
+        h.append(f"<h2>{html.escape(member)} <span class=meta>({m.kind})</span></h2>"
+                 f"<p class=meta>{html.escape(m.summary)}</p>")
+        h.append("<table><tr>" + "".join(f"<th class=l>{c}</th>" for c in head) + "</tr>")
+        for policy, c in board["cells"][member].items():
+            lo, hi = c["falsification_ci"]
+            rate = "–" if c["falsification_rate"] is None else \
+                f"{c['falsification_rate']:.2f} [{lo:.2f}, {hi:.2f}]"
+            med = "–" if c["median_steps_to_failure"] is None else f"{c['median_steps_to_failure']:.0f}"
+            alarms = f"{c['false_alarm_candidates']} ({c['unconfirmed_false_alarms']})" if m.kind == "control" else "–"
+            cells = [policy, str(c["episodes"]), rate, f"{c['trials_with_a_failure']}/{c['trials']}",
+                     str(c["reached"]), str(c["triggered"]), med, str(c["distinct_in_odd_failures"]), alarms]
+            h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in cells) + "</tr>")
+        h.append("</table>")
+        h.append(f"<img src='{_fig_survival(board, member)}'>")
+    h.append("<p class=meta>Reached: the episode entered the member's trigger region; triggered: an in-ODD failure "
+             "at or after that. Never reached says exploration; reached, never triggered, timing or naturalness. "
+             "On a control every in-ODD failure is a false-alarm candidate; unconfirmed: the oracle replay "
+             "avoided it.</p></body></html>")
+    return "\n".join(h)

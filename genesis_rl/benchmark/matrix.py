@@ -1,0 +1,163 @@
+"""``genesis-rl benchmark``: every adversary on every zoo member over repeated trials (issue 33).
+
+The matrix is members x trials campaigns, each playing every policy on the member's map inside its ODD
+(``zoo.members.env_settings``) with its own seed (``seed + trial``: other scenes, other episode seeds), so a
+trial is a repetition as ARCH-COMP's 10 falsification runs are. The benchmark sits above ``evaluation``: it
+runs campaigns with ``run_campaign`` (local processes or Ray, resumable), and campaigns do not know it. Its
+folder::
+
+    OUT/benchmark.json                       the spec (what decides the results)
+    OUT/campaigns/MEMBER/trial_NN/           one campaign each (campaign.json, episodes/, summary.json, ...)
+    OUT/leaderboard.json, leaderboard.html   the figures (``benchmark.leaderboard``)
+
+``--resume`` continues the matrix where it stopped: finished campaigns are kept, a half-run one resumes
+from its finished episodes, so the figures are those of an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from genesis_rl import limits, output_folder
+from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.campaign_spec import CampaignSpec
+from genesis_rl.io_utils import atomic_write_json
+from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
+
+SCHEMA = "genesis-rl/benchmark"
+#: a trial count beyond this is refused (each is a campaign per member)
+MAX_TRIALS = 100
+#: the policies a benchmark plays; a trained agent needs one training per member, which this command does not do
+STEP_POLICIES = ("sunny", "random", "constant", "cmaes", "cem")
+
+
+@dataclass(frozen=True)
+class BenchmarkSpec:
+    """What decides a benchmark's results: the members, the policies, how many trials (campaign seeds), how
+    many scenes a trial plays per policy, the first seed, the steps per episode (None: each member's own) and
+    the policies' options (``search_budget``, ``constant_action``, ...)."""
+
+    members: tuple[str, ...]
+    policies: tuple[str, ...]
+    trials: int = 10
+    scenes: int = 5
+    seed: int = 0
+    steps: int | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name, values, allowed in (("members", self.members, tuple(ZOO)),
+                                      ("policies", self.policies, STEP_POLICIES)):
+            if not values:
+                raise UserInputError(f"benchmark {name}: empty; allowed: {', '.join(allowed)}")
+            unknown = [v for v in values if v not in allowed]
+            if unknown:
+                hint = " (an agent needs one training per member: train it and evaluate it on the member)" \
+                    if "agent" in unknown else ""
+                raise UserInputError(f"benchmark {name}: {unknown} unknown; allowed: {', '.join(allowed)}{hint}")
+            if len(set(values)) != len(values):
+                raise UserInputError(f"benchmark {name}: {list(values)} names one twice")
+        for name, value, low, high in (("trials", self.trials, 1, MAX_TRIALS), ("scenes", self.scenes, 1, None),
+                                       ("seed", self.seed, 0, 2**31 - 1)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < low or (high and value > high):
+                raise UserInputError(f"benchmark {name} = {value!r}; allowed: an integer in {low}.."
+                                     f"{high if high else 'the scene limit'}")
+        limits.SCENES.check(self.scenes, "benchmark scenes")
+        if self.steps is not None:
+            if not isinstance(self.steps, int) or isinstance(self.steps, bool) or self.steps < 1:
+                raise UserInputError(f"benchmark steps = {self.steps!r}; allowed: an integer >= 1, or none "
+                                     "(each member's own episode length)")
+            limits.SIM_STEPS.check(self.steps, "benchmark steps")
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.update(members=list(self.members), policies=list(self.policies), options=dict(self.options))
+        return d
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> BenchmarkSpec:
+        return cls(**{**d, "members": tuple(d["members"]), "policies": tuple(d["policies"]),
+                      "options": dict(d.get("options") or {})})
+
+
+#: ``--smoke``: the whole pipeline in about a minute on 2 cores (one weakness, one control, two cheap policies)
+SMOKE = BenchmarkSpec(members=("low_sun", "oracle_highway"), policies=("sunny", "random"), trials=2, scenes=1,
+                      steps=48)
+
+
+def member_steps(spec: BenchmarkSpec, member: str) -> int:
+    """Steps per episode on ``member``: the spec's, else the member's own, else 512."""
+    return spec.steps or int(zoo_member(member).env.get("episode_steps", 512))
+
+
+def campaign_spec(spec: BenchmarkSpec, member: str, trial: int) -> CampaignSpec:
+    """The campaign of one trial on one member."""
+    m = zoo_member(member)
+    return CampaignSpec(policies=spec.policies, map=m.map, scenes=spec.scenes, seed=spec.seed + trial,
+                        steps=member_steps(spec, member), env=env_settings(m), options=dict(spec.options))
+
+
+def campaign_folder(out: Path, member: str, trial: int) -> Path:
+    return Path(out) / "campaigns" / member / f"trial_{trial:02d}"
+
+
+def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
+    path = out / "benchmark.json"
+    if not path.exists():
+        raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
+    found = json.loads(path.read_text()).get("spec", {})
+    wanted = spec.to_json()
+    differ = [k for k in wanted if found.get(k) != wanted[k]]
+    if differ:
+        k = differ[0]
+        raise UserInputError(f"--resume: benchmark '{out}' was started with {k} = {found.get(k)!r}, not "
+                             f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
+
+
+def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume: bool = False,
+                  workers: int = 1, executor: Any = None, progress: bool = True) -> dict[str, Any]:
+    """Run every (member, trial) campaign not yet finished, then write the leaderboard; returns it."""
+    from genesis_rl import __version__
+    from genesis_rl.benchmark.leaderboard import leaderboard, write_leaderboard
+    from genesis_rl.evaluation.campaign import run_campaign
+
+    out = Path(out)
+    if resume and not (out / "benchmark.json").exists():
+        raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
+    with output_folder.claim(out, "benchmark", force, resume=resume):
+        if resume:
+            _check_same_spec(out, spec)
+        else:
+            output_folder.replace(out, "benchmark")  # only genesis-rl's own entries go (--force)
+            atomic_write_json(out / "benchmark.json", {"schema": SCHEMA, "version": __version__,
+                                                       "spec": spec.to_json()}, indent=1)
+        cells = [(m, t) for m in spec.members for t in range(spec.trials)]
+        bar = tqdm(total=len(cells), desc="benchmark", unit="campaign", disable=not progress)
+        for member, trial in cells:
+            folder = campaign_folder(out, member, trial)
+            bar.set_postfix_str(f"{member} trial {trial}")
+            done = (folder / "summary.json").exists() and (folder / "campaign.json").exists()
+            if not done:
+                started = (folder / "campaign.json").exists()
+                if folder.exists() and not started:  # a campaign interrupted before it wrote its spec: ours
+                    shutil.rmtree(folder)
+                folder.parent.mkdir(parents=True, exist_ok=True)
+                run_campaign(campaign_spec(spec, member, trial), folder, workers=workers, resume=started,
+                             progress=False, executor=executor)
+            bar.update()
+        bar.close()
+        board = leaderboard(spec, out)
+        write_leaderboard(out, board)
+    return board
+
+
+def member_trials(spec: BenchmarkSpec, out: Path, member: str) -> Sequence[Path]:
+    """The campaign folders of ``member``'s trials, in trial order."""
+    return [campaign_folder(out, member, t) for t in range(spec.trials)]

@@ -1,0 +1,101 @@
+"""``genesis-rl benchmark``: the matrix of zoo members x adversaries x trials, and its leaderboard (issue 33).
+
+A top-level command (as ``export_cmd``): ``benchmark`` runs campaigns through ``evaluation``; the zoo and the
+metrics live in ``zoo`` and ``benchmark``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from genesis_rl.errors import UserInputError
+
+
+def _names(text: str, flag: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(","))
+    if not all(names):
+        raise UserInputError(f"{flag} '{text}' has an empty name; give a comma list such as sunny,random")
+    return names
+
+
+def _cmd_benchmark(args: argparse.Namespace) -> int:
+    from genesis_rl.benchmark.matrix import SMOKE, STEP_POLICIES, BenchmarkSpec
+    from genesis_rl.zoo.members import ZOO
+
+    if args.list:
+        for name, m in ZOO.items():
+            print(f"{name} ({m.kind}, {m.map}, system {m.system}, ODD {m.odd}): {m.summary}")
+        print(f"policies: {', '.join(STEP_POLICIES)}")
+        return 0
+    if args.out is None:
+        raise UserInputError("--out is required (the benchmark folder), unless --list")
+    from genesis_rl import limits
+
+    for value, flag, limit in ((args.workers, "--workers", limits.WORKERS),
+                               (args.search_budget, "--search-budget", limits.SEARCH_BUDGET)):
+        if value is not None:
+            if value < 1:
+                raise UserInputError(f"{flag} = {value}; allowed: an integer >= 1")
+            limit.check(value, flag)
+    options: dict = {}
+    if args.search_budget is not None:
+        options["search_budget"] = args.search_budget
+    if args.smoke:
+        spec = SMOKE
+    else:
+        spec = BenchmarkSpec(
+            members=_names(args.members, "--members") if args.members else tuple(ZOO),
+            policies=_names(args.policies, "--policies"), trials=args.trials, scenes=args.scenes, seed=args.seed,
+            steps=args.steps, options=options)
+    executor = None
+    if args.executor == "ray" or args.ray_address:
+        from genesis_rl.distributed.settings import ExecutorSettings
+
+        executor = ExecutorSettings(kind="ray", workers=args.workers, ray_address=args.ray_address)
+    from genesis_rl.benchmark.matrix import run_benchmark
+
+    board = run_benchmark(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
+                          executor=executor, progress=not args.quiet)
+    short = {m: {p: {k: c[k] for k in ("falsification_rate", "triggered", "median_steps_to_failure",
+                                        "distinct_in_odd_failures", "false_alarm_candidates")}
+                 for p, c in cells.items()} for m, cells in board["cells"].items()}
+    print(json.dumps({"out": args.out, "cells": short, "average_rank": board["ranks"]["average_rank"],
+                      "friedman_p": board["ranks"]["friedman_p"]}, indent=2))
+    print(f"leaderboard: {Path(args.out) / 'leaderboard.html'}")
+    return 0
+
+
+def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    from genesis_rl.cli_args import seed_int
+
+    bm = subparsers.add_parser(
+        "benchmark", help="every adversary on systems whose weaknesses are known (the zoo); a leaderboard",
+        description="Run the matrix zoo members x policies x trials (each trial a campaign with its own seed) "
+                    "on local processes or Ray, resumable, and write leaderboard.json and leaderboard.html: "
+                    "falsification rate, reached/triggered, steps to the first in-ODD failure (Kaplan-Meier), "
+                    "distinct failures, false alarms on the controls, ranks with Friedman's test (docs/zoo.md).")
+    bm.add_argument("--out", default=None, help="benchmark folder")
+    bm.add_argument("--members", default=None, help="comma list of zoo members (default: all; see --list)")
+    bm.add_argument("--policies", default="sunny,random,constant,cmaes,cem",
+                    help="comma list of adversaries (default: sunny,random,constant,cmaes,cem)")
+    bm.add_argument("--trials", type=int, default=10, help="trials (campaign seeds) per member (default 10)")
+    bm.add_argument("--scenes", type=int, default=5, help="scenes a trial plays per policy (default 5)")
+    bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")
+    bm.add_argument("--steps", type=int, default=None,
+                    help="steps per episode, the simulator-step budget of a trial (default: each member's own)")
+    bm.add_argument("--search-budget", type=int, default=None,
+                    help="episodes a search adversary (cmaes, cem) may spend per scene")
+    bm.add_argument("--smoke", action="store_true",
+                    help="a tiny matrix that runs in about a minute (low_sun and oracle_highway, sunny and random, "
+                         "2 trials of one 48-step scene)")
+    bm.add_argument("--list", action="store_true", help="list the zoo's members and the adversaries, and exit")
+    bm.add_argument("--workers", type=int, default=1, help="parallel episodes")
+    bm.add_argument("--executor", choices=("local", "ray"), default="local", help="where the episodes run")
+    bm.add_argument("--ray-address", default=None, help="a running Ray cluster (implies --executor ray)")
+    bm.add_argument("--resume", action="store_true", help="continue the benchmark in --out where it stopped")
+    bm.add_argument("--force", action="store_true", help="replace an existing benchmark folder")
+    bm.add_argument("--quiet", action="store_true", help="no progress bar")
+    bm.set_defaults(func=_cmd_benchmark)
+    return bm

@@ -1,0 +1,113 @@
+"""``genesis-rl benchmark`` (issue 33): the matrix runs end to end, its figures are the per-campaign metrics
+pooled, an interrupted benchmark resumes to the same leaderboard, and bad input is refused naming the field;
+the rank statistics are checked by hand."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from genesis_rl.benchmark.matrix import BenchmarkSpec, campaign_folder, run_benchmark
+from genesis_rl.benchmark.metrics import falsifier_metrics
+from genesis_rl.benchmark.ranks import chi2_sf, compare_ranks, rank_rows
+from genesis_rl.cli import main
+from genesis_rl.errors import UserInputError
+from genesis_rl.zoo import members as zoo
+from genesis_rl.zoo.members import ZooMember
+from genesis_rl.zoo.trigger import Bound, TriggerRegion
+
+#: a test-only weakness whose failures are certain: a system that never sees anything, in clear highway air
+BLIND = ZooMember(name="blind_highway", kind="weakness", summary="test only: the blind system", system="blind",
+                  odd="highway_day.toml", map="highway", trigger=TriggerRegion((Bound("visibility_m", 2000.0),)),
+                  env={"dynamics": "natural"})
+
+
+def test_chi_square_tail_matches_the_tables():
+    assert chi2_sf(3.841, 1) == pytest.approx(0.05, abs=2e-4)
+    assert chi2_sf(5.991, 2) == pytest.approx(0.05, abs=2e-4)
+    assert chi2_sf(7.815, 3) == pytest.approx(0.05, abs=2e-4)
+    assert chi2_sf(13.277, 4) == pytest.approx(0.01, abs=1e-4)
+    assert chi2_sf(0.0, 3) == 1.0
+
+
+def test_ranks_friedman_and_critical_difference_by_hand():
+    assert rank_rows({"a": 0.9, "b": 0.5, "c": 0.5}) == {"a": 1.0, "b": 2.5, "c": 2.5}
+    # three systems on which a always beats b, and b beats c: average ranks 1, 2, 3; Friedman chi2 =
+    # 12 N / (k (k + 1)) * sum(R^2) - 3 N (k + 1) = 12 * 3 / 12 * 14 - 36 = 6, p = exp(-3) with 2 dof
+    table = {s: {"a": 0.9, "b": 0.5, "c": 0.1} for s in ("x", "y", "z")}
+    r = compare_ranks(table, ("a", "b", "c"))
+    assert r["average_rank"] == {"a": 1.0, "b": 2.0, "c": 3.0}
+    assert r["friedman_chi2"] == pytest.approx(6.0) and r["friedman_p"] == pytest.approx(0.049787, abs=1e-6)
+    assert r["critical_difference"] == pytest.approx(2.343 * (3 * 4 / 18) ** 0.5, abs=1e-4)
+    assert compare_ranks({"x": {"a": 1.0, "b": 0.0}}, ("a", "b"))["friedman_p"] is None  # one system: no test
+
+
+def test_bad_benchmark_input_is_refused_naming_the_field(tmp_path):
+    with pytest.raises(UserInputError, match=r"benchmark members: \['nope'\] unknown; allowed: low_sun"):
+        BenchmarkSpec(members=("nope",), policies=("sunny",))
+    with pytest.raises(UserInputError, match=r"benchmark policies: \['agent'\] unknown.*one training per member"):
+        BenchmarkSpec(members=("low_sun",), policies=("agent",))
+    with pytest.raises(UserInputError, match="benchmark trials = 0"):
+        BenchmarkSpec(members=("low_sun",), policies=("sunny",), trials=0)
+    assert main(["benchmark", "--out", str(tmp_path / "b"), "--policies", "sunny,,random"]) == 2
+    assert main(["benchmark", "--out", str(tmp_path / "b"), "--trials", "0"]) == 2
+    assert not (tmp_path / "b").exists()  # refused before anything was written
+    assert main(["benchmark", "--list"]) == 0
+
+
+@pytest.fixture(scope="module")
+def blind_benchmark(tmp_path_factory) -> Iterator[tuple[BenchmarkSpec, Path]]:
+    """blind_highway (a weakness) and oracle_highway (a control), sunny and random, 2 trials of 2 scenes."""
+    zoo.ZOO[BLIND.name] = BLIND
+    spec = BenchmarkSpec(members=("blind_highway", "oracle_highway"), policies=("sunny", "random"), trials=2,
+                         scenes=2, steps=120)
+    out = tmp_path_factory.mktemp("bench") / "b"
+    run_benchmark(spec, out, progress=False)
+    yield spec, out
+    zoo.ZOO.pop(BLIND.name, None)
+
+
+def test_the_leaderboard_pools_the_campaigns_metrics(blind_benchmark):
+    spec, out = blind_benchmark
+    board = json.loads((out / "leaderboard.json").read_text())
+    assert (out / "leaderboard.html").read_text().count("<table>") == 2
+    for policy in spec.policies:
+        per_trial = [falsifier_metrics(campaign_folder(out, "blind_highway", t), BLIND)[policy] for t in range(2)]
+        cell = board["cells"]["blind_highway"][policy]
+        assert cell["episodes"] == 4 and cell["trials"] == 2
+        assert cell["falsified"] == sum(m.falsified for m in per_trial)
+        assert cell["falsification_rate_per_trial"] == [m.falsification_rate for m in per_trial]
+        assert cell["triggered"] == sum(m.triggered for m in per_trial) <= cell["falsified"]
+        assert cell["budget_steps"] == 120
+        control = board["cells"]["oracle_highway"][policy]
+        assert control["false_alarm_candidates"] == control["falsified"]
+    # the blind system crashes in clear air whatever the weather: sunny falsifies it in some trial
+    assert board["cells"]["blind_highway"]["sunny"]["falsified"] >= 1
+    assert board["ranks"]["systems"] == ["blind_highway"]
+
+
+def test_an_interrupted_benchmark_resumes_to_the_same_leaderboard(blind_benchmark, tmp_path):
+    spec, out = blind_benchmark
+    cut = tmp_path / "cut"
+    shutil.copytree(out, cut)
+    shutil.rmtree(campaign_folder(cut, "oracle_highway", 1))  # never started
+    half = campaign_folder(cut, "blind_highway", 1)  # stopped after its first episodes
+    (half / "summary.json").unlink()
+    for row in sorted((half / "episodes" / "random").glob("*.json")):
+        row.unlink()
+    (cut / "leaderboard.json").unlink()
+    with pytest.raises(UserInputError, match="exists; pass --resume to continue it or --force"):
+        run_benchmark(spec, cut, progress=False)
+    with pytest.raises(UserInputError, match="was started with trials = 2, not 3"):
+        run_benchmark(BenchmarkSpec(**{**spec.to_json(), "members": spec.members, "policies": spec.policies,
+                                       "trials": 3}), cut, resume=True, progress=False)
+    run_benchmark(spec, cut, resume=True, progress=False)
+
+    def figures(folder: Path) -> dict:
+        return json.loads((folder / "leaderboard.json").read_text())
+
+    assert figures(cut) == figures(out)
