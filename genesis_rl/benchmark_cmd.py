@@ -48,7 +48,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
         spec = BenchmarkSpec(
             members=_names(args.members, "--members") if args.members else tuple(ZOO),
             policies=_names(args.policies, "--policies"), trials=args.trials, scenes=args.scenes, seed=args.seed,
-            steps=args.steps, options=options)
+            steps=args.steps, options=options, start=args.start)
     executor = None
     if args.executor == "ray" or args.ray_address:
         from genesis_rl.distributed.settings import ExecutorSettings
@@ -85,6 +85,9 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
     bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")
     bm.add_argument("--steps", type=int, default=None,
                     help="steps per episode, the simulator-step budget of a trial (default: each member's own)")
+    bm.add_argument("--start", choices=("natural", "fixed"), default="natural",
+                    help="natural (default): each adversary chooses where the knobs that cannot move within an "
+                         "episode start (the sun); fixed: every episode from the start weather")
     bm.add_argument("--search-budget", type=int, default=None,
                     help="episodes a search adversary (cmaes, cem) may spend per scene")
     bm.add_argument("--smoke", action="store_true",

@@ -9,6 +9,7 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from genesis_rl.benchmark.matrix import BenchmarkSpec, campaign_folder, run_benchmark
@@ -111,3 +112,61 @@ def test_an_interrupted_benchmark_resumes_to_the_same_leaderboard(blind_benchmar
         return json.loads((folder / "leaderboard.json").read_text())
 
     assert figures(cut) == figures(out)
+
+
+def test_under_natural_dynamics_the_sun_is_held_and_only_the_start_sets_it(tmp_path):
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.zoo.members import zoo_member
+
+    low_sun = zoo_member("low_sun")
+    env = GenesisEnv(EnvConfig(map="urban", scenes=4, dynamics="natural", odd=str(low_sun.odd_path),
+                               episode_steps=256))
+    try:
+        assert env.held_knobs == ("sun_altitude_angle", "sun_azimuth_angle")
+        # the lowest sun the day ODD allows, from a position below the horizon: on the ODD's boundary
+        low = env.start_from([0.0, 0.5])
+        assert -1.0 <= low["sun_altitude_angle"] <= 1.0 and low["sun_azimuth_angle"] == pytest.approx(180.0)
+        assert env.odd.contains(env.conditions_model.conditions(low, None), low)
+        draws = [env.natural_start(np.random.default_rng([7, i])) for i in range(40)]
+        assert all(env.odd.contains(env.conditions_model.conditions(w, None), w) for w in draws)
+        altitudes = [w["sun_altitude_angle"] for w in draws]
+        assert min(altitudes) >= 0.0 and max(altitudes) <= 90.0 and np.std(altitudes) > 15.0  # spread, inside
+        assert env.natural_start(np.random.default_rng([7, 0])).values == draws[0].values  # seeded
+        with pytest.raises(UserInputError, match="the held knobs are"):
+            env.start_from([0.5])
+    finally:
+        env.close()
+    paper = GenesisEnv(EnvConfig(map="urban", scenes=4, dynamics="paper", episode_steps=64))
+    try:
+        assert paper.held_knobs == ()  # 5 % of the range a step: nothing is held
+    finally:
+        paper.close()
+
+
+def test_a_natural_start_campaign_records_and_replays_the_start_each_policy_chose(tmp_path):
+    from genesis_rl.evaluation.campaign import run_campaign
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.evaluation.records import load_record, replay_record
+    from genesis_rl.zoo.members import env_settings, zoo_member
+
+    member = zoo_member("low_sun")
+    with pytest.raises(UserInputError, match="campaign option start = 'dawn'; allowed: fixed, natural"):
+        CampaignSpec(policies=("random",), map="urban", scenes=1, steps=32, options={"start": "dawn"})
+    spec = CampaignSpec(policies=("sunny", "random", "constant"), map="urban", scenes=2, seed=1, steps=40,
+                        env=env_settings(member), options={"start": "natural", "constant_action": [-1.0]},
+                        records="all")
+    run_campaign(spec, tmp_path / "c", progress=False)
+    starts = {}
+    for path in sorted((tmp_path / "c" / "records").glob("*.json")):
+        rec = load_record(path)
+        starts.setdefault(rec["policy"], []).append(rec["start_weather"]["sun_altitude_angle"])
+        col = rec["knobs"].index("sun_altitude_angle")
+        assert abs(rec["schedule"][0][col] - rec["start_weather"]["sun_altitude_angle"]) < 0.01  # held from there
+        row = json.loads((tmp_path / "c" / "episodes" / rec["policy"] / f"scene_{rec['scene']['index']:04d}.json")
+                         .read_text())
+        assert np.isfinite(row["naturalness"]["log_likelihood"])  # the start is no jump in the trajectory
+    assert starts["sunny"] == [75.0, 75.0]  # the start weather: sunny does not choose
+    assert all(a <= 1.0 for a in starts["constant"])  # -1: as low as the ODD allows
+    assert len(set(starts["random"])) == 2 and all(0.0 <= a <= 90.0 for a in starts["random"])
+    rec = load_record(next((tmp_path / "c" / "records").glob("random_*.json")))
+    assert replay_record(rec, keep_frames=False)["reproduced"]

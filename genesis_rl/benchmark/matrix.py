@@ -51,6 +51,9 @@ class BenchmarkSpec:
     seed: int = 0
     steps: int | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
+    #: where episodes start: "natural" (each adversary chooses the knobs that cannot move within an
+    #: episode, so a weakness of the sun's position can be reached) or "fixed" (``evaluate --start``)
+    start: str = "natural"
 
     def __post_init__(self) -> None:
         for name, values, allowed in (("members", self.members, tuple(ZOO)),
@@ -70,6 +73,8 @@ class BenchmarkSpec:
                 raise UserInputError(f"benchmark {name} = {value!r}; allowed: an integer in {low}.."
                                      f"{high if high else 'the scene limit'}")
         limits.SCENES.check(self.scenes, "benchmark scenes")
+        if self.start not in ("fixed", "natural"):
+            raise UserInputError(f"benchmark start = {self.start!r}; allowed: fixed, natural")
         if self.steps is not None:
             if not isinstance(self.steps, int) or isinstance(self.steps, bool) or self.steps < 1:
                 raise UserInputError(f"benchmark steps = {self.steps!r}; allowed: an integer >= 1, or none "
@@ -100,8 +105,9 @@ def member_steps(spec: BenchmarkSpec, member: str) -> int:
 def campaign_spec(spec: BenchmarkSpec, member: str, trial: int) -> CampaignSpec:
     """The campaign of one trial on one member."""
     m = zoo_member(member)
+    options = {**spec.options, **({"start": spec.start} if spec.start != "fixed" else {})}
     return CampaignSpec(policies=spec.policies, map=m.map, scenes=spec.scenes, seed=spec.seed + trial,
-                        steps=member_steps(spec, member), env=env_settings(m), options=dict(spec.options))
+                        steps=member_steps(spec, member), env=env_settings(m), options=options)
 
 
 def campaign_folder(out: Path, member: str, trial: int) -> Path:

@@ -8,7 +8,7 @@ The observation is the ego camera's RGB frame (downscaled for the policy), optio
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -210,6 +210,10 @@ def _setting(name: str) -> Iterator[None]:
         raise UserInputError(f"{name}: {err}") from None
 
 
+#: a knob whose reach over a whole episode is under this share of its range is set by the start alone
+HELD_REACH = 0.01
+
+
 class GenesisEnv(gym.Env):
     """Gymnasium env over a lite backend; see the module docstring for the step template."""
 
@@ -306,6 +310,8 @@ class GenesisEnv(gym.Env):
         self.scene_index = idx
         self.episode_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
         self.weather = options.get("weather", self.exploring_start(self.episode_seed))
+        #: the weather this episode started from (records keep it, so a replay starts there too)
+        self.episode_start = self.weather
         scene = self.catalog.scene(idx)
         self._sim = self.backend.create_simulation(scene, seed=self.episode_seed, weather=self.weather,
                                                    camera=self.camera)
@@ -315,6 +321,48 @@ class GenesisEnv(gym.Env):
         self.records = []
         info = {"scene": idx, "episode_seed": self.episode_seed, "knobs": self._knob_info()}
         return self._observation(), info
+
+    @property
+    def held_knobs(self) -> tuple[str, ...]:
+        """The knobs the agent turns that an episode can barely move (all its steps reach under
+        ``HELD_REACH`` of the range: under natural dynamics the sun, 0.25 deg a minute, whose position is the
+        time of day). Only the start sets them, so an adversary that is to reach a low sun must choose the
+        start (``start_from``, ``natural_start``)."""
+        steps = self.config.episode_steps
+        return tuple(k for k, d in zip(self.mapper.knobs, self.mapper.max_delta, strict=True)
+                     if d * steps < HELD_REACH * KNOBS[k].span and k not in self.config.disabled_knobs
+                     and not KNOBS[k].is_actor)
+
+    def start_from(self, position: Sequence[float]) -> Weather:
+        """The start weather with each held knob at ``position`` (0..1 of its range, in ``held_knobs`` order),
+        moved back inside the ODD as far as needed (a position outside lands on the ODD's boundary)."""
+        held = self.held_knobs
+        if len(position) != len(held):
+            raise UserInputError(f"a start position has {len(position)} value(s); the held knobs are {list(held)}")
+        values = dict(self.start_weather.values)
+        for name, u in zip(held, position, strict=True):
+            spec = KNOBS[name]
+            values[name] = spec.low + float(np.clip(u, 0.0, 1.0)) * spec.span
+        proposed = Weather(values)
+        if self.odd is not None and self.config.odd_keep_inside:
+            return self.odd.keep_inside(self.start_weather, proposed, self.conditions_model)
+        return proposed
+
+    def natural_start(self, rng: np.random.Generator, tries: int = 200) -> Weather:
+        """A start drawn uniformly over the held knobs' ranges inside the ODD (rejection sampling; the start
+        weather when ``tries`` draws all fall outside): the placeholder nominal start distribution (a time of
+        day and a heading, uniform) until a climatological one replaces it (issue 34)."""
+        held = self.held_knobs
+        for _ in range(tries):
+            values = dict(self.start_weather.values)
+            for name in held:
+                spec = KNOBS[name]
+                values[name] = float(rng.uniform(spec.low, spec.high))
+            drawn = Weather(values)
+            if self.odd is None or not self.config.odd_keep_inside or self.odd.contains(
+                    self.conditions_model.conditions(drawn, None), drawn):
+                return drawn
+        return self.start_weather
 
     def exploring_start(self, episode_seed: int) -> Weather:
         """The episode's start weather: ``start_weather``, or with ``env.start_spread`` > 0 each knob the agent

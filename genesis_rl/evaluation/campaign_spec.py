@@ -49,6 +49,9 @@ class CampaignSpec:
             if not isinstance(value, int) or isinstance(value, bool):
                 raise UserInputError(f"campaign spec.{name} = {value!r}; allowed: an integer >= 1")
             limit.check(value, f"campaign spec.{name}")  # the lower bound: where the scenes are picked and run
+        from genesis_rl.evaluation.policies import chooses_start
+
+        chooses_start(self.options)  # a bad options.start is refused here, before any episode runs
         for name, limit in (("search_budget", limits.SEARCH_BUDGET), ("retries", limits.RETRIES)):
             value = self.options.get(name)
             if isinstance(value, int) and not isinstance(value, bool):

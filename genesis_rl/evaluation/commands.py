@@ -94,6 +94,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                                  "retries": args.retries,
                                  **({"constant_action": _constant_action(args.constant_action)}
                                     if args.constant_action is not None else {}),
+                                 **({"start": args.start} if args.start != "fixed" else {}),
                                  **({"counterfactual": False} if args.no_counterfactual else {})})
     if args.out:
         out = Path(args.out)
@@ -248,6 +249,10 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
     ev.add_argument("--constant-action", default=None, metavar="A,B,...",
                     help="policy 'constant': its action, one value in [-1, 1] per knob (default: 1 on every knob)")
+    ev.add_argument("--start", default="fixed", choices=["fixed", "natural"],
+                    help="where episodes start: fixed (the start weather, default) or natural (each policy chooses "
+                         "the knobs that cannot move within an episode, the sun under natural dynamics: random "
+                         "draws them inside the ODD, constant takes its corner, the searches search them)")
     ev.add_argument("--records", default="failures", choices=["failures", "all"],
                     help="write replayable edge-case records for failing episodes only, or for all")
     ev.add_argument("--retries", type=int, default=2,

@@ -51,9 +51,30 @@ class CampaignRunner:
         self.spec = spec
         self._oracle: GenesisEnv | None = None
 
-    def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int) -> EpisodeOutcome:
+    @property
+    def held_knobs(self) -> tuple[str, ...]:
+        """The knobs only the start can set (``GenesisEnv.held_knobs``), in the action vector's order."""
+        return self.env.held_knobs
+
+    def held_indices(self) -> list[int]:
+        """Where the held knobs sit in the action vector."""
+        knobs = list(self.env.mapper.knobs)
+        return [knobs.index(k) for k in self.held_knobs]
+
+    def start_from(self, position: Sequence[float]) -> Weather:
+        return self.env.start_from(position)
+
+    def natural_start(self, rng: np.random.Generator) -> Weather:
+        return self.env.natural_start(rng)
+
+    def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int,
+            start: Weather | None = None) -> EpisodeOutcome:
+        """One episode; ``start``: the weather it starts from (None: the env's start weather)."""
         env, spec = self.env, self.spec
-        obs, _ = env.reset(options={"scene": scene, "episode_seed": episode_seed})
+        options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed}
+        if start is not None:
+            options["weather"] = start
+        obs, _ = env.reset(options=options)
         ring: deque[tuple[int, np.ndarray]] = deque(maxlen=spec.frames_before + 1)
         frames: dict[int, np.ndarray] = {}
         hit_step: int | None = None
@@ -70,15 +91,19 @@ class CampaignRunner:
                 frames[rec.step] = rgb
             if terminated or truncated:
                 break
-        return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records), actor_events=env.actor_events())
+        return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records), actor_events=env.actor_events(),
+                              start=env.episode_start)
 
-    def oracle_collides(self, scene: int, episode_seed: int, records: Sequence[StepRecord], hit_at: int) -> bool:
-        """The counterfactual: the same scene, seeds and weather trajectory, driven by the ``oracle`` system
-        (the same controller on ground-truth boxes). Does it collide by the recorded impact (plus a margin)?"""
+    def oracle_collides(self, scene: int, episode_seed: int, records: Sequence[StepRecord], hit_at: int,
+                        start: Weather | None = None) -> bool:
+        """The counterfactual: the same scene, seeds, start and weather trajectory, driven by the ``oracle``
+        system (the same controller on ground-truth boxes). Does it collide by the recorded impact (plus a
+        margin)?"""
         if self._oracle is None:
             self._oracle = GenesisEnv(replace(self.config, system="oracle", system_kwargs={}))
         env = self._oracle
-        env.reset(options={"scene": scene, "episode_seed": episode_seed})
+        env.reset(options={"scene": scene, "episode_seed": episode_seed,
+                           **({"weather": start} if start is not None else {})})
         end = min(len(records), hit_at + 1 + int(round(COUNTERFACTUAL_MARGIN_S / env.dt)))
         for rec in records[:end]:
             env.step_weather(Weather.from_recorded(rec.knobs))
@@ -104,7 +129,7 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     row = episode_row(policy, scene, episode_seed, outcome, env.rulebook, env.config.knobs)
     if outcome.actor_events:
         row["actor_events"] = [e.as_dict() for e in outcome.actor_events]
-    add_natural_fields(row, runner, scene, episode_seed, records, outcome.actor_events)
+    add_natural_fields(row, runner, scene, episode_seed, records, outcome.actor_events, outcome.start)
     row["seconds"] = round(seconds, 2)
     if lost:
         row["simulator_lost"] = list(lost)
@@ -112,7 +137,7 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
         _write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
     failed = row["collision_events"] > 0 or any(row["violations"][r.name] > 0 for r in env.rulebook.rules if r.in_total)
     if spec.records == "all" or failed:
-        record = make_record(spec, runner, policy, scene, episode_seed, records, row)
+        record = make_record(spec, runner, policy, scene, episode_seed, records, row, outcome.start)
         save_record(folder / "records" / f"{policy}_{name}.json", record)
         row["record"] = f"records/{policy}_{name}.json"
     atomic_write_json(episode_path(folder, policy, scene), row, indent=1)  # last: marks it done
@@ -120,7 +145,8 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
 
 
 def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, episode_seed: int,
-                       records: Sequence[StepRecord], actor_events: Sequence[ActorEvent] = ()) -> None:
+                       records: Sequence[StepRecord], actor_events: Sequence[ActorEvent] = (),
+                       start: Weather | None = None) -> None:
     """What makes a failure a natural edge case, added to the episode's row: its steps' ODD labels, the
     weather trajectory's log-likelihood, and for a collision the conditions and ODD status at the impact,
     the visibility evidence, the counterfactual oracle replay (when ``counterfactual`` is on: by default with
@@ -130,7 +156,7 @@ def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, 
     env = runner.env
     if not records:
         return
-    trajectory = [env.start_weather.values, *(r.knobs for r in records)]
+    trajectory = [(start or env.start_weather).values, *(r.knobs for r in records)]
     model = env.weather_model
     row["naturalness"] = {"log_likelihood": round(model.log_likelihood(trajectory, env.dt), 3),
                           "ratio_to_held": round(model.naturalness(trajectory, env.dt), 3)}
@@ -143,7 +169,7 @@ def add_natural_fields(row: dict[str, Any], runner: CampaignRunner, scene: int, 
     at = records[hit_at]
     evidence = visibility_evidence(records, hit_at, env.dt)
     run_oracle = bool(runner.spec.options.get("counterfactual", env.odd is not None))
-    oracle = runner.oracle_collides(scene, episode_seed, records, hit_at) if run_oracle else None
+    oracle = runner.oracle_collides(scene, episode_seed, records, hit_at, start) if run_oracle else None
     event = event_for_collision(actor_events, records, hit_at)
     careful = None if event is None else careful_driver_evidence(records, hit_at, event, env.dt)
     c = at.conditions

@@ -17,7 +17,7 @@ Register your own with ``@register_policy`` or name it by import path (``package
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
@@ -25,6 +25,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.knobs import Weather
 from genesis_rl.plugins import load_class
 from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
@@ -48,6 +49,8 @@ class EpisodeOutcome:
     extra: dict[str, Any] = field(default_factory=dict)
     #: what the actor knobs made happen (cut-ins, a lead braking), for the careful-driver reference
     actor_events: list[ActorEvent] = field(default_factory=list)
+    #: the weather the episode started from (None: the env's start weather)
+    start: Weather | None = None
 
     @property
     def total_reward(self) -> float:
@@ -55,7 +58,32 @@ class EpisodeOutcome:
 
 
 class EpisodeRunner(Protocol):
-    def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int) -> EpisodeOutcome: ...
+    def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int,
+            start: Weather | None = None) -> EpisodeOutcome: ...
+
+    @property
+    def held_knobs(self) -> tuple[str, ...]: ...
+
+    def held_indices(self) -> list[int]: ...
+
+    def start_from(self, position: Sequence[float]) -> Weather: ...
+
+    def natural_start(self, rng: np.random.Generator) -> Weather: ...
+
+
+#: campaign option ``start``: "fixed" (every episode from the env's start weather, as before) or "natural"
+#: (each policy chooses where the knobs that cannot move within an episode start: the sun's position under
+#: natural dynamics; random draws it, constant takes its corner, the searches search it, sunny and the agent
+#: keep the start weather)
+STARTS = ("fixed", "natural")
+
+
+def chooses_start(options: dict[str, Any]) -> bool:
+    """Whether the campaign's policies choose their start (option ``start``); a bad value is refused."""
+    value = options.get("start", "fixed")
+    if value not in STARTS:
+        raise UserInputError(f"campaign option start = {value!r}; allowed: {', '.join(STARTS)}")
+    return value == "natural"
 
 
 @dataclass(frozen=True)
@@ -95,9 +123,15 @@ class StepPolicy(WeatherPolicy):
     def act(self, obs: Any) -> np.ndarray:
         raise NotImplementedError
 
+    def start(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> Weather | None:
+        """Where the episode starts when the campaign lets policies choose (``chooses_start``); None: the
+        env's start weather (the default, and always for policies that do not choose)."""
+        return None
+
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         self.reset(scene, episode_seed)
-        return runner.run(self.act, scene, episode_seed)
+        start = self.start(runner, scene, episode_seed) if chooses_start(self.context.options) else None
+        return runner.run(self.act, scene, episode_seed, start)
 
 
 @register_policy
@@ -119,6 +153,12 @@ class RandomPolicy(StepPolicy):
 
     def act(self, obs: Any) -> np.ndarray:
         return self.rng.uniform(-1.0, 1.0, self.context.action_dim).astype(np.float32)
+
+    def start(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> Weather | None:
+        """A natural start: the held knobs drawn uniformly inside the ODD (``GenesisEnv.natural_start``)."""
+        if not runner.held_knobs:
+            return None
+        return runner.natural_start(np.random.default_rng([self.context.seed, scene, episode_seed, 4]))
 
 
 @register_policy
@@ -143,6 +183,13 @@ class ConstantPolicy(StepPolicy):
 
     def act(self, obs: Any) -> np.ndarray:
         return self.action
+
+    def start(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> Weather | None:
+        """Its corner for the held knobs too: -1 starts a held knob as low as the ODD allows, +1 as high."""
+        idx = runner.held_indices()
+        if not idx:
+            return None
+        return runner.start_from([(float(self.action[i]) + 1.0) / 2.0 for i in idx])
 
 
 @register_policy
@@ -231,10 +278,21 @@ class CMAESSearch(WeatherPolicy):
     def episodes_per_scene(cls, options: dict[str, Any]) -> int:
         return int(options.get("search_budget", 8))
 
+    def _start_dims(self, runner: EpisodeRunner) -> int:
+        """How many entries of a candidate choose the start: one per held knob when the campaign lets
+        policies choose it (``chooses_start``), else none."""
+        return len(runner.held_knobs) if chooses_start(self.context.options) else 0
+
+    def _play(self, runner: EpisodeRunner, x: np.ndarray, scene: int, episode_seed: int, k: int) -> EpisodeOutcome:
+        """One candidate's episode: its last ``k`` entries (in [-1, 1]) place the held knobs' start."""
+        start = runner.start_from([(float(v) + 1.0) / 2.0 for v in x[len(x) - k:]]) if k else None
+        return runner.run(self._schedule(np.asarray(x[:len(x) - k])), scene, episode_seed, start)
+
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         import cma
 
-        dim = self.segments * self.context.action_dim
+        k = self._start_dims(runner)
+        dim = self.segments * self.context.action_dim + k
         default_pop = 4 + int(3 * np.log(dim))
         popsize = max(2, min(default_pop, self.budget // 2))
         seed = int(np.random.default_rng([self.context.seed, scene, episode_seed, 2]).integers(1, 2**31 - 1))
@@ -246,7 +304,7 @@ class CMAESSearch(WeatherPolicy):
             xs = es.ask()
             fitness = []
             for x in xs:
-                outcome = runner.run(self._schedule(np.asarray(x)), scene, episode_seed)
+                outcome = self._play(runner, np.asarray(x), scene, episode_seed, k)
                 spent += outcome.sim_steps
                 fitness.append(-outcome.total_reward)
                 history.append(round(outcome.total_reward, 3))
@@ -285,7 +343,8 @@ class CrossEntropySearch(CMAESSearch):
     MIN_SIGMA = 0.05  # keeps sampling once the elites agree
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
-        dim = self.segments * self.context.action_dim
+        k = self._start_dims(runner)
+        dim = self.segments * self.context.action_dim + k
         rng = np.random.default_rng([self.context.seed, scene, episode_seed, 3])
         generation = max(2, min(4 + int(3 * np.log(dim)), self.budget // 2))
         sizes = [generation] * (self.budget // generation)
@@ -297,7 +356,7 @@ class CrossEntropySearch(CMAESSearch):
             xs = np.clip(mean + sigma * rng.standard_normal((n, dim)), -1.0, 1.0)
             returns = []
             for x in xs:
-                outcome = runner.run(self._schedule(x), scene, episode_seed)
+                outcome = self._play(runner, x, scene, episode_seed, k)
                 spent += outcome.sim_steps
                 returns.append(outcome.total_reward)
                 history.append(round(outcome.total_reward, 3))

@@ -54,9 +54,10 @@ def step_digest(records: Sequence[StepRecord]) -> str:
 
 
 def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: int,
-                records: Sequence[StepRecord], row: dict[str, Any]) -> dict[str, Any]:
+                records: Sequence[StepRecord], row: dict[str, Any], start: Weather | None = None) -> dict[str, Any]:
     """The record of one episode played by a ``CampaignRunner``. It carries its knob set (``knobs``): a
-    record written before a knob existed replays with that knob at its default."""
+    record written before a knob existed replays with that knob at its default; and the weather the episode
+    started from (``start``; None: the env's start weather), so a replay starts there too."""
     env = runner.env
     cfg = env.config
     sc = env.catalog.scene(scene)
@@ -74,7 +75,7 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
         "camera": {"width": cfg.camera_width, "height": cfg.camera_height},
         "system": {"spec": cfg.system, "kwargs": cfg.system_kwargs, "identity": env.system.identity()},
         "rulebook": env.rulebook.describe(),
-        "start_weather": env.start_weather.as_dict(),
+        "start_weather": (start or env.start_weather).as_dict(),
         "knobs": list(KNOBS),
         "schedule": [[r.knobs[k] for k in KNOBS] for r in records],
         "violations": env.rulebook.violations(records),
