@@ -126,10 +126,15 @@ def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[s
     return _png(fig)
 
 
+#: how the telemetry plot marks the actor events the tester caused (issue 32)
+EVENT_STYLE = {"cut_in": ("#d35400", "cut-in begins"), "lead_braking": ("#2980b9", "lead braked by the tester")}
+
+
 def fig_telemetry(records: list[StepRecord], failure: dict[str, Any], title: str,
-                  proximity_m: float | None = None) -> str:
+                  proximity_m: float | None = None, actor_events: list[dict[str, Any]] | None = None) -> str:
     """Speeds, controls, true and perceived gap, and the hit vehicle's detection timeline around the first
-    impact; ``proximity_m``: the proximity rule's threshold to draw, when the rulebook has one."""
+    impact; ``proximity_m``: the proximity rule's threshold to draw, when the rulebook has one;
+    ``actor_events``: the episode row's actor events, drawn as dashed lines where they began (in the window)."""
     import matplotlib.pyplot as plt
 
     hit = next(i for i, r in enumerate(records) if r.collision.collided)
@@ -158,6 +163,15 @@ def fig_telemetry(records: list[StepRecord], failure: dict[str, Any], title: str
                          label="in view, missed")
     axes[3].set_yticks([])
     axes[3].set_xlabel("time [s]")
+    shown: set[str] = set()
+    for e in actor_events or []:
+        color, label = EVENT_STYLE.get(str(e.get("kind")), ("#7f8c8d", str(e.get("kind"))))
+        onset = float(e.get("onset_s", -1.0))
+        if t.size and t[0] <= onset <= t[-1]:
+            for ax in axes:
+                ax.axvline(onset, color=color, ls="--", lw=1.0,
+                           label=None if label in shown or ax is not axes[0] else label)
+            shown.add(label)
     for ax in axes:
         ax.axvline(records[hit].time_s, color="red", lw=1.2)
         ax.legend(fontsize=7, loc="upper left", ncol=3)
@@ -337,7 +351,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
         title = (f"{MODE_TITLES[mode]}: {p}, scene {e['scene']}, impact at {e['failure']['speed']:.1f} m/s, "
                  f"step {e['first_collision_step']}")
         proximity = rulebook.rule("proximity")
-        fig = fig_telemetry(recs, e["failure"], title, getattr(proximity, "distance", None))
+        fig = fig_telemetry(recs, e["failure"], title, getattr(proximity, "distance", None), e.get("actor_events"))
         h.append(f"<div class=card><h3>{html.escape(title)}</h3><img src='{fig}'>")
         strip = frame_strip(folder, p, e["scene"], recs)
         if strip:
