@@ -16,10 +16,12 @@ implements them (``ControllerALKS_R157SM``):
 - *braking*: the deceleration rises at 12.65 m/s^3 to 0.774 g (7.59 m/s^2, reached after 0.6 s) and is held
   until the car stops.
 
-The reference starts where the recorded ego was when the event became perceivable, at its speed, and closes on
-the actor along the path: the actor moves as recorded (its gap and speed on the steps it was the ego's lead)
-and, after the recorded impact, as it moved just before (constant deceleration, never backwards). It collides
-when its gap to the actor reaches zero on a step the actor was in its path. One-dimensional: swerving is not
+The reference drives as the recorded ego did until the actor is in its path (after the event became
+perceivable), then takes over at the ego's position and speed there and closes on the actor along the path:
+the actor moves as recorded (its gap and speed on the steps it was the ego's lead) and, after the recorded
+impact, as it moved just before (constant deceleration, never backwards). It collides when its gap to the
+actor reaches zero on a step the actor was in its path; an actor never in the path before the impact (a side
+impact) is a collision no braking avoids. One-dimensional: swerving is not
 credited (R157's driver brakes), and lateral motion after the event counts only through "in the path".
 """
 
@@ -88,8 +90,11 @@ def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: A
     t_seen = event.perceivable_s if event.perceivable_s is not None else t_hit
     out: dict[str, Any] = {"reference": driver.name, "event": event.kind, "onset_s": round(event.onset_s, 3),
                            "perceivable_s": None if event.perceivable_s is None else round(t_seen, 3)}
-    k0 = next((i for i in range(hit_at + 1) if records[i].time_s >= t_seen - 1e-9), hit_at)
-    perceived = records[k0].time_s + driver.perception_s
+    k_seen = next((i for i in range(hit_at + 1) if records[i].time_s >= t_seen - 1e-9), hit_at)
+    perceived = records[k_seen].time_s + driver.perception_s
+    # it drives as the ego did until the actor is in its path: before that the actor is no hazard, and the
+    # traffic ahead (which this one-dimensional reference does not see) set the pace
+    k0 = next((i for i in range(k_seen, hit_at) if records[i].lead.vehicle_id == actor), hit_at)
     brake_at = math.inf  # set once the situation is critical, after the perception time
     v_ref = float(records[k0].ego.speed)
     out["speed_m_s"] = round(v_ref, 3)

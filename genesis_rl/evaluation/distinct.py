@@ -44,21 +44,28 @@ def rain_band(rain_mm_h: float) -> str:
 
 
 def what_was_hit(records: Sequence[StepRecord], hit_at: int, dt: float = 0.05,
-                 actor_events: Sequence[ActorEvent] = ()) -> str:
+                 actor_events: Sequence[ActorEvent] | None = None) -> str:
     """``cut in by the tester`` (the ``cut_in_ttc`` knob made the vehicle hit cut in within the last
-    ``CUT_IN_WINDOW_S``), ``lead braked by the tester`` (the ``lead_decel`` actor knob was on in the window: an
-    actor event, not the traffic's own), ``braking lead``, ``lead`` or ``other vehicle`` (the hit vehicle was
-    not the lead just before)."""
+    ``CUT_IN_WINDOW_S``), ``lead braked by the tester`` (the ``lead_decel`` knob braked the vehicle hit: with
+    the episode's ``actor_events``, an event with that vehicle in the window; without them, for campaigns
+    before 0.15, the knob was on in the window), ``braking lead``, ``lead`` or ``other vehicle`` (the hit
+    vehicle was not the lead just before)."""
     vid = records[hit_at].collision.other_id
     t_hit = records[hit_at].time_s
-    if any(e.kind == "cut_in" and e.vehicle_id == vid and t_hit - CUT_IN_WINDOW_S <= e.onset_s <= t_hit
-           for e in actor_events):
+
+    def acted(kind: str, window_s: float) -> bool:
+        return any(e.kind == kind and e.vehicle_id == vid and t_hit - window_s <= e.onset_s <= t_hit
+                   for e in actor_events or ())
+
+    if acted("cut_in", CUT_IN_WINDOW_S):
         return "cut in by the tester"
     before = records[max(0, hit_at - 1)]
     if before.lead.vehicle_id != vid:
         return "other vehicle"
     back = max(0, hit_at - int(round(LEAD_BRAKING_S / dt)))
-    if any(r.knobs.get("lead_decel", 0.0) > 0.0 for r in records[back:hit_at + 1]):
+    braked = acted("lead_braking", CUT_IN_WINDOW_S) if actor_events is not None else \
+        any(r.knobs.get("lead_decel", 0.0) > 0.0 for r in records[back:hit_at + 1])
+    if braked:
         return "lead braked by the tester"
     speeds = [r.lead.speed for r in records[back:hit_at + 1] if r.lead.vehicle_id == vid and np.isfinite(r.lead.speed)]
     return "braking lead" if speeds and max(speeds) - speeds[-1] >= LEAD_BRAKING_DROP else "lead"
