@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("carla")
 
 from genesis_rl.carla_backend import backend as backend_module  # noqa: E402
-from genesis_rl.carla_backend.actor_control import LeadBraking  # noqa: E402
+from genesis_rl.carla_backend.actor_control import CutIn, LeadBraking, TrafficBehaviour  # noqa: E402
 from genesis_rl.carla_backend.backend import (  # noqa: E402
     CAMERA_ATTRIBUTES,
     CarlaBackend,
@@ -299,6 +299,8 @@ def _bare_simulation(backend, world):
     sim._index_of, sim._queues, sim._images, sim._history, sim._boxes = {10: 0, 11: 1}, {}, {}, {}, {}
     sim._hits, sim._hits_lock, sim._contacts, sim._counted = [], threading.Lock(), ContactTracker(), None
     sim._lead_braking = LeadBraking()  # lead_decel stays 0: it sends nothing
+    # the cut-in and the traffic knobs stay at their defaults: they ask nothing of the traffic manager
+    sim._cut_in, sim._traffic_behaviour, sim._braking_events, sim._tm = CutIn(), TrafficBehaviour(), [], None
     return sim
 
 

@@ -11,10 +11,10 @@ the trials' clusters (the same cluster found in two trials is one finding).
 from __future__ import annotations
 
 import html
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.benchmark.matrix import BenchmarkSpec, member_trials
 from genesis_rl.benchmark.metrics import PolicyMetrics, falsifier_metrics
 from genesis_rl.benchmark.ranks import compare_ranks
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
@@ -50,26 +50,28 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str
     }
 
 
-def leaderboard(spec: BenchmarkSpec, out: Path) -> dict[str, Any]:
+def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]]) -> dict[str, Any]:
     """Every (member, policy) pooled over the trials, and the ranks over the weakness members (score: the
-    falsification rate, ties broken by the median steps to the first failure, fewer first)."""
+    falsification rate, ties broken by the median steps to the first failure, fewer first). ``spec``: the
+    benchmark's spec as ``BenchmarkSpec.to_json`` writes it; ``trials``: each member's campaign folders."""
+    members, policies = list(spec["members"]), list(spec["policies"])
     cells: dict[str, dict[str, Any]] = {}
-    for member in spec.members:
-        per_policy: dict[str, list[PolicyMetrics]] = {p: [] for p in spec.policies}
-        for folder in member_trials(spec, out, member):
+    for member in members:
+        per_policy: dict[str, list[PolicyMetrics]] = {p: [] for p in policies}
+        for folder in trials[member]:
             for policy, metrics in falsifier_metrics(folder, member).items():
                 per_policy.setdefault(policy, []).append(metrics)
-        cells[member] = {p: pooled(p, member, per_policy[p]) for p in spec.policies}
-    weak = [m for m in spec.members if zoo_member(m).kind == "weakness"]
+        cells[member] = {p: pooled(p, member, per_policy[p]) for p in policies}
+    weak = [m for m in members if zoo_member(m).kind == "weakness"]
 
     def score(c: dict[str, Any]) -> float:
         rate = c["falsification_rate"] or 0.0
         med = c["median_steps_to_failure"]
         return rate - (0.0 if med is None else med * 1e-9)  # faster breaks a tie in the rate
 
-    ranks = compare_ranks({m: {p: score(cells[m][p]) for p in spec.policies} for m in weak}, spec.policies)
-    return {"spec": spec.to_json(), "cells": cells, "ranks": ranks,
-            "controls": [m for m in spec.members if zoo_member(m).kind == "control"], "weaknesses": weak}
+    ranks = compare_ranks({m: {p: score(cells[m][p]) for p in policies} for m in weak}, policies)
+    return {"spec": dict(spec), "cells": cells, "ranks": ranks,
+            "controls": [m for m in members if zoo_member(m).kind == "control"], "weaknesses": weak}
 
 
 def write_leaderboard(out: Path, board: dict[str, Any]) -> None:

@@ -159,7 +159,7 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                              progress=False, executor=executor)
             bar.update()
         bar.close()
-        board = leaderboard(spec, out)
+        board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members})
         write_leaderboard(out, board)
     return board
 
