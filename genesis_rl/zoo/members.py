@@ -80,7 +80,9 @@ _BUILTIN_HIGHWAY = ZooMember(
              "there under natural dynamics in 50 scenes (docs/results.md, section 6; section 7 in the wider "
              "urban_all_day). Its one in-ODD collision there (scene 39) is weather-independent: sunny has it too "
              "and the oracle replay crashes as well. A control: every in-ODD failure an adversary reports on it "
-             "is a false alarm candidate."),
+             "is a false alarm candidate. But only for episodes that start at noon: with natural starts (0.15.0) "
+             "adversaries find its detector's low-sun blind spot inside highway_day, the sun 0-2 deg above the "
+             "horizon (docs/zoo.md, first measurement)."),
     trigger=EMPTY,
     env={"dynamics": "natural"},
 )
