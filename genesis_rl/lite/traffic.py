@@ -10,7 +10,7 @@ pre-impact pose and stopped, never passing through each other.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -127,8 +127,10 @@ class Traffic:
         #: on lite): vehicle index -> its script; see ``ScriptedMotion``
         self.scripted: dict[int, ScriptedMotion] = {}
         self._episode_time = 0.0
-        #: what the actor knobs made happen, oldest first (``actor_events``): dicts until they are reported
-        self._events: list[dict[str, float | int | str | None]] = []
+        #: what the actor knobs made happen, oldest first (``actor_events``); a running cut-in's event is
+        #: replaced once the cutter has wandered far enough to be perceived
+        self._events: list[ActorEvent] = []
+        self._cut_in_offset0 = 0.0  # how far the running cut-in's car had to go into the ego's lane [m]
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
         self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
@@ -271,8 +273,7 @@ class Traffic:
         if lead is not None:
             self.forced_braking = (lead.vehicle_id, float(decel), self._episode_time)
             # its brake lights come on with the braking: a careful driver perceives it at once
-            self._events.append({"kind": "lead_braking", "vehicle_id": lead.vehicle_id,
-                                 "onset_s": self._episode_time, "perceivable_s": self._episode_time})
+            self._events.append(ActorEvent("lead_braking", lead.vehicle_id, self._episode_time, self._episode_time))
 
     @property
     def braking_vehicle(self) -> int:
@@ -307,39 +308,34 @@ class Traffic:
             return
         j, gap, closing = candidate
         self.forced_cut_in = (j, self._episode_time)
-        self._events.append({"kind": "cut_in", "vehicle_id": j, "onset_s": self._episode_time,
-                             "perceivable_s": None, "ttc_s": gap / closing, "gap_m": gap, "closing_m_s": closing})
+        self._events.append(ActorEvent("cut_in", j, self._episode_time, None, gap / closing, gap, closing))
+        self._cut_in_offset0 = 0.0  # set when the car starts across (``_start_cut_in``)
+
+    def _beside_ahead(self) -> list[tuple[int, float, float]]:
+        """(vehicle, bumper gap [m], speed along the ego's heading [m/s]) of every vehicle in a neighbouring
+        lane of the ego's, measured along the ego's heading (gaps of vehicles behind are negative)."""
+        lane = self.map.lanes[int(self.lane[0])]
+        neighbours = {lane.left, lane.right} - {-1}
+        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
+        return [(j, float((self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
+                          - 0.5 * (self.length[0] + self.length[j])),
+                 float(self.v[j] * np.cos(self.yaw[j] - self.yaw[0])))
+                for j in range(1, self.n) if int(self.lane[j]) in neighbours]
 
     def _cut_in_candidate(self, ttc: float) -> tuple[int, float, float] | None:
         """(vehicle, bumper gap [m], closing speed [m/s]) of the vehicle to cut in (``actor_knobs.pick_cut_in``)."""
-        lane = self.map.lanes[int(self.lane[0])]
-        neighbours = {lane.left, lane.right} - {-1}
-        if not neighbours or self.v[0] < 1.0:
+        if self.v[0] < 1.0:
             return None
-        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
-        candidates = []
-        for j in range(1, self.n):
-            if int(self.lane[j]) not in neighbours or j in self.scripted:
-                continue
-            lon = (self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
-            candidates.append((j, float(lon - 0.5 * (self.length[0] + self.length[j])),
-                               float(self.v[0] - self.v[j] * np.cos(self.yaw[j] - self.yaw[0]))))
-        return pick_cut_in(candidates, ttc)
+        return pick_cut_in(((j, gap, float(self.v[0]) - speed) for j, gap, speed in self._beside_ahead()
+                            if j not in self.scripted), ttc)
 
     def neighbour_ahead(self) -> LeadInfo | None:
         """The nearest vehicle ahead of the ego in a neighbouring lane (the ``cut_in_ttc`` candidates' lanes)."""
-        lane = self.map.lanes[int(self.lane[0])]
-        neighbours = {lane.left, lane.right} - {-1}
-        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
-        best: LeadInfo | None = None
-        for j in range(1, self.n):
-            if int(self.lane[j]) not in neighbours:
-                continue
-            gap = float((self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
-                        - 0.5 * (self.length[0] + self.length[j]))
-            if 0.0 < gap < LEAD_RANGE and (best is None or gap < best.gap):
-                best = LeadInfo(j, gap, float(self.v[j] * np.cos(self.yaw[j] - self.yaw[0])))
-        return best
+        ahead = [(j, gap, speed) for j, gap, speed in self._beside_ahead() if 0.0 < gap < LEAD_RANGE]
+        if not ahead:
+            return None
+        j, gap, speed = min(ahead, key=lambda a: a[1])
+        return LeadInfo(j, gap, speed)
 
     def _lateral_offset(self, i: int) -> float:
         """Signed distance [m] of vehicle ``i`` from the centre line of its lane (left positive)."""
@@ -352,27 +348,22 @@ class Traffic:
         i = self.forced_cut_in[0]
         return bool(self.lane[i] == self.lane[0] and abs(self._lateral_offset(i)) < 0.5)
 
+    def _running_cut_in(self) -> ActorEvent | None:
+        """The latest event when it is a cut-in (the one ``forced_cut_in`` runs)."""
+        return self._events[-1] if self._events and self._events[-1].kind == "cut_in" else None
+
     def _note_cut_in_wander(self) -> None:
         """Mark the running cut-in perceivable once the cutter has wandered ``CUT_IN_WANDER_M`` toward the
         ego's lane (R157's lateral wandering distance)."""
-        ev = self._events[-1] if self._events and self._events[-1]["kind"] == "cut_in" else None
-        if ev is None or ev["perceivable_s"] is not None:
+        ev = self._running_cut_in()
+        if ev is None or ev.perceivable_s is not None or self.lane[ev.vehicle_id] != self.lane[0]:
             return
-        i = int(ev["vehicle_id"])  # type: ignore[arg-type]
-        if self.lane[i] != self.lane[0]:
-            return
-        if float(ev.get("offset0_m", 0.0)) - abs(self._lateral_offset(i)) >= CUT_IN_WANDER_M:  # type: ignore[arg-type]
-            ev["perceivable_s"] = self._episode_time
+        if self._cut_in_offset0 - abs(self._lateral_offset(ev.vehicle_id)) >= CUT_IN_WANDER_M:
+            self._events[-1] = replace(ev, perceivable_s=self._episode_time)
 
     def actor_events(self) -> list[ActorEvent]:
         """What the actor knobs made happen so far (see :class:`~genesis_rl.sim.interface.ActorEvent`)."""
-        out = []
-        for e in self._events:
-            p = e["perceivable_s"]
-            out.append(ActorEvent(str(e["kind"]), int(e["vehicle_id"]), float(e["onset_s"]),  # type: ignore[arg-type]
-                                  None if p is None else float(p),
-                                  *(float(e.get(k, np.nan)) for k in ("ttc_s", "gap_m", "closing_m_s"))))  # type: ignore[arg-type]
-        return out
+        return list(self._events)
 
     def _start_cut_in(self) -> None:
         """Put the cutter on the ego's lane at its longitudinal position (pure pursuit then steers it in)."""
@@ -383,9 +374,9 @@ class Traffic:
         d = (self.x[i] - self.x[0]) * np.cos(self.yaw[0]) + (self.y[i] - self.y[0]) * np.sin(self.yaw[0])
         self.lane[i], self.next_lane[i] = self.lane[0], self.next_lane[0]
         self.s[i] = self.s[0] + d
-        ev = self._events[-1] if self._events and self._events[-1]["kind"] == "cut_in" else None
-        if ev is not None and int(ev["vehicle_id"]) == i:  # type: ignore[arg-type]
-            ev["offset0_m"] = abs(self._lateral_offset(i))  # how far it has to go: about a lane's width
+        ev = self._running_cut_in()
+        if ev is not None and ev.vehicle_id == i:
+            self._cut_in_offset0 = abs(self._lateral_offset(i))  # how far it has to go: about a lane's width
 
     def step(self, step_index: int) -> list[Collision]:
         dt = self.dt
