@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in
@@ -94,7 +94,12 @@ class CutIn:
 
     def __init__(self) -> None:
         self.vehicle = -1
-        self._events: list[dict[str, Any]] = []
+        self._events: list[ActorEvent] = []
+        self._offset0 = 0.0  # how far the running cut-in's car had to go into the ego's lane [m]
+
+    def wanted(self, ttc: float, off: float) -> bool:
+        """Whether ``step`` has anything to do: a cut-in runs, or the knob asks for one."""
+        return self.vehicle >= 0 or ttc < off - 1e-9
 
     def step(self, tm: Any, ttc: float, off: float, now: float, neighbours: Callable[[], list[Neighbour]],
              actor: Callable[[int], Any | None], offset: Callable[[int], float | None]) -> None:
@@ -108,8 +113,8 @@ class CutIn:
             if d is None:
                 self.vehicle = -1
             else:
-                if ev["perceivable_s"] is None and ev["offset0_m"] - d >= CUT_IN_WANDER_M:
-                    ev["perceivable_s"] = now
+                if ev.perceivable_s is None and self._offset0 - d >= CUT_IN_WANDER_M:
+                    self._events[-1] = replace(ev, perceivable_s=now)
                 if d < 0.5:
                     self.vehicle = -1
         if ttc >= off - 1e-9 or self.vehicle >= 0:
@@ -123,13 +128,11 @@ class CutIn:
         if a is None or d0 is None:
             return
         tm.force_lane_change(a, near[j].to_right)
-        self.vehicle = j
-        self._events.append({"kind": "cut_in", "vehicle_id": j, "onset_s": now, "perceivable_s": None,
-                             "ttc_s": gap / closing, "gap_m": gap, "closing_m_s": closing, "offset0_m": d0})
+        self.vehicle, self._offset0 = j, d0
+        self._events.append(ActorEvent("cut_in", j, now, None, gap / closing, gap, closing))
 
     def events(self) -> list[ActorEvent]:
-        return [ActorEvent(e["kind"], e["vehicle_id"], e["onset_s"], e["perceivable_s"], e["ttc_s"], e["gap_m"],
-                           e["closing_m_s"]) for e in self._events]
+        return list(self._events)
 
 
 class TrafficBehaviour:
@@ -139,9 +142,13 @@ class TrafficBehaviour:
     def __init__(self) -> None:
         self.applied = dict(TM_BEHAVIOUR_KNOBS)
 
+    def changed(self, values: Mapping[str, float]) -> list[str]:
+        """The knobs whose value differs from the one last sent."""
+        return [k for k in TM_BEHAVIOUR_KNOBS if float(values[k]) != self.applied[k]]
+
     def apply(self, tm: Any, values: Mapping[str, float], npcs: Iterable[Any]) -> list[str]:
         """Send the changed knobs to ``tm`` for each of ``npcs`` (carla.Actor); returns the knobs sent."""
-        changed = [k for k in TM_BEHAVIOUR_KNOBS if float(values[k]) != self.applied[k]]
+        changed = self.changed(values)
         if changed:
             actors = list(npcs)
             for k in changed:

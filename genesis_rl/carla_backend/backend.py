@@ -492,10 +492,12 @@ class CarlaSimulation(Simulation):
             b.call("braking the lead (lead_decel)", b.client.apply_batch_sync, brake, False)
         if braking_before < 0 <= self._lead_braking.vehicle:  # brake lights on: perceivable at once
             self._braking_events.append(ActorEvent("lead_braking", self._lead_braking.vehicle, now, now))
-        if self._actors:
-            b.call("changing a neighbour's lane (cut_in_ttc)", self._cut_in.step, self._tm,
-                   float(self._weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default, now, self._neighbours,
-                   self._actors.get, self._offset_from_ego_lane)
+        # each watched call costs a thread (the watchdog): none at all while these knobs sit at their defaults
+        ttc, off = float(self._weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default
+        if self._actors and self._cut_in.wanted(ttc, off):
+            b.call("changing a neighbour's lane (cut_in_ttc)", self._cut_in.step, self._tm, ttc, off, now,
+                   self._neighbours, self._actors.get, self._offset_from_ego_lane)
+        if self._actors and self._traffic_behaviour.changed(self._weather.values):
             npcs = [a for i, a in sorted(self._actors.items()) if i != 0 and i != self._lead_braking.vehicle]
             b.call("setting the traffic's behaviour (traffic manager)", self._traffic_behaviour.apply, self._tm,
                    self._weather.values, npcs)
