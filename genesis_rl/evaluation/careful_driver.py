@@ -69,8 +69,13 @@ class CarefulDriver:
 R157 = CarefulDriver()
 
 
+#: an actor event this long [s] or less before an impact with its vehicle made that collision the tester's
+#: doing (the reference decides it, and clustering names it: ``distinct.what_was_hit``)
+ACTOR_EVENT_WINDOW_S = 10.0
+
+
 def event_for_collision(events: Sequence[ActorEvent], records: Sequence[StepRecord], hit_at: int,
-                        window_s: float = 10.0) -> ActorEvent | None:
+                        window_s: float = ACTOR_EVENT_WINDOW_S) -> ActorEvent | None:
     """The first actor event with the vehicle the ego hit at ``records[hit_at]`` that began within ``window_s``
     before the impact (None: the tester did not act on that vehicle). The first, since a careful driver
     perceived the actor from then on (a lead braked again after a pause was already being watched); when to

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.evaluation.careful_driver import ACTOR_EVENT_WINDOW_S
 from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
 
@@ -28,8 +29,6 @@ RAIN_BANDS = ((0.0, "no rain"), (2.5, "light rain"), (7.6, "moderate rain"), (50
 #: the lead "brakes" when its speed fell by at least this much [m/s] in LEAD_BRAKING_S before the impact
 LEAD_BRAKING_DROP = 3.0
 LEAD_BRAKING_S = 3.0
-#: a collision with a vehicle the tester made cut in within this long [s] is that cut-in's failure
-CUT_IN_WINDOW_S = 10.0
 KEY_FIELDS = ("mode", "blame", "odd_status", "visibility", "rain", "light", "road_state", "hit")
 
 
@@ -46,7 +45,7 @@ def rain_band(rain_mm_h: float) -> str:
 def what_was_hit(records: Sequence[StepRecord], hit_at: int, dt: float = 0.05,
                  actor_events: Sequence[ActorEvent] | None = None) -> str:
     """``cut in by the tester`` (the ``cut_in_ttc`` knob made the vehicle hit cut in within the last
-    ``CUT_IN_WINDOW_S``), ``lead braked by the tester`` (the ``lead_decel`` knob braked the vehicle hit: with
+    ``ACTOR_EVENT_WINDOW_S``), ``lead braked by the tester`` (the ``lead_decel`` knob braked the vehicle hit: with
     the episode's ``actor_events``, an event with that vehicle in the window; without them, for campaigns
     before 0.15, the knob was on in the window), ``braking lead``, ``lead`` or ``other vehicle`` (the hit
     vehicle was not the lead just before)."""
@@ -57,13 +56,13 @@ def what_was_hit(records: Sequence[StepRecord], hit_at: int, dt: float = 0.05,
         return any(e.kind == kind and e.vehicle_id == vid and t_hit - window_s <= e.onset_s <= t_hit
                    for e in actor_events or ())
 
-    if acted("cut_in", CUT_IN_WINDOW_S):
+    if acted("cut_in", ACTOR_EVENT_WINDOW_S):
         return "cut in by the tester"
     before = records[max(0, hit_at - 1)]
     if before.lead.vehicle_id != vid:
         return "other vehicle"
     back = max(0, hit_at - int(round(LEAD_BRAKING_S / dt)))
-    braked = acted("lead_braking", CUT_IN_WINDOW_S) if actor_events is not None else \
+    braked = acted("lead_braking", ACTOR_EVENT_WINDOW_S) if actor_events is not None else \
         any(r.knobs.get("lead_decel", 0.0) > 0.0 for r in records[back:hit_at + 1])
     if braked:
         return "lead braked by the tester"
