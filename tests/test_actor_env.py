@@ -49,15 +49,16 @@ def test_lead_decel_brakes_the_lead_at_the_demanded_deceleration_and_releases_it
         env.close()
 
 
-def _odd(tmp_path: Path, max_decel: float) -> str:
+def odd_with_traffic(tmp_path: Path, **traffic: float) -> str:
+    """highway_day with a ``[traffic]`` table of ``traffic``'s bounds, written under ``tmp_path``."""
     src = Path(__file__).resolve().parents[1] / "configs" / "odd" / "highway_day.toml"
     path = tmp_path / "odd.toml"
-    path.write_text(src.read_text() + f"\n[traffic]\nmax_lead_decel = {max_decel}\n")
+    path.write_text(src.read_text() + "\n[traffic]\n" + "".join(f"{k} = {v}\n" for k, v in traffic.items()))
     return str(path)
 
 
 def test_the_odd_holds_lead_braking_at_its_traffic_bound_and_labels_beyond_it(tmp_path):
-    odd = _odd(tmp_path, 3.0)
+    odd = odd_with_traffic(tmp_path, max_lead_decel=3.0)
     for keep_inside in (True, False):
         env = _env(odd=odd, odd_keep_inside=keep_inside)
         try:
@@ -78,7 +79,8 @@ def test_the_odd_holds_lead_braking_at_its_traffic_bound_and_labels_beyond_it(tm
 
 def test_a_start_weather_braking_harder_than_the_odd_allows_is_refused(tmp_path):
     with pytest.raises(UserInputError, match=r"lead_decel 7 m/s\^2 > 3"):
-        EnvConfig(**HIGHWAY, knobs=("lead_decel",), odd=_odd(tmp_path, 3.0), start_weather="clear_noon,lead_decel=7")
+        EnvConfig(**HIGHWAY, knobs=("lead_decel",), odd=odd_with_traffic(tmp_path, max_lead_decel=3.0),
+                  start_weather="clear_noon,lead_decel=7")
 
 
 def test_features_add_what_a_tester_measures_of_the_actor():

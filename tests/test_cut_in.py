@@ -8,7 +8,6 @@ could avoid is labelled unavoidable, and one a careful driver avoids is the syst
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,17 +135,12 @@ def test_a_neighbour_cuts_in_at_the_time_to_collision_the_knob_asks_for():
         sim.destroy()
 
 
-def _odd(tmp_path: Path, min_ttc: float) -> str:
-    src = Path(__file__).resolve().parents[1] / "configs" / "odd" / "highway_day.toml"
-    path = tmp_path / "odd.toml"
-    path.write_text(src.read_text() + f"\n[traffic]\nmin_cut_in_ttc = {min_ttc}\n")
-    return str(path)
-
-
 def test_the_odd_holds_the_cut_in_at_its_shortest_time_to_collision_and_labels_beyond_it(tmp_path):
+    from test_actor_env import odd_with_traffic
+
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 
-    odd = _odd(tmp_path, 3.0)
+    odd = odd_with_traffic(tmp_path, min_cut_in_ttc=3.0)
     for keep_inside in (True, False):
         env = GenesisEnv(EnvConfig(map="highway", scenes=4, knobs=("fog_density", "cut_in_ttc"), dynamics="natural",
                                    observation="features", episode_steps=400, odd=odd, odd_keep_inside=keep_inside))
