@@ -58,6 +58,14 @@ def test_bad_benchmark_input_is_refused_naming_the_field(tmp_path):
     assert main(["benchmark", "--out", str(tmp_path / "b"), "--trials", "0"]) == 2
     assert not (tmp_path / "b").exists()  # refused before anything was written
     assert main(["benchmark", "--list"]) == 0
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    (damaged / "benchmark.json").write_text("{not json")
+    with pytest.raises(UserInputError, match="benchmark.json .* is not valid JSON"):
+        run_benchmark(BenchmarkSpec(members=("low_sun",), policies=("sunny",)), damaged, resume=True, progress=False)
+    (damaged / "benchmark.json").write_text("[1, 2]")
+    with pytest.raises(UserInputError, match="holds no benchmark spec"):
+        run_benchmark(BenchmarkSpec(members=("low_sun",), policies=("sunny",)), damaged, resume=True, progress=False)
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,6 @@ from its finished episodes, so the figures are those of an uninterrupted run.
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -28,7 +27,7 @@ from tqdm import tqdm
 from genesis_rl import limits, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
-from genesis_rl.io_utils import atomic_write_json
+from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
 
 SCHEMA = "genesis-rl/benchmark"
@@ -86,11 +85,6 @@ class BenchmarkSpec:
         d.update(members=list(self.members), policies=list(self.policies), options=dict(self.options))
         return d
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> BenchmarkSpec:
-        return cls(**{**d, "members": tuple(d["members"]), "policies": tuple(d["policies"]),
-                      "options": dict(d.get("options") or {})})
-
 
 #: ``--smoke``: the whole pipeline in about a minute on 2 cores (one weakness, one control, two cheap policies)
 SMOKE = BenchmarkSpec(members=("low_sun", "oracle_highway"), policies=("sunny", "random"), trials=2, scenes=1,
@@ -118,7 +112,10 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
     path = out / "benchmark.json"
     if not path.exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
-    found = json.loads(path.read_text()).get("spec", {})
+    data = read_json(path, f"benchmark '{out}': benchmark.json")
+    found = data.get("spec") if isinstance(data, dict) else None
+    if not isinstance(found, dict):
+        raise UserInputError(f"--resume: '{path}' holds no benchmark spec; start the benchmark again with --force")
     wanted = spec.to_json()
     differ = [k for k in wanted if found.get(k) != wanted[k]]
     if differ:
