@@ -21,13 +21,13 @@ def _names(text: str, flag: str) -> tuple[str, ...]:
 
 
 def _cmd_benchmark(args: argparse.Namespace) -> int:
-    from genesis_rl.benchmark.matrix import SMOKE, STEP_POLICIES, BenchmarkSpec
+    from genesis_rl.benchmark.matrix import ADVERSARIES, SMOKE, BenchmarkSpec
     from genesis_rl.zoo.members import ZOO
 
     if args.list:
         for name, m in ZOO.items():
             print(f"{name} ({m.kind}, {m.map}, system {m.system}, ODD {m.odd}): {m.summary}")
-        print(f"policies: {', '.join(STEP_POLICIES)}")
+        print(f"policies: {', '.join(ADVERSARIES)}")
         return 0
     if args.out is None:
         raise UserInputError("--out is required (the benchmark folder), unless --list")
@@ -78,8 +78,8 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                     "distinct failures, false alarms on the controls, ranks with Friedman's test (docs/zoo.md).")
     bm.add_argument("--out", default=None, help="benchmark folder")
     bm.add_argument("--members", default=None, help="comma list of zoo members (default: all; see --list)")
-    bm.add_argument("--policies", default="sunny,random,constant,cmaes,cem",
-                    help="comma list of adversaries (default: sunny,random,constant,cmaes,cem)")
+    bm.add_argument("--policies", default="sunny,random,constant,cmaes,cem,mcts",
+                    help="comma list of adversaries (default: sunny,random,constant,cmaes,cem,mcts)")
     bm.add_argument("--trials", type=int, default=10, help="trials (campaign seeds) per member (default 10)")
     bm.add_argument("--scenes", type=int, default=5, help="scenes a trial plays per policy (default 5)")
     bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")

@@ -352,8 +352,8 @@ def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path, hit:
 
 
 def test_an_episode_whose_simulator_dies_is_retried_after_reconnecting(tmp_path, catalog: str) -> None:
+    from genesis_rl.adversaries import POLICIES, SunnyPolicy, register_policy
     from genesis_rl.errors import SimulatorLost
-    from genesis_rl.evaluation.policies import POLICIES, SunnyPolicy, register_policy
 
     class Flaky(SunnyPolicy):
         """Loses the simulator on its first episode, as a CARLA server that dies mid-episode."""

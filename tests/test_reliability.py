@@ -396,7 +396,7 @@ def test_evaluate_plays_a_sac_agent(tmp_path, capsys) -> None:
     config.write_text(TINY_SAC.replace("total_timesteps = 64", "total_timesteps = 16"))
     run = tmp_path / "run"
     assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
-    from genesis_rl.evaluation.policies import load_agent
+    from genesis_rl.adversaries import load_agent
 
     model = load_agent(run)
     assert type(model).__name__ == "SAC"

@@ -116,7 +116,7 @@ def test_a_pickled_payload_in_an_agent_zip_is_never_run(runs, catalog, tmp_path,
     import torch
     from stable_baselines3.common.save_util import load_from_zip_file
 
-    from genesis_rl.evaluation.policies import load_agent
+    from genesis_rl.adversaries import load_agent
 
     run = _copy_run(runs["ppo"], tmp_path / "shared")
     marker = tmp_path / "ran"
@@ -142,8 +142,8 @@ def test_an_agent_without_its_run_config_loads_only_with_trust_pickle(runs, tmp_
     loose.write_bytes((runs["ppo"] / "agent.zip").read_bytes())
     marker = tmp_path / "ran"
     _poison_zip(loose, marker)
+    from genesis_rl.adversaries import load_agent
     from genesis_rl.errors import UserInputError
-    from genesis_rl.evaluation.policies import load_agent
 
     with pytest.raises(UserInputError, match=r"no run config.toml beside it .* --trust-pickle .* runs any code"):
         load_agent(loose)
@@ -318,8 +318,8 @@ def test_an_agent_naming_a_class_outside_the_allow_list_is_refused(runs, tmp_pat
     """The network's classes are read from the readable copy SB3 stores beside its pickle, by full name from a
     fixed list: a file naming another class (here a module that would run code at import) is refused, naming
     --trust-pickle, and nothing is imported."""
+    from genesis_rl.adversaries import load_agent
     from genesis_rl.errors import UserInputError
-    from genesis_rl.evaluation.policies import load_agent
 
     marker = _evil_module(tmp_path, monkeypatch, "evil_kwargs")
     run = _copy_run(runs["ppo"], tmp_path / "shared")

@@ -33,8 +33,8 @@ from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
 SCHEMA = "genesis-rl/benchmark"
 #: a trial count beyond this is refused (each is a campaign per member)
 MAX_TRIALS = 100
-#: the policies a benchmark plays; a trained agent needs one training per member, which this command does not do
-STEP_POLICIES = ("sunny", "random", "constant", "cmaes", "cem")
+#: the adversaries a benchmark plays; a trained agent needs one training per member, which this command does not do
+ADVERSARIES = ("sunny", "random", "constant", "cmaes", "cem", "mcts")
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class BenchmarkSpec:
 
     def __post_init__(self) -> None:
         for name, values, allowed in (("members", self.members, tuple(ZOO)),
-                                      ("policies", self.policies, STEP_POLICIES)):
+                                      ("policies", self.policies, ADVERSARIES)):
             if not values:
                 raise UserInputError(f"benchmark {name}: empty; allowed: {', '.join(allowed)}")
             unknown = [v for v in values if v not in allowed]

@@ -20,13 +20,13 @@ from typing import Any
 from tqdm import tqdm
 
 from genesis_rl import output_folder
+from genesis_rl.adversaries import resolve_policy
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.evaluation.campaign_folder import Task, prepare_campaign
 from genesis_rl.evaluation.campaign_spec import CampaignSpec, env_settings_for, pick_scenes, run_folder_of
 from genesis_rl.evaluation.episodes import CampaignRunner, episode_row
 from genesis_rl.evaluation.executors import WorkerSetup, run_tasks
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, FailureModeThresholds
-from genesis_rl.evaluation.policies import resolve_policy
 from genesis_rl.evaluation.summary import summarize_campaign
 from genesis_rl.evaluation.worker import plugin_modules
 from genesis_rl.io_utils import atomic_write_text

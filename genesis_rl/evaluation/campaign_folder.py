@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl import __version__, output_folder
+from genesis_rl.adversaries import agent_file
 from genesis_rl.backends import catalog_or_generate
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import (
@@ -39,7 +40,6 @@ from genesis_rl.evaluation.campaign_files import (
     steps_path,
 )
 from genesis_rl.evaluation.campaign_spec import CampaignSpec, check_spec, pick_scenes
-from genesis_rl.evaluation.policies import agent_file
 from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, read_json
 from genesis_rl.lite.scenes import DEFAULT_COUNTS
 from genesis_rl.odd.domain import load_odd

@@ -7,16 +7,15 @@ Everything here is checked before a folder is touched.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from genesis_rl.adversaries import PolicyContext, checked_run, load_agent, resolve_policy, run_folder_of
 from genesis_rl.config import read_toml
 from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.policies import PolicyContext, agent_file, load_agent, resolve_policy
 from genesis_rl.knobs import PAPER_KNOBS
 from genesis_rl.plugins import check_import
 
@@ -49,7 +48,7 @@ class CampaignSpec:
             if not isinstance(value, int) or isinstance(value, bool):
                 raise UserInputError(f"campaign spec.{name} = {value!r}; allowed: an integer >= 1")
             limit.check(value, f"campaign spec.{name}")  # the lower bound: where the scenes are picked and run
-        from genesis_rl.evaluation.policies import chooses_start
+        from genesis_rl.adversaries import chooses_start
 
         chooses_start(self.options)  # a bad options.start is refused here, before any episode runs
         for name, limit in (("search_budget", limits.SEARCH_BUDGET), ("retries", limits.RETRIES)):
@@ -96,38 +95,6 @@ def campaign_map(map_flag: str | None, catalog: str | None) -> str:
                              f"'{found}'; pass --map {found} (or leave --map out), or a catalog made for map "
                              f"'{map_flag}' (genesis-rl scenes --map {map_flag})")
     return found
-
-
-def run_folder_of(agent: Path) -> Path:
-    """The training run folder of ``--agent``: a folder, its agent.zip, or a checkpoint inside it."""
-    if agent.suffix != ".zip":
-        return agent
-    return agent.parent.parent if agent.parent.name == "checkpoints" else agent.parent
-
-
-def checked_run(agent: Path, system: str | None, weights: str | None) -> dict[str, Any]:
-    """The run's config tables, once its files match the pins in its run.json (training/pinning.py): the
-    agent is evaluated under the config, catalog, rulebook, ODD and detector it trained with. ``--weights``, or
-    ``--system`` naming another system, replaces the run's weights on purpose: those are not checked. A run
-    still being trained (its folder's lock held) is evaluated with a warning naming its last checkpoint."""
-    from genesis_rl.training.pinning import check_run, last_checkpoint, read_run_config, writer_pid
-
-    run_dir, what = run_folder_of(agent), f"--agent '{agent}'"
-    run_system = read_run_config(run_dir, what)["env"].get("system", "builtin")
-    replaced = weights is not None or (system is not None and system != run_system)
-    data = check_run(run_dir, what, "restore it: an agent is evaluated under the files it trained with",
-                     skip=("weights",) if replaced else (),
-                     hints={"weights": "pass --weights FILE to evaluate the agent against other weights on purpose"})
-    pid = writer_pid(run_dir)
-    if pid is not None:
-        last = last_checkpoint(run_dir)
-        found = agent_file(agent)
-        at = (f"its last checkpoint is {last[1]} (step {last[0]})" if last is not None
-              else "it has no checkpoint yet")
-        what_runs = f"evaluating '{found}', not the finished agent" if found else "no agent file to evaluate yet"
-        print(f"genesis-rl: warning: run '{run_dir}' is still being trained (pid {pid} holds it): {at}; {what_runs}",
-              file=sys.stderr, flush=True)
-    return data
 
 
 def env_settings_for(agent: str | None, config: str | None, system: str | None,

@@ -66,9 +66,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.search_segments > args.steps:
         raise UserInputError(f"--search-segments = {args.search_segments} must be at most --steps = {args.steps} "
                              "(a segment is at least one step)")
+    from genesis_rl.adversaries import resolve_policy
     from genesis_rl.evaluation.campaign import CampaignSpec, env_settings_for, run_campaign
     from genesis_rl.evaluation.campaign_spec import campaign_map
-    from genesis_rl.evaluation.policies import resolve_policy
 
     policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
     if not policies:
@@ -99,7 +99,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
     elif args.agent:
-        from genesis_rl.evaluation.campaign import run_folder_of
+        from genesis_rl.adversaries import run_folder_of
 
         out = run_folder_of(Path(args.agent)) / "eval"
     else:

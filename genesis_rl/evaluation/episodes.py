@@ -1,6 +1,6 @@
 """One campaign episode: a policy plays a scene in the env, and the episode's files are written.
 
-``CampaignRunner`` is one worker's environment (it implements ``policies.EpisodeRunner``): it plays a
+``CampaignRunner`` is one worker's environment (it implements ``adversaries.EpisodeRunner``): it plays a
 policy's actions on a scene and keeps camera frames around the first collision. ``write_episode`` writes
 the step Parquet, the frames, the edge-case record and, last, the summary row that marks the episode done.
 """
@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from genesis_rl.adversaries import EpisodeOutcome
 from genesis_rl.config import from_mapping
 from genesis_rl.drive import write_telemetry
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
@@ -25,7 +26,6 @@ from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.evaluation.careful_driver import careful_driver_evidence, event_for_collision
 from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
 from genesis_rl.evaluation.failure_modes import LABELLER_VERSION, label_collision
-from genesis_rl.evaluation.policies import EpisodeOutcome
 from genesis_rl.evaluation.records import make_record, save_record
 from genesis_rl.io_utils import atomic_write, atomic_write_json
 from genesis_rl.knobs import Weather
@@ -40,7 +40,7 @@ COUNTERFACTUAL_MARGIN_S = 2.0
 
 class CampaignRunner:
     """One worker's environment: plays a policy's actions on a scene and captures frames around the
-    first collision. Implements ``policies.EpisodeRunner``."""
+    first collision. Implements ``adversaries.EpisodeRunner``."""
 
     def __init__(self, spec: CampaignSpec, folder: Path, env_settings: dict[str, Any] | None = None) -> None:
         # env_settings: this worker's own (e.g. its CARLA server, genesis_rl.distributed.servers)
@@ -91,8 +91,10 @@ class CampaignRunner:
                 frames[rec.step] = rgb
             if terminated or truncated:
                 break
+        trajectory = [env.episode_start.values, *(r.knobs for r in env.records)]
         return EpisodeOutcome(list(env.records), frames, sim_steps=len(env.records), actor_events=env.actor_events(),
-                              start=env.episode_start)
+                              start=env.episode_start,
+                              naturalness=env.weather_model.naturalness(trajectory, env.dt))
 
     def oracle_collides(self, scene: int, episode_seed: int, records: Sequence[StepRecord], hit_at: int,
                         start: Weather | None = None) -> bool:

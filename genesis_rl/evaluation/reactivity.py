@@ -164,11 +164,11 @@ def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, w
     the campaign's scenes and episode seeds (its first ``scenes`` of them), in the campaign's env."""
     from pathlib import Path
 
+    from genesis_rl.adversaries import StepPolicy, resolve_policy
     from genesis_rl.errors import UserInputError
     from genesis_rl.evaluation.campaign_files import read_campaign_meta
     from genesis_rl.evaluation.campaign_spec import CampaignSpec
     from genesis_rl.evaluation.episodes import CampaignRunner
-    from genesis_rl.evaluation.policies import StepPolicy, resolve_policy
 
     folder = Path(folder)
     saved = read_campaign_meta(folder)  # checked: a damaged campaign.json is named, not a traceback

@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from genesis_rl.adversaries.agent import agent_learning_curve
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
-from genesis_rl.evaluation.campaign_spec import run_folder_of
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.evaluation.report_natural import section as natural_section
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
@@ -37,7 +37,6 @@ from genesis_rl.io_utils import os_error_message, read_json
 from genesis_rl.knobs import PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
 from genesis_rl.step_record import StepRecord
-from genesis_rl.training.curves import plot_learning_curve
 from genesis_rl.viz.frames import annotate_frame
 
 POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8", "cem": "#31a354",
@@ -373,13 +372,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
 
     # training curve of the agent, when its run folder is at hand
     if spec.get("agent"):
-        run = run_folder_of(Path(spec["agent"]))
-        if (run / "config.toml").is_file():  # the run is at hand: it is read only as it was trained
-            from genesis_rl.training.pinning import IN_FOLDER, check_run
-
-            check_run(run, f"the campaign's agent run '{run}'", "restore it, or move the run away to report "
-                      "without its training curve", only=IN_FOLDER)
-        curve = plot_learning_curve(run)
+        curve = agent_learning_curve(Path(spec["agent"]))
         if curve is not None:
             h.append(f"<h2>Training of the agent</h2><img src='{_png(curve)}'>")
 

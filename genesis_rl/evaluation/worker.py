@@ -15,11 +15,11 @@ from typing import Any
 
 import torch
 
+from genesis_rl.adversaries import POLICIES, WeatherPolicy, resolve_policy
 from genesis_rl.errors import SimulatorLost
 from genesis_rl.evaluation.campaign_folder import Task
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.evaluation.episodes import CampaignRunner, write_episode
-from genesis_rl.evaluation.policies import POLICIES, WeatherPolicy, resolve_policy
 from genesis_rl.knobs import KNOB_MODULES
 from genesis_rl.plugins import import_modules, user_modules
 from genesis_rl.rules.rulebook import RULES

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from genesis_rl.evaluation.policies import StepPolicy, register_policy
+from genesis_rl.adversaries import StepPolicy, register_policy
 
 #: folder of the marker files (set by the test); the scene whose first episode kills its worker
 MARKERS = "GENESIS_RL_TEST_CRASH_DIR"

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from genesis_rl.evaluation.policies import StepPolicy, register_policy
+from genesis_rl.adversaries import StepPolicy, register_policy
 from genesis_rl.rules.rulebook import Rule
 
 

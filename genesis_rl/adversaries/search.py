@@ -1,0 +1,143 @@
+"""Black-box search adversaries: CMA-ES and the cross-entropy method over piecewise-constant knob schedules,
+``search_budget`` episodes per scene, reporting the worst episode found (the falsifiers of ARCH-COMP and
+VerifAI)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.adversaries.base import (
+    EpisodeOutcome,
+    EpisodeRunner,
+    PolicyContext,
+    WeatherPolicy,
+    chooses_start,
+    register_policy,
+)
+from genesis_rl.errors import UserInputError
+
+
+@register_policy
+class CMAESSearch(WeatherPolicy):
+    """Black-box falsification by CMA-ES (the ``cma`` package) over piecewise-constant knob schedules.
+
+    The episode is split into ``search_segments`` equal segments; in each, every knob is pushed by a
+    constant action in [-1, 1] (so the same 5% limit holds). Each candidate schedule costs one episode;
+    the search spends ``search_budget`` episodes per scene, maximises the episode's total reward (the
+    agent's own objective) and reports its best episode.
+    """
+
+    name = "cmaes"
+    description = "CMA-ES search over piecewise-constant knob schedules, search_budget episodes per scene"
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        opts = context.options
+        self.budget = int(opts.get("search_budget", 8))
+        self.segments = int(opts.get("search_segments", 4))
+        self.sigma0 = float(opts.get("search_sigma", 0.5))
+        if self.budget < 2 or self.segments < 1:
+            raise UserInputError(f"search_budget = {self.budget} must be >= 2 and search_segments = "
+                                 f"{self.segments} >= 1")
+        from genesis_rl import limits
+
+        limits.SEARCH_BUDGET.check(self.budget, "search_budget")  # also when a campaign.json sets it
+
+    @classmethod
+    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
+        return int(options.get("search_budget", 8))
+
+    def _start_dims(self, runner: EpisodeRunner) -> int:
+        """How many entries of a candidate choose the start: one per held knob when the campaign lets
+        policies choose it (``chooses_start``), else none."""
+        return len(runner.held_knobs) if chooses_start(self.context.options) else 0
+
+    def _play(self, runner: EpisodeRunner, x: np.ndarray, scene: int, episode_seed: int, k: int) -> EpisodeOutcome:
+        """One candidate's episode: its last ``k`` entries (in [-1, 1]) place the held knobs' start."""
+        start = runner.start_from([(float(v) + 1.0) / 2.0 for v in x[len(x) - k:]]) if k else None
+        return runner.run(self._schedule(np.asarray(x[:len(x) - k])), scene, episode_seed, start)
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        import cma
+
+        k = self._start_dims(runner)
+        dim = self.segments * self.context.action_dim + k
+        default_pop = 4 + int(3 * np.log(dim))
+        popsize = max(2, min(default_pop, self.budget // 2))
+        seed = int(np.random.default_rng([self.context.seed, scene, episode_seed, 2]).integers(1, 2**31 - 1))
+        es = cma.CMAEvolutionStrategy(np.zeros(dim), self.sigma0,
+                                      {"seed": seed, "popsize": popsize, "bounds": [-1.0, 1.0], "verbose": -9})
+        best: EpisodeOutcome | None = None
+        spent, history = 0, []
+        for _ in range(self.budget // popsize):
+            xs = es.ask()
+            fitness = []
+            for x in xs:
+                outcome = self._play(runner, np.asarray(x), scene, episode_seed, k)
+                spent += outcome.sim_steps
+                fitness.append(-outcome.total_reward)
+                history.append(round(outcome.total_reward, 3))
+                if best is None or outcome.total_reward > best.total_reward:
+                    best = outcome
+            es.tell(xs, fitness)
+        assert best is not None
+        best.sim_steps = spent
+        best.extra = {"search_returns": history, "popsize": popsize}
+        return best
+
+    def _schedule(self, x: np.ndarray) -> Callable[[Any], np.ndarray]:
+        table = np.clip(x.reshape(self.segments, self.context.action_dim), -1.0, 1.0).astype(np.float32)
+        steps = int(self.context.options.get("steps", 512))
+        state = {"t": 0}
+
+        def act(obs: Any) -> np.ndarray:
+            seg = min(self.segments - 1, state["t"] * self.segments // max(steps, 1))
+            state["t"] += 1
+            return table[seg]
+
+        return act
+
+
+@register_policy
+class CrossEntropySearch(CMAESSearch):
+    """The cross-entropy method, as VerifAI's cross-entropy sampler, over the same piecewise-constant schedules
+    as ``cmaes``: a Gaussian per schedule entry, sampled (clipped to [-1, 1]) a generation at a time; the best
+    quarter of each generation, at least 2 (by the episode's total reward), gives the next mean and spread. It spends
+    exactly ``search_budget`` episodes per scene (the last generation takes what is left) and reports its best.
+    """
+
+    name = "cem"
+    description = "cross-entropy search over piecewise-constant knob schedules, search_budget episodes per scene"
+    ELITE_FRACTION = 0.25
+    MIN_SIGMA = 0.05  # keeps sampling once the elites agree
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        k = self._start_dims(runner)
+        dim = self.segments * self.context.action_dim + k
+        rng = np.random.default_rng([self.context.seed, scene, episode_seed, 3])
+        generation = max(2, min(4 + int(3 * np.log(dim)), self.budget // 2))
+        sizes = [generation] * (self.budget // generation)
+        sizes[-1] += self.budget - sum(sizes)  # exactly the budget
+        mean, sigma = np.zeros(dim), np.full(dim, self.sigma0)
+        best: EpisodeOutcome | None = None
+        spent, history = 0, []
+        for n in sizes:
+            xs = np.clip(mean + sigma * rng.standard_normal((n, dim)), -1.0, 1.0)
+            returns = []
+            for x in xs:
+                outcome = self._play(runner, x, scene, episode_seed, k)
+                spent += outcome.sim_steps
+                returns.append(outcome.total_reward)
+                history.append(round(outcome.total_reward, 3))
+                if best is None or outcome.total_reward > best.total_reward:
+                    best = outcome
+            # at least 2 elites: one has no spread, and the search would collapse to MIN_SIGMA at once
+            elite = xs[np.argsort(returns)[::-1][: max(2, int(np.ceil(self.ELITE_FRACTION * n)))]]
+            mean, sigma = elite.mean(axis=0), np.maximum(elite.std(axis=0), self.MIN_SIGMA)
+        assert best is not None
+        best.sim_steps = spent
+        best.extra = {"search_returns": history, "generations": sizes}
+        return best
