@@ -77,6 +77,11 @@ def test_shipped_odds_load_and_label():
     assert odd.status(LITE.conditions(clear(fog_density=25))) == "boundary"  # ~158 m: within 10 % of 150
     assert odd.status(LITE.conditions(clear(fog_density=35))) == "outside"
     assert odd.violations(LITE.conditions(clear(sun_altitude_angle=-20))) == ["light 'night' not in ['day']"]
+    high_sun = parse_odd({**HIGHWAY, "sun_altitude": {"min": 15, "unit": "deg"}}, "t")  # bounded on the weather
+    low = clear(sun_altitude_angle=10, sun_azimuth_angle=200)
+    assert high_sun.status(LITE.conditions(low), low) == "outside" and odd.status(LITE.conditions(low), low) == "inside"
+    assert high_sun.describe()["sun_altitude"] == {"min": 15.0, "max": 90.0, "unit": "deg"}
+    assert "sun_altitude" not in odd.describe()  # domains without one describe as before
 
 
 @pytest.mark.parametrize("data, message", [
@@ -89,6 +94,12 @@ def test_shipped_odds_load_and_label():
     ({"road_state": {"allowed": []}}, "road_state: allowed is empty"),
     ({"rain_rate": {"max": "a lot", "unit": "mm/h"}}, "rain_rate.max = 'a lot' must be a finite number"),
     ({"sun_glare": {"allowed": "no"}}, "sun_glare must be a table with allowed = true or false"),
+    ({"sun_altitude": {"min": 15}}, "sun_altitude: unit = None; allowed: \"deg\""),
+    ({"sun_altitude": {"min": 15, "unit": "rad"}}, "sun_altitude: unit = 'rad'; allowed: \"deg\""),
+    ({"sun_altitude": {"min": 120, "unit": "deg"}}, "sun_altitude.min = 120"),
+    ({"sun_altitude": {"min": 30, "max": 10, "unit": "deg"}}, "sun_altitude: min 30 > max 10: the domain is empty"),
+    ({"sun_altitude": {"low": 3, "unit": "deg"}}, "sun_altitude: unknown key(s) ['low']; allowed: min, max, unit"),
+    ({"sun_altitude": {"unit": "deg"}}, "sun_altitude: give min, max or both [deg]"),
 ])
 def test_bad_odd_files_name_the_field(data, message):
     with pytest.raises(UserInputError, match="ODD 'bad.toml'") as err:
@@ -274,7 +285,7 @@ def test_odd_describe_round_trips():
 
 
 def test_constant_policy_repeats_its_action_and_checks_it():
-    from genesis_rl.evaluation.policies import ConstantPolicy, PolicyContext
+    from genesis_rl.adversaries import ConstantPolicy, PolicyContext
 
     p = ConstantPolicy(PolicyContext(action_dim=5, seed=0, options={"constant_action": [1, 1, 1, 1, 0]}))
     assert p.act(None).tolist() == [1, 1, 1, 1, 0] and p.act(None).tolist() == [1, 1, 1, 1, 0]

@@ -35,18 +35,19 @@ def _seen(visibilities: list[float]) -> list[StepRecord]:
 
 
 def test_registry_names_kinds_and_regions() -> None:
-    assert list(ZOO) == ["low_sun", "builtin_highway", "oracle_highway"]
-    assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "builtin_highway": "control",
-                                                    "oracle_highway": "control"}
-    assert zoo_member("low_sun").trigger.describe() == "0 <= sun_altitude_angle < 15 deg"
+    assert list(ZOO) == ["low_sun", "low_sun_highway", "builtin_highway", "oracle_highway"]
+    assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "low_sun_highway": "weakness",
+                                                    "builtin_highway": "control", "oracle_highway": "control"}
+    for name in ("low_sun", "low_sun_highway"):
+        assert zoo_member(name).trigger.describe() == "0 <= sun_altitude_angle < 15 deg"
     for name in ("builtin_highway", "oracle_highway"):
         assert zoo_member(name).trigger.empty and zoo_member(name).map == "highway"
     assert (zoo_member("oracle_highway").system, zoo_member("builtin_highway").system) == ("oracle", "builtin")
 
 
 def test_unknown_member_is_refused_naming_the_members() -> None:
-    with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, builtin_highway, "
-                                             "oracle_highway"):
+    with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, low_sun_highway, "
+                                             "builtin_highway, oracle_highway"):
         zoo_member("nope")
 
 
@@ -64,13 +65,18 @@ def test_env_settings_make_a_valid_env_inside_the_members_odd(name: str) -> None
 def test_every_shipped_odd_loads_and_is_package_data() -> None:
     model = conditions_model("lite")
     shipped = sorted(p.name for p in ODD_DIR.glob("*.toml"))
-    assert shipped == ["highway_day.toml", "urban_day.toml"]
+    assert shipped == ["highway_day.toml", "highway_high_sun.toml", "urban_day.toml"]
     assert {m.odd for m in ZOO.values()} == set(shipped)
     for name in shipped:
         load_odd(ODD_DIR / name, model)
-    # the controls' domain is the one docs/results.md section 7 measured them in
+    # the highway weakness's domain is the one docs/results.md section 7 measured in; the control's is it with
+    # the sun at least 15 deg up, and nothing else changed
     ours, theirs = load_odd(ODD_DIR / "highway_day.toml").describe(), load_odd(ROOT / "configs/odd/highway_day.toml")
     assert ours == theirs.describe()
+    high = load_odd(ODD_DIR / "highway_high_sun.toml").describe()
+    assert high.pop("sun_altitude") == {"min": 15.0, "max": 90.0, "unit": "deg"}
+    assert {k: v for k, v in high.items() if k not in ("name", "description")} == \
+        {k: v for k, v in ours.items() if k not in ("name", "description")}
     globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["genesis_rl"]
     assert "zoo/odd/*.toml" in globs
 
@@ -85,6 +91,30 @@ def test_low_sun_region_is_inside_the_day_odd_and_outside_the_detectors_training
     low = zoo_member("low_sun").trigger.bounds[0]
     assert min(drawn) >= low.high  # the detector never saw a sun in the region
     assert low.low == 0.0 and low.high == 15.0
+
+
+def test_the_controls_domain_excludes_the_low_sun_the_weakness_domain_allows() -> None:
+    """builtin_highway is a control because its ODD leaves out the built-in detector's blind spot, which
+    low_sun_highway's domain allows: the same sun inside one and outside the other, labelled and kept so."""
+    from genesis_rl.env import GenesisEnv
+
+    model = conditions_model("lite")
+    weak, control = load_odd(ODD_DIR / "highway_day.toml"), load_odd(ODD_DIR / "highway_high_sun.toml")
+    for altitude, in_weak, in_control in ((5.0, True, False), (14.9, True, False), (15.0, True, True),
+                                          (60.0, True, True), (-1.0, False, False)):
+        w = Weather.default().replace(sun_altitude_angle=altitude)
+        assert (weak.contains(model.conditions(w, None), w), control.contains(model.conditions(w, None), w)) == \
+            (in_weak, in_control), altitude
+    low = Weather.default().replace(sun_altitude_angle=5.0)
+    assert control.violations(model.conditions(low, None), low) == ["sun_altitude 5 deg not in [15, 90]"]
+    env = GenesisEnv(**env_settings(zoo_member("builtin_highway")))  # natural starts stay in the control's domain
+    try:
+        assert env.held_knobs == ("sun_altitude_angle", "sun_azimuth_angle")
+        rng = np.random.default_rng(0)
+        assert min(env.natural_start(rng)["sun_altitude_angle"] for _ in range(50)) >= 15.0
+        assert env.start_from([0.0, 0.5])["sun_altitude_angle"] == pytest.approx(15.0, abs=0.2)  # the corner
+    finally:
+        env.close()
 
 
 def test_reached_is_the_first_step_inside_a_half_open_region() -> None:

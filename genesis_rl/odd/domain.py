@@ -30,7 +30,12 @@ NUMERIC = {"visibility": ("m", "visibility_m"), "rain_rate": ("mm/h", "rain_mm_h
 NUMERIC_RANGES = {"visibility": ranges.Ranged(0.0, 100_000.0, "m"), "rain_rate": ranges.Ranged(0.0, 2000.0, "mm/h")}
 #: categorical quantities: allowed values, and the Conditions field
 CATEGORICAL = {"road_state": (ROAD_STATES, "road_state"), "light": (LIGHTS, "light")}
-QUANTITIES = (*NUMERIC, *CATEGORICAL, "sun_glare")
+#: the sun's altitude [deg], bounded on the weather itself (its knob is already in degrees): a camera system may
+#: be released for daylight with the sun at least so high, as a low sun's long shadows and colour are conditions
+#: its data may lack (docs/zoo.md's low-sun members)
+SUN_ALTITUDE = "sun_altitude"
+SUN_ALTITUDE_RANGE = ranges.Ranged(-90.0, 90.0, "deg")
+QUANTITIES = (*NUMERIC, *CATEGORICAL, "sun_glare", SUN_ALTITUDE)
 STATUSES = ("inside", "boundary", "outside")
 _TOP_KEYS = {"name", "description", "boundary_margin", "traffic", *QUANTITIES}
 
@@ -62,6 +67,8 @@ class ODD:
     source: str = ""
     #: traffic conditions the system is released for (issue 32); None: the file has no [traffic] table
     traffic: TrafficConditions | None = None
+    #: the sun altitudes the system is released for [deg], checked on the weather; None: no [sun_altitude] table
+    sun_altitude: tuple[float, float] | None = None
 
     # -- labelling -----------------------------------------------------------------------------------------
     def violations(self, c: Conditions, weather: Weather | None = None) -> list[str]:
@@ -69,6 +76,10 @@ class ODD:
         ``weather``, also its actor knobs against the traffic conditions (the file's ``[traffic]``, else
         :class:`TrafficConditions`' defaults: CCRb's 6 m/s^2, R157's 1.64 s)."""
         out = [] if weather is None else self.traffic_violations(weather)
+        if weather is not None and self.sun_altitude is not None:
+            alt, (low, high) = float(weather["sun_altitude_angle"]), self.sun_altitude
+            if not low <= alt <= high:
+                out.append(f"sun_altitude {alt:g} deg not in [{low:g}, {high:g}]")
         for q, r in self.ranges.items():
             v = getattr(c, NUMERIC[q][1])
             if not r.contains(v):
@@ -144,6 +155,8 @@ class ODD:
         for q, allowed in self.allowed.items():
             d[q] = {"allowed": list(allowed)}
         d["sun_glare"] = {"allowed": self.sun_glare_allowed}
+        if self.sun_altitude is not None:  # likewise
+            d[SUN_ALTITUDE] = {"min": self.sun_altitude[0], "max": self.sun_altitude[1], "unit": "deg"}
         if self.traffic is not None:  # only then, so domains without one describe as before
             d["traffic"] = {"max_lead_decel": self.traffic.max_lead_decel,
                             "min_cut_in_ttc": self.traffic.min_cut_in_ttc}
@@ -166,6 +179,26 @@ def _number(where: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise UserInputError(f"{where} = {value!r} must be a finite number")
     return float(value)
+
+
+def _sun_altitude(t: Any, where: str) -> tuple[float, float]:
+    """``[sun_altitude] min = ..., max = ..., unit = "deg"``: either bound may be left out (-90, 90)."""
+    if not isinstance(t, Mapping):
+        raise UserInputError(f"{where} must be a table, e.g. [{SUN_ALTITUDE}] min = 15, unit = \"deg\"")
+    extra = set(t) - {"min", "max", "unit"}
+    if extra:
+        raise UserInputError(f"{where}: unknown key(s) {sorted(extra)}; allowed: min, max, unit")
+    if t.get("unit") != "deg":
+        raise UserInputError(f"{where}: unit = {t.get('unit')!r}; allowed: \"deg\"")
+    if "min" not in t and "max" not in t:
+        raise UserInputError(f"{where}: give min, max or both [deg]")
+    low = _number(f"{where}.min", t["min"]) if "min" in t else SUN_ALTITUDE_RANGE.low
+    high = _number(f"{where}.max", t["max"]) if "max" in t else SUN_ALTITUDE_RANGE.high
+    SUN_ALTITUDE_RANGE.check(low, f"{where}.min")
+    SUN_ALTITUDE_RANGE.check(high, f"{where}.max")
+    if low > high:
+        raise UserInputError(f"{where}: min {low:g} > max {high:g}: the domain is empty")
+    return low, high
 
 
 def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | None = None) -> ODD:
@@ -229,6 +262,8 @@ def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | Non
         glare = t["allowed"]
     odd = ODD(name=name, description=str(data.get("description", "")), ranges=ranges, allowed=allowed,
               sun_glare_allowed=glare, boundary_margin=margin, source=source,
+              sun_altitude=_sun_altitude(data[SUN_ALTITUDE], f"ODD '{source}': {SUN_ALTITUDE}")
+              if SUN_ALTITUDE in data else None,
               traffic=parse_traffic_conditions(data["traffic"], f"ODD '{source}': traffic")
               if "traffic" in data else None)
     if model is not None and "visibility" in ranges:

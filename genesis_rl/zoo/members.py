@@ -74,15 +74,24 @@ _LOW_SUN = ZooMember(
     env={"dynamics": "natural", "episode_steps": 256},
 )
 
+_LOW_SUN_HIGHWAY = ZooMember(
+    name="low_sun_highway", kind="weakness", system="builtin", odd="highway_day.toml", map="highway",
+    summary=("The built-in system inside highway_day on the highway: by day with no low sun in the camera. Its "
+             "detector never saw a sun under 15 deg (as low_sun), and highway_day allows one as long as it is not "
+             "in the camera's view. Found by the benchmark itself: with natural starts (0.15.0) adversaries found "
+             "4 perception failures with the sun 0.06-1.6 deg up where builtin_highway, its earlier name, was "
+             "listed as a control (docs/zoo.md, first measurement). A corner weakness on the highway."),
+    trigger=TriggerRegion((Bound("sun_altitude_angle", 0.0, 15.0),)),
+    env={"dynamics": "natural"},
+)
+
 _BUILTIN_HIGHWAY = ZooMember(
-    name="builtin_highway", kind="control", system="builtin", odd="highway_day.toml", map="highway",
-    summary=("The built-in system inside highway_day on the highway: no adversary found a weather failure of it "
-             "there under natural dynamics in 50 scenes (docs/results.md, section 6; section 7 in the wider "
-             "urban_all_day). Its one in-ODD collision there (scene 39) is weather-independent: sunny has it too "
-             "and the oracle replay crashes as well. A control: every in-ODD failure an adversary reports on it "
-             "is a false alarm candidate. But only for episodes that start at noon: with natural starts (0.15.0) "
-             "adversaries find its detector's low-sun blind spot inside highway_day, the sun 0-2 deg above the "
-             "horizon (docs/zoo.md, first measurement)."),
+    name="builtin_highway", kind="control", system="builtin", odd="highway_high_sun.toml", map="highway",
+    summary=("The built-in system on the highway inside highway_high_sun: highway_day with the sun at least 15 "
+             "deg up, the light its detector's data held. No adversary found a weather failure of it there under "
+             "natural dynamics in 50 scenes that started at noon (docs/results.md, sections 6-7). Its one in-ODD "
+             "collision there (scene 39) is weather-independent: sunny has it too and the oracle replay crashes "
+             "as well. A control: every in-ODD failure an adversary reports on it is a false alarm candidate."),
     trigger=EMPTY,
     env={"dynamics": "natural"},
 )
@@ -96,7 +105,7 @@ _ORACLE_HIGHWAY = ZooMember(
 )
 
 #: every member by name
-ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _BUILTIN_HIGHWAY, _ORACLE_HIGHWAY)}
+ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _BUILTIN_HIGHWAY, _ORACLE_HIGHWAY)}
 
 
 def zoo_member(name: str) -> ZooMember:
