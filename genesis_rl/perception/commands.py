@@ -22,7 +22,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from genesis_rl.perception.train import DetectorTrainConfig, train_detector
 
     defaults = DetectorTrainConfig()
-    changes: dict = {"seed": args.seed}
+    changes: dict = {"seed": args.seed, "condition": args.condition}
     if args.frames is not None:
         if args.frames < 1:
             raise UserInputError(f"--frames must be >= 1, got {args.frames}")
@@ -149,6 +149,9 @@ def add_detector_commands(subparsers: argparse._SubParsersAction) -> argparse.Ar
                     help="training frames (default: the shipped recipe's 3600; 4 frames per scene)")
     tr.add_argument("--epochs", type=int, default=None, help="training epochs (default: the shipped recipe's)")
     tr.add_argument("--seed", type=seed_int, default=0, help="seed of weather draws, init, shuffling, augmentation")
+    tr.add_argument("--condition", default="typical",
+                    help="weather distribution of the training frames (default: typical, the shipped recipe; "
+                         "day_night: the zoo's dusk-blind detector, docs/zoo.md)")
     tr.add_argument("--force", action="store_true", help="overwrite existing outputs")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch log")
     tr.set_defaults(func=_cmd_train)

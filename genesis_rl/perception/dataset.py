@@ -50,6 +50,21 @@ def _typical(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
     }
 
 
+#: the sun altitudes the dusk-blind detector never sees [deg]: from civil twilight's end (-6) to the low-sun
+#: band the shipped detector already lacks (15); the zoo member ``dusk_blind`` states it as its trigger region
+DUSK_GAP_DEG = (-6.0, 15.0)
+
+
+def _day_night(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
+    """``typical`` by day (sun 15..90 deg) and, a third of the frames, by night (sun -30..-6 deg, headlights):
+    a team that collected data at noon and at night but never at dusk or dawn. The gap ``DUSK_GAP_DEG`` lies in
+    the interior of an all-day domain's sun altitude, not at its bound."""
+    weather = _typical(rng, ego_yaw)
+    if rng.random() < 1.0 / 3.0:
+        weather["sun_altitude_angle"] = float(rng.uniform(-30.0, DUSK_GAP_DEG[0]))
+    return weather
+
+
 def _clear(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
     """Clear noon-like: high sun, few clouds, no fog or rain."""
     return {
@@ -127,11 +142,12 @@ CONDITIONS: dict[str, Sampler] = {
     "wet_road": _wet_road,
     "low_sun_glare": _low_sun_glare,
     "clear_noon": _clear_noon,
+    "day_night": _day_night,
 }
 
 #: evaluation buckets (``typical`` is the training distribution, reported as a reference); ``clear_noon``
-#: is the realism check's, not a detector-evaluation bucket
-EVAL_CONDITIONS: tuple[str, ...] = tuple(c for c in CONDITIONS if c != "clear_noon")
+#: is the realism check's and ``day_night`` the dusk-blind detector's training mix, not evaluation buckets
+EVAL_CONDITIONS: tuple[str, ...] = tuple(c for c in CONDITIONS if c not in ("clear_noon", "day_night"))
 
 
 def check_conditions(names: Sequence[str], flag: str = "conditions") -> tuple[str, ...]:

@@ -3,7 +3,8 @@
 Recipe (the defaults of :class:`DetectorTrainConfig` are the shipped weights' recipe): training frames
 from ``train_scenes`` scenes of an ``urban`` catalog (seed ``train_catalog_seed``), validation frames from
 other scenes (``val_catalog_seed``), both in the ``typical`` weather distribution only (daylight, fog <= 10,
-rain <= 20), as a real perception team's data would be. CenterNet losses: penalty-reduced focal loss on the
+rain <= 20), as a real perception team's data would be (``condition``: the zoo's dusk-blind detector learns
+``day_night``). CenterNet losses: penalty-reduced focal loss on the
 heatmap, L1 on log box size and centre offset. Light photometric augmentation only (flip, brightness,
 contrast, sensor noise): no fog, rain or night, on purpose. The score threshold is the one that maximises F1
 on the validation frames under the evaluation protocol (``evaluate.py``).
@@ -42,6 +43,9 @@ class DetectorTrainConfig:
     train_catalog_seed: int = 100
     val_catalog_seed: int = 101
     seed: int = 0  # sim seed, weather draws, init, shuffling, augmentation
+    #: the weather distribution of the training and validation frames (``dataset.CONDITIONS``): ``typical`` for
+    #: the shipped weights; ``day_night`` for the zoo's dusk-blind detector (docs/zoo.md)
+    condition: str = "typical"
     epochs: int = 20  # the loss was still falling at 12 (0.1.0 weights); 20 lifted clear-day recall
     batch_size: int = 32
     lr: float = 2e-3  # Adam, cosine decay to 2 % after a one-epoch linear warm-up
@@ -69,6 +73,9 @@ class DetectorTrainConfig:
         if self.train_catalog_seed == self.val_catalog_seed:
             raise UserInputError("detector train: val_catalog_seed must differ from train_catalog_seed "
                                  "(validation uses other scenes)")
+        from genesis_rl.perception.dataset import check_conditions
+
+        check_conditions([self.condition], "detector train: condition")
         if not self.lr > 0:
             raise UserInputError(f"detector train: lr must be > 0, got {self.lr}")
 
@@ -93,7 +100,7 @@ def _data(cfg: DetectorTrainConfig, out_dir: Path, split: str, progress: bool,
 
     n = cfg.train_scenes if split == "train" else cfg.val_scenes
     cat_seed = cfg.train_catalog_seed if split == "train" else cfg.val_catalog_seed
-    want = {"map": cfg.map, "condition": "typical", "n_scenes": n, "frames_per_scene": cfg.frames_per_scene,
+    want = {"map": cfg.map, "condition": cfg.condition, "n_scenes": n, "frames_per_scene": cfg.frames_per_scene,
             "catalog_seed": cat_seed, "seed": cfg.seed, "width": cfg.input_width, "height": cfg.input_height}
     path = out_dir / f"{split}_data.npz"
     if cfg.cache_data and path.is_file():
@@ -103,7 +110,7 @@ def _data(cfg: DetectorTrainConfig, out_dir: Path, split: str, progress: bool,
                 return data
         except UserInputError:
             pass
-    data = render_dataset(cfg.map, n, cfg.frames_per_scene, cat_seed, cfg.seed, "typical",
+    data = render_dataset(cfg.map, n, cfg.frames_per_scene, cat_seed, cfg.seed, cfg.condition,
                           camera=CameraConfig(cfg.input_width, cfg.input_height), progress=progress,
                           backend=backend)
     if cfg.cache_data:
@@ -323,7 +330,7 @@ def train_detector(config: DetectorTrainConfig | None = None, out_dir: str | Pat
         "torch_version": torch.__version__, "score_threshold": float(thr), "model_config": mcfg.as_dict(),
         "parameters": count_parameters(net), "train_config": cfg.as_dict(),
         "data": {"train_frames": len(train), "train_boxes": len(train.boxes), "val_frames": len(val),
-                 "val_boxes": len(val.boxes), "map": cfg.map, "condition": "typical",
+                 "val_boxes": len(val.boxes), "map": cfg.map, "condition": cfg.condition,
                  "train_catalog_seed": cfg.train_catalog_seed, "val_catalog_seed": cfg.val_catalog_seed,
                  "seed": cfg.seed},
         "timing_s": {"data": round(t_data, 1), "train": round(t_train, 1),
