@@ -466,6 +466,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_commands(sub)
     add_realism_command(sub)
     add_benchmark_command(sub)
+    from genesis_rl.zoo_cmd import add_zoo_command
+
+    add_zoo_command(sub)
 
     from genesis_rl.evaluation.commands import add_evaluation_commands
 

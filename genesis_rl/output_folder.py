@@ -28,9 +28,9 @@ from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
-KINDS = ("run", "campaign", "export", "drive", "render", "benchmark")
+KINDS = ("run", "campaign", "export", "drive", "render", "benchmark", "sweep")
 #: kinds whose folder is one unit that --force replaces whole; drive and render write named files into theirs
-WHOLE_FOLDER = ("run", "campaign", "export", "benchmark")
+WHOLE_FOLDER = ("run", "campaign", "export", "benchmark", "sweep")
 
 #: what genesis-rl itself writes at the top of a run, campaign or export folder (regular expressions on the
 #: entry's name; a folder named here, e.g. checkpoints/, is the tool's as a whole). ``--force`` replaces a folder
@@ -46,6 +46,7 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
                r"metadata\.jsonl", r"export\.json", r"scenarios", r"scenarios\.json"),
     "benchmark": (r"\.genesis-rl\.json", r"benchmark\.json", r"campaigns", r"leaderboard\.json",
                   r"leaderboard\.html"),
+    "sweep": (r"\.genesis-rl\.json", r"sweep\.json", r"sweep\.png", r"campaigns"),
 }
 
 
@@ -139,7 +140,7 @@ def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | No
         if clashes:
             raise UserInputError(f"output '{folder / clashes[0]}' already exists; pass --force to overwrite it")
         hint = "--resume to continue it or --force to replace it" if resume_hint else "--force to replace it"
-        label = f"{kind} folder" if kind in ("run", "campaign", "benchmark") else "output"
+        label = f"{kind} folder" if kind in ("run", "campaign", "benchmark", "sweep") else "output"
         raise UserInputError(f"{label} '{folder}' exists; pass {hint}")
     found = folder_kind(folder)
     if found == kind:
@@ -258,10 +259,10 @@ def claim(folder: Path, kind: str, force: bool, *, resume: bool = False, files: 
     if resume:
         ensure_folder_path(Path(folder))
     else:
-        check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign", "benchmark"))
+        check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign", "benchmark", "sweep"))
     with hold(folder):
         if not resume:
-            check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign", "benchmark"))
+            check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign", "benchmark", "sweep"))
         elif Path(folder).is_dir() and not (Path(folder) / MARKER).exists() and legacy_kind(Path(folder)) == kind:
             write_marker(folder, kind)
         yield not Path(folder).is_dir() or not any(Path(folder).iterdir())

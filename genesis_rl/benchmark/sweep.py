@@ -1,0 +1,196 @@
+"""The ground truth of a zoo member, measured: its failure rate with the weather held at each value of one knob,
+inside its trigger region and around it (``genesis-rl zoo sweep``).
+
+A member's trigger region is stated before any adversary runs; the sweep is the evidence that the region is
+where the failures are. For each value the sweep runs one campaign of the ``sunny`` policy (the weather held
+where it starts) on the member's system, map, ODD and env, starting from the member's start weather with the
+knob set to the value, and counts the in-ODD failures as the benchmark does (``benchmark/metrics.py``), with
+an exact 95 % interval. Values whose start lies outside the member's ODD are listed and not driven: the
+region's surroundings that count are inside the domain. Every campaign is an ordinary campaign folder
+(``OUT/campaigns/value_NN``), so ``genesis-rl report`` opens it and ``--resume`` continues a sweep.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from genesis_rl import output_folder
+from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.knobs import KNOBS
+from genesis_rl.zoo.members import ZooMember, env_settings, zoo_member
+
+SCHEMA = "genesis-rl/zoo-sweep"
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """What decides a sweep's results: the member, the knob and its values, scenes per value, the campaign
+    seed and the steps per episode (None: the member's own)."""
+
+    member: str
+    knob: str
+    values: tuple[float, ...]
+    scenes: int = 8
+    seed: int = 0
+    steps: int | None = None
+
+    def __post_init__(self) -> None:
+        zoo_member(self.member)
+        if self.knob not in KNOBS:
+            raise UserInputError(f"--knob = '{self.knob}' is unknown; allowed: {', '.join(KNOBS)}")
+        if not self.values:
+            raise UserInputError("--values: give at least one value")
+        spec = KNOBS[self.knob]
+        for v in self.values:
+            if not (math.isfinite(v) and spec.low <= v <= spec.high):
+                raise UserInputError(f"--values: {v!r} is outside {self.knob}'s range [{spec.low:g}, {spec.high:g}]")
+        if len(set(self.values)) != len(self.values):
+            raise UserInputError(f"--values: {list(self.values)} names a value twice")
+        if self.scenes < 1 or self.seed < 0 or (self.steps is not None and self.steps < 1):
+            raise UserInputError(f"zoo sweep: scenes = {self.scenes} must be >= 1, seed = {self.seed} >= 0 and steps "
+                                 f"= {self.steps} >= 1 (or none: the member's own)")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"member": self.member, "knob": self.knob, "values": list(self.values), "scenes": self.scenes,
+                "seed": self.seed, "steps": self.steps}
+
+
+def in_region(member: ZooMember, knob: str, value: float) -> bool | None:
+    """Whether ``value`` of ``knob`` lies inside the member's trigger region, judged on that knob's bounds alone
+    (None: the region does not bound this knob, or the member is a control)."""
+    bounds = [b for b in member.trigger.bounds if b.quantity == knob]
+    if not bounds:
+        return None
+    return all(b.low <= value < b.high for b in bounds)
+
+
+def start_weather(member: ZooMember, knob: str, value: float) -> str:
+    """The member's start weather with ``knob`` at ``value`` (``EnvConfig.start_weather`` text)."""
+    base = str(member.env.get("start_weather", "clear_noon"))
+    return f"{base},{knob}={value:g}"
+
+
+def value_folder(out: Path, index: int) -> Path:
+    return Path(out) / "campaigns" / f"value_{index:02d}"
+
+
+def _inside_odd(member: ZooMember, knob: str, value: float) -> bool:
+    from genesis_rl.knobs import parse_weather
+    from genesis_rl.odd.conditions import conditions_model
+    from genesis_rl.odd.domain import load_odd
+
+    weather = parse_weather(start_weather(member, knob, value))
+    return load_odd(member.odd_path).contains(conditions_model("lite").conditions(weather, None), weather)
+
+
+def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool = False, workers: int = 1,
+              progress: bool = True) -> dict[str, Any]:
+    """Run every value's campaign not yet finished, then write ``sweep.json`` and ``sweep.png``; returns the
+    sweep's table."""
+    from tqdm import tqdm
+
+    from genesis_rl import __version__
+    from genesis_rl.benchmark.metrics import falsifier_metrics
+    from genesis_rl.evaluation.campaign import run_campaign
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+
+    member = zoo_member(spec.member)
+    out = Path(out)
+    if resume and not (out / "sweep.json").exists():
+        raise UserInputError(f"--resume: '{out}' holds no sweep.json; start it without --resume")
+    with output_folder.claim(out, "sweep", force, resume=resume):
+        if resume:
+            found = read_json(out / "sweep.json", f"sweep '{out}': sweep.json").get("spec")
+            if found != spec.to_json():
+                raise UserInputError(f"--resume: sweep '{out}' was started with {found!r}; resume it with the same "
+                                     "settings, or start again with --force")
+        else:
+            output_folder.replace(out, "sweep")
+            atomic_write_json(out / "sweep.json", {"schema": SCHEMA, "version": __version__,
+                                                   "spec": spec.to_json(), "rows": []}, indent=1)
+        steps = spec.steps or int(member.env.get("episode_steps", 512))
+        rows: list[dict[str, Any]] = []
+        for i, value in enumerate(tqdm(spec.values, desc=f"sweep {spec.knob}", unit="value", disable=not progress)):
+            row: dict[str, Any] = {"value": value, "in_region": in_region(member, spec.knob, value)}
+            if not _inside_odd(member, spec.knob, value):
+                rows.append({**row, "inside_odd": False})
+                continue
+            folder = value_folder(out, i)
+            if not (folder / "summary.json").exists():
+                started = (folder / "campaign.json").exists()
+                if folder.exists() and not started:
+                    shutil.rmtree(folder)
+                folder.parent.mkdir(parents=True, exist_ok=True)
+                env = {**env_settings(member), "start_weather": start_weather(member, spec.knob, value)}
+                campaign = CampaignSpec(policies=("sunny",), map=member.map, scenes=spec.scenes, seed=spec.seed,
+                                        steps=steps, env=env)
+                run_campaign(campaign, folder, workers=workers, resume=started, progress=False)
+            m = falsifier_metrics(folder, member)["sunny"]
+            rows.append({**row, "inside_odd": True, "trials": len(m.trials), "failed": m.falsified,
+                         "rate": m.falsification_rate, "ci95": list(m.falsification_ci),
+                         "steps_to_failure": [t.steps_to_failure for t in m.trials if t.failed],
+                         "campaign": str(folder.relative_to(out))})
+        table = {"schema": SCHEMA, "version": __version__, "spec": spec.to_json(), "member_kind": member.kind,
+                 "trigger": member.trigger.describe(), "rows": rows, **_inside_outside(rows)}
+        atomic_write_json(out / "sweep.json", table, indent=1)
+        plot_sweep(table, out / "sweep.png")
+    return table
+
+
+def _inside_outside(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Failures pooled over the driven values inside the region and outside it, each with its exact interval."""
+    from genesis_rl.evaluation.stats import clopper_pearson
+
+    pooled: dict[str, Any] = {}
+    for key, flag in (("inside_region", True), ("outside_region", False)):
+        driven = [r for r in rows if r.get("inside_odd") and r["in_region"] is flag]
+        n, k = sum(r["trials"] for r in driven), sum(r["failed"] for r in driven)
+        ci = clopper_pearson(k, n)
+        pooled[key] = {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
+    return pooled
+
+
+def plot_sweep(table: dict[str, Any], path: Path) -> None:
+    """Failure rate against the knob's value with exact intervals; the trigger region shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from genesis_rl.io_utils import atomic_write
+
+    spec, rows = table["spec"], [r for r in table["rows"] if r.get("inside_odd")]
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    member = zoo_member(spec["member"])
+    for b in member.trigger.bounds:
+        if b.quantity == spec["knob"]:
+            # an open end (-inf, inf) is drawn to just past the swept values; a finite one where it is
+            lo = b.low if math.isfinite(b.low) else min(spec["values"]) - 1.0
+            hi = b.high if math.isfinite(b.high) else max(spec["values"]) + 1.0
+            ax.axvspan(lo, hi, color="#f4a261", alpha=0.25, label=f"trigger region: {member.trigger.describe()}")
+    if rows:
+        xs = [r["value"] for r in rows]
+        ys = [r["rate"] for r in rows]
+        lo_err = [r["rate"] - r["ci95"][0] for r in rows]
+        hi_err = [r["ci95"][1] - r["rate"] for r in rows]
+        ax.errorbar(xs, ys, yerr=[lo_err, hi_err], fmt="o-", color="#264653", capsize=3,
+                    label="in-ODD failure rate (exact 95 % CI)")
+    for n, r in enumerate(r for r in table["rows"] if not r.get("inside_odd")):
+        ax.axvline(r["value"], color="#999999", ls=":", lw=1, label="outside the ODD: not driven" if n == 0 else None)
+    unit = KNOBS[spec["knob"]].unit
+    ax.set_xlabel(f"{spec['knob']} [{unit}], held" if unit else f"{spec['knob']}, held")
+    ax.set_ylabel("episodes with an in-ODD failure")
+    ax.set_ylim(-0.03, 1.03)
+    ax.set_title(f"{spec['member']} ({member.kind}): {spec['scenes']} scenes a value, seed {spec['seed']}",
+                 fontsize=10)
+    ax.legend(fontsize=8, loc="best", framealpha=0.9)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, dpi=110, format="png"))
+    plt.close(fig)

@@ -1,0 +1,82 @@
+"""``genesis-rl zoo sweep``: a member's ground truth measured with one knob held at each value, inside its
+trigger region and around it; values outside the member's ODD are listed, not driven; resumable; bad input
+named (issue 33: "each zoo member's weakness shows in a small sweep")."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from genesis_rl.benchmark.sweep import SweepSpec, in_region, run_sweep, start_weather
+from genesis_rl.cli import main
+from genesis_rl.errors import UserInputError
+from genesis_rl.zoo import zoo_member
+
+
+def test_region_membership_and_start_weather_per_value() -> None:
+    low_sun = zoo_member("low_sun")
+    assert [in_region(low_sun, "sun_altitude_angle", v) for v in (0.0, 14.9, 15.0, -1.0)] == [True, True, False, False]
+    assert in_region(low_sun, "fog_density", 50.0) is None  # the region does not bound fog
+    assert in_region(zoo_member("builtin_highway"), "sun_altitude_angle", 5.0) is None  # a control has no region
+    assert start_weather(low_sun, "sun_altitude_angle", 5.0) == "clear_noon,sun_altitude_angle=5"
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"member": "nope"}, "zoo member 'nope' is unknown"),
+    ({"knob": "fog"}, "--knob = 'fog' is unknown; allowed: fog_density"),
+    ({"values": ()}, "--values: give at least one value"),
+    ({"values": (5.0, 120.0)}, "--values: 120.0 is outside sun_altitude_angle's range [-90, 90]"),
+    ({"values": (5.0, 5.0)}, "names a value twice"),
+    ({"scenes": 0}, "scenes = 0 must be >= 1"),
+])
+def test_bad_sweeps_are_refused_naming_the_field(kw, message) -> None:
+    base = {"member": "low_sun", "knob": "sun_altitude_angle", "values": (5.0,)}
+    with pytest.raises(UserInputError, match=message.replace("[", "\\[").replace("]", "\\]")):
+        SweepSpec(**{**base, **kw})
+
+
+def test_cli_lists_the_zoo_and_refuses_bad_values_with_status_2(tmp_path, capsys) -> None:
+    assert main(["zoo", "list"]) == 0
+    out = capsys.readouterr().out
+    assert "low_sun_highway (weakness, highway, system builtin, ODD highway_day.toml)" in out
+    assert "trigger region: 0 <= sun_altitude_angle < 15 deg" in out
+    assert main(["zoo", "sweep", "low_sun", "--knob", "sun_altitude_angle", "--values", "5,a",
+                 "--out", str(tmp_path / "s")]) == 2
+    assert "--values '5,a': give a comma list of numbers" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.render
+def test_a_sweep_drives_the_values_inside_the_odd_and_resumes_to_the_same_table(tmp_path) -> None:
+    spec = SweepSpec(member="low_sun", knob="sun_altitude_angle", values=(-5.0, 5.0, 40.0), scenes=1, steps=30)
+    table = run_sweep(spec, tmp_path / "sweep", progress=False)
+    rows = table["rows"]
+    assert [(r["value"], r["inside_odd"], r["in_region"]) for r in rows] == \
+        [(-5.0, False, False), (5.0, True, True), (40.0, True, False)]  # night is outside urban_day: not driven
+    assert [r["trials"] for r in rows[1:]] == [1, 1] and "campaign" not in rows[0]
+    assert table["inside_region"]["trials"] == table["outside_region"]["trials"] == 1
+    assert (tmp_path / "sweep" / "sweep.png").stat().st_size > 10_000
+    campaign = json.loads((tmp_path / "sweep" / rows[1]["campaign"] / "campaign.json").read_text())["spec"]
+    assert campaign["env"]["start_weather"] == "clear_noon,sun_altitude_angle=5" and campaign["policies"] == ["sunny"]
+    again = run_sweep(spec, tmp_path / "sweep", resume=True, progress=False)  # nothing left to drive
+    assert again["rows"] == rows
+    with pytest.raises(UserInputError, match="--resume: sweep .* was started with"):
+        run_sweep(SweepSpec(**{**spec.to_json(), "values": (5.0,)}), tmp_path / "sweep", resume=True, progress=False)
+    with pytest.raises(UserInputError, match="exists; pass --resume to continue it or --force"):
+        run_sweep(spec, tmp_path / "sweep", progress=False)
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("member, inside, outside, steps, failed", [
+    ("low_sun", 5.0, 40.0, 110, 5),  # runs/sweep_low_sun (256 steps): 5 of 8 at 5 deg, at steps 34-105; 0 at 40
+    ("low_sun_highway", 3.0, 45.0, 80, 2),  # runs/sweep_low_sun_highway: 2 of 8 at 3 deg, at steps 69 and 77
+])
+def test_each_weakness_fails_inside_its_region_and_not_outside(tmp_path, member, inside, outside, steps,
+                                                                 failed) -> None:
+    """The member's ground truth in a small sweep: the full sweeps' failures inside, none outside, on the same
+    eight scenes (campaign seed 0), cut at the step after their last failure."""
+    spec = SweepSpec(member=member, knob="sun_altitude_angle", values=(inside, outside), scenes=8, steps=steps)
+    table = run_sweep(spec, tmp_path / member, progress=False)
+    assert [(r["in_region"], r["failed"]) for r in table["rows"]] == [(True, failed), (False, 0)]
+    assert all(s <= steps for s in table["rows"][0]["steps_to_failure"])
