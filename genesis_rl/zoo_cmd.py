@@ -41,15 +41,14 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     table = run_sweep(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
                       progress=not args.quiet)
     for r in table["rows"]:
-        where = {True: "in region", False: "outside", None: "-"}[r["in_region"]]
+        where = {True: "in the region", False: "outside the region", None: "no region"}[r["in_region"]]
         if not r["inside_odd"]:
             print(f"{spec.knob} = {r['value']:g}: outside the member's ODD, not driven")
             continue
         lo, hi = r["ci95"]
         print(f"{spec.knob} = {r['value']:g} ({where}): {r['failed']}/{r['trials']} episodes with an in-ODD failure "
               f"[95 % CI {lo:.2f}-{hi:.2f}]")
-    print(json.dumps({"out": args.out, "inside_region": table["inside_region"],
-                      "outside_region": table["outside_region"]}))
+    print(json.dumps({"out": args.out, **{k: table[k] for k in ("inside_region", "outside_region", "driven")}}))
     print(f"plot: {Path(args.out) / 'sweep.png'}")
     return 0
 

@@ -56,6 +56,7 @@ def test_a_sweep_drives_the_values_inside_the_odd_and_resumes_to_the_same_table(
         [(-5.0, False, False), (5.0, True, True), (40.0, True, False)]  # night is outside urban_day: not driven
     assert [r["trials"] for r in rows[1:]] == [1, 1] and "campaign" not in rows[0]
     assert table["inside_region"]["trials"] == table["outside_region"]["trials"] == 1
+    assert table["driven"]["trials"] == 2
     assert (tmp_path / "sweep" / "sweep.png").stat().st_size > 10_000
     campaign = json.loads((tmp_path / "sweep" / rows[1]["campaign"] / "campaign.json").read_text())["spec"]
     assert campaign["env"]["start_weather"] == "clear_noon,sun_altitude_angle=5" and campaign["policies"] == ["sunny"]

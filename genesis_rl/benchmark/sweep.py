@@ -144,12 +144,13 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
 
 
 def _inside_outside(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Failures pooled over the driven values inside the region and outside it, each with its exact interval."""
+    """Failures pooled over the driven values inside the region, outside it and all of them (a control's: it has
+    no region), each with its exact interval."""
     from genesis_rl.evaluation.stats import clopper_pearson
 
     pooled: dict[str, Any] = {}
-    for key, flag in (("inside_region", True), ("outside_region", False)):
-        driven = [r for r in rows if r.get("inside_odd") and r["in_region"] is flag]
+    for key, flags in (("inside_region", (True,)), ("outside_region", (False,)), ("driven", (True, False, None))):
+        driven = [r for r in rows if r.get("inside_odd") and r["in_region"] in flags]
         n, k = sum(r["trials"] for r in driven), sum(r["failed"] for r in driven)
         ci = clopper_pearson(k, n)
         pooled[key] = {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
