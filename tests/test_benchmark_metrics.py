@@ -73,6 +73,23 @@ def test_trials_on_crafted_records() -> None:
     assert (outside.failed, outside.triggered, outside.steps_to_failure) == (False, False, 20)
 
 
+def test_a_search_trial_counts_every_candidate_before_its_first_failure() -> None:
+    """ARCH-COMP's simulations to the first falsification: a search that failed in its second of three 20-step
+    candidates spent 20 + 6 steps to it, whichever episode it reports; its budget is all 60."""
+    region = zoo_member("low_sun").trigger
+    row = {"extra": {"candidate_steps": [20, 20, 20], "candidate_failures": [None, 5, 3]}}
+    reported = trial_of(1, _episode(20, low_sun_from=0, hits={3: "inside"}), region, row)  # it reports the third
+    assert (reported.steps, reported.failure_at, reported.steps_to_failure, reported.failed) == (60, 3, 26, True)
+    quiet = {"extra": {"candidate_steps": [20, 20], "candidate_failures": [None, None]}}
+    none = trial_of(2, _episode(20), region, quiet)
+    assert (none.failed, none.steps_to_failure) == (False, 40)  # censored at everything it spent
+    ledger = {"extra": {"candidate_steps": [20, 20], "candidate_failures": [7, None]}}
+    hidden = trial_of(3, _episode(20), region, ledger)
+    assert (hidden.failed, hidden.failure_at, hidden.steps_to_failure) == (True, None, 8)  # a candidate failed
+    old = trial_of(4, _episode(20, hits={9: "inside"}), region, {"extra": {"search_returns": [1.0, 2.0]}})
+    assert (old.steps, old.steps_to_failure) == (20, 10)  # a campaign before the ledger: the reported episode
+
+
 def _row(scene: int, failure: dict | None) -> dict:
     return {"scene": scene, "episode_seed": scene, "naturalness": {"ratio_to_held": 0.0}, "failure": failure}
 

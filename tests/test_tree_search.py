@@ -42,7 +42,8 @@ class ToyRunner:
         if start is not None:
             self.starts.append(start.position)
             rewards[-1] -= 10.0 * sum(abs(p - 0.9) for p in start.position)
-        records = [SimpleNamespace(reward={"reward": r}) for r in rewards]
+        records = [SimpleNamespace(reward={"reward": r}, collision=SimpleNamespace(collided=False), odd_status="inside")
+                   for r in rewards]
         return EpisodeOutcome(records, sim_steps=STEPS, naturalness=-0.5 * sum(abs(r) for r in rewards) / STEPS)
 
 
@@ -115,6 +116,7 @@ def test_mcts_on_lite_stays_in_the_odd_spends_its_budget_and_replays(tmp_path) -
         rows.append(json.loads(next((tmp_path / name / "episodes" / "mcts").glob("*.json")).read_text()))
     extra = rows[0]["extra"]
     assert len(extra["search_values"]) == 5
+    assert extra["candidate_steps"] == [20] * 5 and len(extra["candidate_failures"]) == 5  # the search's ledger
     best = int(np.argmax(extra["search_values"]))
     assert extra["search_returns"][best] == pytest.approx(rows[0]["return"], abs=1e-3)  # it reports its best
     assert rows[0]["extra"] == rows[1]["extra"] and rows[0]["return"] == rows[1]["return"]

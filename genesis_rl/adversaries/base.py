@@ -61,6 +61,36 @@ class EpisodeOutcome:
         return float(sum(r.reward["reward"] for r in self.records))
 
 
+#: the ODD labels a failure counts in (``evaluation.distinct`` and the benchmark count the same)
+IN_ODD_STATUSES = ("inside", "boundary")
+
+
+def in_odd_failure_at(records: Sequence[StepRecord]) -> int | None:
+    """The index of the first step at which a collision began inside the ODD (or on its boundary); None: none."""
+    for i, rec in enumerate(records):
+        began = rec.collision.collided and (i == 0 or not records[i - 1].collision.collided)
+        if began and rec.odd_status in IN_ODD_STATUSES:
+            return i
+    return None
+
+
+@dataclass
+class SearchLedger:
+    """What a search spent, candidate by candidate, so that a benchmark can count the simulator steps to its
+    first in-ODD failure (ARCH-COMP's simulations to the first falsification) and not only the steps of the
+    episode it reports: each candidate's steps and the index of its in-ODD failure (None: none)."""
+
+    steps: list[int] = field(default_factory=list)
+    failures: list[int | None] = field(default_factory=list)
+
+    def add(self, outcome: EpisodeOutcome) -> None:
+        self.steps.append(len(outcome.records))
+        self.failures.append(in_odd_failure_at(outcome.records))
+
+    def as_extra(self) -> dict[str, list]:
+        return {"candidate_steps": list(self.steps), "candidate_failures": list(self.failures)}
+
+
 class EpisodeRunner(Protocol):
     def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int,
             start: Weather | None = None) -> EpisodeOutcome: ...

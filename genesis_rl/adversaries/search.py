@@ -13,6 +13,7 @@ from genesis_rl.adversaries.base import (
     EpisodeOutcome,
     EpisodeRunner,
     PolicyContext,
+    SearchLedger,
     WeatherPolicy,
     chooses_start,
     register_policy,
@@ -71,12 +72,13 @@ class CMAESSearch(WeatherPolicy):
         es = cma.CMAEvolutionStrategy(np.zeros(dim), self.sigma0,
                                       {"seed": seed, "popsize": popsize, "bounds": [-1.0, 1.0], "verbose": -9})
         best: EpisodeOutcome | None = None
-        spent, history = 0, []
+        spent, history, ledger = 0, [], SearchLedger()
         for _ in range(self.budget // popsize):
             xs = es.ask()
             fitness = []
             for x in xs:
                 outcome = self._play(runner, np.asarray(x), scene, episode_seed, k)
+                ledger.add(outcome)
                 spent += outcome.sim_steps
                 fitness.append(-outcome.total_reward)
                 history.append(round(outcome.total_reward, 3))
@@ -85,7 +87,7 @@ class CMAESSearch(WeatherPolicy):
             es.tell(xs, fitness)
         assert best is not None
         best.sim_steps = spent
-        best.extra = {"search_returns": history, "popsize": popsize}
+        best.extra = {"search_returns": history, "popsize": popsize, **ledger.as_extra()}
         return best
 
     def _schedule(self, x: np.ndarray) -> Callable[[Any], np.ndarray]:
@@ -123,12 +125,13 @@ class CrossEntropySearch(CMAESSearch):
         sizes[-1] += self.budget - sum(sizes)  # exactly the budget
         mean, sigma = np.zeros(dim), np.full(dim, self.sigma0)
         best: EpisodeOutcome | None = None
-        spent, history = 0, []
+        spent, history, ledger = 0, [], SearchLedger()
         for n in sizes:
             xs = np.clip(mean + sigma * rng.standard_normal((n, dim)), -1.0, 1.0)
             returns = []
             for x in xs:
                 outcome = self._play(runner, x, scene, episode_seed, k)
+                ledger.add(outcome)
                 spent += outcome.sim_steps
                 returns.append(outcome.total_reward)
                 history.append(round(outcome.total_reward, 3))
@@ -139,5 +142,5 @@ class CrossEntropySearch(CMAESSearch):
             mean, sigma = elite.mean(axis=0), np.maximum(elite.std(axis=0), self.MIN_SIGMA)
         assert best is not None
         best.sim_steps = spent
-        best.extra = {"search_returns": history, "generations": sizes}
+        best.extra = {"search_returns": history, "generations": sizes, **ledger.as_extra()}
         return best

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from genesis_rl.adversaries.base import EpisodeOutcome, EpisodeRunner, PolicyContext, register_policy
+from genesis_rl.adversaries.base import EpisodeOutcome, EpisodeRunner, PolicyContext, SearchLedger, register_policy
 from genesis_rl.adversaries.search import CMAESSearch
 from genesis_rl.errors import UserInputError
 
@@ -82,7 +82,7 @@ class TreeSearch(CMAESSearch):
         root = _Node()
         best: EpisodeOutcome | None = None
         best_value, low, high = -math.inf, math.inf, -math.inf
-        spent, returns, values, depths = 0, [], [], []
+        spent, returns, values, depths, ledger = 0, [], [], [], SearchLedger()
         for _ in range(self.budget):
             node, path = root, list[_Node]()
             while len(path) < len(levels):  # selection, then one expansion
@@ -101,6 +101,7 @@ class TreeSearch(CMAESSearch):
             actions = chosen + [draw(level) for level in range(len(path), len(levels))]  # the rollout
             x = np.concatenate(actions[1:] + actions[:1]) if k else np.concatenate(actions)  # start entries last
             outcome = self._play(runner, x, scene, episode_seed, k)
+            ledger.add(outcome)
             spent += outcome.sim_steps
             v = self.value(outcome)
             returns.append(round(outcome.total_reward, 3))
@@ -115,5 +116,5 @@ class TreeSearch(CMAESSearch):
         assert best is not None
         best.sim_steps = spent
         best.extra = {"search_returns": returns, "search_values": values, "tree_depths": depths,
-                      "root_children": len(root.children)}
+                      "root_children": len(root.children), **ledger.as_extra()}
         return best

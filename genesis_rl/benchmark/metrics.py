@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.adversaries.base import in_odd_failure_at
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, steps_path
@@ -35,28 +36,22 @@ from genesis_rl.zoo.members import ZooMember, zoo_member
 from genesis_rl.zoo.trigger import TriggerRegion
 
 
-def in_odd_failure_at(records: Sequence[StepRecord]) -> int | None:
-    """The index of the first step at which a collision began inside the ODD (or on its boundary)."""
-    for i, rec in enumerate(records):
-        began = rec.collision.collided and (i == 0 or not records[i - 1].collision.collided)
-        if began and rec.odd_status in IN_ODD:
-            return i
-    return None
-
-
 @dataclass(frozen=True)
 class Trial:
-    """One episode against the member: its steps, when it first entered the trigger region and when it first
-    failed inside the ODD (step indices; None: never)."""
+    """One scene against the member: the simulator steps it spent, when the reported episode first entered the
+    trigger region and when it first failed inside the ODD (step indices; None: never). A search spends several
+    episodes on a scene: ``first_failure_steps`` counts the steps of every candidate it played before its
+    first in-ODD failure, up to and including that failure (None: no candidate failed, or a single episode)."""
 
     scene: int
     steps: int
     reached_at: int | None
     failure_at: int | None
+    first_failure_steps: int | None = None
 
     @property
     def failed(self) -> bool:
-        return self.failure_at is not None
+        return self.failure_at is not None or self.first_failure_steps is not None
 
     @property
     def reached(self) -> bool:
@@ -68,12 +63,25 @@ class Trial:
 
     @property
     def steps_to_failure(self) -> int:
-        """Simulator steps up to and including the failure's; the trial's steps when it had none (censored)."""
+        """Simulator steps up to and including the first in-ODD failure (a search's earlier candidates
+        included); the trial's steps when it had none (censored)."""
+        if self.first_failure_steps is not None:
+            return self.first_failure_steps
         return self.steps if self.failure_at is None else self.failure_at + 1
 
 
-def trial_of(scene: int, records: Sequence[StepRecord], region: TriggerRegion) -> Trial:
-    return Trial(scene, len(records), region.reached(records), in_odd_failure_at(records))
+def trial_of(scene: int, records: Sequence[StepRecord], region: TriggerRegion,
+             row: Mapping[str, Any] | None = None) -> Trial:
+    """A scene's trial from its reported episode's steps and, for a search, its row's candidate ledger
+    (``adversaries.base.SearchLedger``; campaigns before 0.16.0 have none: their search trials count the
+    reported episode only)."""
+    extra = (row or {}).get("extra") or {}
+    steps, failures = extra.get("candidate_steps"), extra.get("candidate_failures")
+    if not (isinstance(steps, list) and isinstance(failures, list) and len(steps) == len(failures) and steps):
+        return Trial(scene, len(records), region.reached(records), in_odd_failure_at(records))
+    first = next((i for i, f in enumerate(failures) if f is not None), None)
+    return Trial(scene, int(sum(steps)), region.reached(records), in_odd_failure_at(records),
+                 None if first is None else int(sum(steps[:first]) + failures[first] + 1))
 
 
 @dataclass(frozen=True)
@@ -129,7 +137,7 @@ def policy_metrics(policy: str, member: ZooMember, trials: Sequence[Trial],
     alarms: list[dict[str, Any]] = []
     if member.kind == "control":
         for tr, row in zip(trials, rows, strict=True):
-            if tr.failure_at is None:
+            if not tr.failed:
                 continue
             labelled = row.get("failure") or {}
             same = labelled.get("odd_status") in IN_ODD  # the row labels the episode's first collision
@@ -179,7 +187,7 @@ def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, Policy
     check_campaign_member(folder, meta, m)
     out: dict[str, PolicyMetrics] = {}
     for policy, eps in rows.items():
-        trials = [trial_of(r["scene"], read_step_records(steps_path(folder, policy, r["scene"])), m.trigger)
+        trials = [trial_of(r["scene"], read_step_records(steps_path(folder, policy, r["scene"])), m.trigger, r)
                   for r in eps]
         out[policy] = policy_metrics(policy, m, trials, eps)
     return out
