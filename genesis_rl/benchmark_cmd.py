@@ -78,8 +78,9 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                     "distinct failures, false alarms on the controls, ranks with Friedman's test (docs/zoo.md).")
     bm.add_argument("--out", default=None, help="benchmark folder")
     bm.add_argument("--members", default=None, help="comma list of zoo members (default: all; see --list)")
-    bm.add_argument("--policies", default="sunny,random,constant,cmaes,cem,mcts",
-                    help="comma list of adversaries (default: sunny,random,constant,cmaes,cem,mcts)")
+    bm.add_argument("--policies", default="sunny,random,constant,random_search,cmaes,cem,mcts",
+                    help="comma list of adversaries (default: sunny,random,constant,random_search,cmaes,cem,mcts; "
+                         "random_search is random at the searches' budget)")
     bm.add_argument("--trials", type=int, default=10, help="trials (campaign seeds) per member (default 10)")
     bm.add_argument("--scenes", type=int, default=5, help="scenes a trial plays per policy (default 5)")
     bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")
@@ -89,7 +90,7 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                     help="natural (default): each adversary chooses where the knobs that cannot move within an "
                          "episode start (the sun); fixed: every episode from the start weather")
     bm.add_argument("--search-budget", type=int, default=None,
-                    help="episodes a search adversary (cmaes, cem) may spend per scene")
+                    help="episodes a search adversary (random_search, cmaes, cem, mcts) may spend per scene")
     bm.add_argument("--smoke", action="store_true",
                     help="a tiny matrix that runs in about a minute (low_sun and oracle_highway, sunny and random, "
                          "2 trials of one 48-step scene)")

@@ -120,3 +120,22 @@ def test_mcts_on_lite_stays_in_the_odd_spends_its_budget_and_replays(tmp_path) -
     best = int(np.argmax(extra["search_values"]))
     assert extra["search_returns"][best] == pytest.approx(rows[0]["return"], abs=1e-3)  # it reports its best
     assert rows[0]["extra"] == rows[1]["extra"] and rows[0]["return"] == rows[1]["return"]
+
+
+@pytest.mark.render
+def test_random_search_spends_the_searches_budget_with_a_new_draw_each_episode(tmp_path) -> None:
+    """random at equal budget: budget episodes a scene, each its own actions and natural start, the best reported,
+    the ledger kept; the same seed replays it."""
+    args = ["evaluate", "--policies", "random_search", "--map", "urban", "--scenes", "1", "--steps", "20", "--seed",
+            "2", "--search-budget", "3", "--odd", "genesis_rl/zoo/odd/urban_day.toml", "--dynamics", "natural",
+            "--start", "natural", "--quiet", "--no-report"]
+    rows = []
+    for name in ("a", "b"):
+        assert main([*args, "--out", str(tmp_path / name)]) == 0
+        assert json.loads((tmp_path / name / "summary.json").read_text())["policies"]["random_search"]["sim_steps"] \
+            == 3 * 20
+        rows.append(json.loads(next((tmp_path / name / "episodes" / "random_search").glob("*.json")).read_text()))
+    extra = rows[0]["extra"]
+    assert extra["candidate_steps"] == [20, 20, 20] and len(set(extra["search_returns"])) == 3  # three draws
+    assert max(extra["search_returns"]) == pytest.approx(rows[0]["return"], abs=1e-3)
+    assert rows[0]["extra"] == rows[1]["extra"]

@@ -3,7 +3,7 @@
 
 - ``base``: the interface, the episode runner a policy plays through, the registry;
 - ``step``: ``sunny``, ``random`` (natural rates), ``constant`` (an open-loop schedule);
-- ``search``: ``cmaes`` and ``cem`` over piecewise-constant schedules;
+- ``search``: ``cmaes`` and ``cem`` over piecewise-constant schedules, ``random_search`` (random at their budget);
 - ``tree``: ``mcts``, Adaptive Stress Testing's Monte Carlo tree search over knob changes;
 - ``agent``: the trained policy, and the only module that reads a training run.
 
@@ -33,11 +33,11 @@ from genesis_rl.adversaries.agent import (
     load_agent,
     run_folder_of,
 )
-from genesis_rl.adversaries.search import CMAESSearch, CrossEntropySearch
+from genesis_rl.adversaries.search import CMAESSearch, CrossEntropySearch, RandomSearch
 from genesis_rl.adversaries.tree import TreeSearch
 # isort: on
 
 __all__ = ["AgentPolicy", "CMAESSearch", "ConstantPolicy", "CrossEntropySearch", "EpisodeOutcome", "EpisodeRunner",
-           "POLICIES", "PolicyContext", "RandomPolicy", "STARTS", "StepPolicy", "SunnyPolicy", "TreeSearch",
-           "WeatherPolicy", "agent_file", "agent_learning_curve", "checked_run", "chooses_start", "load_agent",
-           "register_policy", "resolve_policy", "run_folder_of"]
+           "POLICIES", "PolicyContext", "RandomPolicy", "RandomSearch", "STARTS", "StepPolicy", "SunnyPolicy",
+           "TreeSearch", "WeatherPolicy", "agent_file", "agent_learning_curve", "checked_run", "chooses_start",
+           "load_agent", "register_policy", "resolve_policy", "run_folder_of"]

@@ -144,3 +144,49 @@ class CrossEntropySearch(CMAESSearch):
         best.sim_steps = spent
         best.extra = {"search_returns": history, "generations": sizes, **ledger.as_extra()}
         return best
+
+
+@register_policy
+class RandomSearch(WeatherPolicy):
+    """Random testing at a search's budget: ``search_budget`` episodes of uniform random actions per scene, each
+    with its own draws (and, when the campaign lets policies choose the start, its own start drawn inside the
+    ODD, as ``random``'s), reporting the best by total reward. ``random`` plays one episode a scene; this is the
+    baseline a search must beat at equal simulator budget, as fuzzers are measured against random testing."""
+
+    name = "random_search"
+    description = "random at a search's budget: search_budget random episodes per scene, the best reported"
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        self.budget = int(context.options.get("search_budget", 8))
+        if self.budget < 1:
+            raise UserInputError(f"search_budget = {self.budget} must be >= 1")
+        from genesis_rl import limits
+
+        limits.SEARCH_BUDGET.check(self.budget, "search_budget")
+
+    @classmethod
+    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
+        return int(options.get("search_budget", 8))
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        choose = chooses_start(self.context.options) and bool(runner.held_knobs)
+        best: EpisodeOutcome | None = None
+        spent, history, ledger = 0, [], SearchLedger()
+        for i in range(self.budget):
+            rng = np.random.default_rng([self.context.seed, scene, episode_seed, 6, i])
+            start = runner.natural_start(rng) if choose else None
+
+            def act(obs: Any, rng: np.random.Generator = rng) -> np.ndarray:
+                return rng.uniform(-1.0, 1.0, self.context.action_dim).astype(np.float32)
+
+            outcome = runner.run(act, scene, episode_seed, start)
+            ledger.add(outcome)
+            spent += outcome.sim_steps
+            history.append(round(outcome.total_reward, 3))
+            if best is None or outcome.total_reward > best.total_reward:
+                best = outcome
+        assert best is not None
+        best.sim_steps = spent
+        best.extra = {"search_returns": history, **ledger.as_extra()}
+        return best

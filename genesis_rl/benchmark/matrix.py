@@ -34,7 +34,7 @@ SCHEMA = "genesis-rl/benchmark"
 #: a trial count beyond this is refused (each is a campaign per member)
 MAX_TRIALS = 100
 #: the adversaries a benchmark plays; a trained agent needs one training per member, which this command does not do
-ADVERSARIES = ("sunny", "random", "constant", "cmaes", "cem", "mcts")
+ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts")
 
 
 @dataclass(frozen=True)
