@@ -24,6 +24,11 @@ from genesis_rl.io_utils import atomic_write, atomic_write_json
 from genesis_rl.zoo.members import zoo_member
 
 
+def _mean(values: Sequence[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return round(sum(known) / len(known), 1) if known else None
+
+
 def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str, Any]:
     """One policy's figures on one member over its trials (module docstring)."""
     trials = [t for m in per_trial for t in m.trials]
@@ -43,6 +48,7 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str
         "reached": sum(tr.reached for tr in trials), "triggered": sum(tr.triggered for tr in trials),
         "survival": [[float(a), float(b)] for a, b in zip(t, s, strict=True)],
         "budget_steps": max((tr.steps for tr in trials), default=0),
+        "sim_steps_per_scene": _mean([m.sim_steps_per_scene for m in per_trial]),
         "median_steps_to_failure": median_time(t, s),
         "distinct_in_odd_failures": len(keys),
         "false_alarm_candidates": len(alarms),
@@ -154,7 +160,8 @@ def render_page(board: dict[str, Any]) -> str:
                  + (f"Friedman's test over {len(r['systems'])} members: chi2 = {r['friedman_chi2']}, p = {p}; "
                     f"Nemenyi critical difference at 5 %: {r['critical_difference']}." if p is not None else
                     "Friedman's test needs at least 2 weakness members and 2 policies.") + "</p>")
-    head = ["policy", "episodes", "falsification rate [95 % CI]", "trials with a failure", "reached", "triggered",
+    head = ["policy", "episodes", "simulator steps a scene", "falsification rate [95 % CI]", "trials with a failure",
+            "reached", "triggered",
             "median steps to first failure", "distinct in-ODD failures", "false-alarm candidates (unconfirmed)"]
     for member in spec["members"]:
         m = zoo_member(member)
@@ -167,12 +174,15 @@ def render_page(board: dict[str, Any]) -> str:
                 f"{c['falsification_rate']:.2f} [{lo:.2f}, {hi:.2f}]"
             med = "–" if c["median_steps_to_failure"] is None else f"{c['median_steps_to_failure']:.0f}"
             alarms = f"{c['false_alarm_candidates']} ({c['unconfirmed_false_alarms']})" if m.kind == "control" else "–"
-            cells = [policy, str(c["episodes"]), rate, f"{c['trials_with_a_failure']}/{c['trials']}",
+            spend = "–" if c.get("sim_steps_per_scene") is None else f"{c['sim_steps_per_scene']:.0f}"
+            cells = [policy, str(c["episodes"]), spend, rate, f"{c['trials_with_a_failure']}/{c['trials']}",
                      str(c["reached"]), str(c["triggered"]), med, str(c["distinct_in_odd_failures"]), alarms]
             h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in cells) + "</tr>")
         h.append("</table>")
         h.append(f"<img src='{_fig_survival(board, member)}'>")
-    h.append("<p class=meta>Reached: the episode entered the member's trigger region; triggered: an in-ODD failure "
+    h.append("<p class=meta>Simulator steps a scene: what the policy spent on each scene (a search counts every "
+             "candidate episode): adversaries at unequal budgets are compared at unequal cost. "
+             "Reached: the episode entered the member's trigger region; triggered: an in-ODD failure "
              "at or after that. Never reached says exploration; reached, never triggered, timing or naturalness. "
              "On a control every in-ODD failure is a false-alarm candidate; unconfirmed: the oracle replay "
              "avoided it.</p></body></html>")

@@ -105,6 +105,9 @@ class PolicyMetrics:
     distinct_in_odd_failures: int
     clusters: tuple[dict[str, Any], ...]
     false_alarm_candidates: tuple[dict[str, Any], ...]
+    #: simulator steps the policy spent a scene, from the episode rows (a search counts every candidate): what
+    #: its figures cost, so that adversaries at unequal budgets are read as such
+    sim_steps_per_scene: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -153,6 +156,7 @@ def policy_metrics(policy: str, member: ZooMember, trials: Sequence[Trial],
         survival=tuple((float(a), float(b)) for a, b in zip(t, s, strict=True)),
         median_steps_to_failure=median_time(t, s),
         distinct_in_odd_failures=len(clusters), clusters=clusters, false_alarm_candidates=tuple(alarms),
+        sim_steps_per_scene=(sum(float(r.get("sim_steps") or 0) for r in rows) / len(rows)) if rows else None,
     )
 
 

@@ -40,7 +40,7 @@ from genesis_rl.step_record import StepRecord
 from genesis_rl.viz.frames import annotate_frame
 
 POLICY_COLORS = {"sunny": "#f2a900", "random": "#7f8c8d", "agent": "#c0392b", "cmaes": "#2c7fb8", "cem": "#31a354",
-                 "constant": "#756bb1"}
+                 "constant": "#756bb1", "mcts": "#e7298a", "random_search": "#3d3d3d"}
 MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Intermittent detection",
                "delayed_detection": "Delayed detection", "lost_detection": "Lost before impact",
                "detected": "Detected in time (control failure)",
