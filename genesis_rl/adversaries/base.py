@@ -18,6 +18,7 @@ Register your own with ``@register_policy`` or name it by import path (``package
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,19 +77,38 @@ def in_odd_failure_at(records: Sequence[StepRecord]) -> int | None:
 
 @dataclass
 class SearchLedger:
-    """What a search spent, candidate by candidate, so that a benchmark can count the simulator steps to its
-    first in-ODD failure (ARCH-COMP's simulations to the first falsification) and not only the steps of the
-    episode it reports: each candidate's steps and the index of its in-ODD failure (None: none)."""
+    """A search's books, candidate by candidate: the best episode so far, the simulator steps spent, each
+    candidate's return, and each candidate's steps and the index of its in-ODD failure (None: none), so that a
+    benchmark can count the simulator steps to the first in-ODD failure (ARCH-COMP's simulations to the first
+    falsification) and not only those of the episode the search reports."""
 
     steps: list[int] = field(default_factory=list)
     failures: list[int | None] = field(default_factory=list)
+    returns: list[float] = field(default_factory=list)
+    spent: int = 0
+    best: EpisodeOutcome | None = None
+    best_value: float = -math.inf
 
-    def add(self, outcome: EpisodeOutcome) -> None:
+    def add(self, outcome: EpisodeOutcome, value: float | None = None) -> float:
+        """Book one candidate, kept as the best when its value (default: its total reward) beats the best's;
+        returns that value."""
+        reward = outcome.total_reward
+        v = reward if value is None else value
         self.steps.append(len(outcome.records))
         self.failures.append(in_odd_failure_at(outcome.records))
+        self.returns.append(round(reward, 3))
+        self.spent += outcome.sim_steps
+        if self.best is None or v > self.best_value:
+            self.best, self.best_value = outcome, v
+        return v
 
-    def as_extra(self) -> dict[str, list]:
-        return {"candidate_steps": list(self.steps), "candidate_failures": list(self.failures)}
+    def report(self, **extra: Any) -> EpisodeOutcome:
+        """The best episode, charged with every step the search spent, its extras the search's books."""
+        assert self.best is not None, "a search books at least one candidate"
+        self.best.sim_steps = self.spent
+        self.best.extra = {"search_returns": list(self.returns), **extra, "candidate_steps": list(self.steps),
+                           "candidate_failures": list(self.failures)}
+        return self.best
 
 
 class EpisodeRunner(Protocol):

@@ -71,24 +71,12 @@ class CMAESSearch(WeatherPolicy):
         seed = int(np.random.default_rng([self.context.seed, scene, episode_seed, 2]).integers(1, 2**31 - 1))
         es = cma.CMAEvolutionStrategy(np.zeros(dim), self.sigma0,
                                       {"seed": seed, "popsize": popsize, "bounds": [-1.0, 1.0], "verbose": -9})
-        best: EpisodeOutcome | None = None
-        spent, history, ledger = 0, [], SearchLedger()
+        ledger = SearchLedger()
         for _ in range(self.budget // popsize):
             xs = es.ask()
-            fitness = []
-            for x in xs:
-                outcome = self._play(runner, np.asarray(x), scene, episode_seed, k)
-                ledger.add(outcome)
-                spent += outcome.sim_steps
-                fitness.append(-outcome.total_reward)
-                history.append(round(outcome.total_reward, 3))
-                if best is None or outcome.total_reward > best.total_reward:
-                    best = outcome
+            fitness = [-ledger.add(self._play(runner, np.asarray(x), scene, episode_seed, k)) for x in xs]
             es.tell(xs, fitness)
-        assert best is not None
-        best.sim_steps = spent
-        best.extra = {"search_returns": history, "popsize": popsize, **ledger.as_extra()}
-        return best
+        return ledger.report(popsize=popsize)
 
     def _schedule(self, x: np.ndarray) -> Callable[[Any], np.ndarray]:
         table = np.clip(x.reshape(self.segments, self.context.action_dim), -1.0, 1.0).astype(np.float32)
@@ -124,26 +112,14 @@ class CrossEntropySearch(CMAESSearch):
         sizes = [generation] * (self.budget // generation)
         sizes[-1] += self.budget - sum(sizes)  # exactly the budget
         mean, sigma = np.zeros(dim), np.full(dim, self.sigma0)
-        best: EpisodeOutcome | None = None
-        spent, history, ledger = 0, [], SearchLedger()
+        ledger = SearchLedger()
         for n in sizes:
             xs = np.clip(mean + sigma * rng.standard_normal((n, dim)), -1.0, 1.0)
-            returns = []
-            for x in xs:
-                outcome = self._play(runner, x, scene, episode_seed, k)
-                ledger.add(outcome)
-                spent += outcome.sim_steps
-                returns.append(outcome.total_reward)
-                history.append(round(outcome.total_reward, 3))
-                if best is None or outcome.total_reward > best.total_reward:
-                    best = outcome
+            returns = [ledger.add(self._play(runner, x, scene, episode_seed, k)) for x in xs]
             # at least 2 elites: one has no spread, and the search would collapse to MIN_SIGMA at once
             elite = xs[np.argsort(returns)[::-1][: max(2, int(np.ceil(self.ELITE_FRACTION * n)))]]
             mean, sigma = elite.mean(axis=0), np.maximum(elite.std(axis=0), self.MIN_SIGMA)
-        assert best is not None
-        best.sim_steps = spent
-        best.extra = {"search_returns": history, "generations": sizes, **ledger.as_extra()}
-        return best
+        return ledger.report(generations=sizes)
 
 
 @register_policy
@@ -171,8 +147,7 @@ class RandomSearch(WeatherPolicy):
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         choose = chooses_start(self.context.options) and bool(runner.held_knobs)
-        best: EpisodeOutcome | None = None
-        spent, history, ledger = 0, [], SearchLedger()
+        ledger = SearchLedger()
         for i in range(self.budget):
             rng = np.random.default_rng([self.context.seed, scene, episode_seed, 6, i])
             start = runner.natural_start(rng) if choose else None
@@ -180,13 +155,5 @@ class RandomSearch(WeatherPolicy):
             def act(obs: Any, rng: np.random.Generator = rng) -> np.ndarray:
                 return rng.uniform(-1.0, 1.0, self.context.action_dim).astype(np.float32)
 
-            outcome = runner.run(act, scene, episode_seed, start)
-            ledger.add(outcome)
-            spent += outcome.sim_steps
-            history.append(round(outcome.total_reward, 3))
-            if best is None or outcome.total_reward > best.total_reward:
-                best = outcome
-        assert best is not None
-        best.sim_steps = spent
-        best.extra = {"search_returns": history, **ledger.as_extra()}
-        return best
+            ledger.add(runner.run(act, scene, episode_seed, start))
+        return ledger.report()

@@ -80,9 +80,8 @@ class TreeSearch(CMAESSearch):
             return rng.choice(LEVELS, levels[level])
 
         root = _Node()
-        best: EpisodeOutcome | None = None
-        best_value, low, high = -math.inf, math.inf, -math.inf
-        spent, returns, values, depths, ledger = 0, [], [], [], SearchLedger()
+        low, high = math.inf, -math.inf
+        values, depths, ledger = [], [], SearchLedger()
         for _ in range(self.budget):
             node, path = root, list[_Node]()
             while len(path) < len(levels):  # selection, then one expansion
@@ -101,20 +100,11 @@ class TreeSearch(CMAESSearch):
             actions = chosen + [draw(level) for level in range(len(path), len(levels))]  # the rollout
             x = np.concatenate(actions[1:] + actions[:1]) if k else np.concatenate(actions)  # start entries last
             outcome = self._play(runner, x, scene, episode_seed, k)
-            ledger.add(outcome)
-            spent += outcome.sim_steps
-            v = self.value(outcome)
-            returns.append(round(outcome.total_reward, 3))
+            v = ledger.add(outcome, self.value(outcome))
             values.append(round(v, 3))
             low, high = min(low, v), max(high, v)
-            if v > best_value:
-                best, best_value = outcome, v
             root.visits += 1
             for c in path:  # backpropagation
                 c.visits += 1
                 c.total += v
-        assert best is not None
-        best.sim_steps = spent
-        best.extra = {"search_returns": returns, "search_values": values, "tree_depths": depths,
-                      "root_children": len(root.children), **ledger.as_extra()}
-        return best
+        return ledger.report(search_values=values, tree_depths=depths, root_children=len(root.children))
