@@ -28,6 +28,7 @@ import numpy as np
 
 from genesis_rl.errors import UserInputError
 from genesis_rl.knobs import Weather
+from genesis_rl.odd.domain import IN_ODD
 from genesis_rl.plugins import load_class
 from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
@@ -62,15 +63,11 @@ class EpisodeOutcome:
         return float(sum(r.reward["reward"] for r in self.records))
 
 
-#: the ODD labels a failure counts in (``evaluation.distinct`` and the benchmark count the same)
-IN_ODD_STATUSES = ("inside", "boundary")
-
-
 def in_odd_failure_at(records: Sequence[StepRecord]) -> int | None:
     """The index of the first step at which a collision began inside the ODD (or on its boundary); None: none."""
     for i, rec in enumerate(records):
         began = rec.collision.collided and (i == 0 or not records[i - 1].collision.collided)
-        if began and rec.odd_status in IN_ODD_STATUSES:
+        if began and rec.odd_status in IN_ODD:
             return i
     return None
 

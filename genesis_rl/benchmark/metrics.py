@@ -28,9 +28,9 @@ from genesis_rl.adversaries.base import in_odd_failure_at
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, steps_path
-from genesis_rl.evaluation.distinct import IN_ODD, KEY_FIELDS, natural_summary
+from genesis_rl.evaluation.distinct import KEY_FIELDS, natural_summary
 from genesis_rl.evaluation.stats import clopper_pearson
-from genesis_rl.odd.domain import load_odd
+from genesis_rl.odd.domain import IN_ODD, load_odd
 from genesis_rl.step_record import StepRecord
 from genesis_rl.zoo.members import ZooMember, zoo_member
 from genesis_rl.zoo.trigger import TriggerRegion

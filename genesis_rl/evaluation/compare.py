@@ -20,9 +20,10 @@ from typing import Any
 import numpy as np
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.distinct import IN_ODD, natural_summary
+from genesis_rl.evaluation.distinct import natural_summary
 from genesis_rl.evaluation.stats import bootstrap_mean_ci, clopper_pearson, paired_comparison
 from genesis_rl.evaluation.summary import load_campaign
+from genesis_rl.odd.domain import IN_ODD
 
 #: what two campaigns must share to be compared, read from campaign.json
 SAME = (("map", lambda m: m.get("catalog", {}).get("map", m["spec"]["map"])),

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from genesis_rl.evaluation.careful_driver import ACTOR_EVENT_WINDOW_S
+from genesis_rl.odd.domain import IN_ODD
 from genesis_rl.sim.interface import ActorEvent
 from genesis_rl.step_record import StepRecord
 
@@ -91,9 +92,6 @@ def clusters(failures: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
         out.append({**dict(zip(KEY_FIELDS, key, strict=True)), "count": len(members),
                     "members": sorted(members, key=_most_natural_first)})
     return out
-
-
-IN_ODD = ("inside", "boundary")
 
 
 def _failure_of(row: Mapping[str, Any], policy: str) -> dict[str, Any]:

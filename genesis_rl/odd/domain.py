@@ -37,6 +37,8 @@ SUN_ALTITUDE = "sun_altitude"
 SUN_ALTITUDE_RANGE = ranges.Ranged(-90.0, 90.0, "deg")
 QUANTITIES = (*NUMERIC, *CATEGORICAL, "sun_glare", SUN_ALTITUDE)
 STATUSES = ("inside", "boundary", "outside")
+#: the labels a failure counts in: inside the domain, on its boundary included
+IN_ODD = ("inside", "boundary")
 _TOP_KEYS = {"name", "description", "boundary_margin", "traffic", *QUANTITIES}
 
 
