@@ -124,12 +124,26 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
                              f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
 
 
+def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1, executor: Any = None) -> None:
+    """Run ``campaign`` into ``folder`` unless it finished there: a half-run one resumes from its finished
+    episodes, and a folder left before the campaign wrote its spec (ours) starts again. The benchmark's trials
+    and the zoo sweep's values are each one such campaign."""
+    from genesis_rl.evaluation.campaign import run_campaign
+
+    started = (folder / "campaign.json").exists()
+    if started and (folder / "summary.json").exists():
+        return
+    if folder.exists() and not started:
+        shutil.rmtree(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    run_campaign(campaign, folder, workers=workers, resume=started, progress=False, executor=executor)
+
+
 def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume: bool = False,
                   workers: int = 1, executor: Any = None, progress: bool = True) -> dict[str, Any]:
     """Run every (member, trial) campaign not yet finished, then write the leaderboard; returns it."""
     from genesis_rl import __version__
     from genesis_rl.benchmark.leaderboard import leaderboard, write_leaderboard
-    from genesis_rl.evaluation.campaign import run_campaign
 
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():
@@ -144,16 +158,9 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
         cells = [(m, t) for m in spec.members for t in range(spec.trials)]
         bar = tqdm(total=len(cells), desc="benchmark", unit="campaign", disable=not progress)
         for member, trial in cells:
-            folder = campaign_folder(out, member, trial)
             bar.set_postfix_str(f"{member} trial {trial}")
-            done = (folder / "summary.json").exists() and (folder / "campaign.json").exists()
-            if not done:
-                started = (folder / "campaign.json").exists()
-                if folder.exists() and not started:  # a campaign interrupted before it wrote its spec: ours
-                    shutil.rmtree(folder)
-                folder.parent.mkdir(parents=True, exist_ok=True)
-                run_campaign(campaign_spec(spec, member, trial), folder, workers=workers, resume=started,
-                             progress=False, executor=executor)
+            run_campaign_once(campaign_spec(spec, member, trial), campaign_folder(out, member, trial),
+                              workers=workers, executor=executor)
             bar.update()
         bar.close()
         board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members})

@@ -13,17 +13,19 @@ region's surroundings that count are inside the domain. Every campaign is an ord
 from __future__ import annotations
 
 import math
-import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from genesis_rl import output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS
 from genesis_rl.zoo.members import ZooMember, env_settings, zoo_member
+
+if TYPE_CHECKING:
+    from genesis_rl.odd.domain import ODD
 
 SCHEMA = "genesis-rl/zoo-sweep"
 
@@ -80,13 +82,12 @@ def value_folder(out: Path, index: int) -> Path:
     return Path(out) / "campaigns" / f"value_{index:02d}"
 
 
-def _inside_odd(member: ZooMember, knob: str, value: float) -> bool:
+def _inside_odd(odd: ODD, member: ZooMember, knob: str, value: float) -> bool:
     from genesis_rl.knobs import parse_weather
     from genesis_rl.odd.conditions import conditions_model
-    from genesis_rl.odd.domain import load_odd
 
     weather = parse_weather(start_weather(member, knob, value))
-    return load_odd(member.odd_path).contains(conditions_model("lite").conditions(weather, None), weather)
+    return odd.contains(conditions_model("lite").conditions(weather, None), weather)
 
 
 def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool = False, workers: int = 1,
@@ -96,9 +97,10 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
     from tqdm import tqdm
 
     from genesis_rl import __version__
+    from genesis_rl.benchmark.matrix import run_campaign_once
     from genesis_rl.benchmark.metrics import falsifier_metrics
-    from genesis_rl.evaluation.campaign import run_campaign
     from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.odd.domain import load_odd
 
     member = zoo_member(spec.member)
     out = Path(out)
@@ -115,22 +117,17 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
             atomic_write_json(out / "sweep.json", {"schema": SCHEMA, "version": __version__,
                                                    "spec": spec.to_json(), "rows": []}, indent=1)
         steps = spec.steps or int(member.env.get("episode_steps", 512))
+        odd = load_odd(member.odd_path)
         rows: list[dict[str, Any]] = []
         for i, value in enumerate(tqdm(spec.values, desc=f"sweep {spec.knob}", unit="value", disable=not progress)):
             row: dict[str, Any] = {"value": value, "in_region": in_region(member, spec.knob, value)}
-            if not _inside_odd(member, spec.knob, value):
+            if not _inside_odd(odd, member, spec.knob, value):
                 rows.append({**row, "inside_odd": False})
                 continue
             folder = value_folder(out, i)
-            if not (folder / "summary.json").exists():
-                started = (folder / "campaign.json").exists()
-                if folder.exists() and not started:
-                    shutil.rmtree(folder)
-                folder.parent.mkdir(parents=True, exist_ok=True)
-                env = {**env_settings(member), "start_weather": start_weather(member, spec.knob, value)}
-                campaign = CampaignSpec(policies=("sunny",), map=member.map, scenes=spec.scenes, seed=spec.seed,
-                                        steps=steps, env=env)
-                run_campaign(campaign, folder, workers=workers, resume=started, progress=False)
+            env = {**env_settings(member), "start_weather": start_weather(member, spec.knob, value)}
+            run_campaign_once(CampaignSpec(policies=("sunny",), map=member.map, scenes=spec.scenes, seed=spec.seed,
+                                           steps=steps, env=env), folder, workers=workers)
             m = falsifier_metrics(folder, member)["sunny"]
             rows.append({**row, "inside_odd": True, "trials": len(m.trials), "failed": m.falsified,
                          "rate": m.falsification_rate, "ci95": list(m.falsification_ci),
