@@ -94,7 +94,7 @@ def test_shipped_odds_load_and_label():
     ({"road_state": {"allowed": []}}, "road_state: allowed is empty"),
     ({"rain_rate": {"max": "a lot", "unit": "mm/h"}}, "rain_rate.max = 'a lot' must be a finite number"),
     ({"sun_glare": {"allowed": "no"}}, "sun_glare must be a table with allowed = true or false"),
-    ({"sun_altitude": {"min": 15}}, "sun_altitude: unit = None; allowed: \"deg\""),
+    ({"sun_altitude": {"min": 15}}, "sun_altitude: unit is missing; allowed: unit = \"deg\""),
     ({"sun_altitude": {"min": 15, "unit": "rad"}}, "sun_altitude: unit = 'rad'; allowed: \"deg\""),
     ({"sun_altitude": {"min": 120, "unit": "deg"}}, "sun_altitude.min = 120"),
     ({"sun_altitude": {"min": 30, "max": 10, "unit": "deg"}}, "sun_altitude: min 30 > max 10: the domain is empty"),

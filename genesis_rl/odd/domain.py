@@ -183,21 +183,26 @@ def _number(where: str, value: Any) -> float:
     return float(value)
 
 
-def _sun_altitude(t: Any, where: str) -> tuple[float, float]:
-    """``[sun_altitude] min = ..., max = ..., unit = "deg"``: either bound may be left out (-90, 90)."""
+def _bounds(t: Any, q: str, where: str, unit: str, physical: ranges.Ranged,
+            unbounded: tuple[float, float]) -> tuple[float, float]:
+    """A ``[q] min = ..., max = ..., unit = "..."`` table's bounds, each given one inside ``physical``; a bound
+    left out is ``unbounded``'s."""
     if not isinstance(t, Mapping):
-        raise UserInputError(f"{where} must be a table, e.g. [{SUN_ALTITUDE}] min = 15, unit = \"deg\"")
+        raise UserInputError(f"{where} must be a table, e.g. [{q}] min = ..., unit = \"{unit}\"")
     extra = set(t) - {"min", "max", "unit"}
     if extra:
         raise UserInputError(f"{where}: unknown key(s) {sorted(extra)}; allowed: min, max, unit")
-    if t.get("unit") != "deg":
-        raise UserInputError(f"{where}: unit = {t.get('unit')!r}; allowed: \"deg\"")
+    if "unit" not in t:
+        raise UserInputError(f"{where}: unit is missing; allowed: unit = \"{unit}\"")
+    if t["unit"] != unit:
+        raise UserInputError(f"{where}: unit = {t['unit']!r}; allowed: \"{unit}\"")
     if "min" not in t and "max" not in t:
-        raise UserInputError(f"{where}: give min, max or both [deg]")
-    low = _number(f"{where}.min", t["min"]) if "min" in t else SUN_ALTITUDE_RANGE.low
-    high = _number(f"{where}.max", t["max"]) if "max" in t else SUN_ALTITUDE_RANGE.high
-    SUN_ALTITUDE_RANGE.check(low, f"{where}.min")
-    SUN_ALTITUDE_RANGE.check(high, f"{where}.max")
+        raise UserInputError(f"{where}: give min, max or both [{unit}]")
+    low = _number(f"{where}.min", t["min"]) if "min" in t else unbounded[0]
+    high = _number(f"{where}.max", t["max"]) if "max" in t else unbounded[1]
+    for end, v in (("min", low), ("max", high)):
+        if end in t:
+            physical.check(v, f"{where}.{end}")
     if low > high:
         raise UserInputError(f"{where}: min {low:g} > max {high:g}: the domain is empty")
     return low, high
@@ -219,28 +224,10 @@ def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | Non
     for q, (unit, _) in NUMERIC.items():
         if q not in data:
             continue
-        t = data[q]
         where = f"ODD '{source}': {q}"
-        if not isinstance(t, Mapping):
-            raise UserInputError(f"{where} must be a table, e.g. [{q}] min = ..., unit = \"{unit}\"")
-        extra = set(t) - {"min", "max", "unit"}
-        if extra:
-            raise UserInputError(f"{where}: unknown key(s) {sorted(extra)}; allowed: min, max, unit")
-        if "unit" not in t:
-            raise UserInputError(f"{where}: unit is missing; allowed: unit = \"{unit}\"")
-        if t["unit"] != unit:
-            raise UserInputError(f"{where}: unit = {t['unit']!r}; allowed: \"{unit}\"")
-        if "min" not in t and "max" not in t:
-            raise UserInputError(f"{where}: give min, max or both [{unit}]")
-        low = _number(f"{where}.min", t["min"]) if "min" in t else 0.0
-        high = _number(f"{where}.max", t["max"]) if "max" in t else math.inf
-        for end, v in (("min", low), ("max", high)):
-            if end in t:
-                NUMERIC_RANGES[q].check(v, f"{where}.{end}")
+        low, high = _bounds(data[q], q, where, unit, NUMERIC_RANGES[q], (0.0, math.inf))
         if low < 0 or high < 0:
             raise UserInputError(f"{where}: bounds must be >= 0 {unit}, got min {low:g}, max {high:g}")
-        if low > high:
-            raise UserInputError(f"{where}: min {low:g} > max {high:g}: the domain is empty")
         ranges[q] = Range(low, high)
     allowed: dict[str, tuple[str, ...]] = {}
     for q, (values, _) in CATEGORICAL.items():
@@ -264,7 +251,8 @@ def parse_odd(data: Mapping[str, Any], source: str, model: ConditionsModel | Non
         glare = t["allowed"]
     odd = ODD(name=name, description=str(data.get("description", "")), ranges=ranges, allowed=allowed,
               sun_glare_allowed=glare, boundary_margin=margin, source=source,
-              sun_altitude=_sun_altitude(data[SUN_ALTITUDE], f"ODD '{source}': {SUN_ALTITUDE}")
+              sun_altitude=_bounds(data[SUN_ALTITUDE], SUN_ALTITUDE, f"ODD '{source}': {SUN_ALTITUDE}", "deg",
+                                   SUN_ALTITUDE_RANGE, (SUN_ALTITUDE_RANGE.low, SUN_ALTITUDE_RANGE.high))
               if SUN_ALTITUDE in data else None,
               traffic=parse_traffic_conditions(data["traffic"], f"ODD '{source}': traffic")
               if "traffic" in data else None)
