@@ -51,7 +51,8 @@ def _typical(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
 
 
 #: the sun altitudes the dusk-blind detector never sees [deg]: from civil twilight's end (-6) to the low-sun
-#: band the shipped detector already lacks (15); the zoo member ``dusk_blind`` states it as its trigger region
+#: band the shipped detector already lacks (15). It generalised across this gap, so no zoo member uses it
+#: (docs/zoo.md, "A candidate interior member")
 DUSK_GAP_DEG = (-6.0, 15.0)
 
 
