@@ -35,18 +35,23 @@ class LatencySystem(BuiltinSystem):
         self.drop_rate = float(ranges.number(drop_rate, "system drop_rate", 0.0, 1.0,
                                              note="the share of frames lost"))
         self._queue: deque[list[Detection]] = deque()
+        self._delay_steps = 0
         self._rng = np.random.default_rng(0)
 
     def reset(self, context: EpisodeContext) -> None:
         super().reset(context)
-        delay_steps = int(round(self.latency_s / context.dt))
-        self._queue = deque([[] for _ in range(delay_steps)])  # nothing has arrived yet
+        self._delay_steps = int(round(self.latency_s / context.dt))
+        self._queue = deque()
         self._rng = np.random.default_rng(np.random.SeedSequence([context.seed, 0x1A7E]))
 
     def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
         fresh = self.perceive(frame)
         if self.drop_rate > 0.0 and self._rng.random() < self.drop_rate:
             fresh = []
+        if not self._queue:  # the episode's first frame: the pipeline ran before the scene began, so what it
+            # delivers until its first delayed frame arrives is (about) this frame, not an empty road. Empty
+            # detections there made the controller accelerate blind for latency_s at every episode's start.
+            self._queue.extend([fresh] * self._delay_steps)
         self._queue.append(fresh)
         arrived = self._queue.popleft()
         control, gap = self.controller.step(ego, arrived, time_s)
