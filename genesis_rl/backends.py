@@ -233,10 +233,11 @@ def load_catalog(path: Path | str) -> Catalog:
 
 
 def catalog_or_generate(path: str | None, map_name: str, count: int, seed: int, map_field: str = "--map",
-                        progress: bool = False, backend: str = "lite") -> Catalog:
+                        progress: bool = False, backend: str = "lite", traffic: str = "mixed") -> Catalog:
     """The catalog in ``path``, or else the first ``count`` scenes generated on ``map_name`` with ``seed``
     for ``backend`` (the same seed and index give the same scene whatever the count). ``map_field`` names the
-    setting in the error for an unknown map."""
+    setting in the error for an unknown map. ``traffic`` other than mixed (lite's free_flow) is generated
+    by lite's scene source alone."""
     if path:
         return load_catalog(path)
     cls = check_backend_setting(backend, path, "backend", "a catalog file")
@@ -247,4 +248,11 @@ def catalog_or_generate(path: str | None, map_name: str, count: int, seed: int, 
                              f"catalog at most {MAX_GENERATED_ON_THE_FLY} are. Make a catalog once with "
                              f"'genesis-rl scenes --map {map_name} --count {count} --out FILE' and pass it as "
                              "--catalog FILE")
+    if traffic != "mixed":
+        if cls.catalog_kind != "lite":
+            raise UserInputError(f"traffic '{traffic}' is generated on lite's maps only; backend '{backend}' "
+                                 "generates mixed traffic (or pass a catalog file)")
+        from genesis_rl.lite.scenes import generate_catalog
+
+        return generate_catalog(map_name, count, seed, progress=progress, traffic=traffic)
     return source.generate(map_name, count, seed, ConnectionSettings(), progress=progress)

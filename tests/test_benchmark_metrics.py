@@ -176,6 +176,22 @@ def test_a_campaign_of_another_system_is_refused_naming_the_field(blind_campaign
     with pytest.raises(UserInputError, match="not run on zoo member 'builtin_highway': its system is 'blind', the "
                                              "member's 'builtin'"):
         falsifier_metrics(blind_campaign, "builtin_highway")
+    with pytest.raises(UserInputError, match="its traffic is 'mixed', the member's 'free_flow'"):
+        falsifier_metrics(blind_campaign, replace(BLIND, traffic="free_flow"))
+
+
+def test_a_campaign_spec_carries_its_traffic_and_older_specs_read_the_same() -> None:
+    """traffic is written only when not mixed, so a campaign.json of before reads (and resumes) unchanged."""
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+
+    mixed = CampaignSpec(policies=("sunny",))
+    assert "traffic" not in mixed.to_json() and CampaignSpec.from_json(mixed.to_json()) == mixed
+    free = CampaignSpec(policies=("sunny",), traffic="free_flow")
+    assert free.to_json()["traffic"] == "free_flow" and CampaignSpec.from_json(free.to_json()) == free
+    with pytest.raises(UserInputError, match="spec.traffic = 'jam'; allowed: mixed, free_flow"):
+        CampaignSpec(policies=("sunny",), traffic="jam")
+    with pytest.raises(UserInputError, match="a catalog file .* brings its own"):
+        CampaignSpec(policies=("sunny",), traffic="free_flow", catalog="c.json")
 
 
 def test_a_control_campaign_censors_every_trial_at_the_budget(catalog: str, tmp_path) -> None:

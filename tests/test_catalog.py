@@ -122,3 +122,37 @@ def test_vehicles_that_start_inside_each_other_are_refused():
 
     with pytest.raises(UserInputError, match=r"'scenes\[0\]\.vehicles\[0\]' and 'scenes\[0\]\.vehicles\[5\]' overlap"):
         catalog_from_json(_tampered(good, stack))
+
+
+def test_free_flow_traffic_cruises_at_speed_and_only_the_knobs_stop_the_lead(tmp_path):
+    """free_flow (the timing members' scenes, docs/scenes.md): the ego on a 25 m/s main line at 90-100 % of
+    it with room for a whole episode, its lead 1.5-2.5 s ahead cruising a little slower (so a faster ego
+    catches up), no one with spontaneous stops; seeded, valid, and the mixed catalogs are untouched."""
+    from genesis_rl.backends import catalog_or_generate
+    from genesis_rl.lite.scenes import FREE_FLOW_RUN_M
+
+    road = load_map("highway")
+    cat = generate_catalog("highway", 40, 0, traffic="free_flow")
+    for sc in cat.scenes:
+        ego, lead = sc.vehicles[0], sc.vehicles[1]
+        limit = road.speed_limit(ego.lane)
+        assert limit == 25.0 and road.length[ego.lane] - ego.s >= FREE_FLOW_RUN_M
+        assert 0.9 * limit <= ego.speed <= limit and lead.lane == ego.lane and lead.speed == ego.speed
+        headway = (lead.s - ego.s) / ego.speed
+        assert 1.5 <= headway <= 2.5
+        assert 0.85 * limit <= lead.autopilot["target_speed"] <= 0.95 * limit
+        assert all(v.autopilot["stop_rate"] == 0.0 for v in sc.vehicles[1:])
+        assert min(v.speed for v in sc.vehicles[1:]) > 0.0  # nobody parked in a free-flowing scene
+    assert generate_catalog("highway", 40, 0, traffic="free_flow").to_json() == cat.to_json()
+    mixed = generate_catalog("highway", 40, 0)
+    assert all(sc.vehicles[1].autopilot["stop_rate"] >= 1.5 for sc in mixed.scenes)  # the paper's leads stop
+    assert catalog_or_generate(None, "highway", 40, 0, traffic="free_flow").to_json() == cat.to_json()
+    with pytest.raises(UserInputError, match="no lane for free-flowing traffic"):
+        generate_catalog("urban", 2, 0, traffic="free_flow")  # urban's roads are short and slow
+    with pytest.raises(UserInputError, match="traffic = 'jam'.*allowed: mixed, free_flow"):
+        generate_catalog("highway", 2, 0, traffic="jam")
+    out = tmp_path / "ff.json"
+    done = subprocess.run([sys.executable, "-m", "genesis_rl", "scenes", "--map", "highway", "--count", "3",
+                           "--traffic", "free_flow", "--out", str(out), "--quiet"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert load_catalog(out).to_json() == generate_catalog("highway", 3, 0, traffic="free_flow").to_json()

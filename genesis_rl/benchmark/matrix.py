@@ -101,7 +101,7 @@ def campaign_spec(spec: BenchmarkSpec, member: str, trial: int) -> CampaignSpec:
     m = zoo_member(member)
     options = {**spec.options, **({"start": spec.start} if spec.start != "fixed" else {})}
     return CampaignSpec(policies=spec.policies, map=m.map, scenes=spec.scenes, seed=spec.seed + trial,
-                        steps=member_steps(spec, member), env=env_settings(m), options=options)
+                        steps=member_steps(spec, member), env=env_settings(m), options=options, traffic=m.traffic)
 
 
 def campaign_folder(out: Path, member: str, trial: int) -> Path:

@@ -170,14 +170,16 @@ def check_campaign_member(folder: Path, meta: Mapping[str, Any], member: ZooMemb
         "system_kwargs": dict(env.get("system_kwargs") or {}),
         "map": meta.get("catalog", {}).get("map", spec.get("map")),
         "odd": (meta.get("identity", {}).get("odd") or {}).get("name"),
+        "traffic": spec.get("traffic", "mixed"),
     }
     wanted = {"system": member.system, "system_kwargs": dict(member.system_kwargs), "map": member.map,
-              "odd": load_odd(member.odd_path).name}
+              "odd": load_odd(member.odd_path).name, "traffic": member.traffic}
     for key, value in wanted.items():
         if found[key] != value:
             raise UserInputError(f"campaign '{folder}' was not run on zoo member '{member.name}': its {key} is "
                                  f"{found[key]!r}, the member's {value!r}; run it with CampaignSpec(map="
-                                 f"'{member.map}', env=env_settings(zoo_member('{member.name}')))")
+                                 f"'{member.map}', traffic='{member.traffic}', "
+                                 f"env=env_settings(zoo_member('{member.name}')))")
 
 
 def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, PolicyMetrics]:

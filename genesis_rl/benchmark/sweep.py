@@ -127,7 +127,7 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
             folder = value_folder(out, i)
             env = {**env_settings(member), "start_weather": start_weather(member, spec.knob, value)}
             run_campaign_once(CampaignSpec(policies=("sunny",), map=member.map, scenes=spec.scenes, seed=spec.seed,
-                                           steps=steps, env=env), folder, workers=workers)
+                                           steps=steps, env=env, traffic=member.traffic), folder, workers=workers)
             m = falsifier_metrics(folder, member)["sunny"]
             rows.append({**row, "inside_odd": True, "trials": len(m.trials), "failed": m.falsified,
                          "rate": m.falsification_rate, "ci95": list(m.falsification_ci),

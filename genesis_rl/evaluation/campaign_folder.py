@@ -103,7 +103,8 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         output_folder.check_inputs(folder, [spec.catalog, spec.agent, *read], nested_ok=True)  # RUN/eval: default
         output_folder.check_target(folder, "campaign", force, resume_hint=True)
         count = DEFAULT_COUNTS.get(spec.map, 1)
-        catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress)
+        catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress,
+                                      traffic=spec.traffic)
         if catalog.map != spec.map:  # the campaign records spec.map: it must be the map its scenes are on
             raise UserInputError(f"map '{spec.map}' and catalog '{spec.catalog}' disagree: the catalog's scenes are on "
                                  f"map '{catalog.map}'; pass --map {catalog.map}, or a catalog made for '{spec.map}'")

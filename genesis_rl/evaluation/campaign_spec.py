@@ -38,6 +38,9 @@ class CampaignSpec:
     frames_before: int = 40  # steps of camera frames kept before the first collision
     frames_after: int = 6
     frame_stride: int = 2
+    #: the generated catalog's traffic (genesis_rl.scenes.placement.TRAFFIC): mixed (the paper's) or free_flow;
+    #: written to campaign.json only when not mixed, so campaigns written before read the same
+    traffic: str = "mixed"
 
     def __post_init__(self) -> None:
         """The counts that set a campaign's work, bounded also when they come from a campaign.json."""
@@ -49,7 +52,13 @@ class CampaignSpec:
                 raise UserInputError(f"campaign spec.{name} = {value!r}; allowed: an integer >= 1")
             limit.check(value, f"campaign spec.{name}")  # the lower bound: where the scenes are picked and run
         from genesis_rl.adversaries import chooses_start
+        from genesis_rl.scenes.placement import TRAFFIC
 
+        if self.traffic not in TRAFFIC:
+            raise UserInputError(f"campaign spec.traffic = {self.traffic!r}; allowed: {', '.join(TRAFFIC)}")
+        if self.traffic != "mixed" and self.catalog:
+            raise UserInputError(f"campaign spec.traffic = '{self.traffic}' generates its scenes, and a catalog file "
+                                 f"('{self.catalog}') brings its own: pass one or the other")
         chooses_start(self.options)  # a bad options.start is refused here, before any episode runs
         for name, limit in (("search_budget", limits.SEARCH_BUDGET), ("retries", limits.RETRIES)):
             value = self.options.get(name)
@@ -59,6 +68,8 @@ class CampaignSpec:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["policies"] = list(self.policies)
+        if self.traffic == "mixed":
+            del d["traffic"]
         return d
 
     @classmethod

@@ -17,6 +17,7 @@ from genesis_rl.backends import add_backend_arguments, check_backend_setting, en
 from genesis_rl.cli_args import add_odd_arguments, add_scale_arguments, odd_overrides_from_args
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.summary import summary_rule_metrics
+from genesis_rl.scenes.placement import TRAFFIC
 
 if TYPE_CHECKING:
     from genesis_rl.distributed.settings import ExecutorSettings
@@ -89,7 +90,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     map_name = campaign_map(args.map, args.catalog)  # a catalog of one map is not run under another's name
     spec = CampaignSpec(policies=policies, map=map_name, catalog=args.catalog, catalog_seed=args.catalog_seed,
                         scenes=args.scenes, seed=args.seed, steps=args.steps, agent=agent, env=env,
-                        records=args.records,
+                        records=args.records, traffic=args.traffic,
                         options={"search_budget": args.search_budget, "search_segments": args.search_segments,
                                  "retries": args.retries,
                                  **({"constant_action": _constant_action(args.constant_action)}
@@ -236,6 +237,9 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
                                                 "trains on urban)")
     ev.add_argument("--catalog", default=None, help="test catalog file (default: the map's generated catalog)")
     ev.add_argument("--catalog-seed", type=int, default=0, help="seed of the generated test catalog")
+    ev.add_argument("--traffic", default="mixed", choices=TRAFFIC,
+                    help="traffic of the generated test catalog: mixed (default, the paper's: the lead stops now "
+                         "and then) or free_flow (lite; everyone cruises near the limit, nobody stops on its own)")
     ev.add_argument("--scenes", type=int, default=50, help="scenes picked from the catalog by --seed")
     ev.add_argument("--seed", type=int, default=0, help="campaign seed: scene choice and episode seeds")
     ev.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")

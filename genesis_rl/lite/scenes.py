@@ -19,7 +19,7 @@ from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps import MAP_NAMES, load_map
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.scenes.catalog import Catalog, Scene, VehicleSpec
-from genesis_rl.scenes.placement import draw_autopilot, draw_make, fits
+from genesis_rl.scenes.placement import TRAFFIC, draw_autopilot, draw_make, fits
 from genesis_rl.scenes.vehicles import MAKES, PALETTE
 from genesis_rl.sim.interface import ConnectionSettings
 
@@ -30,12 +30,18 @@ RADIUS = 90.0  # others are placed within this distance of the ego [m]
 POSE_TOLERANCE_M = 1.0  # a vehicle's x, y may differ this much from its lane's point at s
 
 
-def _vehicle(rng, road_map, role, lane, s, make, speed_frac) -> VehicleSpec:
+#: free-flow scenes start the ego on a lane of at least this speed limit [m/s] (a motorway's main line) ...
+FREE_FLOW_MIN_LIMIT = 20.0
+#: ... with at least this much lane ahead of it [m]: a 512-step episode at 25 m/s drives 640 m
+FREE_FLOW_RUN_M = 700.0
+
+
+def _vehicle(rng, road_map, role, lane, s, make, speed_frac, traffic: str = "mixed") -> VehicleSpec:
     x, y, _, yaw = road_map.pose(lane, s)
     succ = road_map.lanes[lane].successors
     color_name = str(rng.choice(list(PALETTE)))
     limit = road_map.speed_limit(lane)
-    ap = None if role == "ego" else draw_autopilot(rng, limit, role)
+    ap = None if role == "ego" else draw_autopilot(rng, limit, role, traffic)
     return VehicleSpec(role, make, color_name, PALETTE[color_name], int(lane), float(s), x, y, yaw,
                        float(limit * speed_frac), int(succ[int(rng.integers(len(succ)))]), ap)
 
@@ -55,7 +61,10 @@ def _safe_headway(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
     return True
 
 
-def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
+def generate_scene(road_map: RoadMap, index: int, seed: int, traffic: str = "mixed") -> Scene:
+    """Scene ``index`` of a catalog, from its own ``seed``; ``traffic`` as :data:`TRAFFIC` says."""
+    if traffic == "free_flow":
+        return _free_flow_scene(road_map, index, seed)
     rng = np.random.default_rng(seed)
     # ego: a road lane with a lane to its right (for the neighbour) and room for the lead ahead
     egos = [ln.id for ln in road_map.lanes if ln.road >= 0 and ln.right >= 0 and ln.length > 60]
@@ -74,7 +83,43 @@ def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
         if fits(lead, placed) and fits(neighbour, placed + [lead]):
             placed += [lead, neighbour]
             break
-    # others: lane samples on roads within RADIUS of the ego
+    return _with_others(rng, road_map, index, placed, ego, "mixed")
+
+
+def _free_flow_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
+    """A scene in free-flowing traffic: the ego at 90-100 % of a main line's limit with room ahead for a whole
+    episode, its lead 1.5-2.5 s ahead at the same speed and cruising a little slower, nobody stopping on its
+    own. What the lead then does is the actor knobs' doing alone."""
+    rng = np.random.default_rng(seed)
+    egos = [ln.id for ln in road_map.lanes if ln.road >= 0 and ln.right >= 0
+            and road_map.length[ln.id] > FREE_FLOW_RUN_M + 10.0 and road_map.speed_limit(ln.id) >= FREE_FLOW_MIN_LIMIT]
+    if not egos:
+        raise UserInputError(f"map '{road_map.name}' has no lane for free-flowing traffic (at least "
+                             f"{FREE_FLOW_RUN_M:g} m at {FREE_FLOW_MIN_LIMIT:g} m/s or more, with a lane to its "
+                             "right); allowed there: traffic 'mixed'")
+    while True:
+        lane = int(egos[int(rng.integers(len(egos)))])
+        s_ego = float(rng.uniform(5.0, road_map.length[lane] - FREE_FLOW_RUN_M))
+        speed = float(rng.uniform(0.9, 1.0))
+        headway = float(rng.uniform(1.5, 2.5)) * speed * road_map.speed_limit(lane)
+        ego = _vehicle(rng, road_map, "ego", lane, s_ego, str(rng.choice(["sedan", "hatchback", "suv"])), speed,
+                       "free_flow")
+        lead = _vehicle(rng, road_map, "lead", lane, s_ego + headway, draw_make(rng), speed, "free_flow")
+        right = road_map.lanes[lane].right
+        s_nb = min(s_ego + float(rng.uniform(10.0, 30.0)), road_map.length[right] - 1.0)
+        neighbour = _vehicle(rng, road_map, "neighbour", right, s_nb, draw_make(rng), speed, "free_flow")
+        placed = [ego]
+        if fits(lead, placed) and fits(neighbour, placed + [lead]):
+            placed += [lead, neighbour]
+            break
+    return _with_others(rng, road_map, index, placed, ego, "free_flow")
+
+
+def _with_others(rng: np.random.Generator, road_map: RoadMap, index: int, placed: list[VehicleSpec],
+                 ego: VehicleSpec, traffic: str) -> Scene:
+    """The scene: ``placed`` (ego, lead, neighbour) and others on lane samples within RADIUS of the ego
+    (under free flow at 85-100 % of their lane's limit, else 0-90 %), none overlapping or too close behind
+    another, then the scene's episode seed and signal offset."""
     pts = road_map.points
     on_road = np.array([road_map.lanes[k].road >= 0 for k in range(len(road_map.lanes))])[road_map.point_lane]
     near = np.flatnonzero(on_road & ((pts[:, 0] - ego.x) ** 2 + (pts[:, 1] - ego.y) ** 2 < RADIUS**2))
@@ -86,7 +131,9 @@ def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
         s = (k - int(road_map.offset[lane])) * DS
         if s < 3.0 or s > road_map.length[lane] - 3.0:
             continue
-        spec = _vehicle(rng, road_map, "other", lane, s, draw_make(rng), float(rng.uniform(0.0, 0.9)))
+        make = draw_make(rng)
+        frac = float(rng.uniform(0.85, 1.0) if traffic == "free_flow" else rng.uniform(0.0, 0.9))
+        spec = _vehicle(rng, road_map, "other", lane, s, make, frac, traffic)
         if fits(spec, placed) and _safe_headway(spec, placed):
             placed.append(spec)
     if len(placed) < N_VEHICLES:
@@ -95,15 +142,17 @@ def generate_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
                  tuple(placed))
 
 
-def iter_scenes(map_name: str, count: int, seed: int) -> Iterator[Scene]:
+def iter_scenes(map_name: str, count: int, seed: int, traffic: str = "mixed") -> Iterator[Scene]:
     road_map = load_map(map_name)
     seeds = np.random.SeedSequence(seed).spawn(count)
     for i, ss in enumerate(seeds):
-        yield generate_scene(road_map, i, int(ss.generate_state(1)[0]))
+        yield generate_scene(road_map, i, int(ss.generate_state(1)[0]), traffic)
 
 
-def generate_catalog(map_name: str, count: int, seed: int, progress: bool = False) -> Catalog:
-    scenes = iter_scenes(map_name, count, seed)
+def generate_catalog(map_name: str, count: int, seed: int, progress: bool = False, traffic: str = "mixed") -> Catalog:
+    if traffic not in TRAFFIC:
+        raise UserInputError(f"traffic = '{traffic}' is unknown; allowed: {', '.join(TRAFFIC)}")
+    scenes = iter_scenes(map_name, count, seed, traffic)
     if progress:
         scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
     return Catalog(map_name, seed, "lite", tuple(scenes))

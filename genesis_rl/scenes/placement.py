@@ -29,9 +29,26 @@ def boxes_overlap(a: np.ndarray, b: np.ndarray) -> bool:
     return True
 
 
-def draw_autopilot(rng: np.random.Generator, limit: float, role: str) -> dict[str, float]:
+#: the traffic a scene generator places: ``mixed`` (the paper's: the lead stops now and then, others crawl
+#: or cruise) or ``free_flow`` (everyone cruises near the limit and nobody stops on its own, so only an actor
+#: knob brakes the lead: the scenes a timing weakness is measured on, docs/zoo.md)
+TRAFFIC = ("mixed", "free_flow")
+
+
+def draw_autopilot(rng: np.random.Generator, limit: float, role: str, traffic: str = "mixed") -> dict[str, float]:
     """An NPC's seeded driving style (lite's AutopilotParams; CARLA's traffic manager reads target_speed
-    and min_gap), around the lane's speed ``limit`` [m/s]."""
+    and min_gap), around the lane's speed ``limit`` [m/s]. Under ``free_flow`` no one stops on its own and
+    the lead cruises a little under the limit, so that a faster ego catches up and follows it."""
+    if traffic == "free_flow":
+        return {
+            "target_speed": float(limit * (rng.uniform(0.85, 0.95) if role == "lead" else rng.uniform(0.85, 1.05))),
+            "time_gap": float(rng.uniform(1.0, 2.0)),
+            "min_gap": float(rng.uniform(1.5, 3.0)),
+            "max_accel": float(rng.uniform(1.2, 2.5)),
+            "comfort_decel": float(rng.uniform(2.0, 3.5)),
+            "stop_rate": 0.0,
+            "speed_noise": float(rng.uniform(0.05, 0.2)),
+        }
     return {
         "target_speed": float(limit * rng.uniform(0.75, 1.05)),
         "time_gap": float(rng.uniform(1.0, 2.0)),

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.scenes.placement import TRAFFIC
 from genesis_rl.zoo.trigger import EMPTY, Bound, TriggerRegion
 
 KINDS = ("weakness", "control")
@@ -21,7 +22,7 @@ MAPS = ("urban", "highway")
 #: the shipped ODD files
 ODD_DIR = Path(__file__).parent / "odd"
 #: env keys a member sets through its own fields, never through ``env``
-_OWN_KEYS = frozenset({"map", "system", "system_kwargs", "odd"})
+_OWN_KEYS = frozenset({"map", "system", "system_kwargs", "odd", "catalog"})
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,7 @@ class ZooMember:
     trigger: TriggerRegion
     system_kwargs: Mapping[str, Any] = field(default_factory=dict)
     env: Mapping[str, Any] = field(default_factory=dict)  # other EnvConfig fields (dynamics, knobs, ...)
+    traffic: str = "mixed"  # the generated scenes' traffic (CampaignSpec.traffic): mixed or free_flow
 
     def __post_init__(self) -> None:
         where = f"zoo member '{self.name}'"
@@ -47,6 +49,8 @@ class ZooMember:
         if (self.kind == "control") != self.trigger.empty:  # a control has nothing to find; a weakness something
             raise UserInputError(f"{where}: a {self.kind}'s trigger region must be "
                                  f"{'empty' if self.kind == 'control' else 'non-empty'}")
+        if self.traffic not in TRAFFIC:
+            raise UserInputError(f"{where}: traffic = '{self.traffic}'; allowed: {', '.join(TRAFFIC)}")
         own = sorted(set(self.env) & _OWN_KEYS)  # other keys are checked where EnvConfig is built
         if own:
             raise UserInputError(f"{where}: env key(s) {own} are the member's own fields; set them there")
