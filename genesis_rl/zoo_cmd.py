@@ -21,7 +21,9 @@ def _cmd_list(args: argparse.Namespace) -> int:
     from genesis_rl.zoo.members import ZOO
 
     for name, m in ZOO.items():
-        print(f"{name} ({m.kind}, {m.map}, system {m.system}, ODD {m.odd}); trigger region: {m.trigger.describe()}\n"
+        traffic = f", traffic {m.traffic}" if m.traffic != "mixed" else ""
+        print(f"{name} ({m.kind}, {m.map}, system {m.system}, ODD {m.odd}{traffic}); trigger region: "
+              f"{m.trigger.describe()}\n"
               f"  {m.summary}")
     return 0
 

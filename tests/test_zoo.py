@@ -35,9 +35,11 @@ def _seen(visibilities: list[float]) -> list[StepRecord]:
 
 
 def test_registry_names_kinds_and_regions() -> None:
-    assert list(ZOO) == ["low_sun", "low_sun_highway", "builtin_highway", "oracle_highway"]
+    assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "builtin_highway", "oracle_highway",
+                         "builtin_braking"]
     assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "low_sun_highway": "weakness",
-                                                    "builtin_highway": "control", "oracle_highway": "control"}
+                                                    "latency_braking": "weakness", "builtin_highway": "control",
+                                                    "oracle_highway": "control", "builtin_braking": "control"}
     for name in ("low_sun", "low_sun_highway"):
         assert zoo_member(name).trigger.describe() == "0 <= sun_altitude_angle < 15 deg"
     for name in ("builtin_highway", "oracle_highway"):
@@ -47,7 +49,7 @@ def test_registry_names_kinds_and_regions() -> None:
 
 def test_unknown_member_is_refused_naming_the_members() -> None:
     with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, low_sun_highway, "
-                                             "builtin_highway, oracle_highway"):
+                                             "latency_braking, builtin_highway, oracle_highway, builtin_braking"):
         zoo_member("nope")
 
 
@@ -59,13 +61,13 @@ def test_env_settings_make_a_valid_env_inside_the_members_odd(name: str) -> None
     assert (cfg.map, cfg.system, cfg.dynamics) == (member.map, member.system, "natural")
     assert Path(cfg.odd or "").parent == ODD_DIR and cfg.load_odd().name == load_odd(member.odd_path).name
     settings["system_kwargs"]["x"] = 1  # a fresh dict: the registry's member is untouched
-    assert env_settings(member)["system_kwargs"] == {}
+    assert "x" not in env_settings(member)["system_kwargs"]
 
 
 def test_every_shipped_odd_loads_and_is_package_data() -> None:
     model = conditions_model("lite")
     shipped = sorted(p.name for p in ODD_DIR.glob("*.toml"))
-    assert shipped == ["highway_day.toml", "highway_high_sun.toml", "urban_day.toml"]
+    assert shipped == ["highway_braking.toml", "highway_day.toml", "highway_high_sun.toml", "urban_day.toml"]
     assert {m.odd for m in ZOO.values()} == set(shipped)
     for name in shipped:
         load_odd(ODD_DIR / name, model)
@@ -77,6 +79,11 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
     assert high.pop("sun_altitude") == {"min": 15.0, "max": 90.0, "unit": "deg"}
     assert {k: v for k, v in high.items() if k not in ("name", "description")} == \
         {k: v for k, v in ours.items() if k not in ("name", "description")}
+    braking = load_odd(ODD_DIR / "highway_braking.toml").describe()  # the timing members': high sun, stated traffic
+    assert braking.pop("traffic") == {"max_lead_decel": 6.0, "min_cut_in_ttc": 1.64}
+    assert {k: v for k, v in braking.items() if k not in ("name", "description")} == \
+        {k: v for k, v in load_odd(ODD_DIR / "highway_high_sun.toml").describe().items()
+         if k not in ("name", "description")}
     globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["genesis_rl"]
     assert "zoo/odd/*.toml" in globs
 
@@ -115,6 +122,27 @@ def test_the_controls_domain_excludes_the_low_sun_the_weakness_domain_allows() -
         assert env.start_from([0.0, 0.5])["sun_altitude_angle"] == pytest.approx(15.0, abs=0.2)  # the corner
     finally:
         env.close()
+
+
+def test_the_timing_pair_differs_in_the_latency_alone_and_braking_is_its_trigger() -> None:
+    """latency_braking and its control builtin_braking: the same controller profile, domain, knobs and free-flowing
+    traffic; the weakness adds the pipeline's latency, and its region is the lead's hard braking inside the
+    domain (4 m/s^2 up to the domain's 6), which only an actor knob brings (free flow: no lead stops on its own)."""
+    from genesis_rl.zoo.members import HIGHWAY_PROFILE, PIPELINE_LATENCY_S
+
+    weak, control = zoo_member("latency_braking"), zoo_member("builtin_braking")
+    assert (weak.system, control.system) == ("latency", "builtin")
+    assert weak.system_kwargs == {"latency_s": PIPELINE_LATENCY_S, "controller": dict(HIGHWAY_PROFILE)}
+    assert control.system_kwargs == {"controller": dict(HIGHWAY_PROFILE)}
+    assert (weak.odd, weak.map, weak.traffic, dict(weak.env)) == \
+        (control.odd, control.map, control.traffic, dict(control.env))
+    assert weak.traffic == "free_flow" and "lead_decel" in weak.env["knobs"]
+    assert weak.trigger.describe() == "4 <= lead_decel < 8 m/s^2"
+    odd = load_odd(weak.odd_path)
+    assert odd.traffic.max_lead_decel == 6.0 and odd.sun_altitude is not None and odd.sun_altitude[0] == 15.0
+    assert zoo_member("low_sun").traffic == "mixed"  # the weather members keep the paper's traffic
+    with pytest.raises(UserInputError, match="traffic = 'jam'; allowed: mixed, free_flow"):
+        replace(weak, traffic="jam")
 
 
 def test_reached_is_the_first_step_inside_a_half_open_region() -> None:

@@ -5,13 +5,14 @@ named (issue 33: "each zoo member's weakness shows in a small sweep")."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 
 from genesis_rl.benchmark.sweep import SweepSpec, in_region, run_sweep, start_weather
 from genesis_rl.cli import main
 from genesis_rl.errors import UserInputError
-from genesis_rl.zoo import zoo_member
+from genesis_rl.zoo import Bound, TriggerRegion, zoo_member
 
 
 def test_region_membership_and_start_weather_per_value() -> None:
@@ -20,6 +21,15 @@ def test_region_membership_and_start_weather_per_value() -> None:
     assert in_region(low_sun, "fog_density", 50.0) is None  # the region does not bound fog
     assert in_region(zoo_member("builtin_highway"), "sun_altitude_angle", 5.0) is None  # a control has no region
     assert start_weather(low_sun, "sun_altitude_angle", 5.0) == "clear_noon,sun_altitude_angle=5"
+    # a region on a condition is judged on the start weather's conditions: fog 37 gives 95 m of visibility,
+    # fog 35 gives 102 m (lite's Koschmieder fog), and a sun sweep leaves the air clear, outside the region
+    fog = replace(low_sun, trigger=TriggerRegion((Bound("visibility_m", 50.0, 100.0),)))
+    assert [in_region(fog, "fog_density", v) for v in (0.0, 35.0, 37.0, 54.0, 60.0)] == \
+        [False, False, True, True, False]
+    assert in_region(fog, "sun_altitude_angle", 20.0) is False
+    braking = zoo_member("latency_braking")
+    assert [in_region(braking, "lead_decel", v) for v in (0.0, 3.9, 4.0, 6.0)] == [False, False, True, True]
+    assert in_region(braking, "fog_density", 50.0) is None  # the region bounds the lead's braking, not fog
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -69,15 +79,31 @@ def test_a_sweep_drives_the_values_inside_the_odd_and_resumes_to_the_same_table(
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("member, inside, outside, steps, failed", [
-    ("low_sun", 5.0, 40.0, 110, 5),  # runs/sweep_low_sun (256 steps): 5 of 8 at 5 deg, at steps 34-105; 0 at 40
-    ("low_sun_highway", 3.0, 45.0, 80, 2),  # runs/sweep_low_sun_highway: 2 of 8 at 3 deg, at steps 69 and 77
+@pytest.mark.parametrize("member, knob, inside, outside, steps, failed", [
+    # runs/sweep_low_sun (256 steps): 5 of 8 at 5 deg, at steps 34-105; 0 at 40
+    ("low_sun", "sun_altitude_angle", 5.0, 40.0, 110, 5),
+    # runs/sweep_low_sun_highway: 2 of 8 at 3 deg, at steps 69 and 77
+    ("low_sun_highway", "sun_altitude_angle", 3.0, 45.0, 80, 2),
+    # runs/sweep_latency_braking (free-flow traffic): 3 of 8 with the lead braking at 6 m/s^2, at steps 128-171;
+    # 0 with no braking
+    ("latency_braking", "lead_decel", 6.0, 0.0, 172, 3),
 ])
-def test_each_weakness_fails_inside_its_region_and_not_outside(tmp_path, member, inside, outside, steps,
+def test_each_weakness_fails_inside_its_region_and_not_outside(tmp_path, member, knob, inside, outside, steps,
                                                                  failed) -> None:
     """The member's ground truth in a small sweep: the full sweeps' failures inside, none outside, on the same
     eight scenes (campaign seed 0), cut at the step after their last failure."""
-    spec = SweepSpec(member=member, knob="sun_altitude_angle", values=(inside, outside), scenes=8, steps=steps)
+    spec = SweepSpec(member=member, knob=knob, values=(inside, outside), scenes=8, steps=steps)
     table = run_sweep(spec, tmp_path / member, progress=False)
     assert [(r["in_region"], r["failed"]) for r in table["rows"]] == [(True, failed), (False, 0)]
     assert all(s <= steps for s in table["rows"][0]["steps_to_failure"])
+
+
+@pytest.mark.render
+def test_the_timing_control_brakes_in_time_where_the_slow_pipeline_does_not(tmp_path) -> None:
+    """builtin_braking is latency_braking without the latency: on the same eight free-flow scenes with the lead
+    braking at the domain's 6 m/s^2 from the first step, it has no failure in the steps where the slow pipeline
+    had three (the test above), so the latency, not the scenes, makes the weakness."""
+    spec = SweepSpec(member="builtin_braking", knob="lead_decel", values=(6.0,), scenes=8, steps=172)
+    table = run_sweep(spec, tmp_path / "control", progress=False)
+    assert [(r["in_region"], r["inside_odd"], r["trials"], r["failed"]) for r in table["rows"]] == \
+        [(None, True, 8, 0)]

@@ -23,6 +23,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS
 from genesis_rl.zoo.members import ZooMember, env_settings, zoo_member
+from genesis_rl.zoo.trigger import CONDITION_UNITS
 
 if TYPE_CHECKING:
     from genesis_rl.odd.domain import ODD
@@ -64,12 +65,22 @@ class SweepSpec:
 
 
 def in_region(member: ZooMember, knob: str, value: float) -> bool | None:
-    """Whether ``value`` of ``knob`` lies inside the member's trigger region, judged on that knob's bounds alone
-    (None: the region does not bound this knob, or the member is a control)."""
-    bounds = [b for b in member.trigger.bounds if b.quantity == knob]
-    if not bounds:
+    """Whether ``value`` of ``knob`` lies inside the member's trigger region, judged on that knob's bounds and
+    on the region's condition bounds (``visibility_m``, ``rain_mm_h``), which are read off the member's start
+    weather with the knob at the value (lite's conditions model). None: the region bounds neither this knob
+    nor a condition, or the member is a control."""
+    own = [b for b in member.trigger.bounds if b.quantity == knob]
+    conditions = [b for b in member.trigger.bounds if b.quantity in CONDITION_UNITS]
+    if not own and not conditions:
         return None
-    return all(b.low <= value < b.high for b in bounds)
+    c = None
+    if conditions:
+        from genesis_rl.knobs import parse_weather
+        from genesis_rl.odd.conditions import conditions_model
+
+        c = conditions_model("lite").conditions(parse_weather(start_weather(member, knob, value)), None)
+    return all(b.low <= value < b.high for b in own) and \
+        all(b.low <= float(getattr(c, b.quantity)) < b.high for b in conditions)
 
 
 def start_weather(member: ZooMember, knob: str, value: float) -> str:

@@ -34,6 +34,10 @@ POSE_TOLERANCE_M = 1.0  # a vehicle's x, y may differ this much from its lane's 
 FREE_FLOW_MIN_LIMIT = 20.0
 #: ... with at least this much lane ahead of it [m]: a 512-step episode at 25 m/s drives 640 m
 FREE_FLOW_RUN_M = 700.0
+#: free flow's others start at least this time gap [s] behind whoever is ahead of them in their lane ...
+FREE_FLOW_TIME_GAP = 1.5
+#: ... so its 27 others, spaced so, are placed within this distance of the ego [m] (RADIUS holds too few gaps)
+FREE_FLOW_RADIUS = 200.0
 
 
 def _vehicle(rng, road_map, role, lane, s, make, speed_frac, traffic: str = "mixed") -> VehicleSpec:
@@ -46,17 +50,18 @@ def _vehicle(rng, road_map, role, lane, s, make, speed_frac, traffic: str = "mix
                        float(limit * speed_frac), int(succ[int(rng.integers(len(succ)))]), ap)
 
 
-def _safe_headway(spec: VehicleSpec, placed: list[VehicleSpec]) -> bool:
+def _safe_headway(spec: VehicleSpec, placed: list[VehicleSpec], time_gap: float = 0.0) -> bool:
     """No vehicle starts so close behind another in its lane that it cannot brake in time: the bumper gap
     must exceed 2 m + 2.5 s x the closing speed (a follower at 21 m/s 4 m behind an ego at 15 m/s would
-    rear-end it whatever the ego does)."""
+    rear-end it whatever the ego does), plus ``time_gap`` s x the follower's speed (free flow's 1.5 s: no one
+    starts tailgating, and no other car slips in between the ego and its lead)."""
     half = MAKES[spec.make].length / 2.0
     for other in placed:
         if other.lane != spec.lane:
             continue
         gap = abs(other.s - spec.s) - half - MAKES[other.make].length / 2.0
         behind, ahead = (spec, other) if spec.s < other.s else (other, spec)
-        if gap < 2.0 + 2.5 * max(0.0, behind.speed - ahead.speed):
+        if gap < 2.0 + 2.5 * max(0.0, behind.speed - ahead.speed) + time_gap * behind.speed:
             return False
     return True
 
@@ -88,8 +93,9 @@ def generate_scene(road_map: RoadMap, index: int, seed: int, traffic: str = "mix
 
 def _free_flow_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
     """A scene in free-flowing traffic: the ego at 90-100 % of a main line's limit with room ahead for a whole
-    episode, its lead 1.5-2.5 s ahead at the same speed and cruising a little slower, nobody stopping on its
-    own. What the lead then does is the actor knobs' doing alone."""
+    episode, its lead 1.5-2.0 s ahead at the same speed (a following headway a careful driver keeps: UN R157's
+    reference avoids a lead braking at 6 m/s^2 from it) and cruising a little slower, nobody stopping on its own.
+    What the lead then does is the actor knobs' doing alone, from the first step on."""
     rng = np.random.default_rng(seed)
     egos = [ln.id for ln in road_map.lanes if ln.road >= 0 and ln.right >= 0
             and road_map.length[ln.id] > FREE_FLOW_RUN_M + 10.0 and road_map.speed_limit(ln.id) >= FREE_FLOW_MIN_LIMIT]
@@ -101,7 +107,7 @@ def _free_flow_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
         lane = int(egos[int(rng.integers(len(egos)))])
         s_ego = float(rng.uniform(5.0, road_map.length[lane] - FREE_FLOW_RUN_M))
         speed = float(rng.uniform(0.9, 1.0))
-        headway = float(rng.uniform(1.5, 2.5)) * speed * road_map.speed_limit(lane)
+        headway = float(rng.uniform(1.5, 2.0)) * speed * road_map.speed_limit(lane)
         ego = _vehicle(rng, road_map, "ego", lane, s_ego, str(rng.choice(["sedan", "hatchback", "suv"])), speed,
                        "free_flow")
         lead = _vehicle(rng, road_map, "lead", lane, s_ego + headway, draw_make(rng), speed, "free_flow")
@@ -117,12 +123,13 @@ def _free_flow_scene(road_map: RoadMap, index: int, seed: int) -> Scene:
 
 def _with_others(rng: np.random.Generator, road_map: RoadMap, index: int, placed: list[VehicleSpec],
                  ego: VehicleSpec, traffic: str) -> Scene:
-    """The scene: ``placed`` (ego, lead, neighbour) and others on lane samples within RADIUS of the ego
-    (under free flow at 85-100 % of their lane's limit, else 0-90 %), none overlapping or too close behind
-    another, then the scene's episode seed and signal offset."""
+    """The scene: ``placed`` (ego, lead, neighbour) and others on lane samples within RADIUS of the ego (under
+    free flow within FREE_FLOW_RADIUS at 85-100 % of their lane's limit, else 0-90 %), none overlapping or too
+    close behind another, then the scene's episode seed and signal offset."""
     pts = road_map.points
     on_road = np.array([road_map.lanes[k].road >= 0 for k in range(len(road_map.lanes))])[road_map.point_lane]
-    near = np.flatnonzero(on_road & ((pts[:, 0] - ego.x) ** 2 + (pts[:, 1] - ego.y) ** 2 < RADIUS**2))
+    radius = FREE_FLOW_RADIUS if traffic == "free_flow" else RADIUS
+    near = np.flatnonzero(on_road & ((pts[:, 0] - ego.x) ** 2 + (pts[:, 1] - ego.y) ** 2 < radius**2))
     tries = 0
     while len(placed) < N_VEHICLES and tries < 5000:
         tries += 1
@@ -134,7 +141,8 @@ def _with_others(rng: np.random.Generator, road_map: RoadMap, index: int, placed
         make = draw_make(rng)
         frac = float(rng.uniform(0.85, 1.0) if traffic == "free_flow" else rng.uniform(0.0, 0.9))
         spec = _vehicle(rng, road_map, "other", lane, s, make, frac, traffic)
-        if fits(spec, placed) and _safe_headway(spec, placed):
+        time_gap = FREE_FLOW_TIME_GAP if traffic == "free_flow" else 0.0
+        if fits(spec, placed) and _safe_headway(spec, placed, time_gap):
             placed.append(spec)
     if len(placed) < N_VEHICLES:
         raise RuntimeError(f"scene {index}: could only place {len(placed)} vehicles")

@@ -108,8 +108,43 @@ _ORACLE_HIGHWAY = ZooMember(
     env={"dynamics": "natural"},
 )
 
+#: the highway profile of our controller: the main line's 25 m/s and a 120 m perception range, where the
+#: built-in profile (13.9 m/s, 60 m) is BehaviorAgent's urban one; the time gap stays 1.5 s (a common ACC
+#: setting; at ACC's shortest, 1.0 s, a careful driver cannot avoid a lead braking at 6 m/s^2 either)
+HIGHWAY_PROFILE: Mapping[str, float] = {"max_speed": 25.0, "perception_range": 120.0}
+#: the timing members' knobs: the paper's weather knobs and the lead's braking demand, one action space
+_WEATHER_AND_BRAKING = ("fog_density", "precipitation", "precipitation_deposits", "sun_altitude_angle",
+                        "sun_azimuth_angle", "lead_decel")
+#: the latency of latency_braking's perception pipeline [s]
+PIPELINE_LATENCY_S = 1.5
+
+_LATENCY_BRAKING = ZooMember(
+    name="latency_braking", kind="weakness", system="latency",
+    system_kwargs={"latency_s": PIPELINE_LATENCY_S, "controller": dict(HIGHWAY_PROFILE)},
+    odd="highway_braking.toml", map="highway", traffic="free_flow",
+    summary=("The built-in detector and controller at the highway profile (25 m/s, 120 m range, 1.5 s time gap) "
+             f"behind a perception pipeline whose detections reach the controller {PIPELINE_LATENCY_S:g} s late, "
+             "in free-flowing motorway traffic by day (highway_braking: the sun >= 15 deg up, a lead braking up to "
+             "6 m/s^2). In steady following the time gap absorbs the delay; when the lead brakes hard, the "
+             "controller acts on where it was 1.5 s before and brakes too late. A timing weakness: the trigger is "
+             "an actor's event, not a weather corner."),
+    trigger=TriggerRegion((Bound("lead_decel", 4.0, 8.0),)),
+    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256},
+)
+
+_BUILTIN_BRAKING = ZooMember(
+    name="builtin_braking", kind="control", system="builtin", system_kwargs={"controller": dict(HIGHWAY_PROFILE)},
+    odd="highway_braking.toml", map="highway", traffic="free_flow",
+    summary=("latency_braking's system without the latency: the built-in system at the highway profile in the same "
+             "free-flowing traffic and domain. It brakes in time for a lead braking at the domain's 6 m/s^2, so an "
+             "adversary turning the weather and the lead's braking has nothing to find: the timing control."),
+    trigger=EMPTY,
+    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256},
+)
+
 #: every member by name
-ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _BUILTIN_HIGHWAY, _ORACLE_HIGHWAY)}
+ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _LATENCY_BRAKING, _BUILTIN_HIGHWAY,
+                                                 _ORACLE_HIGHWAY, _BUILTIN_BRAKING)}
 
 
 def zoo_member(name: str) -> ZooMember:
