@@ -20,6 +20,20 @@ def _names(text: str, flag: str) -> tuple[str, ...]:
     return names
 
 
+def _agents(given: list[str] | None) -> dict[str, tuple[str, ...]]:
+    """``--agent MEMBER=RUN`` (repeated, or comma lists): each member's trained agents, in the order given."""
+    out: dict[str, list[str]] = {}
+    for text in given or ():
+        for item in text.split(","):
+            member, sep, run = item.partition("=")
+            if not sep or not member.strip() or not run.strip():
+                raise UserInputError(f"--agent '{item}': give MEMBER=RUN, e.g. latency_braking=runs/zoo_latency_sac_s0")
+            if not Path(run.strip()).exists():
+                raise UserInputError(f"--agent '{item}': run folder '{run.strip()}' does not exist")
+            out.setdefault(member.strip(), []).append(run.strip())
+    return {m: tuple(r) for m, r in out.items()}
+
+
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.matrix import ADVERSARIES, SMOKE, BenchmarkSpec
     from genesis_rl.zoo.members import ZOO
@@ -48,7 +62,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
         spec = BenchmarkSpec(
             members=_names(args.members, "--members") if args.members else tuple(ZOO),
             policies=_names(args.policies, "--policies"), trials=args.trials, scenes=args.scenes, seed=args.seed,
-            steps=args.steps, options=options, start=args.start)
+            steps=args.steps, options=options, start=args.start, agents=_agents(args.agent))
     executor = None
     if args.executor == "ray" or args.ray_address:
         from genesis_rl.distributed.settings import ExecutorSettings
@@ -81,6 +95,10 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
     bm.add_argument("--policies", default="sunny,random,constant,random_search,cmaes,cem,mcts",
                     help="comma list of adversaries (default: sunny,random,constant,random_search,cmaes,cem,mcts; "
                          "random_search is random at the searches' budget)")
+    bm.add_argument("--agent", action="append", metavar="MEMBER=RUN",
+                    help="a trained agent (a run folder of genesis-rl train on the member's env) to play on MEMBER "
+                         "as the policy agent:RUN, one campaign a trial on the trial's scenes; repeat it (or give a "
+                         "comma list) for more training seeds. --resume may add agents to a finished benchmark")
     bm.add_argument("--trials", type=int, default=10, help="trials (campaign seeds) per member (default 10)")
     bm.add_argument("--scenes", type=int, default=5, help="scenes a trial plays per policy (default 5)")
     bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")

@@ -180,3 +180,76 @@ def test_a_natural_start_campaign_records_and_replays_the_start_each_policy_chos
     assert len(set(starts["random"])) == 2 and all(0.0 <= a <= 90.0 for a in starts["random"])
     rec = load_record(next((tmp_path / "c" / "records").glob("random_*.json")))
     assert replay_record(rec, keep_frames=False)["reproduced"]
+
+
+#: a trained agent for BLIND's env (its system, knobs, dynamics and ODD), trained for a few steps only: the
+#: benchmark's plumbing is under test, not the agent
+TINY_AGENT = """
+[env]
+map = "highway"
+scenes = 3
+system = "blind"
+odd = "{odd}"
+dynamics = "natural"
+episode_steps = 10
+camera_width = 64
+camera_height = 48
+obs_width = 36
+obs_height = 36
+
+[ppo]
+n_steps = 16
+batch_size = 8
+n_epochs = 1
+
+[train]
+total_timesteps = 32
+checkpoint_every = 16
+seed = 1
+torch_threads = 1
+"""
+
+
+@pytest.mark.render
+def test_a_trained_agent_joins_a_finished_benchmark_on_its_own_members_scenes(blind_benchmark, tmp_path):
+    """--agent MEMBER=RUN: one campaign a trial on the trial's scenes and seed, under the member's env with what
+    the agent observes; --resume adds it to a finished benchmark without changing a figure of the adversaries;
+    an agent trained on another system is refused naming the field, before the folder is touched."""
+    from genesis_rl.benchmark.matrix import agent_campaign_folder
+
+    spec, out = blind_benchmark
+    run = tmp_path / "agent_s1"
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_AGENT.format(odd=zoo.ODD_DIR / BLIND.odd))
+    assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
+    grown = tmp_path / "grown"
+    shutil.copytree(out, grown)
+    with_agent = BenchmarkSpec(**{**spec.to_json(), "members": spec.members, "policies": spec.policies,
+                                  "agents": {"blind_highway": (str(run),)}})
+    board = run_benchmark(with_agent, grown, resume=True, progress=False)
+    cell = board["cells"]["blind_highway"]["agent:agent_s1"]
+    assert (cell["episodes"], cell["trials"], cell["budget_steps"]) == (4, 2, 120)
+    assert cell["falsified"] >= 1  # the blind system crashes in clear air whatever the agent does
+    before = json.loads((out / "leaderboard.json").read_text())
+    assert {p: board["cells"]["blind_highway"][p] for p in spec.policies} == before["cells"]["blind_highway"]
+    assert board["ranks"] == before["ranks"]  # an agent is trained per member: it stays out of the rank test
+    for trial in range(2):
+        agent_meta = json.loads((agent_campaign_folder(grown, "blind_highway", trial, str(run)) / "campaign.json")
+                                .read_text())
+        adversaries = json.loads((campaign_folder(grown, "blind_highway", trial) / "campaign.json").read_text())
+        assert agent_meta["scenes"] == adversaries["scenes"]  # the trial's scenes and episode seeds
+        assert agent_meta["spec"]["policies"] == ["agent"] and agent_meta["spec"]["seed"] == trial
+        assert (agent_meta["spec"]["env"]["obs_width"], agent_meta["spec"]["env"]["system"]) == (36, "blind")
+    assert "agent:agent_s1" in (grown / "leaderboard.html").read_text()
+    with pytest.raises(UserInputError, match="has agents .* that --agent leaves out"):
+        run_benchmark(spec, grown, resume=True, progress=False)
+    elsewhere = BenchmarkSpec(members=("oracle_highway",), policies=("sunny",), trials=1, scenes=1, steps=20,
+                              agents={"oracle_highway": (str(run),)})
+    with pytest.raises(UserInputError, match="trained with env.system = 'blind'; zoo member 'oracle_highway' has "
+                                             "'oracle'"):
+        run_benchmark(elsewhere, tmp_path / "elsewhere", progress=False)
+    assert not (tmp_path / "elsewhere").exists()
+    with pytest.raises(UserInputError, match="member 'low_sun' is not among the members"):
+        BenchmarkSpec(members=("oracle_highway",), policies=("sunny",), agents={"low_sun": (str(run),)})
+    assert main(["benchmark", "--out", str(tmp_path / "c"), "--members", "oracle_highway", "--agent",
+                 "oracle_highway"]) == 2

@@ -56,10 +56,14 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str
     }
 
 
-def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]]) -> dict[str, Any]:
+def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]],
+                agent_trials: Mapping[str, Mapping[str, Sequence[Path]]] | None = None) -> dict[str, Any]:
     """Every (member, policy) pooled over the trials, and the ranks over the weakness members (score: the
     falsification rate, ties broken by the median steps to the first failure, fewer first). ``spec``: the
-    benchmark's spec as ``BenchmarkSpec.to_json`` writes it; ``trials``: each member's campaign folders."""
+    benchmark's spec as ``BenchmarkSpec.to_json`` writes it; ``trials``: each member's campaign folders;
+    ``agent_trials``: per member, each trained agent's label (``agent:RUN``) and its campaign folders. An agent
+    is trained per member, so its cells stand beside the adversaries' and stay out of the rank test, whose
+    policies must be the same on every member."""
     members, policies = list(spec["members"]), list(spec["policies"])
     cells: dict[str, dict[str, Any]] = {}
     for member in members:
@@ -68,6 +72,8 @@ def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]]) -
             for policy, metrics in falsifier_metrics(folder, member).items():
                 per_policy.setdefault(policy, []).append(metrics)
         cells[member] = {p: pooled(p, member, per_policy[p]) for p in policies}
+        for label, folders in (agent_trials or {}).get(member, {}).items():
+            cells[member][label] = pooled(label, member, [falsifier_metrics(f, member)["agent"] for f in folders])
     weak = [m for m in members if zoo_member(m).kind == "weakness"]
 
     def score(c: dict[str, Any]) -> float:

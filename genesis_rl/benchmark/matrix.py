@@ -28,6 +28,7 @@ from genesis_rl import limits, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.knobs import PAPER_KNOBS
 from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
 
 SCHEMA = "genesis-rl/benchmark"
@@ -53,6 +54,9 @@ class BenchmarkSpec:
     #: where episodes start: "natural" (each adversary chooses the knobs that cannot move within an
     #: episode, so a weakness of the sun's position can be reached) or "fixed" (``evaluate --start``)
     start: str = "natural"
+    #: trained agents by member: each a run folder (one training seed), played as the policy ``agent:RUN``
+    #: (RUN the folder's name) in a campaign of its own per trial, on the trial's scenes and seeds
+    agents: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name, values, allowed in (("members", self.members, tuple(ZOO)),
@@ -72,6 +76,16 @@ class BenchmarkSpec:
                 raise UserInputError(f"benchmark {name} = {value!r}; allowed: an integer in {low}.."
                                      f"{high if high else 'the scene limit'}")
         limits.SCENES.check(self.scenes, "benchmark scenes")
+        labels: list[str] = []
+        for member, runs in self.agents.items():
+            if member not in self.members:
+                raise UserInputError(f"benchmark agents: member '{member}' is not among the members "
+                                     f"({', '.join(self.members)})")
+            if not runs:
+                raise UserInputError(f"benchmark agents: member '{member}' names no run folder")
+            labels += [f"{member}/{agent_label(r)}" for r in runs]
+        if len(set(labels)) != len(labels):
+            raise UserInputError(f"benchmark agents: {labels} names one run twice (folders of one name)")
         if self.start not in ("fixed", "natural"):
             raise UserInputError(f"benchmark start = {self.start!r}; allowed: fixed, natural")
         if self.steps is not None:
@@ -83,7 +97,22 @@ class BenchmarkSpec:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d.update(members=list(self.members), policies=list(self.policies), options=dict(self.options))
+        if self.agents:  # written only when given, so benchmark.json files of before compare unchanged
+            d["agents"] = {m: list(r) for m, r in self.agents.items()}
+        else:
+            del d["agents"]
         return d
+
+
+def agent_label(run: str) -> str:
+    """The policy name of a trained agent in the leaderboard: ``agent:`` and its run folder's name."""
+    return f"agent:{Path(run).name or Path(run).resolve().name}"
+
+
+#: the env fields of a trained agent's run that a campaign on a member takes from it: what it observes
+AGENT_OBSERVATION_KEYS = ("observation", "obs_history", "obs_width", "obs_height", "obs_knobs")
+#: the env fields a trained agent must share with the member it is benchmarked on (its action space and world)
+AGENT_MATCH_KEYS = ("system", "system_kwargs", "knobs", "dynamics")
 
 
 #: ``--smoke``: the whole pipeline in about a minute on 2 cores (one weakness, one control, two cheap policies)
@@ -108,6 +137,46 @@ def campaign_folder(out: Path, member: str, trial: int) -> Path:
     return Path(out) / "campaigns" / member / f"trial_{trial:02d}"
 
 
+def agent_campaign_folder(out: Path, member: str, trial: int, run: str) -> Path:
+    return Path(out) / "campaigns" / member / f"trial_{trial:02d}_{agent_label(run).replace(':', '_')}"
+
+
+def agent_env(member: str, run: str) -> dict[str, Any]:
+    """The env a trained agent plays ``member`` under: the member's, with what the agent observes taken from its
+    run. A run trained on another system, other knobs or other dynamics is refused, naming the field: its
+    figures would be reported as the member's."""
+    from genesis_rl.evaluation.campaign_spec import env_settings_for
+    from genesis_rl.odd.domain import load_odd
+
+    m = zoo_member(member)
+    trained = env_settings_for(run, None, None)
+    wanted = env_settings(m)
+    defaults: dict[str, Any] = {"system": "builtin", "system_kwargs": {}, "knobs": PAPER_KNOBS, "dynamics": "paper"}
+    for key in AGENT_MATCH_KEYS:
+        have, want = trained.get(key, defaults[key]), wanted.get(key, defaults[key])
+        if key == "knobs":
+            have, want = list(have or ()), list(want or ())
+        if have != want:
+            raise UserInputError(f"benchmark agent '{run}' was trained with env.{key} = {have!r}; zoo member "
+                                 f"'{member}' has {want!r}: train it on the member's env (docs/zoo.md)")
+    odd = trained.get("odd")
+    if odd is None or load_odd(odd).name != load_odd(m.odd_path).name:
+        raise UserInputError(f"benchmark agent '{run}' was trained with env.odd = {odd!r}; zoo member '{member}' "
+                             f"plays inside '{m.odd}': train it inside the member's ODD")
+    return {**wanted, **{k: trained[k] for k in AGENT_OBSERVATION_KEYS if k in trained},
+            "terminate_on_collision": False}
+
+
+def agent_campaign_spec(spec: BenchmarkSpec, member: str, trial: int, run: str) -> CampaignSpec:
+    """The campaign of one trained agent in one trial on one member: the trial's scenes and seeds (the same
+    seed as the adversaries' campaign), the policy ``agent``."""
+    m = zoo_member(member)
+    options = {**spec.options, **({"start": spec.start} if spec.start != "fixed" else {})}
+    return CampaignSpec(policies=("agent",), map=m.map, scenes=spec.scenes, seed=spec.seed + trial,
+                        steps=member_steps(spec, member), agent=str(run), env=agent_env(member, run),
+                        options=options, traffic=m.traffic)
+
+
 def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
     path = out / "benchmark.json"
     if not path.exists():
@@ -117,7 +186,14 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
     if not isinstance(found, dict):
         raise UserInputError(f"--resume: '{path}' holds no benchmark spec; start the benchmark again with --force")
     wanted = spec.to_json()
-    differ = [k for k in wanted if found.get(k) != wanted[k]]
+    # agents may be added to a benchmark (their campaigns are new; nothing run changes), not taken away
+    before = {m: list(r) for m, r in (found.get("agents") or {}).items()}
+    now = wanted.get("agents") or {}
+    dropped = [f"{m}: {r}" for m, runs in before.items() for r in runs if r not in now.get(m, [])]
+    if dropped:
+        raise UserInputError(f"--resume: benchmark '{out}' has agents {dropped} that --agent leaves out; name "
+                             "them again, or start again with --force")
+    differ = [k for k in wanted if k != "agents" and found.get(k) != wanted[k]]
     if differ:
         k = differ[0]
         raise UserInputError(f"--resume: benchmark '{out}' was started with {k} = {found.get(k)!r}, not "
@@ -148,22 +224,32 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
+    for member, runs in spec.agents.items():  # a run trained elsewhere is refused before the folder is touched
+        for agent_run in runs:
+            agent_env(member, agent_run)
     with output_folder.claim(out, "benchmark", force, resume=resume):
         if resume:
             _check_same_spec(out, spec)
         else:
             output_folder.replace(out, "benchmark")  # only genesis-rl's own entries go (--force)
-            atomic_write_json(out / "benchmark.json", {"schema": SCHEMA, "version": __version__,
-                                                       "spec": spec.to_json()}, indent=1)
-        cells = [(m, t) for m in spec.members for t in range(spec.trials)]
+        atomic_write_json(out / "benchmark.json", {"schema": SCHEMA, "version": __version__,
+                                                   "spec": spec.to_json()}, indent=1)
+        cells: list[tuple[str, int, str | None]] = [
+            (m, t, run) for m in spec.members for t in range(spec.trials) for run in (None, *spec.agents.get(m, ()))]
         bar = tqdm(total=len(cells), desc="benchmark", unit="campaign", disable=not progress)
-        for member, trial in cells:
-            bar.set_postfix_str(f"{member} trial {trial}")
-            run_campaign_once(campaign_spec(spec, member, trial), campaign_folder(out, member, trial),
-                              workers=workers, executor=executor)
+        for member, trial, run in cells:
+            bar.set_postfix_str(f"{member} trial {trial}" + (f" {agent_label(run)}" if run else ""))
+            if run is None:
+                run_campaign_once(campaign_spec(spec, member, trial), campaign_folder(out, member, trial),
+                                  workers=workers, executor=executor)
+            else:
+                run_campaign_once(agent_campaign_spec(spec, member, trial, run),
+                                  agent_campaign_folder(out, member, trial, run), workers=workers, executor=executor)
             bar.update()
         bar.close()
-        board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members})
+        board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members},
+                            {m: {agent_label(r): [agent_campaign_folder(out, m, t, r) for t in range(spec.trials)]
+                                 for r in runs} for m, runs in spec.agents.items()})
         write_leaderboard(out, board)
     return board
 
