@@ -253,3 +253,7 @@ def test_a_trained_agent_joins_a_finished_benchmark_on_its_own_members_scenes(bl
         BenchmarkSpec(members=("oracle_highway",), policies=("sunny",), agents={"low_sun": (str(run),)})
     assert main(["benchmark", "--out", str(tmp_path / "c"), "--members", "oracle_highway", "--agent",
                  "oracle_highway"]) == 2
+    from genesis_rl.benchmark.matrix import agent_label  # seeds compared at one checkpoint keep their names apart
+
+    assert agent_label(str(run)) == agent_label(str(run / "agent.zip")) == "agent:agent_s1"
+    assert agent_label(str(run / "checkpoints" / "step_00000016.zip")) == "agent:agent_s1/step_00000016"

@@ -105,8 +105,15 @@ class BenchmarkSpec:
 
 
 def agent_label(run: str) -> str:
-    """The policy name of a trained agent in the leaderboard: ``agent:`` and its run folder's name."""
-    return f"agent:{Path(run).name or Path(run).resolve().name}"
+    """The policy name of a trained agent in the leaderboard: ``agent:`` and its run folder's name, and for a
+    checkpoint the checkpoint's too (``agent:RUN/step_00020480``), so seeds compared at one step stay apart."""
+    from genesis_rl.adversaries.agent import run_folder_of
+
+    path = Path(run)
+    folder = run_folder_of(path).resolve().name
+    if path.suffix == ".zip" and path.parent.name == "checkpoints":
+        return f"agent:{folder}/{path.stem}"
+    return f"agent:{folder}"
 
 
 #: the env fields of a trained agent's run that a campaign on a member takes from it: what it observes
@@ -138,7 +145,8 @@ def campaign_folder(out: Path, member: str, trial: int) -> Path:
 
 
 def agent_campaign_folder(out: Path, member: str, trial: int, run: str) -> Path:
-    return Path(out) / "campaigns" / member / f"trial_{trial:02d}_{agent_label(run).replace(':', '_')}"
+    name = agent_label(run).replace(":", "_").replace("/", "_")
+    return Path(out) / "campaigns" / member / f"trial_{trial:02d}_{name}"
 
 
 def agent_env(member: str, run: str) -> dict[str, Any]:
