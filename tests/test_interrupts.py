@@ -48,6 +48,21 @@ torch_threads = 1
 """
 
 ROOT = Path(genesis_rl.__file__).resolve().parents[1]  # the package under test, for the child processes
+
+
+@pytest.fixture(autouse=True)
+def _ctrl_c_delivered() -> object:
+    """Ctrl-C as a terminal delivers it, whatever started the suite: a shell starts a background job (``cmd &``,
+    ``nohup``) with SIGINT ignored, and a Python process that starts so keeps ignoring it, as do its children,
+    so these tests failed in a suite started in the background while the code was right."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def _default_sigint() -> None:
+    """A child's SIGINT at its default, so that its interpreter installs KeyboardInterrupt (see above)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 MARKER = ".genesis-rl.json"
 
 
@@ -76,7 +91,8 @@ def _signalled(args: list[str], cwd: Path, signum: int, when: str, rng: random.R
     Returns its status, its stderr and the moment chosen."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "genesis_rl", *args], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=group)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=group,
+                            preexec_fn=_default_sigint)
     t0 = time.monotonic()
     if when == "start":
         time.sleep(rng.uniform(0.5, 4.0))  # not in the interpreter's own start-up (docs/reliability.md)
