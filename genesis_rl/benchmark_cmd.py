@@ -39,9 +39,10 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from genesis_rl.zoo.members import ZOO
 
     if args.list:
-        for name, m in ZOO.items():
-            print(f"{name} ({m.kind}, {m.map}, system {m.system}, ODD {m.odd}): {m.summary}")
-        print(f"policies: {', '.join(ADVERSARIES)}")
+        from genesis_rl.zoo_cmd import print_members
+
+        print_members()
+        print(f"policies: {', '.join(ADVERSARIES)} (and agent:RUN with --agent MEMBER=RUN)")
         return 0
     if args.out is None:
         raise UserInputError("--out is required (the benchmark folder), unless --list")

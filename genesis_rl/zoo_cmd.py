@@ -17,7 +17,9 @@ def _values(text: str) -> tuple[float, ...]:
         raise UserInputError(f"--values '{text}': give a comma list of numbers, e.g. 0,5,10,14,20,40") from None
 
 
-def _cmd_list(args: argparse.Namespace) -> int:
+def print_members() -> None:
+    """Every zoo member: name, kind, map, system, ODD, traffic (when not mixed), trigger region, summary
+    (``zoo list`` and ``benchmark --list``)."""
     from genesis_rl.zoo.members import ZOO
 
     for name, m in ZOO.items():
@@ -25,6 +27,10 @@ def _cmd_list(args: argparse.Namespace) -> int:
         print(f"{name} ({m.kind}, {m.map}, system {m.system}, ODD {m.odd}{traffic}); trigger region: "
               f"{m.trigger.describe()}\n"
               f"  {m.summary}")
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    print_members()
     return 0
 
 
