@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,6 @@ from genesis_rl import limits, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.io_utils import atomic_write_json, read_json
-from genesis_rl.knobs import PAPER_KNOBS
 from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
 
 SCHEMA = "genesis-rl/benchmark"
@@ -132,12 +131,16 @@ def member_steps(spec: BenchmarkSpec, member: str) -> int:
     return spec.steps or int(zoo_member(member).env.get("episode_steps", 512))
 
 
-def campaign_spec(spec: BenchmarkSpec, member: str, trial: int) -> CampaignSpec:
-    """The campaign of one trial on one member."""
+def campaign_spec(spec: BenchmarkSpec, member: str, trial: int,
+                  agent: tuple[str, dict[str, Any]] | None = None) -> CampaignSpec:
+    """The campaign of one trial on one member: every adversary, or with ``agent`` (a run folder and the env
+    ``agent_env`` gave it) that trained agent alone, on the same scenes and seeds."""
     m = zoo_member(member)
     options = {**spec.options, **({"start": spec.start} if spec.start != "fixed" else {})}
-    return CampaignSpec(policies=spec.policies, map=m.map, scenes=spec.scenes, seed=spec.seed + trial,
-                        steps=member_steps(spec, member), env=env_settings(m), options=options, traffic=m.traffic)
+    run, env = agent if agent is not None else (None, env_settings(m))
+    return CampaignSpec(policies=spec.policies if run is None else ("agent",), map=m.map, scenes=spec.scenes,
+                        seed=spec.seed + trial, steps=member_steps(spec, member), agent=run, env=env, options=options,
+                        traffic=m.traffic)
 
 
 def campaign_folder(out: Path, member: str, trial: int) -> Path:
@@ -153,13 +156,15 @@ def agent_env(member: str, run: str) -> dict[str, Any]:
     """The env a trained agent plays ``member`` under: the member's, with what the agent observes taken from its
     run. A run trained on another system, other knobs or other dynamics is refused, naming the field: its
     figures would be reported as the member's."""
+    from genesis_rl.env.genesis_env import EnvConfig
     from genesis_rl.evaluation.campaign_spec import env_settings_for
     from genesis_rl.odd.domain import load_odd
 
     m = zoo_member(member)
     trained = env_settings_for(run, None, None)
     wanted = env_settings(m)
-    defaults: dict[str, Any] = {"system": "builtin", "system_kwargs": {}, "knobs": PAPER_KNOBS, "dynamics": "paper"}
+    defaults = {f.name: f.default if f.default is not MISSING else f.default_factory()  # type: ignore[operator]
+                for f in fields(EnvConfig) if f.name in AGENT_MATCH_KEYS}
     for key in AGENT_MATCH_KEYS:
         have, want = trained.get(key, defaults[key]), wanted.get(key, defaults[key])
         if key == "knobs":
@@ -173,16 +178,6 @@ def agent_env(member: str, run: str) -> dict[str, Any]:
                              f"plays inside '{m.odd}': train it inside the member's ODD")
     return {**wanted, **{k: trained[k] for k in AGENT_OBSERVATION_KEYS if k in trained},
             "terminate_on_collision": False}
-
-
-def agent_campaign_spec(spec: BenchmarkSpec, member: str, trial: int, run: str) -> CampaignSpec:
-    """The campaign of one trained agent in one trial on one member: the trial's scenes and seeds (the same
-    seed as the adversaries' campaign), the policy ``agent``."""
-    m = zoo_member(member)
-    options = {**spec.options, **({"start": spec.start} if spec.start != "fixed" else {})}
-    return CampaignSpec(policies=("agent",), map=m.map, scenes=spec.scenes, seed=spec.seed + trial,
-                        steps=member_steps(spec, member), agent=str(run), env=agent_env(member, run),
-                        options=options, traffic=m.traffic)
 
 
 def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
@@ -232,9 +227,8 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
-    for member, runs in spec.agents.items():  # a run trained elsewhere is refused before the folder is touched
-        for agent_run in runs:
-            agent_env(member, agent_run)
+    # each agent's env, once: a run trained elsewhere is refused before the folder is touched
+    agent_envs = {(m, r): agent_env(m, r) for m, runs in spec.agents.items() for r in runs}
     with output_folder.claim(out, "benchmark", force, resume=resume):
         if resume:
             _check_same_spec(out, spec)
@@ -251,7 +245,7 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                 run_campaign_once(campaign_spec(spec, member, trial), campaign_folder(out, member, trial),
                                   workers=workers, executor=executor)
             else:
-                run_campaign_once(agent_campaign_spec(spec, member, trial, run),
+                run_campaign_once(campaign_spec(spec, member, trial, (run, agent_envs[member, run])),
                                   agent_campaign_folder(out, member, trial, run), workers=workers, executor=executor)
             bar.update()
         bar.close()
