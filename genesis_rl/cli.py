@@ -64,10 +64,12 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
                                                                  progress=not args.quiet)
         else:
             catalog = scenic_generator.lite_catalog(args.map, count, args.seed, progress=not args.quiet)
+    elif args.traffic != "mixed":  # lite's builtin generator alone makes it (refused above otherwise)
+        from genesis_rl.lite.scenes import generate_catalog
+
+        catalog = generate_catalog(args.map, count, args.seed, progress=not args.quiet, traffic=args.traffic)
     else:
-        catalog = catalog_or_generate(None, args.map, count, args.seed, progress=not args.quiet, backend=args.backend,
-                                      traffic=args.traffic) if args.traffic != "mixed" else \
-            source.generate(args.map, count, args.seed, settings_from_args(args), progress=not args.quiet)
+        catalog = source.generate(args.map, count, args.seed, settings_from_args(args), progress=not args.quiet)
     out.write_json(catalog.to_json())
     backend = {} if catalog.backend == "lite" else {"backend": catalog.backend}  # lite's line as it always was
     print(json.dumps({"out": str(out), "map": args.map, **backend, "scenes": count, "seed": args.seed,
