@@ -271,3 +271,40 @@ def test_schedule_files_as_spreadsheets_write_them(tmp_path) -> None:
     latin.write_bytes("step,fog_density\n0,1\xe9\n".encode("latin-1"))
     with pytest.raises(UserInputError, match="is not UTF-8 text"):
         load_schedule(latin, base, 1)
+
+
+class _FixedRoute:
+    """A route on given points: just what ``PolylineRoute.curvature_ahead`` reads."""
+
+    def __init__(self, xy: np.ndarray) -> None:
+        self.xy, self.index = xy, 0
+
+
+def _arc(radius: float, length: float, vertex_every: float) -> np.ndarray:
+    """Points every DS metres along a circular arc drawn as a polyline with a vertex every ``vertex_every`` m
+    (0: the arc itself), as lite's highway lanes are."""
+    from genesis_rl.lite.maps.lane_graph import DS
+
+    s = np.arange(0.0, length, DS)
+    knots = np.arange(0.0, length + vertex_every, vertex_every) if vertex_every else s
+    kx, ky = radius * np.sin(knots / radius), radius * (1 - np.cos(knots / radius))
+    return np.column_stack([np.interp(s, knots, kx), np.interp(s, knots, ky)])
+
+
+@pytest.mark.parametrize("vertex_every", [0.0, 2.0, 8.0])
+def test_bend_curvature_is_the_roads_not_its_polyline_vertices(vertex_every) -> None:
+    """The controller slows for bends by the curvature ahead. A 100 m bend drawn with a vertex every 8 m read
+    as a 28 m one before 0.18 (the per-sample heading change smoothed over 2 m), slowing the highway profile
+    to 11 m/s on a 25 m/s main line; now it reads within 15 % of 1/100, a smooth arc exactly, and a city
+    corner (12 m radius between straights) within 10 %, so the ego still slows for it."""
+    from genesis_rl.system.route import PolylineRoute
+
+    route = _FixedRoute(_arc(100.0, 200.0, vertex_every))
+    kappa = PolylineRoute.curvature_ahead(route, 150.0)  # type: ignore[arg-type]
+    assert kappa == pytest.approx(0.01, rel=0.15 if vertex_every else 0.01)
+    run_up = np.column_stack([np.arange(-30.0, 0.0, 0.5), np.zeros(60)])
+    run_out = np.column_stack([np.full(60, 12.0), 12.0 + np.arange(0.5, 30.5, 0.5)])  # the arc ends at (12, 12), heading +y
+    corner = np.vstack([run_up, _arc(12.0, 12.0 * math.pi / 2, vertex_every), run_out])
+    assert 1.0 / PolylineRoute.curvature_ahead(_FixedRoute(corner), 80.0) == pytest.approx(12.0, rel=0.1)  # type: ignore[arg-type]
+    straight = _FixedRoute(np.column_stack([np.arange(0.0, 200.0, 0.5), np.zeros(400)]))
+    assert PolylineRoute.curvature_ahead(straight, 150.0) == 0.0  # type: ignore[arg-type]

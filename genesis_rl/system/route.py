@@ -18,6 +18,7 @@ import numpy as np
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 
 PLAN_AHEAD = 160.0  # keep at least this much route ahead [m]
+CURVATURE_CHORD = 20.0  # the length of road a bend's curvature is measured over [m]
 SEARCH_BACK, SEARCH_AHEAD = 20, 80  # projection window around the last index [samples]
 
 
@@ -68,17 +69,25 @@ class PolylineRoute(abc.ABC):
         return float(np.arctan2(d[1], d[0]))
 
     def curvature_ahead(self, dist: float) -> float:
-        """Largest absolute curvature [1/m] on the next ``dist`` metres (heading change per metre)."""
+        """Largest absolute curvature [1/m] on the next ``dist`` metres: the heading change per metre, averaged
+        with triangular weights over a :data:`CURVATURE_CHORD` of road.
+
+        Why so wide: a lane polyline turns at its vertices, not between them. Until 0.18 this was the heading
+        change per sample smoothed over 2 m, which read the highway's vertices as bends 3.6x tighter than
+        they are (radius ~25 m where the road's is 80-110 m), and the controller slowed from 25 m/s to 11 m/s
+        on a clear main line. The triangle spreads vertices a few metres apart evenly (a plain 20 m window
+        reads 1.2x too much when it holds three of them); on a smooth arc both give 1/radius."""
         i0 = self.index
         i1 = min(i0 + int(dist / DS), len(self.xy) - 2)
         if i1 - i0 < 4:
             return 0.0
         d = np.diff(self.xy[i0 : i1 + 2], axis=0)
-        h = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-        k = np.abs(np.diff(h)) / DS
-        # smooth over 2 m so that sample noise does not read as a bend
-        w = max(int(2.0 / DS), 1)
-        return float(np.max(np.convolve(k, np.ones(w) / w, mode="valid"))) if len(k) >= w else float(np.max(k))
+        turn = np.diff(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))  # heading change per sample [rad]
+        half = max(int(CURVATURE_CHORD / (2 * DS)), 1)
+        weights = np.concatenate([np.arange(1, half + 1), np.arange(half - 1, 0, -1)]).astype(np.float64)
+        if len(turn) < len(weights):  # less road ahead than a chord: its whole heading change over its length
+            return float(abs(turn.sum()) / (len(turn) * DS))
+        return float(np.max(np.abs(np.convolve(turn, weights / weights.sum(), mode="valid"))) / DS)
 
     def frame_of(self, points: np.ndarray, max_ahead: float) -> tuple[np.ndarray, np.ndarray]:
         """For world points (M, 2): arc length ahead of the ego along the route and signed lateral offset
