@@ -86,7 +86,9 @@ def in_region(member: ZooMember, knob: str, value: float) -> bool | None:
 def start_weather(member: ZooMember, knob: str, value: float) -> str:
     """The member's start weather with ``knob`` at ``value`` (``EnvConfig.start_weather`` text)."""
     base = str(member.env.get("start_weather", "clear_noon"))
-    return f"{base},{knob}={value:g}"
+    # the swept knob replaces the member's own start value for it (fog_braking starts in mist: fog_density=26)
+    kept = [part for part in base.split(",") if part.split("=", 1)[0].strip() != knob]
+    return ",".join([*kept, f"{knob}={value:g}"]) if kept else f"clear_noon,{knob}={value:g}"
 
 
 def value_folder(out: Path, index: int) -> Path:

@@ -88,6 +88,8 @@ class FollowingController:
         self._dt = 0.05
         self._signal_offset = 0.0
         self.status = "cruise"
+        #: a cruise-speed cap a system sets from what it perceives (e.g. the visibility), in m/s; inf: none
+        self.speed_cap = math.inf
 
     def reset(self, route: PolylineRoute, dt: float, signal_time_offset: float) -> None:
         self.route = route
@@ -161,7 +163,7 @@ class FollowingController:
         steer = float(np.clip(-delta / math.radians(c.max_steer_deg), -1.0, 1.0))  # CARLA: + steers right
 
         # cruise speed: capped, under the limit, slowed for the sharpest bend within braking reach
-        v0 = min(c.max_speed, route.speed_limit() - c.speed_limit_margin)
+        v0 = min(c.max_speed, route.speed_limit() - c.speed_limit_margin, self.speed_cap)
         kappa = route.curvature_ahead(max(10.0, v * v / (2 * c.comfort_decel) + 5.0))
         if kappa > 1e-3:
             v0 = min(v0, math.sqrt(c.max_lateral_accel / kappa))

@@ -96,9 +96,10 @@ BUILTIN_SYSTEMS = {
     "yolo": "genesis_rl.system.yolo_adapter:YoloSystem",
     "coco": "genesis_rl.system.coco:CocoSystem",
     "latency": "genesis_rl.system.latency:LatencySystem",
+    "adaptive": "genesis_rl.system.adaptive:AdaptiveSystem",
 }
 #: built-in systems that read a weights file (or, for coco, a model folder) given by --weights
-WEIGHTED_SYSTEMS = ("builtin", "yolo", "coco", "latency")
+WEIGHTED_SYSTEMS = ("builtin", "yolo", "coco", "latency", "adaptive")
 
 
 def load_system(spec: str, **kwargs: Any) -> SystemUnderTest:

@@ -142,9 +142,43 @@ _BUILTIN_BRAKING = ZooMember(
     env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256},
 )
 
+#: how long fog_braking's visibility estimate takes to follow the fog (its planted weakness) and the control's [s]
+SLOW_VISIBILITY_S, QUICK_VISIBILITY_S = 12.0, 0.5
+#: where the fog-braking pair's episodes start: mist at about 150 m of visibility, inside highway_fog_braking
+FOG_BRAKING_START = "fog_density=26"
+
+_FOG_BRAKING = ZooMember(
+    name="fog_braking", kind="weakness", system="adaptive",
+    system_kwargs={"smoothing_s": SLOW_VISIBILITY_S, "controller": dict(HIGHWAY_PROFILE)},
+    odd="highway_fog_braking.toml", map="highway", traffic="free_flow",
+    summary=("A competent controller: the built-in detector at the highway profile behind a controller that "
+             "estimates the visibility from its camera and slows so that it can stop within the distance its "
+             "detector sees, in free-flowing motorway traffic by day, in fog down to 50 m (highway_fog_braking). "
+             "Constant fog makes it careful. Its estimate follows the fog over "
+             f"{SLOW_VISIBILITY_S:g} s, so when the fog thickens and the lead brakes a second or more later, it is "
+             "still too fast for what it can see. A timing weakness of two events in order: fog and braking "
+             "together, or either alone, find nothing."),
+    trigger=TriggerRegion((Bound("lead_decel", 4.0, 8.0), Bound("visibility_m", 50.0, 100.0))),
+    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256,
+         "start_weather": FOG_BRAKING_START},
+)
+
+_ADAPTIVE_BRAKING = ZooMember(
+    name="adaptive_braking", kind="control", system="adaptive",
+    system_kwargs={"smoothing_s": QUICK_VISIBILITY_S, "controller": dict(HIGHWAY_PROFILE)},
+    odd="highway_fog_braking.toml", map="highway", traffic="free_flow",
+    summary=(f"fog_braking's system with an estimate that follows the fog within {QUICK_VISIBILITY_S:g} s: it slows "
+             "as the fog thickens, so a lead braking at 6 m/s^2 in the thickening fog appears in time; the control "
+             "of the fog-braking timing pair."),
+    trigger=EMPTY,
+    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256,
+         "start_weather": FOG_BRAKING_START},
+)
+
 #: every member by name
-ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _LATENCY_BRAKING, _BUILTIN_HIGHWAY,
-                                                 _ORACLE_HIGHWAY, _BUILTIN_BRAKING)}
+ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _LATENCY_BRAKING, _FOG_BRAKING,
+                                                 _BUILTIN_HIGHWAY, _ORACLE_HIGHWAY, _BUILTIN_BRAKING,
+                                                 _ADAPTIVE_BRAKING)}
 
 
 def zoo_member(name: str) -> ZooMember:
