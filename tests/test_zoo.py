@@ -35,11 +35,16 @@ def _seen(visibilities: list[float]) -> list[StepRecord]:
 
 
 def test_registry_names_kinds_and_regions() -> None:
-    assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "builtin_highway", "oracle_highway",
-                         "builtin_braking"]
+    assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "fog_braking", "builtin_highway",
+                         "oracle_highway", "builtin_braking", "adaptive_braking"]
     assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "low_sun_highway": "weakness",
-                                                    "latency_braking": "weakness", "builtin_highway": "control",
-                                                    "oracle_highway": "control", "builtin_braking": "control"}
+                                                    "latency_braking": "weakness", "fog_braking": "weakness",
+                                                    "builtin_highway": "control", "oracle_highway": "control",
+                                                    "builtin_braking": "control", "adaptive_braking": "control"}
+    assert zoo_member("fog_braking").trigger.describe() == "4 <= lead_decel < 8 m/s^2 and 50 <= visibility_m < 100 m"
+    # the timing pair differs in the estimate's smoothing alone
+    weak, control = zoo_member("fog_braking"), zoo_member("adaptive_braking")
+    assert {**weak.system_kwargs, "smoothing_s": 0.5} == dict(control.system_kwargs) and weak.env == control.env
     for name in ("low_sun", "low_sun_highway"):
         assert zoo_member(name).trigger.describe() == "0 <= sun_altitude_angle < 15 deg"
     for name in ("builtin_highway", "oracle_highway"):
@@ -49,7 +54,8 @@ def test_registry_names_kinds_and_regions() -> None:
 
 def test_unknown_member_is_refused_naming_the_members() -> None:
     with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, low_sun_highway, "
-                                             "latency_braking, builtin_highway, oracle_highway, builtin_braking"):
+                                             "latency_braking, fog_braking, builtin_highway, oracle_highway, "
+                                             "builtin_braking, adaptive_braking"):
         zoo_member("nope")
 
 
@@ -67,7 +73,8 @@ def test_env_settings_make_a_valid_env_inside_the_members_odd(name: str) -> None
 def test_every_shipped_odd_loads_and_is_package_data() -> None:
     model = conditions_model("lite")
     shipped = sorted(p.name for p in ODD_DIR.glob("*.toml"))
-    assert shipped == ["highway_braking.toml", "highway_day.toml", "highway_high_sun.toml", "urban_day.toml"]
+    assert shipped == ["highway_braking.toml", "highway_day.toml", "highway_fog_braking.toml", "highway_high_sun.toml",
+                       "urban_day.toml"]
     assert {m.odd for m in ZOO.values()} == set(shipped)
     for name in shipped:
         load_odd(ODD_DIR / name, model)
@@ -84,6 +91,11 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
     assert {k: v for k, v in braking.items() if k not in ("name", "description")} == \
         {k: v for k, v in load_odd(ODD_DIR / "highway_high_sun.toml").describe().items()
          if k not in ("name", "description")}
+    fog = load_odd(ODD_DIR / "highway_fog_braking.toml").describe()  # the fog pair's: highway_braking down to 50 m
+    assert fog.pop("visibility")["min"] == 50.0
+    assert {k: v for k, v in fog.items() if k not in ("name", "description")} == \
+        {k: v for k, v in load_odd(ODD_DIR / "highway_braking.toml").describe().items()
+         if k not in ("name", "description", "visibility")}
     globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["genesis_rl"]
     assert "zoo/odd/*.toml" in globs
 

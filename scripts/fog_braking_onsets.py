@@ -1,0 +1,64 @@
+"""fog_braking's ground truth, which a one-knob sweep cannot show: the order of two events.
+
+For each onset, every scene is driven with the fog thickening from the member's start at its natural rate
+(4 %/s, from ~150 m toward 50 m of visibility) from the first step and the lead's braking demand rising at its
+natural rate (4 m/s^2 a second) to 6 m/s^2 from the onset; ``--held`` holds the fog at 50 m from the first step
+instead. Prints the collisions per onset. docs/zoo.md gives the table this printed.
+
+    .venv/bin/python scripts/fog_braking_onsets.py fog_braking --onsets 0,1,2,4 --scenes 8
+    .venv/bin/python scripts/fog_braking_onsets.py adaptive_braking --onsets 1,2,4 --scenes 8
+    .venv/bin/python scripts/fog_braking_onsets.py fog_braking --onsets 0 --held --scenes 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from genesis_rl.drive import run_episode
+from genesis_rl.knobs import parse_weather
+from genesis_rl.lite.backend import LiteBackend
+from genesis_rl.lite.scenes import generate_catalog
+from genesis_rl.system.protocol import load_system
+from genesis_rl.zoo import zoo_member
+
+FOG_AT_50_M = 57.0  # lite's fog_density for 50 m of visibility (genesis_rl.lite.render.lighting)
+RAIN_MODERATE = 50.0  # precipitation at 7.6 mm/h, the domain's most (genesis_rl.odd.dynamics)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("member", choices=("fog_braking", "adaptive_braking"))
+    parser.add_argument("--onsets", default="0,1,2,4", help="seconds after the fog begins that the lead brakes")
+    parser.add_argument("--scenes", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=256)
+    parser.add_argument("--held", action="store_true", help="fog held at 50 m from the first step")
+    parser.add_argument("--rain", action="store_true",
+                        help="rain setting in with the fog at its natural rate (2 %%/s), as the constant schedule's does")
+    args = parser.parse_args()
+    member = zoo_member(args.member)
+    base = parse_weather(str(member.env["start_weather"]))
+    fog0 = FOG_AT_50_M if args.held else base.values["fog_density"]
+    catalog = generate_catalog("highway", args.scenes, 0, traffic=member.traffic)
+    with LiteBackend() as backend:
+        for onset in (float(v) for v in args.onsets.split(",")):
+            def weather(step: int, onset: float = onset):  # noqa: ANN202
+                t = step * 0.05
+                rain = min(RAIN_MODERATE, 2.0 * t) if args.rain else base.values["precipitation"]
+                return base.replace(fog_density=min(FOG_AT_50_M, fog0 + 4.0 * t), precipitation=rain,
+                                    lead_decel=min(6.0, max(0.0, 4.0 * (t - onset))))
+            t0, hits = time.monotonic(), []
+            for i in range(args.scenes):
+                system = load_system(member.system, **member.system_kwargs)
+                result = run_episode(backend, catalog.scene(i), system, weather, args.steps, seed=i,
+                                     stop_on_collision=True)
+                first = next((r.step for r in result.records if r.collision.collided), None)
+                hits.append(first)
+            failed = sum(h is not None for h in hits)
+            print(f"{args.member} {'fog held at 50 m' if args.held else 'fog thickening'}{' with rain' if args.rain else ''}, lead braking from "
+                  f"{onset:g} s: {failed}/{args.scenes} collided, first steps {hits} "
+                  f"({time.monotonic() - t0:.0f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
