@@ -34,7 +34,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=256)
     parser.add_argument("--held", action="store_true", help="fog held at 50 m from the first step")
     parser.add_argument("--rain", action="store_true",
-                        help="rain setting in with the fog at its natural rate (2 %%/s), as the constant schedule's does")
+                        help="rain setting in with the fog at its natural rate (2 %%/s), as a constant schedule's")
     args = parser.parse_args()
     member = zoo_member(args.member)
     base = parse_weather(str(member.env["start_weather"]))
@@ -55,7 +55,8 @@ def main() -> None:
                 first = next((r.step for r in result.records if r.collision.collided), None)
                 hits.append(first)
             failed = sum(h is not None for h in hits)
-            print(f"{args.member} {'fog held at 50 m' if args.held else 'fog thickening'}{' with rain' if args.rain else ''}, lead braking from "
+            fog = ("fog held at 50 m" if args.held else "fog thickening") + (" with rain" if args.rain else "")
+            print(f"{args.member} {fog}, lead braking from "
                   f"{onset:g} s: {failed}/{args.scenes} collided, first steps {hits} "
                   f"({time.monotonic() - t0:.0f} s)", flush=True)
 

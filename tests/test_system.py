@@ -303,7 +303,8 @@ def test_bend_curvature_is_the_roads_not_its_polyline_vertices(vertex_every) -> 
     kappa = PolylineRoute.curvature_ahead(route, 150.0)  # type: ignore[arg-type]
     assert kappa == pytest.approx(0.01, rel=0.15 if vertex_every else 0.01)
     run_up = np.column_stack([np.arange(-30.0, 0.0, 0.5), np.zeros(60)])
-    run_out = np.column_stack([np.full(60, 12.0), 12.0 + np.arange(0.5, 30.5, 0.5)])  # the arc ends at (12, 12), heading +y
+    # the arc ends at (12, 12), heading +y
+    run_out = np.column_stack([np.full(60, 12.0), 12.0 + np.arange(0.5, 30.5, 0.5)])
     corner = np.vstack([run_up, _arc(12.0, 12.0 * math.pi / 2, vertex_every), run_out])
     assert 1.0 / PolylineRoute.curvature_ahead(_FixedRoute(corner), 80.0) == pytest.approx(12.0, rel=0.1)  # type: ignore[arg-type]
     straight = _FixedRoute(np.column_stack([np.arange(0.0, 200.0, 0.5), np.zeros(400)]))

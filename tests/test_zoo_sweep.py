@@ -124,7 +124,8 @@ def _fog_then_brake(start: str, brake_at_s: float):  # noqa: ANN202
 
     def weather(step: int):  # noqa: ANN202
         t = step * 0.05
-        return base.replace(fog_density=min(57.0, fog0 + 4.0 * t), lead_decel=min(6.0, max(0.0, 4.0 * (t - brake_at_s))))
+        return base.replace(fog_density=min(57.0, fog0 + 4.0 * t),
+                            lead_decel=min(6.0, max(0.0, 4.0 * (t - brake_at_s))))
     return weather
 
 

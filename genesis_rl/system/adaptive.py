@@ -5,10 +5,12 @@ Each frame it estimates the visibility from its camera (:mod:`genesis_rl.system.
 speed so that it can stop within the distance at which its detector still finds a car, a fraction of that
 visibility: ``v t_r + v^2 / (2 b) <= sight_fraction x visibility``. The default fraction, 0.3 of the estimate
 (about 0.2 of the true visibility, the estimator reading low), is where the built-in detector still finds a
-lead on lite's highway (docs/zoo.md: at 50 m of visibility it finds 85 % of leads within 10 m, 9 % at 10-20 m). In steady fog it is careful, so a lead that
-brakes hard appears in time. The estimate is smoothed over ``smoothing_s`` (in log space, as a real estimator
-damps its flicker): when fog thickens quickly, the speed follows seconds late, and a lead braking in that
-window appears too close. The smoothing is the planted weakness; ``smoothing_s`` near zero is its control.
+lead on lite's highway (docs/zoo.md: at 50 m of visibility it finds 85 % of leads within 10 m, 9 % at
+10-20 m). In steady fog it is careful, so a lead that brakes hard appears in time.
+
+The estimate is smoothed over ``smoothing_s`` (in log space, as a real estimator damps its flicker): when fog
+thickens quickly, the speed follows seconds late, and a lead braking in that window appears too close. The
+smoothing is the planted weakness of the ``fog_braking`` zoo member; its control smooths over 0.5 s.
 """
 
 from __future__ import annotations
@@ -62,7 +64,8 @@ class AdaptiveSystem(BuiltinSystem):
             self.visibility_m, self._started = seen, True
             return
         alpha = 1.0 if self.smoothing_s <= 0.0 else 1.0 - math.exp(-self._dt / self.smoothing_s)
-        self.visibility_m = math.exp(math.log(self.visibility_m) + alpha * (math.log(seen) - math.log(self.visibility_m)))
+        log_now = math.log(self.visibility_m)
+        self.visibility_m = math.exp(log_now + alpha * (math.log(seen) - log_now))
 
     def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
         self._update_visibility(frame)
