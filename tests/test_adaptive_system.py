@@ -54,6 +54,8 @@ def test_the_estimate_follows_the_fog_over_its_smoothing() -> None:
     from genesis_rl.system.adaptive import AdaptiveSystem
 
     class _Context:
+        dt = 0.05
+
         class camera:  # noqa: N801
             max_range = 200.0
 

@@ -45,12 +45,10 @@ class AdaptiveSystem(BuiltinSystem):
         self.reaction_s = float(ranges.number(reaction_s, "system reaction_s", 0.0, 5.0, "s"))
         self.decel = float(ranges.number(decel, "system decel", 0.5, 10.0, "m/s^2"))
         self.visibility_m = CLEAR_AIR_M  # the smoothed estimate
-        self._dt = 0.05
         self._started = False
 
     def reset(self, context: EpisodeContext) -> None:
         super().reset(context)
-        self._dt = context.dt
         self._started = False
         self.visibility_m = CLEAR_AIR_M
         self.controller.speed_cap = math.inf
@@ -63,7 +61,7 @@ class AdaptiveSystem(BuiltinSystem):
         if not self._started:  # the estimator ran before the scene began: it starts settled
             self.visibility_m, self._started = seen, True
             return
-        alpha = 1.0 if self.smoothing_s <= 0.0 else 1.0 - math.exp(-self._dt / self.smoothing_s)
+        alpha = 1.0 if self.smoothing_s <= 0.0 else 1.0 - math.exp(-self.context.dt / self.smoothing_s)
         log_now = math.log(self.visibility_m)
         self.visibility_m = math.exp(log_now + alpha * (math.log(seen) - log_now))
 

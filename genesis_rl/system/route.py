@@ -19,6 +19,10 @@ from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 
 PLAN_AHEAD = 160.0  # keep at least this much route ahead [m]
 CURVATURE_CHORD = 20.0  # the length of road a bend's curvature is measured over [m]
+_HALF_CHORD = max(int(CURVATURE_CHORD / (2 * DS)), 1)
+#: triangular weights over a chord of samples, summing to 1 (curvature_ahead runs every control step)
+_CHORD_WEIGHTS = np.concatenate([np.arange(1, _HALF_CHORD + 1), np.arange(_HALF_CHORD - 1, 0, -1)]).astype(np.float64)
+_CHORD_WEIGHTS /= _CHORD_WEIGHTS.sum()
 SEARCH_BACK, SEARCH_AHEAD = 20, 80  # projection window around the last index [samples]
 
 
@@ -83,11 +87,9 @@ class PolylineRoute(abc.ABC):
             return 0.0
         d = np.diff(self.xy[i0 : i1 + 2], axis=0)
         turn = np.diff(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))  # heading change per sample [rad]
-        half = max(int(CURVATURE_CHORD / (2 * DS)), 1)
-        weights = np.concatenate([np.arange(1, half + 1), np.arange(half - 1, 0, -1)]).astype(np.float64)
-        if len(turn) < len(weights):  # less road ahead than a chord: its whole heading change over its length
+        if len(turn) < len(_CHORD_WEIGHTS):  # less road ahead than a chord: its heading change over its length
             return float(abs(turn.sum()) / (len(turn) * DS))
-        return float(np.max(np.abs(np.convolve(turn, weights / weights.sum(), mode="valid"))) / DS)
+        return float(np.max(np.abs(np.convolve(turn, _CHORD_WEIGHTS, mode="valid"))) / DS)
 
     def frame_of(self, points: np.ndarray, max_ahead: float) -> tuple[np.ndarray, np.ndarray]:
         """For world points (M, 2): arc length ahead of the ego along the route and signed lateral offset

@@ -51,4 +51,4 @@ def estimate_visibility(rgb: np.ndarray, depth: np.ndarray, max_range: float) ->
     if len(centres) < 3:
         return None
     beta = -float(np.polyfit(centres, log_dev, 1)[0])
-    return float(min(KOSCHMIEDER / beta, CLEAR_AIR_M)) if beta > KOSCHMIEDER / CLEAR_AIR_M else CLEAR_AIR_M
+    return KOSCHMIEDER / beta if beta > KOSCHMIEDER / CLEAR_AIR_M else CLEAR_AIR_M
