@@ -16,14 +16,11 @@ import argparse
 import time
 
 from genesis_rl.drive import run_episode
-from genesis_rl.knobs import parse_weather
 from genesis_rl.lite.backend import LiteBackend
 from genesis_rl.lite.scenes import generate_catalog
 from genesis_rl.system.protocol import load_system
 from genesis_rl.zoo import zoo_member
-
-FOG_AT_50_M = 57.0  # lite's fog_density for 50 m of visibility (genesis_rl.lite.render.lighting)
-RAIN_MODERATE = 50.0  # precipitation at 7.6 mm/h, the domain's most (genesis_rl.odd.dynamics)
+from genesis_rl.zoo.timing import fog_then_brake
 
 
 def main() -> None:
@@ -37,16 +34,10 @@ def main() -> None:
                         help="rain setting in with the fog at its natural rate (2 %%/s), as a constant schedule's")
     args = parser.parse_args()
     member = zoo_member(args.member)
-    base = parse_weather(str(member.env["start_weather"]))
-    fog0 = FOG_AT_50_M if args.held else base.values["fog_density"]
     catalog = generate_catalog("highway", args.scenes, 0, traffic=member.traffic)
     with LiteBackend() as backend:
         for onset in (float(v) for v in args.onsets.split(",")):
-            def weather(step: int, onset: float = onset):  # noqa: ANN202
-                t = step * 0.05
-                rain = min(RAIN_MODERATE, 2.0 * t) if args.rain else base.values["precipitation"]
-                return base.replace(fog_density=min(FOG_AT_50_M, fog0 + 4.0 * t), precipitation=rain,
-                                    lead_decel=min(6.0, max(0.0, 4.0 * (t - onset))))
+            weather = fog_then_brake(str(member.env["start_weather"]), onset, 0.05, held=args.held, rain=args.rain)
             t0, hits = time.monotonic(), []
             for i in range(args.scenes):
                 system = load_system(member.system, **member.system_kwargs)

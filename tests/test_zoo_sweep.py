@@ -113,22 +113,6 @@ def test_the_timing_control_brakes_in_time_where_the_slow_pipeline_does_not(tmp_
         [(None, True, 8, 0)]
 
 
-def _fog_then_brake(start: str, brake_at_s: float):  # noqa: ANN202
-    """The fog thickening from the member's start at its natural rate (4 %/s: from ~150 m to 50 m of visibility
-    in 7.75 s) from the first step, and the lead's braking demand rising at its natural rate (4 m/s^2 a second)
-    to the domain's 6 m/s^2 from ``brake_at_s``: what an adversary that waits for the fog does."""
-    from genesis_rl.knobs import parse_weather
-
-    base = parse_weather(start)
-    fog0 = base.values["fog_density"]
-
-    def weather(step: int):  # noqa: ANN202
-        t = step * 0.05
-        return base.replace(fog_density=min(57.0, fog0 + 4.0 * t),
-                            lead_decel=min(6.0, max(0.0, 4.0 * (t - brake_at_s))))
-    return weather
-
-
 @pytest.mark.render
 @pytest.mark.parametrize(("member", "brake_at_s", "failed"), [
     ("fog_braking", 1.0, 4),  # the lead brakes a second after the fog begins: 4 of 6 (steps 147-183)
@@ -144,10 +128,11 @@ def test_fog_braking_fails_when_the_lead_brakes_after_the_fog_thickens(member, b
     from genesis_rl.lite.backend import LiteBackend
     from genesis_rl.lite.scenes import generate_catalog
     from genesis_rl.system.protocol import load_system
+    from genesis_rl.zoo.timing import fog_then_brake
 
     m = zoo_member(member)
     catalog = generate_catalog("highway", 6, 0, traffic=m.traffic)
-    weather = _fog_then_brake(str(m.env["start_weather"]), brake_at_s)
+    weather = fog_then_brake(str(m.env["start_weather"]), brake_at_s, 0.05)
     collided = []
     with LiteBackend() as backend:
         for i in range(6):
