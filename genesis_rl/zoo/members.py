@@ -115,6 +115,8 @@ HIGHWAY_PROFILE: Mapping[str, float] = {"max_speed": 25.0, "perception_range": 1
 #: the timing members' knobs: the paper's weather knobs and the lead's braking demand, one action space
 _WEATHER_AND_BRAKING = ("fog_density", "precipitation", "precipitation_deposits", "sun_altitude_angle",
                         "sun_azimuth_angle", "lead_decel")
+#: the env of the timing members (both pairs): natural rates, weather and braking, 256-step episodes
+_TIMING_ENV: Mapping[str, Any] = {"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256}
 #: the latency of latency_braking's perception pipeline [s]
 PIPELINE_LATENCY_S = 1.5
 
@@ -129,7 +131,7 @@ _LATENCY_BRAKING = ZooMember(
              "controller acts on where it was 1.5 s before and brakes too late. A timing weakness: the trigger is "
              "an actor's event, not a weather corner."),
     trigger=TriggerRegion((Bound("lead_decel", 4.0, 8.0),)),
-    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256},
+    env=dict(_TIMING_ENV),
 )
 
 _BUILTIN_BRAKING = ZooMember(
@@ -139,7 +141,7 @@ _BUILTIN_BRAKING = ZooMember(
              "free-flowing traffic and domain. It brakes in time for a lead braking at the domain's 6 m/s^2, so an "
              "adversary turning the weather and the lead's braking has nothing to find: the timing control."),
     trigger=EMPTY,
-    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256},
+    env=dict(_TIMING_ENV),
 )
 
 #: how long fog_braking's visibility estimate takes to follow the fog (its planted weakness) and the control's [s]
@@ -160,8 +162,7 @@ _FOG_BRAKING = ZooMember(
              "or either alone, found nothing, and braking a second or two after the fog began failed 5 of 8; a "
              "constant schedule still triggers it at the domain's 50 m floor on some scenes (docs/zoo.md)."),
     trigger=TriggerRegion((Bound("lead_decel", 4.0, 8.0), Bound("visibility_m", 50.0, 100.0))),
-    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256,
-         "start_weather": FOG_BRAKING_START},
+    env={**_TIMING_ENV, "start_weather": FOG_BRAKING_START},
 )
 
 _ADAPTIVE_BRAKING = ZooMember(
@@ -172,8 +173,7 @@ _ADAPTIVE_BRAKING = ZooMember(
              "as the fog thickens, so a lead braking at 6 m/s^2 in the thickening fog appears in time; the control "
              "of the fog-braking timing pair."),
     trigger=EMPTY,
-    env={"dynamics": "natural", "knobs": _WEATHER_AND_BRAKING, "episode_steps": 256,
-         "start_weather": FOG_BRAKING_START},
+    env={**_TIMING_ENV, "start_weather": FOG_BRAKING_START},
 )
 
 #: every member by name
