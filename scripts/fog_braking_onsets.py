@@ -23,10 +23,18 @@ from genesis_rl.zoo import zoo_member
 from genesis_rl.zoo.timing import fog_then_brake
 
 
+def _onsets(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}': give a comma list of seconds, e.g. 0,1,2,4") from None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("member", choices=("fog_braking", "adaptive_braking"))
-    parser.add_argument("--onsets", default="0,1,2,4", help="seconds after the fog begins that the lead brakes")
+    parser.add_argument("--onsets", type=_onsets, default="0,1,2,4",
+                        help="seconds after the fog begins that the lead brakes, a comma list")
     parser.add_argument("--scenes", type=int, default=8)
     parser.add_argument("--steps", type=int, default=256)
     parser.add_argument("--held", action="store_true", help="fog held at 50 m from the first step")
@@ -36,7 +44,7 @@ def main() -> None:
     member = zoo_member(args.member)
     catalog = generate_catalog("highway", args.scenes, 0, traffic=member.traffic)
     with LiteBackend() as backend:
-        for onset in (float(v) for v in args.onsets.split(",")):
+        for onset in args.onsets:
             weather = fog_then_brake(str(member.env["start_weather"]), onset, 0.05, held=args.held, rain=args.rain)
             t0, hits = time.monotonic(), []
             for i in range(args.scenes):
