@@ -17,6 +17,22 @@ def _values(text: str) -> tuple[float, ...]:
         raise UserInputError(f"--values '{text}': give a comma list of numbers, e.g. 0,5,10,14,20,40") from None
 
 
+def _hold(text: str | None) -> tuple[tuple[str, float], ...]:
+    """``--hold lead_decel=6,fog_density=51``: knob=value pairs held for every swept value."""
+    if not text:
+        return ()
+    pairs = []
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            pairs.append((key.strip(), float(value)))
+        except ValueError:
+            raise UserInputError(f"--hold '{text}': give knob=value pairs, e.g. lead_decel=6,fog_density=51") from None
+    return tuple(pairs)
+
+
 def print_members() -> None:
     """Every zoo member: name, kind, map, system, ODD, traffic (when not mixed), trigger region, summary
     (``zoo list`` and ``benchmark --list``)."""
@@ -44,7 +60,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     limits.WORKERS.check(args.workers, "--workers")
     limits.SCENES.check(args.scenes, "--scenes")
     spec = SweepSpec(member=args.member, knob=args.knob, values=_values(args.values), scenes=args.scenes,
-                     seed=args.seed, steps=args.steps)
+                     seed=args.seed, steps=args.steps, hold=_hold(args.hold))
     check_folder_output(args.out)
     table = run_sweep(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
                       progress=not args.quiet)
@@ -76,6 +92,9 @@ def add_zoo_command(subparsers: argparse._SubParsersAction) -> argparse.Argument
     sw.add_argument("member", help="zoo member (genesis-rl zoo list)")
     sw.add_argument("--knob", required=True, help="the knob to hold at each value, e.g. sun_altitude_angle")
     sw.add_argument("--values", required=True, help="comma list of values in the knob's unit, e.g. 2,5,10,14,20,40")
+    sw.add_argument("--hold", default=None,
+                    help="other knobs held at one value for every swept value, e.g. lead_decel=6 (a region over two "
+                         "knobs: sweep one, hold the other inside it)")
     sw.add_argument("--scenes", type=int, default=8, help="scenes (episodes) per value (default 8)")
     sw.add_argument("--seed", type=seed_int, default=0, help="campaign seed: which scenes and episode seeds")
     sw.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's own)")

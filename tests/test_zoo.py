@@ -35,18 +35,24 @@ def _seen(visibilities: list[float]) -> list[StepRecord]:
 
 
 def test_registry_names_kinds_and_regions() -> None:
-    assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "fog_braking", "builtin_highway",
-                         "oracle_highway", "builtin_braking", "adaptive_braking"]
+    assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "fog_braking", "highway_speed_fog",
+                         "coco_low_sun", "builtin_highway", "oracle_highway", "builtin_braking", "adaptive_braking"]
     assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "low_sun_highway": "weakness",
                                                     "latency_braking": "weakness", "fog_braking": "weakness",
+                                                    "highway_speed_fog": "weakness", "coco_low_sun": "weakness",
                                                     "builtin_highway": "control", "oracle_highway": "control",
                                                     "builtin_braking": "control", "adaptive_braking": "control"}
     assert zoo_member("fog_braking").trigger.describe() == "4 <= lead_decel < 8 m/s^2 and 50 <= visibility_m < 100 m"
     # the timing pair differs in the estimate's smoothing alone
     weak, control = zoo_member("fog_braking"), zoo_member("adaptive_braking")
     assert {**weak.system_kwargs, "smoothing_s": 0.5} == dict(control.system_kwargs) and weak.env == control.env
-    for name in ("low_sun", "low_sun_highway"):
+    # the highway profile in fog: fog_braking's domain, start and region, the built-in controller at the same speeds
+    fixed = zoo_member("highway_speed_fog")
+    assert (fixed.odd, fixed.env, fixed.trigger) == (weak.odd, weak.env, weak.trigger)
+    assert fixed.system == "builtin" and fixed.system_kwargs["controller"] == weak.system_kwargs["controller"]
+    for name in ("low_sun", "low_sun_highway", "coco_low_sun"):
         assert zoo_member(name).trigger.describe() == "0 <= sun_altitude_angle < 15 deg"
+    assert zoo_member("coco_low_sun").system == "coco" and zoo_member("coco_low_sun").odd == "highway_day.toml"
     for name in ("builtin_highway", "oracle_highway"):
         assert zoo_member(name).trigger.empty and zoo_member(name).map == "highway"
     assert (zoo_member("oracle_highway").system, zoo_member("builtin_highway").system) == ("oracle", "builtin")
@@ -54,7 +60,8 @@ def test_registry_names_kinds_and_regions() -> None:
 
 def test_unknown_member_is_refused_naming_the_members() -> None:
     with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, low_sun_highway, "
-                                             "latency_braking, fog_braking, builtin_highway, oracle_highway, "
+                                             "latency_braking, fog_braking, highway_speed_fog, coco_low_sun, "
+                                             "builtin_highway, oracle_highway, "
                                              "builtin_braking, adaptive_braking"):
         zoo_member("nope")
 

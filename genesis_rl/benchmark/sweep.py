@@ -42,6 +42,8 @@ class SweepSpec:
     scenes: int = 8
     seed: int = 0
     steps: int | None = None
+    #: other knobs held at one value for every swept value (a region over two knobs: sweep one, hold the other)
+    hold: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         zoo_member(self.member)
@@ -49,10 +51,17 @@ class SweepSpec:
             raise UserInputError(f"--knob = '{self.knob}' is unknown; allowed: {', '.join(KNOBS)}")
         if not self.values:
             raise UserInputError("--values: give at least one value")
-        spec = KNOBS[self.knob]
         for v in self.values:
-            if not (math.isfinite(v) and spec.low <= v <= spec.high):
-                raise UserInputError(f"--values: {v!r} is outside {self.knob}'s range [{spec.low:g}, {spec.high:g}]")
+            _check_value("--values", self.knob, v)
+        hold = tuple((str(k), float(v)) for k, v in self.hold)  # a spec read back from JSON holds lists
+        object.__setattr__(self, "hold", hold)
+        for k, v in hold:
+            if k not in KNOBS:
+                raise UserInputError(f"--hold: knob '{k}' is unknown; allowed: {', '.join(KNOBS)}")
+            _check_value("--hold", k, v)
+        held = [k for k, _ in hold]
+        if self.knob in held or len(set(held)) != len(held):
+            raise UserInputError(f"--hold: {held} names a knob twice or the swept knob '{self.knob}'")
         if len(set(self.values)) != len(self.values):
             raise UserInputError(f"--values: {list(self.values)} names a value twice")
         if self.scenes < 1 or self.seed < 0 or (self.steps is not None and self.steps < 1):
@@ -60,46 +69,59 @@ class SweepSpec:
                                  f"= {self.steps} >= 1 (or none: the member's own)")
 
     def to_json(self) -> dict[str, Any]:
-        return {"member": self.member, "knob": self.knob, "values": list(self.values), "scenes": self.scenes,
-                "seed": self.seed, "steps": self.steps}
+        out: dict[str, Any] = {"member": self.member, "knob": self.knob, "values": list(self.values),
+                               "scenes": self.scenes, "seed": self.seed, "steps": self.steps}
+        if self.hold:  # only when set, so that a sweep written before --hold existed still resumes
+            out["hold"] = [list(kv) for kv in self.hold]
+        return out
 
 
-def in_region(member: ZooMember, knob: str, value: float) -> bool | None:
-    """Whether ``value`` of ``knob`` lies inside the member's trigger region, judged on that knob's bounds and
-    on the region's condition bounds (``visibility_m``, ``rain_mm_h``), which are read off the member's start
-    weather with the knob at the value (lite's conditions model). None: the region bounds neither this knob
-    nor a condition, or the member is a control."""
-    own = [b for b in member.trigger.bounds if b.quantity == knob]
-    conditions = [b for b in member.trigger.bounds if b.quantity in CONDITION_UNITS]
-    if not own and not conditions:
+def _check_value(flag: str, knob: str, value: float) -> None:
+    spec = KNOBS[knob]
+    if not (math.isfinite(value) and spec.low <= value <= spec.high):
+        raise UserInputError(f"{flag}: {value!r} is outside {knob}'s range [{spec.low:g}, {spec.high:g}]")
+
+
+def in_region(member: ZooMember, knob: str, value: float, hold: Sequence[tuple[str, float]] = ()) -> bool | None:
+    """Whether the start with ``knob`` at ``value`` (and the ``hold`` knobs at theirs) lies inside the member's
+    trigger region: every bound judged on the whole start weather, knob bounds on its knobs and condition bounds
+    (``visibility_m``, ``rain_mm_h``) on lite's conditions model. None: the member is a control (no region)."""
+    if member.trigger.empty:
         return None
-    c = None
-    if conditions:
-        from genesis_rl.knobs import parse_weather
+    from genesis_rl.knobs import parse_weather
+
+    weather = parse_weather(start_weather(member, knob, value, hold))
+    conditions = None
+    if any(b.quantity in CONDITION_UNITS for b in member.trigger.bounds):
         from genesis_rl.odd.conditions import conditions_model
 
-        c = conditions_model("lite").conditions(parse_weather(start_weather(member, knob, value)), None)
-    return all(b.low <= value < b.high for b in own) and \
-        all(b.low <= float(getattr(c, b.quantity)) < b.high for b in conditions)
+        conditions = conditions_model("lite").conditions(weather, None)
+    knobs = weather.as_dict()
+    return all(b.low <= (float(getattr(conditions, b.quantity)) if b.quantity in CONDITION_UNITS
+                         else knobs[b.quantity]) < b.high for b in member.trigger.bounds)
 
 
-def start_weather(member: ZooMember, knob: str, value: float) -> str:
-    """The member's start weather with ``knob`` at ``value`` (``EnvConfig.start_weather`` text)."""
+def start_weather(member: ZooMember, knob: str, value: float, hold: Sequence[tuple[str, float]] = ()) -> str:
+    """The member's start weather with ``knob`` at ``value`` and the ``hold`` knobs at theirs
+    (``EnvConfig.start_weather`` text)."""
     base = str(member.env.get("start_weather", "clear_noon"))
-    # the swept knob replaces the member's own start value for it (fog_braking starts in mist: fog_density=26)
-    kept = [part for part in base.split(",") if part.split("=", 1)[0].strip() != knob]
-    return ",".join([*kept, f"{knob}={value:g}"]) if kept else f"clear_noon,{knob}={value:g}"
+    overrides = {**dict(hold), knob: value}
+    # the swept and held knobs replace the member's own start values (fog_braking starts in mist: fog_density=26)
+    kept = [part for part in base.split(",") if part.split("=", 1)[0].strip() not in overrides]
+    set_ = [f"{k}={v:g}" for k, v in overrides.items()]
+    return ",".join([*kept, *set_]) if kept else ",".join(["clear_noon", *set_])
 
 
 def value_folder(out: Path, index: int) -> Path:
     return Path(out) / "campaigns" / f"value_{index:02d}"
 
 
-def _inside_odd(odd: ODD, member: ZooMember, knob: str, value: float) -> bool:
+def _inside_odd(odd: ODD, member: ZooMember, knob: str, value: float,
+                hold: Sequence[tuple[str, float]] = ()) -> bool:
     from genesis_rl.knobs import parse_weather
     from genesis_rl.odd.conditions import conditions_model
 
-    weather = parse_weather(start_weather(member, knob, value))
+    weather = parse_weather(start_weather(member, knob, value, hold))
     return odd.contains(conditions_model("lite").conditions(weather, None), weather)
 
 
@@ -133,12 +155,12 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
         odd = load_odd(member.odd_path)
         rows: list[dict[str, Any]] = []
         for i, value in enumerate(tqdm(spec.values, desc=f"sweep {spec.knob}", unit="value", disable=not progress)):
-            row: dict[str, Any] = {"value": value, "in_region": in_region(member, spec.knob, value)}
-            if not _inside_odd(odd, member, spec.knob, value):
+            row: dict[str, Any] = {"value": value, "in_region": in_region(member, spec.knob, value, spec.hold)}
+            if not _inside_odd(odd, member, spec.knob, value, spec.hold):
                 rows.append({**row, "inside_odd": False})
                 continue
             folder = value_folder(out, i)
-            env = {**env_settings(member), "start_weather": start_weather(member, spec.knob, value)}
+            env = {**env_settings(member), "start_weather": start_weather(member, spec.knob, value, spec.hold)}
             run_campaign_once(CampaignSpec(policies=("sunny",), map=member.map, scenes=spec.scenes, seed=spec.seed,
                                            steps=steps, env=env, traffic=member.traffic), folder, workers=workers)
             m = falsifier_metrics(folder, member)["sunny"]
@@ -198,7 +220,8 @@ def plot_sweep(table: dict[str, Any], path: Path) -> None:
     ax.set_xlabel(f"{spec['knob']} [{unit}], held" if unit else f"{spec['knob']}, held")
     ax.set_ylabel("episodes with an in-ODD failure")
     ax.set_ylim(-0.03, 1.03)
-    ax.set_title(f"{spec['member']} ({member.kind}): {spec['scenes']} scenes a value, seed {spec['seed']}",
+    held = "".join(f", {k}={v:g} held" for k, v in spec.get("hold", ()))
+    ax.set_title(f"{spec['member']} ({member.kind}): {spec['scenes']} scenes a value, seed {spec['seed']}{held}",
                  fontsize=10)
     ax.legend(fontsize=8, loc="best", framealpha=0.9)
     ax.grid(alpha=0.3)
