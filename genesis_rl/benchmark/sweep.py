@@ -214,6 +214,11 @@ def plot_sweep(table: dict[str, Any], path: Path) -> None:
         hi_err = [r["ci95"][1] - r["rate"] for r in rows]
         ax.errorbar(xs, ys, yerr=[lo_err, hi_err], fmt="o-", color="#264653", capsize=3,
                     label="in-ODD failure rate (exact 95 % CI)")
+        inside = [r for r in rows if r["in_region"]]  # judged on the whole start: condition bounds included
+        if inside:
+            shaded = any(b.quantity == spec["knob"] for b in member.trigger.bounds)
+            ax.scatter([r["value"] for r in inside], [r["rate"] for r in inside], s=70, color="#e76f51", zorder=3,
+                       label="start inside the trigger region" + ("" if shaded else f": {member.trigger.describe()}"))
     for n, r in enumerate(r for r in table["rows"] if not r.get("inside_odd")):
         ax.axvline(r["value"], color="#999999", ls=":", lw=1, label="outside the ODD: not driven" if n == 0 else None)
     unit = KNOBS[spec["knob"]].unit
