@@ -65,14 +65,17 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     table = run_sweep(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
                       progress=not args.quiet)
     for r in table["rows"]:
-        where = {True: "in the region", False: "outside the region", None: "no region"}[r["in_region"]]
+        undecided = "no region" if table["member_kind"] == "control" else "the region decided per step"
+        where = {True: "in the region", False: "outside the region", None: undecided}[r["in_region"]]
         if not r["inside_odd"]:
             print(f"{spec.knob} = {r['value']:g}: outside the member's ODD, not driven")
             continue
         lo, hi = r["ci95"]
+        reached = f"; {r['reached']} reached the region" if table["member_kind"] == "weakness" else ""
         print(f"{spec.knob} = {r['value']:g} ({where}): {r['failed']}/{r['trials']} episodes with an in-ODD failure "
-              f"[95 % CI {lo:.2f}-{hi:.2f}]")
-    print(json.dumps({"out": args.out, **{k: table[k] for k in ("inside_region", "outside_region", "driven")}}))
+              f"[95 % CI {lo:.2f}-{hi:.2f}]{reached}")
+    keys = ("inside_region", "outside_region", "driven", "reached_region", "never_reached")
+    print(json.dumps({"out": args.out, **{k: table[k] for k in keys if k in table}}))
     print(f"plot: {Path(args.out) / 'sweep.png'}")
     return 0
 

@@ -177,6 +177,21 @@ def test_reached_is_the_first_step_inside_a_half_open_region() -> None:
     assert both.reached(_seen([100.0])) is None  # no rain: a conjunction needs every bound
 
 
+def test_a_flag_condition_bounds_a_region_by_what_the_camera_sees() -> None:
+    """Glare depends on where the camera looks, so a region names the step's ``sun_glare`` flag: it holds while
+    the flag is set, together with the sun's altitude band."""
+    def step(i: int, altitude: float, glare: bool) -> StepRecord:
+        return replace(synthetic_step(i, knobs={"sun_altitude_angle": altitude}),
+                       conditions=Conditions(3000.0, 0.0, "dry", "day", glare), odd_status="inside")
+
+    glare = TriggerRegion((Bound.flag("sun_glare"), Bound("sun_altitude_angle", 0.0, 12.0)))
+    assert glare.describe() == "sun_glare and 0 <= sun_altitude_angle < 12 deg"
+    assert glare.reached([step(1, 8.0, False), step(2, 20.0, True), step(3, 8.0, True)]) == 2
+    assert glare.reached([step(1, 8.0, False), step(2, 12.0, True)]) is None  # behind, then too high
+    assert Bound.flag("sun_glare", is_set=False).describe() == "no sun_glare"
+    assert Bound.flag("sun_glare", is_set=False).holds(step(1, 8.0, False))
+
+
 def test_empty_region_is_never_reached() -> None:
     assert EMPTY.empty and EMPTY.reached(_sun([5.0, 0.0])) is None
     assert EMPTY.describe().startswith("empty")

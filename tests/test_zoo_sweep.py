@@ -42,6 +42,24 @@ def test_region_membership_and_start_weather_per_value() -> None:
     assert start_weather(both, "lead_decel", 6.0, (("fog_density", 51.0),)) == "clear_noon,fog_density=51,lead_decel=6"
 
 
+def test_rows_pool_by_the_start_and_by_what_each_episode_reached() -> None:
+    """A region with a flag only a step can tell (glare) gives no verdict on the start; the sweep then pools the
+    episodes that reached the region against those that never did. Rows from before 0.19 carry no counts."""
+    from genesis_rl.benchmark.sweep import _inside_outside
+
+    rows = [{"inside_odd": True, "in_region": None, "trials": 8, "failed": 5, "reached": 6, "failed_when_reached": 5},
+            {"inside_odd": True, "in_region": None, "trials": 8, "failed": 1, "reached": 0, "failed_when_reached": 0},
+            {"inside_odd": False, "in_region": None},
+            {"inside_odd": True, "in_region": None, "trials": 8, "failed": 2}]  # an old row: no reach counts
+    pooled = _inside_outside(rows)
+    assert (pooled["reached_region"]["trials"], pooled["reached_region"]["failed"]) == (6, 5)
+    assert (pooled["never_reached"]["trials"], pooled["never_reached"]["failed"]) == (10, 1)
+    assert (pooled["driven"]["trials"], pooled["driven"]["failed"]) == (24, 8)
+    assert pooled["inside_region"]["trials"] == 0
+    glare = replace(zoo_member("low_sun"), trigger=TriggerRegion((Bound.flag("sun_glare"),)))
+    assert in_region(glare, "sun_altitude_angle", 5.0) is None  # the start cannot say where the camera looks
+
+
 @pytest.mark.parametrize("kw, message", [
     ({"member": "nope"}, "zoo member 'nope' is unknown"),
     ({"knob": "fog"}, "--knob = 'fog' is unknown; allowed: fog_density"),

@@ -23,7 +23,7 @@ from genesis_rl.errors import UserInputError
 from genesis_rl.io_utils import atomic_write_json, read_json
 from genesis_rl.knobs import KNOBS
 from genesis_rl.zoo.members import ZooMember, env_settings, zoo_member
-from genesis_rl.zoo.trigger import CONDITION_UNITS
+from genesis_rl.zoo.trigger import CONDITION_FLAGS
 
 if TYPE_CHECKING:
     from genesis_rl.odd.domain import ODD
@@ -85,20 +85,22 @@ def _check_value(flag: str, knob: str, value: float) -> None:
 def in_region(member: ZooMember, knob: str, value: float, hold: Sequence[tuple[str, float]] = ()) -> bool | None:
     """Whether the start with ``knob`` at ``value`` (and the ``hold`` knobs at theirs) lies inside the member's
     trigger region: every bound judged on the whole start weather, knob bounds on its knobs and condition bounds
-    (``visibility_m``, ``rain_mm_h``) on lite's conditions model. None: the member is a control (no region)."""
-    if member.trigger.empty:
+    (``visibility_m``, ``rain_mm_h``) on lite's conditions model. None: the member is a control (no region), or
+    its region names a flag that only a step can tell (``sun_glare`` depends on where the camera looks); the
+    sweep's rows then count the episodes that reached the region instead."""
+    if member.trigger.empty or any(b.quantity in CONDITION_FLAGS for b in member.trigger.bounds):
         return None
     from genesis_rl.knobs import parse_weather
 
     weather = parse_weather(start_weather(member, knob, value, hold))
     conditions = None
-    if any(b.quantity in CONDITION_UNITS for b in member.trigger.bounds):
+    if any(b.is_condition for b in member.trigger.bounds):
         from genesis_rl.odd.conditions import conditions_model
 
         conditions = conditions_model("lite").conditions(weather, None)
     knobs = weather.as_dict()
-    return all(b.low <= (float(getattr(conditions, b.quantity)) if b.quantity in CONDITION_UNITS
-                         else knobs[b.quantity]) < b.high for b in member.trigger.bounds)
+    return all(b.low <= (float(getattr(conditions, b.quantity)) if b.is_condition else knobs[b.quantity]) < b.high
+               for b in member.trigger.bounds)
 
 
 def start_weather(member: ZooMember, knob: str, value: float, hold: Sequence[tuple[str, float]] = ()) -> str:
@@ -167,6 +169,8 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
             rows.append({**row, "inside_odd": True, "trials": len(m.trials), "failed": m.falsified,
                          "rate": m.falsification_rate, "ci95": list(m.falsification_ci),
                          "steps_to_failure": [t.steps_to_failure for t in m.trials if t.failed],
+                         "reached": sum(t.reached for t in m.trials),
+                         "failed_when_reached": sum(t.failed and t.reached for t in m.trials),
                          "campaign": str(folder.relative_to(out))})
         table = {"schema": SCHEMA, "version": __version__, "spec": spec.to_json(), "member_kind": member.kind,
                  "trigger": member.trigger.describe(), "rows": rows, **_inside_outside(rows)}
@@ -176,14 +180,23 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
 
 
 def _inside_outside(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Failures pooled over the driven values inside the region, outside it and all of them (a control's: it has
-    no region), each with its exact interval."""
+    """Failures pooled over the driven values whose start lies inside the region, outside it and all of them (a
+    control's: it has no region), and over the episodes that reached the region at some step and those that
+    never did, each with its exact interval."""
     from genesis_rl.evaluation.stats import clopper_pearson
 
     pooled: dict[str, Any] = {}
     for key, flags in (("inside_region", (True,)), ("outside_region", (False,)), ("driven", (True, False, None))):
         driven = [r for r in rows if r.get("inside_odd") and r["in_region"] in flags]
         n, k = sum(r["trials"] for r in driven), sum(r["failed"] for r in driven)
+        ci = clopper_pearson(k, n)
+        pooled[key] = {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
+    # by what each episode did rather than where it started: those that entered the region at some step and
+    # those that never did (rows written before 0.19 carry no counts and are left out)
+    counted = [r for r in rows if r.get("inside_odd") and "reached" in r]
+    n_in, k_in = sum(r["reached"] for r in counted), sum(r["failed_when_reached"] for r in counted)
+    n_out, k_out = sum(r["trials"] for r in counted) - n_in, sum(r["failed"] for r in counted) - k_in
+    for key, (n, k) in (("reached_region", (n_in, k_in)), ("never_reached", (n_out, k_out))):
         ci = clopper_pearson(k, n)
         pooled[key] = {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
     return pooled

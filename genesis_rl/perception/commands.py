@@ -151,7 +151,7 @@ def add_detector_commands(subparsers: argparse._SubParsersAction) -> argparse.Ar
     tr.add_argument("--seed", type=seed_int, default=0, help="seed of weather draws, init, shuffling, augmentation")
     tr.add_argument("--condition", default="typical",
                     help="weather distribution of the training frames (default: typical, the shipped recipe; "
-                         "day_night: the zoo's dusk-blind detector, docs/zoo.md)")
+                         "day_night: the zoo's dusk-blind detector; sun_behind: its glare-blind one, docs/zoo.md)")
     tr.add_argument("--force", action="store_true", help="overwrite existing outputs")
     tr.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch log")
     tr.set_defaults(func=_cmd_train)

@@ -66,6 +66,24 @@ def _day_night(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
     return weather
 
 
+#: the cone around the camera's heading in which the glare-blind detector's data never had the sun [deg]: twice
+#: the glare cone (``odd.conditions.GLARE_HALF_ANGLE_DEG``), so that no bloom at the picture's edge was seen either
+SUN_BEHIND_HALF_ANGLE_DEG = 60.0
+
+
+def _sun_behind(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
+    """``typical`` at any hour (the sun from 30 deg below the horizon to the zenith: night, twilight, day), but
+    never with the sun within 60 deg of the camera's heading: a team that drove at all hours and dropped every
+    frame with the sun in the picture as unlabellable (a washed-out car cannot be boxed). Its detector knows
+    night, dusk and a low sun's dim light and long shadows, never a low sun's glare. The blind spot is a band of
+    sun altitude at some headings, in the interior of an all-day domain's knob space."""
+    weather = _typical(rng, ego_yaw)
+    off = float(rng.uniform(SUN_BEHIND_HALF_ANGLE_DEG, 360.0 - SUN_BEHIND_HALF_ANGLE_DEG))
+    weather["sun_altitude_angle"] = float(rng.uniform(-30.0, 90.0))
+    weather["sun_azimuth_angle"] = (math.degrees(ego_yaw) + off) % 360.0
+    return weather
+
+
 def _clear(rng: np.random.Generator, ego_yaw: float) -> dict[str, float]:
     """Clear noon-like: high sun, few clouds, no fog or rain."""
     return {
@@ -144,11 +162,13 @@ CONDITIONS: dict[str, Sampler] = {
     "low_sun_glare": _low_sun_glare,
     "clear_noon": _clear_noon,
     "day_night": _day_night,
+    "sun_behind": _sun_behind,
 }
 
 #: evaluation buckets (``typical`` is the training distribution, reported as a reference); ``clear_noon``
-#: is the realism check's and ``day_night`` the dusk-blind detector's training mix, not evaluation buckets
-EVAL_CONDITIONS: tuple[str, ...] = tuple(c for c in CONDITIONS if c not in ("clear_noon", "day_night"))
+#: is the realism check's, ``day_night`` the dusk-blind detector's and ``sun_behind`` the glare-blind detector's
+#: training mix, not evaluation buckets
+EVAL_CONDITIONS: tuple[str, ...] = tuple(c for c in CONDITIONS if c not in ("clear_noon", "day_night", "sun_behind"))
 
 
 def check_conditions(names: Sequence[str], flag: str = "conditions") -> tuple[str, ...]:

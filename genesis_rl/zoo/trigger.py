@@ -4,8 +4,9 @@ A benchmark can only say an adversary *reached* a weakness and then *triggered* 
 weakness is written down as a region a step is in or not. A region is a conjunction of half-open bounds
 ``low <= value < high`` on weather knobs (``sun_altitude_angle`` in deg, ``fog_density`` in %, the actor knob
 ``lead_decel`` in m/s^2, ...) and on the step's numeric conditions (``visibility_m``, ``rain_mm_h``, which
-records carry when an ODD was declared). Half-open, so regions tile as the AMS rain categories do. A region with
-no bounds is *empty*: a control's, on which there is nothing to find.
+records carry when an ODD was declared), or on a step's flag condition (``sun_glare``: the sun low in the camera's
+view, which depends on where the camera looks, so only a step can say). Half-open, so regions tile as the AMS
+rain categories do. A region with no bounds is *empty*: a control's, on which there is nothing to find.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from genesis_rl.step_record import StepRecord
 
 #: the numeric conditions a bound may name, with their units (``odd.conditions.Conditions``)
 CONDITION_UNITS = {"visibility_m": "m", "rain_mm_h": "mm/h"}
+#: the flag conditions a bound may name (``Bound.flag``): value 1 while set, 0 while clear
+CONDITION_FLAGS = ("sun_glare",)
 
 
 @dataclass(frozen=True)
@@ -31,19 +34,32 @@ class Bound:
     high: float = math.inf
 
     def __post_init__(self) -> None:
-        if self.quantity not in KNOBS and self.quantity not in CONDITION_UNITS:
+        conditions = (*CONDITION_UNITS, *CONDITION_FLAGS)
+        if self.quantity not in KNOBS and self.quantity not in conditions:
             raise UserInputError(f"trigger bound quantity = '{self.quantity}' is unknown; allowed: a knob "
-                                 f"({', '.join(KNOBS)}) or a condition ({', '.join(CONDITION_UNITS)})")
+                                 f"({', '.join(KNOBS)}) or a condition ({', '.join(conditions)})")
         if math.isnan(self.low) or math.isnan(self.high) or not self.low < self.high:
             raise UserInputError(f"trigger bound on {self.quantity}: low {self.low:g} must be below high "
                                  f"{self.high:g} (the bound is low <= value < high)")
 
+    @classmethod
+    def flag(cls, quantity: str, is_set: bool = True) -> Bound:
+        """A bound that holds while the flag condition ``quantity`` is set (or, ``is_set=False``, clear)."""
+        return cls(quantity, 0.5, math.inf) if is_set else cls(quantity, -math.inf, 0.5)
+
+    @property
+    def is_condition(self) -> bool:
+        """Whether the bound reads a step's conditions (numeric or flag) rather than its knobs."""
+        return self.quantity in CONDITION_UNITS or self.quantity in CONDITION_FLAGS
+
     @property
     def unit(self) -> str:
+        if self.quantity in CONDITION_FLAGS:
+            return ""
         return CONDITION_UNITS.get(self.quantity) or KNOBS[self.quantity].unit
 
     def holds(self, rec: StepRecord) -> bool:
-        if self.quantity in CONDITION_UNITS:
+        if self.is_condition:
             if rec.conditions is None:
                 raise UserInputError(f"the trigger region bounds {self.quantity}, but step {rec.step} carries no "
                                      "conditions: run the campaign with an ODD (env.odd)")
@@ -56,6 +72,8 @@ class Bound:
         return self.low <= value < self.high
 
     def describe(self) -> str:
+        if self.quantity in CONDITION_FLAGS:
+            return self.quantity if self.low > 0.0 else f"no {self.quantity}"
         unit = f" {self.unit}" if self.unit else ""
         if math.isinf(self.low):
             return f"{self.quantity} < {self.high:g}{unit}"
