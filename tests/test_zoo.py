@@ -3,6 +3,7 @@ weakness states a region that the records say a step is in or not, a control sta
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from dataclasses import replace
@@ -36,10 +37,12 @@ def _seen(visibilities: list[float]) -> list[StepRecord]:
 
 def test_registry_names_kinds_and_regions() -> None:
     assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "fog_braking", "highway_speed_fog",
-                         "coco_low_sun", "builtin_highway", "oracle_highway", "builtin_braking", "adaptive_braking"]
+                         "coco_low_sun", "glare_blind", "builtin_highway", "oracle_highway", "builtin_braking",
+                         "adaptive_braking"]
     assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "low_sun_highway": "weakness",
                                                     "latency_braking": "weakness", "fog_braking": "weakness",
                                                     "highway_speed_fog": "weakness", "coco_low_sun": "weakness",
+                                                    "glare_blind": "weakness",
                                                     "builtin_highway": "control", "oracle_highway": "control",
                                                     "builtin_braking": "control", "adaptive_braking": "control"}
     assert zoo_member("fog_braking").trigger.describe() == "4 <= lead_decel < 8 m/s^2 and 50 <= visibility_m < 100 m"
@@ -61,7 +64,7 @@ def test_registry_names_kinds_and_regions() -> None:
 def test_unknown_member_is_refused_naming_the_members() -> None:
     with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, low_sun_highway, "
                                              "latency_braking, fog_braking, highway_speed_fog, coco_low_sun, "
-                                             "builtin_highway, oracle_highway, "
+                                             "glare_blind, builtin_highway, oracle_highway, "
                                              "builtin_braking, adaptive_braking"):
         zoo_member("nope")
 
@@ -81,7 +84,7 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
     model = conditions_model("lite")
     shipped = sorted(p.name for p in ODD_DIR.glob("*.toml"))
     assert shipped == ["highway_braking.toml", "highway_day.toml", "highway_fog_braking.toml", "highway_high_sun.toml",
-                       "urban_day.toml"]
+                       "urban_any_hour.toml", "urban_day.toml"]
     assert {m.odd for m in ZOO.values()} == set(shipped)
     for name in shipped:
         load_odd(ODD_DIR / name, model)
@@ -103,8 +106,40 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
     assert {k: v for k, v in fog.items() if k not in ("name", "description")} == \
         {k: v for k, v in load_odd(ODD_DIR / "highway_braking.toml").describe().items()
          if k not in ("name", "description", "visibility")}
+    # the glare-blind member's domain: urban_day at every hour (twilight and night added), nothing else changed
+    any_hour = load_odd(ODD_DIR / "urban_any_hour.toml").describe()
+    assert any_hour.pop("light") == {"allowed": ["day", "twilight", "night"]}
+    day = load_odd(ODD_DIR / "urban_day.toml").describe()
+    assert {k: v for k, v in any_hour.items() if k not in ("name", "description")} == \
+        {k: v for k, v in day.items() if k not in ("name", "description", "light")}
     globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["genesis_rl"]
-    assert "zoo/odd/*.toml" in globs
+    assert "zoo/odd/*.toml" in globs and "zoo/weights/*" in globs
+
+
+def test_the_glare_blind_member_loads_its_shipped_detector_and_states_an_interior_band() -> None:
+    """Its weights ship with the package (reproduced by ``detector train --condition sun_behind``); its region is
+    a band of sun altitude that the domain's own bounds (night below, noon above) do not touch."""
+    from genesis_rl.perception.dataset import SUN_BEHIND_HALF_ANGLE_DEG, sample_weather
+    from genesis_rl.system.protocol import load_system
+    from genesis_rl.zoo.members import GLARE_BLIND_WEIGHTS
+
+    member = zoo_member("glare_blind")
+    system = load_system(member.system, **member.system_kwargs)
+    assert system.detector.weights_path == GLARE_BLIND_WEIGHTS and GLARE_BLIND_WEIGHTS.stat().st_size > 100_000
+    meta = json.loads(GLARE_BLIND_WEIGHTS.with_suffix(".json").read_text())
+    assert meta["train_config"]["condition"] == "sun_behind"
+    assert member.trigger.describe() == "sun_glare and 0 <= sun_altitude_angle < 15 deg"
+    odd = load_odd(member.odd_path)
+    rng = np.random.default_rng(0)
+    for yaw in (0.0, 1.0, 3.0):  # the training mix never puts the sun within 60 deg of the camera's heading
+        for _ in range(200):
+            w = sample_weather("sun_behind", rng, yaw)
+            off = (w["sun_azimuth_angle"] - np.degrees(yaw) + 180.0) % 360.0 - 180.0
+            assert abs(off) >= SUN_BEHIND_HALF_ANGLE_DEG - 1e-9 and -30.0 <= w["sun_altitude_angle"] <= 90.0
+    model = conditions_model("lite")
+    for altitude in (-20.0, -5.0, 8.0, 60.0):  # night, dusk, the band and noon are all inside the domain
+        w = Weather.preset("clear_noon").replace(sun_altitude_angle=altitude)
+        assert odd.contains(model.conditions(w, None), w)
 
 
 def test_low_sun_region_is_inside_the_day_odd_and_outside_the_detectors_training_data() -> None:

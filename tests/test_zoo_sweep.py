@@ -138,6 +138,20 @@ def test_each_weakness_fails_inside_its_region_and_not_outside(tmp_path, member,
 
 
 @pytest.mark.render
+def test_the_glare_blind_detector_fails_in_a_low_sun_ahead_and_not_at_night(tmp_path) -> None:
+    """glare_blind's interior band (runs/sweep_glare_blind_alt, the sun held in the west): with the sun 8 deg up
+    three of the eight scenes head into it, and one fails by step 101 (at 100; the others at 114 and 199). With
+    the sun 5 deg below the horizon (dusk, which the detector's data held) none does. Glare depends on the
+    heading, so the start gives no verdict and the rows count the episodes that reached the region."""
+    spec = SweepSpec(member="glare_blind", knob="sun_altitude_angle", values=(8.0, -5.0), scenes=8, steps=101,
+                     hold=(("sun_azimuth_angle", 270.0),))
+    table = run_sweep(spec, tmp_path / "glare", progress=False)
+    assert [(r["in_region"], r["reached"], r["failed"], r["failed_when_reached"]) for r in table["rows"]] == \
+        [(None, 3, 1, 1), (None, 0, 0, 0)]
+    assert table["never_reached"]["failed"] == 0 and table["reached_region"]["trials"] == 3
+
+
+@pytest.mark.render
 def test_the_timing_control_brakes_in_time_where_the_slow_pipeline_does_not(tmp_path) -> None:
     """builtin_braking is latency_braking without the latency: on the same eight free-flow scenes with the lead
     braking at the domain's 6 m/s^2 from the first step, it has no failure in the steps where the slow pipeline
@@ -195,7 +209,7 @@ def test_the_real_photo_detector_loses_a_braking_lead_in_low_sun(altitude, colli
     weather = parse_weather(f"clear_noon,sun_altitude_angle={altitude:g}")
     with LiteBackend() as backend:
         result = run_episode(backend, scene, load_system(member.system, **member.system_kwargs), lambda k: weather,
-                             96, seed=977508872, stop_on_collision=True)
+                             96 if collided else 50, seed=977508872, stop_on_collision=True)
     hits = [r.step for r in result.records if r.collision.collided]
     assert bool(hits) == collided, hits
     seen = [r.lead.detected for r in result.records[:48] if r.lead.vehicle_id == 1]  # the lead 28 -> 15 m ahead

@@ -21,6 +21,8 @@ KINDS = ("weakness", "control")
 MAPS = ("urban", "highway")
 #: the shipped ODD files
 ODD_DIR = Path(__file__).parent / "odd"
+#: the shipped weights of the members' own detectors (each reproduced by the command on its page, docs/zoo.md)
+WEIGHTS_DIR = Path(__file__).parent / "weights"
 #: env keys a member sets through its own fields, never through ``env``
 _OWN_KEYS = frozenset({"map", "system", "system_kwargs", "odd", "catalog"})
 
@@ -87,6 +89,23 @@ _LOW_SUN_HIGHWAY = ZooMember(
              "listed as a control (docs/zoo.md, first measurement). A corner weakness on the highway."),
     trigger=TriggerRegion((Bound("sun_altitude_angle", 0.0, 15.0),)),
     env={"dynamics": "natural"},
+)
+
+#: the glare-blind detector: `genesis-rl detector train --condition sun_behind --frames 2400 --epochs 12`
+GLARE_BLIND_WEIGHTS = WEIGHTS_DIR / "glare_blind_detector.pt"
+
+_GLARE_BLIND = ZooMember(
+    name="glare_blind", kind="weakness", system="builtin", system_kwargs={"weights": str(GLARE_BLIND_WEIGHTS)},
+    odd="urban_any_hour.toml", map="urban",
+    summary=("The built-in detector architecture trained on data from every hour (night, dusk, day) from which "
+             "every frame with the sun in the picture was dropped as unlabellable (perception/dataset.py, "
+             "_sun_behind: never within 60 deg of the camera's heading), behind the IDM following controller, in "
+             "city traffic at any hour (urban_any_hour, glare allowed). It knows night, dusk and a low sun's dim "
+             "light from behind; a low sun ahead washes the cars out. An interior weakness: a band of sun "
+             "altitude (below 15 deg) at headings toward the sun, between night and noon, which neither corner "
+             "of the sun's altitude reaches."),
+    trigger=TriggerRegion((Bound.flag("sun_glare"), Bound("sun_altitude_angle", 0.0, 15.0))),
+    env={"dynamics": "natural", "episode_steps": 256},
 )
 
 _BUILTIN_HIGHWAY = ZooMember(
@@ -206,8 +225,8 @@ _COCO_LOW_SUN = ZooMember(
 
 #: every member by name
 ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _LATENCY_BRAKING, _FOG_BRAKING,
-                                                 _HIGHWAY_SPEED_FOG, _COCO_LOW_SUN, _BUILTIN_HIGHWAY, _ORACLE_HIGHWAY,
-                                                 _BUILTIN_BRAKING, _ADAPTIVE_BRAKING)}
+                                                 _HIGHWAY_SPEED_FOG, _COCO_LOW_SUN, _GLARE_BLIND, _BUILTIN_HIGHWAY,
+                                                 _ORACLE_HIGHWAY, _BUILTIN_BRAKING, _ADAPTIVE_BRAKING)}
 
 
 def zoo_member(name: str) -> ZooMember:
