@@ -227,6 +227,11 @@ def plot_sweep(table: dict[str, Any], path: Path) -> None:
         hi_err = [r["ci95"][1] - r["rate"] for r in rows]
         ax.errorbar(xs, ys, yerr=[lo_err, hi_err], fmt="o-", color="#264653", capsize=3,
                     label="in-ODD failure rate (exact 95 % CI)")
+        counted = [r for r in rows if "reached" in r and r["trials"]]
+        if member.kind == "weakness" and counted:  # what each episode did, whatever its start (glare: the heading)
+            span = (max(xs) - min(xs)) if len(xs) > 1 else 1.0
+            ax.bar([r["value"] for r in counted], [r["reached"] / r["trials"] for r in counted],
+                   width=0.03 * span, color="#bbbbbb", alpha=0.7, zorder=1, label="episodes that reached the region")
         inside = [r for r in rows if r["in_region"]]  # judged on the whole start: condition bounds included
         if inside:
             shaded = any(b.quantity == spec["knob"] for b in member.trigger.bounds)
