@@ -93,6 +93,7 @@ def test_the_leaderboard_pools_the_campaigns_metrics(blind_benchmark):
         assert cell["falsified"] == sum(m.falsified for m in per_trial)
         assert cell["falsification_rate_per_trial"] == [m.falsification_rate for m in per_trial]
         assert cell["triggered"] == sum(m.triggered for m in per_trial) <= cell["falsified"]
+        assert cell["avoidable"] == sum(t.avoidable for m in per_trial for t in m.trials) <= cell["falsified"]
         assert cell["budget_steps"] == 120
         control = board["cells"]["oracle_highway"][policy]
         assert control["false_alarm_candidates"] == control["falsified"]

@@ -90,6 +90,23 @@ def test_a_search_trial_counts_every_candidate_before_its_first_failure() -> Non
     assert (old.steps, old.steps_to_failure) == (20, 10)  # a campaign before the ledger: the reported episode
 
 
+def test_a_failure_the_careful_driver_could_not_avoid_is_not_avoidable() -> None:
+    """Issue 32: an unavoidable failure is never the system's. It still counts as a falsification (a collision
+    inside the ODD happened), and the trial says it was not avoidable, for a step policy and a search alike."""
+    region = zoo_member("low_sun").trigger
+    records = _episode(20, low_sun_from=0, hits={9: "inside"})
+    blamed = {"failure": {**_failure(10), "blame": "unavoidable"}}
+    hard = trial_of(1, records, region, blamed)
+    assert (hard.failed, hard.unavoidable, hard.avoidable, hard.triggered) == (True, True, False, True)
+    assert trial_of(2, records, region, {"failure": _failure(10)}).avoidable  # blamed on perception
+    assert trial_of(3, records, region).avoidable  # no blame recorded: counted as the system's
+    out_of_odd = {"failure": {**_failure(10), "blame": "unavoidable", "odd_status": "outside"}}
+    outside = trial_of(4, _episode(20, hits={9: "outside"}), region, out_of_odd)
+    assert (outside.failed, outside.unavoidable) == (False, False)  # not an in-ODD failure at all
+    search = {**blamed, "extra": {"candidate_steps": [20, 20], "candidate_failures": [None, 9]}}
+    assert trial_of(5, records, region, search).avoidable is False  # as its reported episode says
+
+
 def _row(scene: int, failure: dict | None) -> dict:
     return {"scene": scene, "episode_seed": scene, "naturalness": {"ratio_to_held": 0.0}, "failure": failure}
 

@@ -40,7 +40,7 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str
     alarms = [a for m in per_trial for a in m.false_alarm_candidates]
     return {
         "policy": policy, "member": member, "kind": zoo_member(member).kind, "trials": len(per_trial),
-        "episodes": n, "falsified": falsified,
+        "episodes": n, "falsified": falsified, "avoidable": sum(t.avoidable for t in trials),
         "falsification_rate": None if n == 0 else round(falsified / n, 4),
         "falsification_ci": [ci["ci_low"], ci["ci_high"]],
         "falsification_rate_per_trial": [m.falsification_rate for m in per_trial],
@@ -167,7 +167,7 @@ def render_page(board: dict[str, Any]) -> str:
                     f"Nemenyi critical difference at 5 %: {r['critical_difference']}." if p is not None else
                     "Friedman's test needs at least 2 weakness members and 2 policies.") + "</p>")
     head = ["policy", "episodes", "simulator steps a scene", "falsification rate [95 % CI]", "trials with a failure",
-            "reached", "triggered",
+            "avoidable", "reached", "triggered",
             "median steps to first failure", "distinct in-ODD failures", "false-alarm candidates (unconfirmed)"]
     for member in spec["members"]:
         m = zoo_member(member)
@@ -181,14 +181,17 @@ def render_page(board: dict[str, Any]) -> str:
             med = "–" if c["median_steps_to_failure"] is None else f"{c['median_steps_to_failure']:.0f}"
             alarms = f"{c['false_alarm_candidates']} ({c['unconfirmed_false_alarms']})" if m.kind == "control" else "–"
             spend = "–" if c.get("sim_steps_per_scene") is None else f"{c['sim_steps_per_scene']:.0f}"
+            avoidable = "–" if c.get("avoidable") is None else f"{c['avoidable']}/{c['falsified']}"
             cells = [policy, str(c["episodes"]), spend, rate, f"{c['trials_with_a_failure']}/{c['trials']}",
-                     str(c["reached"]), str(c["triggered"]), med, str(c["distinct_in_odd_failures"]), alarms]
+                     avoidable, str(c["reached"]), str(c["triggered"]), med, str(c["distinct_in_odd_failures"]), alarms]
             h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in cells) + "</tr>")
         h.append("</table>")
         h.append(f"<img src='{_fig_survival(board, member)}'>")
     h.append("<p class=meta>Simulator steps a scene: what the policy spent on each scene (a search counts every "
              "candidate episode): adversaries at unequal budgets are compared at unequal cost. "
-             "Reached: the episode entered the member's trigger region; triggered: an in-ODD failure "
+             "Avoidable: failed episodes less those blamed unavoidable (the careful driver collides as well; a "
+             "search counts as its reported episode). Reached: the episode entered the member's trigger region; "
+             "triggered: an in-ODD failure "
              "at or after that. Never reached says exploration; reached, never triggered, timing or naturalness. "
              "On a control every in-ODD failure is a false-alarm candidate; unconfirmed: the oracle replay "
              "avoided it.</p></body></html>")

@@ -14,7 +14,10 @@ the SBST tool competition's distinct failures), for a driving system inside its 
 - *distinct in-ODD failures*: the campaign's own clusters (``evaluation.distinct``, over each episode's
   labelled first collision, as the summary counts them);
 - on a *control* every in-ODD failure is a false alarm candidate (with its blame and oracle replay, where the
-  campaign ran one).
+  campaign ran one);
+- *avoidable*: failed trials less those whose reported failure is blamed ``unavoidable`` (the careful driver of
+  the episode's blame reference collides as well): an unavoidable failure is not the system's (issue 32). A
+  search's earlier candidates are not blamed one by one, so its trial counts as its reported episode says.
 """
 
 from __future__ import annotations
@@ -48,10 +51,17 @@ class Trial:
     reached_at: int | None
     failure_at: int | None
     first_failure_steps: int | None = None
+    #: the reported episode's in-ODD failure is blamed ``unavoidable``: the careful driver collides as well
+    unavoidable: bool = False
 
     @property
     def failed(self) -> bool:
         return self.failure_at is not None or self.first_failure_steps is not None
+
+    @property
+    def avoidable(self) -> bool:
+        """Failed, and not a failure the careful driver could not avoid either."""
+        return self.failed and not self.unavoidable
 
     @property
     def reached(self) -> bool:
@@ -76,12 +86,16 @@ def trial_of(scene: int, records: Sequence[StepRecord], region: TriggerRegion,
     (``adversaries.base.SearchLedger``; campaigns before 0.16.0 have none: their search trials count the
     reported episode only)."""
     extra = (row or {}).get("extra") or {}
+    failure_at = in_odd_failure_at(records)
+    labelled = (row or {}).get("failure") or {}
+    unavoidable = failure_at is not None and labelled.get("odd_status") in IN_ODD and \
+        labelled.get("blame") == "unavoidable"
     steps, failures = extra.get("candidate_steps"), extra.get("candidate_failures")
     if not (isinstance(steps, list) and isinstance(failures, list) and len(steps) == len(failures) and steps):
-        return Trial(scene, len(records), region.reached(records), in_odd_failure_at(records))
+        return Trial(scene, len(records), region.reached(records), failure_at, unavoidable=unavoidable)
     first = next((i for i, f in enumerate(failures) if f is not None), None)
-    return Trial(scene, int(sum(steps)), region.reached(records), in_odd_failure_at(records),
-                 None if first is None else int(sum(steps[:first]) + failures[first] + 1))
+    return Trial(scene, int(sum(steps)), region.reached(records), failure_at,
+                 None if first is None else int(sum(steps[:first]) + failures[first] + 1), unavoidable=unavoidable)
 
 
 @dataclass(frozen=True)
@@ -111,8 +125,8 @@ class PolicyMetrics:
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
-        d["trials"] = [{**asdict(t), "triggered": t.triggered, "steps_to_failure": t.steps_to_failure}
-                       for t in self.trials]
+        d["trials"] = [{**asdict(t), "triggered": t.triggered, "steps_to_failure": t.steps_to_failure,
+                        "avoidable": t.avoidable} for t in self.trials]
         d["falsification_ci"] = list(self.falsification_ci)
         d["survival"] = [list(p) for p in self.survival]
         d["clusters"] = list(self.clusters)
