@@ -64,14 +64,16 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     check_folder_output(args.out)
     table = run_sweep(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
                       progress=not args.quiet)
+    weakness = table["member_kind"] == "weakness"
+    places = {True: "in the region", False: "outside the region",
+              None: "the region decided per step" if weakness else "no region"}
     for r in table["rows"]:
-        undecided = "no region" if table["member_kind"] == "control" else "the region decided per step"
-        where = {True: "in the region", False: "outside the region", None: undecided}[r["in_region"]]
+        where = places[r["in_region"]]
         if not r["inside_odd"]:
             print(f"{spec.knob} = {r['value']:g}: outside the member's ODD, not driven")
             continue
         lo, hi = r["ci95"]
-        reached = f"; {r['reached']} reached the region" if table["member_kind"] == "weakness" else ""
+        reached = f"; {r['reached']} reached the region" if weakness else ""
         print(f"{spec.knob} = {r['value']:g} ({where}): {r['failed']}/{r['trials']} episodes with an in-ODD failure "
               f"[95 % CI {lo:.2f}-{hi:.2f}]{reached}")
     keys = ("inside_region", "outside_region", "driven", "reached_region", "never_reached")

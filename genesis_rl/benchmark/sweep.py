@@ -185,20 +185,20 @@ def _inside_outside(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     never did, each with its exact interval."""
     from genesis_rl.evaluation.stats import clopper_pearson
 
+    def pool(n: int, k: int) -> dict[str, Any]:
+        ci = clopper_pearson(k, n)
+        return {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
+
     pooled: dict[str, Any] = {}
     for key, flags in (("inside_region", (True,)), ("outside_region", (False,)), ("driven", (True, False, None))):
         driven = [r for r in rows if r.get("inside_odd") and r["in_region"] in flags]
-        n, k = sum(r["trials"] for r in driven), sum(r["failed"] for r in driven)
-        ci = clopper_pearson(k, n)
-        pooled[key] = {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
+        pooled[key] = pool(sum(r["trials"] for r in driven), sum(r["failed"] for r in driven))
     # by what each episode did rather than where it started: those that entered the region at some step and
     # those that never did (rows written before 0.19 carry no counts and are left out)
     counted = [r for r in rows if r.get("inside_odd") and "reached" in r]
     n_in, k_in = sum(r["reached"] for r in counted), sum(r["failed_when_reached"] for r in counted)
-    n_out, k_out = sum(r["trials"] for r in counted) - n_in, sum(r["failed"] for r in counted) - k_in
-    for key, (n, k) in (("reached_region", (n_in, k_in)), ("never_reached", (n_out, k_out))):
-        ci = clopper_pearson(k, n)
-        pooled[key] = {"trials": n, "failed": k, "rate": ci["rate"], "ci95": [ci["ci_low"], ci["ci_high"]]}
+    pooled["reached_region"] = pool(n_in, k_in)
+    pooled["never_reached"] = pool(sum(r["trials"] for r in counted) - n_in, sum(r["failed"] for r in counted) - k_in)
     return pooled
 
 

@@ -105,7 +105,7 @@ _GLARE_BLIND = ZooMember(
              "altitude (below 15 deg) at headings toward the sun, between night and noon, which neither corner "
              "of the sun's altitude reaches."),
     trigger=TriggerRegion((Bound.flag("sun_glare"), Bound("sun_altitude_angle", 0.0, 15.0))),
-    env={"dynamics": "natural", "episode_steps": 256},
+    env=dict(_LOW_SUN.env),  # the urban weather member's: natural dynamics, 256 steps
 )
 
 _BUILTIN_HIGHWAY = ZooMember(

@@ -23,6 +23,7 @@ from genesis_rl.step_record import StepRecord
 CONDITION_UNITS = {"visibility_m": "m", "rain_mm_h": "mm/h"}
 #: the flag conditions a bound may name (``Bound.flag``): value 1 while set, 0 while clear
 CONDITION_FLAGS = ("sun_glare",)
+_CONDITIONS = (*CONDITION_UNITS, *CONDITION_FLAGS)
 
 
 @dataclass(frozen=True)
@@ -34,10 +35,9 @@ class Bound:
     high: float = math.inf
 
     def __post_init__(self) -> None:
-        conditions = (*CONDITION_UNITS, *CONDITION_FLAGS)
-        if self.quantity not in KNOBS and self.quantity not in conditions:
+        if self.quantity not in KNOBS and self.quantity not in _CONDITIONS:
             raise UserInputError(f"trigger bound quantity = '{self.quantity}' is unknown; allowed: a knob "
-                                 f"({', '.join(KNOBS)}) or a condition ({', '.join(conditions)})")
+                                 f"({', '.join(KNOBS)}) or a condition ({', '.join(_CONDITIONS)})")
         if math.isnan(self.low) or math.isnan(self.high) or not self.low < self.high:
             raise UserInputError(f"trigger bound on {self.quantity}: low {self.low:g} must be below high "
                                  f"{self.high:g} (the bound is low <= value < high)")
@@ -50,7 +50,7 @@ class Bound:
     @property
     def is_condition(self) -> bool:
         """Whether the bound reads a step's conditions (numeric or flag) rather than its knobs."""
-        return self.quantity in CONDITION_UNITS or self.quantity in CONDITION_FLAGS
+        return self.quantity in _CONDITIONS
 
     @property
     def unit(self) -> str:
