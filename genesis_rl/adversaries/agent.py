@@ -11,7 +11,14 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.adversaries.base import PolicyContext, StepPolicy, register_policy
+from genesis_rl.adversaries.base import (
+    EpisodeOutcome,
+    EpisodeRunner,
+    PolicyContext,
+    StepPolicy,
+    chooses_start,
+    register_policy,
+)
 from genesis_rl.errors import UserInputError
 
 
@@ -28,6 +35,12 @@ class AgentPolicy(StepPolicy):
     def act(self, obs: Any) -> np.ndarray:
         action, _ = self.model.predict(obs, deterministic=True)
         return np.asarray(action, np.float32)
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        """An agent trained with a start head chooses its start with its first action where the campaign lets
+        policies choose (``start = "natural"``); otherwise it plays from the env's start weather."""
+        head = chooses_start(self.context.options) and runner.has_start_head
+        return runner.run(self.act, scene, episode_seed, None, start_head=head)
 
 
 def _agent_candidates(path: Path) -> list[Path]:

@@ -110,7 +110,14 @@ class SearchLedger:
 
 class EpisodeRunner(Protocol):
     def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int,
-            start: Weather | None = None) -> EpisodeOutcome: ...
+            start: Weather | None = None, start_head: bool = False) -> EpisodeOutcome:
+        """One episode; ``start_head``: ``act``'s first action chooses the start (``GenesisEnv.chosen_start``)."""
+        ...
+
+    @property
+    def has_start_head(self) -> bool:
+        """Whether the env observes the start step (``env.start_head``), so an agent may choose its start."""
+        ...
 
     @property
     def held_knobs(self) -> tuple[str, ...]: ...
@@ -124,8 +131,9 @@ class EpisodeRunner(Protocol):
 
 #: campaign option ``start``: "fixed" (every episode from the env's start weather, as before) or "natural"
 #: (each policy chooses where the knobs that cannot move within an episode start: the sun's position under
-#: natural dynamics; random draws it, constant takes its corner, the searches search it, sunny and the agent
-#: keep the start weather)
+#: natural dynamics; random draws it, constant takes its corner, the searches search it, an agent trained with
+#: a start head (``env.start_head``) chooses it with its first action, sunny and other agents keep the start
+#: weather)
 STARTS = ("fixed", "natural")
 
 

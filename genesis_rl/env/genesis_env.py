@@ -22,6 +22,7 @@ from genesis_rl import limits, ranges
 from genesis_rl.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.drive import ClosedLoop
 from genesis_rl.env.observation import (
+    FEATURE_OBSERVATIONS,
     NEIGHBOUR_FEATURES,
     OBSERVATIONS,
     FeatureHistory,
@@ -85,6 +86,9 @@ class EnvConfig:
     start_spread: float = 0.0  # training only (exploring starts): each knob the agent turns starts at a random
     #                            point up to this fraction of what it can move in an episode away from
     #                            start_weather, inside the ODD; drawn from the episode seed. 0: start_weather
+    start_head: bool = False  # the agent's first action of an episode chooses where the held knobs start (the
+    #                          sun: its altitude, and its azimuth relative to the ego's heading), as a search
+    #                          chooses its start; that step is not simulated. Needs a features observation
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
     camera_height: int = 240
@@ -146,6 +150,10 @@ class EnvConfig:
             raise UserInputError(f"env.dynamics = '{self.dynamics}' is unknown; allowed: {', '.join(DYNAMICS)}")
         if not 0.0 <= self.start_spread <= 1.0:
             raise UserInputError(f"env.start_spread = {self.start_spread} must be in 0..1 (0: start_weather)")
+        if self.start_head and self.observation_mode not in FEATURE_OBSERVATIONS:
+            raise UserInputError(f"env.start_head = true needs a features observation (env.observation = "
+                                 f"{' or '.join(repr(m) for m in FEATURE_OBSERVATIONS)}), not "
+                                 f"'{self.observation_mode}': the start step is told apart by a feature")
         for k, rng in ENV_RANGES.items():  # finite, in its physical range (docs/reliability.md)
             if getattr(self, k) is not None or k not in OPTIONAL_RANGED:
                 rng.check(getattr(self, k), f"env.{k}")
@@ -258,7 +266,7 @@ class GenesisEnv(gym.Env):
         #: actor knobs among the knobs: the features add what a tester measures of the actor (observation.py)
         self.actor_features = actor_feature_names(c.knobs)
         self.observation_space = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs),
-                                                   c.obs_history, self.actor_features)
+                                                   c.obs_history, self.actor_features, c.start_head)
         self._history = FeatureHistory(len(c.knobs), c.obs_history, self.actor_features)
         self.action_space = spaces.Box(-1.0, 1.0, (self.mapper.action_dim,), np.float32)
 
@@ -268,6 +276,12 @@ class GenesisEnv(gym.Env):
         self.records: list[StepRecord] = []
         self.scene_index = -1
         self.episode_seed = -1
+        #: whether the next step chooses the start (env.start_head: the episode's first action)
+        self.choosing_start = False
+        if c.start_head and not self.held_knobs:
+            raise UserInputError(f"env.start_head = true, but no knob among env.knobs {list(c.knobs)} is held over "
+                                 f"an episode of {c.episode_steps} steps under dynamics '{c.dynamics}': there is "
+                                 "no start to choose (leave start_head out)")
 
     # -- observation -------------------------------------------------------------------------------------
     def _observation(self) -> Any:
@@ -290,6 +304,8 @@ class GenesisEnv(gym.Env):
                                 loop.output, loop.sim.lead() if self.actor_features else None, self.actor_features,
                                 neighbour)
             out["features"] = self._history.push(row)
+            if c.start_head:  # the start step's flag, once after the stacked rows
+                out["features"] = np.append(out["features"], np.float32(self.choosing_start))
         if mode == "image":
             return out["image"]
         if mode == "features":
@@ -298,7 +314,9 @@ class GenesisEnv(gym.Env):
 
     # -- gymnasium API -----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
-        """Sample a scene (or take ``options['scene']``) and an episode seed from the env's generator."""
+        """Sample a scene (or take ``options['scene']``) and an episode seed from the env's generator. With
+        ``env.start_head`` the first step chooses the start (``options['start_head']`` False: not this episode,
+        which then starts at ``options['weather']`` or the env's start as usual)."""
         super().reset(seed=seed)
 
         self._close_sim()
@@ -309,18 +327,49 @@ class GenesisEnv(gym.Env):
             raise UserInputError(f"reset option scene = {idx} is out of range; the catalog has {n} scenes")
         self.scene_index = idx
         self.episode_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
-        self.weather = options.get("weather", self.exploring_start(self.episode_seed))
-        #: the weather this episode started from (records keep it, so a replay starts there too)
-        self.episode_start = self.weather
-        scene = self.catalog.scene(idx)
-        self._sim = self.backend.create_simulation(scene, seed=self.episode_seed, weather=self.weather,
-                                                   camera=self.camera)
-        self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.episode_seed)
-        self._loop.start(self.weather)
-        self._history.reset()
-        self.records = []
+        self.choosing_start = bool(options.get("start_head", self.config.start_head))
+        if self.choosing_start and not self.config.start_head:
+            raise UserInputError("reset option start_head = true needs env.start_head = true (the observation "
+                                 "carries the start step's flag only then)")
+        self._begin(options.get("weather", self.exploring_start(self.episode_seed)))
         info = {"scene": idx, "episode_seed": self.episode_seed, "knobs": self._knob_info()}
         return self._observation(), info
+
+    def _begin(self, weather: Weather) -> None:
+        """The episode's simulation from ``weather``: the scene as the seed builds it and the first frame."""
+        self._close_sim()
+        self.weather = weather
+        #: the weather this episode started from (records keep it, so a replay starts there too)
+        self.episode_start = weather
+        scene = self.catalog.scene(self.scene_index)
+        self._sim = self.backend.create_simulation(scene, seed=self.episode_seed, weather=weather, camera=self.camera)
+        self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.episode_seed)
+        self._loop.start(weather)
+        self._history.reset()
+        self.records = []
+
+    def chosen_start(self, action: np.ndarray) -> Weather:
+        """The start a start-head action names. Each held knob's action keeps the episode's start at 0 and
+        reaches the knob's low end at -1 and its high end at +1 (so an untrained head starts where every
+        episode would), except the sun's azimuth: its action is the sun's bearing from the ego's heading (0:
+        straight ahead, +-1: behind), so that one action means the same light on every scene, as a tester
+        schedules a drive into the evening sun. The start is then kept inside the ODD at that heading (a glare
+        start is refused where the ODD refuses glare); knobs that are not held keep the episode's start."""
+        assert self._loop is not None
+        heading = self._loop.heading_deg
+        action = np.asarray(action, np.float64).reshape(-1)
+        knobs = list(self.mapper.knobs)
+        values = dict(self.episode_start.values)
+        for name in self.held_knobs:
+            a, spec, now = float(np.clip(action[knobs.index(name)], -1.0, 1.0)), KNOBS[name], values[name]
+            if name == "sun_azimuth_angle":
+                values[name] = (heading + 180.0 * a - spec.low) % spec.span + spec.low
+            else:
+                values[name] = now + a * ((now - spec.low) if a < 0 else (spec.high - now))
+        proposed = Weather(values)
+        if self.odd is not None and self.config.odd_keep_inside:
+            return self.odd.keep_inside(self.episode_start, proposed, self.conditions_model, heading)
+        return proposed
 
     @property
     def held_knobs(self) -> tuple[str, ...]:
@@ -394,6 +443,12 @@ class GenesisEnv(gym.Env):
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         if self._loop is None:
             raise RuntimeError("call reset() before step()")
+        if self.choosing_start:  # the start step: no tick, no reward; the episode begins from the chosen start
+            self.choosing_start = False
+            self._begin(self.chosen_start(action))
+            start = {k: float(self.weather[k]) for k in self.held_knobs}
+            return self._observation(), 0.0, False, False, {"start_step": True, "knobs": self._knob_info(),
+                                                           "start": start}
         before = self.weather
         proposed = self.mapper.apply(before, action)
         if self.odd is not None and self.config.odd_keep_inside:

@@ -17,6 +17,9 @@ would find failures no tester could reproduce against a real black-box system. T
 vectors are stacked (oldest first, zeros before the episode's first step), so a policy can see trends: the
 lead's gap closing, detections dropping out as the fog rises.
 
+With ``env.start_head``, one flag follows the stacked rows: 1 at the episode's first observation, whose action
+chooses the start (the sun's altitude and bearing), 0 after it.
+
 Modes (``env.observation``): ``image`` (the paper's), ``image+knobs`` (the image and the knob vector),
 ``features`` (the stacked features alone: a small MLP policy), ``image+features``.
 """
@@ -34,6 +37,8 @@ from genesis_rl.sim.interface import LeadInfo
 from genesis_rl.system.protocol import SystemOutput
 
 OBSERVATIONS = ("image", "image+knobs", "features", "image+features")
+#: the modes that carry the feature vector (and so the start step's flag, ``env.start_head``)
+FEATURE_OBSERVATIONS = ("features", "image+features")
 SPEED_SCALE = 30.0  # [m/s] speeds are divided by this (and clipped to [0, 1])
 TIME_SCALE = 25.6  # [s] time is divided by this, the paper's episode (clipped): a campaign's --steps leaves it be
 GAP_SCALE = 60.0  # [m] perceived gaps likewise (the built-in controller ignores detections farther away)
@@ -126,9 +131,10 @@ class FeatureHistory:
 
 
 def observation_space(mode: str, obs_height: int, obs_width: int, n_knobs: int, history: int,
-                      actors: bool | tuple[str, ...] = False) -> spaces.Space:
+                      actors: bool | tuple[str, ...] = False, start_head: bool = False) -> spaces.Space:
+    """``start_head``: one more feature after the stacked rows, 1 at the step that chooses the start."""
     image = spaces.Box(0, 255, (obs_height, obs_width, 3), np.uint8)
-    features = spaces.Box(0.0, 1.0, (history * feature_size(n_knobs, actors),), np.float32)
+    features = spaces.Box(0.0, 1.0, (history * feature_size(n_knobs, actors) + int(start_head),), np.float32)
     if mode == "image":
         return image
     if mode == "image+knobs":

@@ -67,14 +67,21 @@ class CampaignRunner:
     def natural_start(self, rng: np.random.Generator) -> Weather:
         return self.env.natural_start(rng)
 
+    @property
+    def has_start_head(self) -> bool:
+        return self.config.start_head
+
     def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int,
-            start: Weather | None = None) -> EpisodeOutcome:
-        """One episode; ``start``: the weather it starts from (None: the env's start weather)."""
+            start: Weather | None = None, start_head: bool = False) -> EpisodeOutcome:
+        """One episode; ``start``: the weather it starts from (None: the env's start weather); ``start_head``:
+        ``act``'s first action chooses it instead (``GenesisEnv.chosen_start``; the env needs start_head)."""
         env, spec = self.env, self.spec
-        options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed}
+        options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed, "start_head": start_head}
         if start is not None:
             options["weather"] = start
         obs, _ = env.reset(options=options)
+        if start_head:  # the start step: the env begins the episode where the action says
+            obs, *_ = env.step(act(obs))
         ring: deque[tuple[int, np.ndarray]] = deque(maxlen=spec.frames_before + 1)
         frames: dict[int, np.ndarray] = {}
         hit_step: int | None = None
@@ -104,7 +111,7 @@ class CampaignRunner:
         if self._oracle is None:
             self._oracle = GenesisEnv(replace(self.config, system="oracle", system_kwargs={}))
         env = self._oracle
-        env.reset(options={"scene": scene, "episode_seed": episode_seed,
+        env.reset(options={"scene": scene, "episode_seed": episode_seed, "start_head": False,
                            **({"weather": start} if start is not None else {})})
         end = min(len(records), hit_at + 1 + int(round(COUNTERFACTUAL_MARGIN_S / env.dt)))
         for rec in records[:end]:

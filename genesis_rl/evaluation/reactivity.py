@@ -74,13 +74,19 @@ def _score(env: Any, metrics: Metrics) -> EpisodeScore:
     return EpisodeScore({name: float(fn(env.records)) for name, fn in metrics.items()})
 
 
+def _steps(env: Any) -> int:
+    """Actions an episode takes: its steps, and the start step of an env with a start head (the open-loop
+    episode plays the donor's start action too, so the pair differs in reacting only)."""
+    return int(env.config.episode_steps) + int(getattr(env.config, "start_head", False))
+
+
 def play_closed(env: Any, policy: ActingPolicy, scene: int, episode_seed: int,
                 metrics: Metrics = METRICS) -> tuple[EpisodeScore, np.ndarray]:
     """The policy plays the episode; returns its score and its actions (steps x knobs)."""
     policy.reset(scene, episode_seed)
     obs, _ = env.reset(options={"scene": scene, "episode_seed": episode_seed})
     actions = []
-    for _ in range(env.config.episode_steps):
+    for _ in range(_steps(env)):
         a = np.asarray(policy.act(obs), np.float32)
         actions.append(a)
         obs, _, terminated, truncated, _ = env.step(a)
@@ -92,7 +98,7 @@ def play_closed(env: Any, policy: ActingPolicy, scene: int, episode_seed: int,
 def play_open(env: Any, actions: np.ndarray, scene: int, episode_seed: int, metrics: Metrics = METRICS) -> EpisodeScore:
     """``actions`` played blind, step k the k-th (the last one held if the episode is longer)."""
     env.reset(options={"scene": scene, "episode_seed": episode_seed})
-    for k in range(env.config.episode_steps):
+    for k in range(_steps(env)):
         _, _, terminated, truncated, _ = env.step(actions[min(k, len(actions) - 1)])
         if terminated or truncated:
             break

@@ -165,7 +165,7 @@ def model_spaces(cfg: RunConfig) -> tuple[spaces.Space, spaces.Box]:
 
     c = cfg.env
     obs = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs), c.obs_history,
-                            actor_feature_names(c.knobs))
+                            actor_feature_names(c.knobs), c.start_head)
     action = spaces.Box(-1.0, 1.0, (KnobActionMapper(c.knobs, c.max_step_fraction, c.disabled_knobs).action_dim,),
                         np.float32)
 

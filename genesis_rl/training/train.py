@@ -132,6 +132,9 @@ class _Callbacks:
                 self.bar.update(n_envs)
                 for i, info in enumerate(self.locals["infos"]):
                     a = self.acc.setdefault(i, {"reward": 0.0, "iou": [], "knobs": [], "collisions": 0})
+                    if info.get("start_step"):  # the start head's choice: no tick to account for
+                        a["start"] = dict(info["start"])
+                        continue
                     a["reward"] += float(self.locals["rewards"][i])
                     a["iou"].append(info["iou"])
                     a["knobs"].append([info["knobs"][k] for k in knobs])
@@ -146,7 +149,8 @@ class _Callbacks:
                 row = {"timesteps": self.num_timesteps, "episode_reward": round(a["reward"], 4),
                        "mean_iou": round(float(np.mean(a["iou"])), 4), "collisions": a["collisions"],
                        **{f"violation_{k}": round(v, 4) for k, v in violations.items()},
-                       **{f"mean_{k}": round(float(v), 3) for k, v in zip(knobs, knob_mean, strict=True)}}
+                       **{f"mean_{k}": round(float(v), 3) for k, v in zip(knobs, knob_mean, strict=True)},
+                       **{f"start_{k}": round(float(v), 3) for k, v in a.get("start", {}).items()}}
                 for k, v in row.items():
                     if k != "timesteps":
                         self.logger.record(f"episode/{k}", v)
