@@ -261,3 +261,16 @@ def test_bad_bounds_and_members_are_refused_naming_the_field() -> None:
     with pytest.raises(UserInputError, match=r"env key\(s\) \['system'\] are the member's own fields"):
         ZooMember(name="x", kind="control", summary="", system="builtin", odd="highway_day.toml", map="highway",
                   trigger=EMPTY, env={"system": "oracle"})
+
+
+def test_a_run_naming_the_shipped_weights_from_the_repository_matches_the_member(monkeypatch):
+    """configs/zoo_glare_blind_sac.toml names the weights relative to the repository; the member names them by
+    absolute path: one file, so the benchmark must not refuse the agent over the spelling."""
+    from genesis_rl.benchmark.matrix import _same_weights_spelling
+
+    monkeypatch.chdir(ODD_DIR.parents[2])
+    member = zoo_member("glare_blind")
+    relative = {"weights": "genesis_rl/zoo/weights/glare_blind_detector.pt"}
+    assert relative != dict(member.system_kwargs)
+    assert _same_weights_spelling(relative) == _same_weights_spelling(dict(member.system_kwargs))
+    assert _same_weights_spelling({"weights": "other.pt"}) != _same_weights_spelling(dict(member.system_kwargs))

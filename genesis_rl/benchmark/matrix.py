@@ -170,6 +170,8 @@ def agent_env(member: str, run: str) -> dict[str, Any]:
         have, want = trained.get(key, defaults[key]), wanted.get(key, defaults[key])
         if key == "knobs":
             have, want = list(have or ()), list(want or ())
+        if key == "system_kwargs":  # one weights file, however its path is spelled (the pins check its bytes)
+            have, want = _same_weights_spelling(have), _same_weights_spelling(want)
         if have != want:
             raise UserInputError(f"benchmark agent '{run}' was trained with env.{key} = {have!r}; zoo member "
                                  f"'{member}' has {want!r}: train it on the member's env (docs/zoo.md)")
@@ -179,6 +181,14 @@ def agent_env(member: str, run: str) -> dict[str, Any]:
                              f"plays inside '{m.odd}': train it inside the member's ODD")
     return {**wanted, **{k: trained[k] for k in AGENT_OBSERVATION_KEYS if k in trained},
             "terminate_on_collision": False}
+
+
+def _same_weights_spelling(kwargs: Any) -> Any:
+    """``system_kwargs`` with its ``weights`` path resolved: a run trained with the shipped weights named from
+    the repository (``genesis_rl/zoo/weights/...``) plays the member that names them by absolute path."""
+    if isinstance(kwargs, dict) and isinstance(kwargs.get("weights"), str):
+        return {**kwargs, "weights": str(Path(kwargs["weights"]).resolve())}
+    return kwargs
 
 
 def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
