@@ -101,18 +101,28 @@ def _fig_survival(board: dict[str, Any], member: str) -> str:
     from genesis_rl.evaluation.report import _color, _png
 
     fig, ax = plt.subplots(figsize=(5.2, 3.2))
+    agents = 0
     for k, (policy, c) in enumerate(board["cells"][member].items()):
         pts = c["survival"]
         xs = [p[0] for p in pts] + [float(c["budget_steps"])]  # flat to the budget, where the rest are censored
         ys = [p[1] for p in pts] + [pts[-1][1]]
-        ax.step(xs, ys, where="post", color=_color(policy, k), label=f"{policy} ({c['falsified']}/{c['episodes']})")
+        # trained agents dashed, each its own colour, so that they never share one with an adversary
+        agent = policy.startswith("agent:")
+        color = AGENT_COLORS[agents % len(AGENT_COLORS)] if agent else _color(policy, k)
+        agents += agent
+        ax.step(xs, ys, where="post", color=color, ls="--" if agent else "-",
+                label=f"{policy} ({c['falsified']}/{c['episodes']})")
     ax.set_ylim(-0.03, 1.03)
     ax.set_xlabel("simulator steps")
     ax.set_ylabel("share without an in-ODD failure")
     ax.set_title(member, fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the curves, not over them
     return _png(fig)
+
+
+#: the trained agents' curves (dashed): colours no adversary of the report's palette uses
+AGENT_COLORS = ("#e6194b", "#3cb44b", "#4363d8", "#f58231", "#911eb4", "#42d4f4")
 
 
 def _fig_ranks(board: dict[str, Any]) -> str | None:
