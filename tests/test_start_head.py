@@ -90,7 +90,8 @@ def test_the_start_step_sets_the_sun_from_the_action_and_the_episode_runs_in_ful
         day.close()
 
 
-#: SAC with a start head for a few dozen steps on the oracle inside urban_day: the plumbing is under test
+#: SAC with a start head for a few dozen steps on the oracle inside highway_day (oracle_highway's system and ODD),
+#: trained on urban scenes as the zoo's agents are: the plumbing is under test
 TINY_HEAD_AGENT = """
 [env]
 map = "urban"
@@ -132,7 +133,7 @@ def test_a_trained_head_chooses_its_start_in_natural_campaigns_only(tmp_path, ca
 
     run = tmp_path / "head"
     config = tmp_path / "head.toml"
-    config.write_text(TINY_HEAD_AGENT.format(odd=ODD_DIR / "urban_day.toml"))
+    config.write_text(TINY_HEAD_AGENT.format(odd=ODD_DIR / "highway_day.toml"))
     assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
     capsys.readouterr()
     assert main(["train", "--out", str(run), "--resume", "--steps", "48", "--quiet"]) == 0  # mid-episode
@@ -164,3 +165,7 @@ def test_a_trained_head_chooses_its_start_in_natural_campaigns_only(tmp_path, ca
             assert got["sun_altitude_angle"] == pytest.approx(want["sun_altitude_angle"], abs=1e-3)
             assert got["sun_azimuth_angle"] == pytest.approx(want["sun_azimuth_angle"], abs=1e-3)
     assert starts["fixed"] == 75.0  # the start weather: a fixed campaign gives no policy a choice
+    from genesis_rl.benchmark.matrix import agent_env
+
+    played = agent_env("oracle_highway", str(run))  # the benchmark plays it with its head, on the member's map
+    assert played["start_head"] is True and played["map"] == "highway" and played["system"] == "oracle"
