@@ -358,10 +358,9 @@ class GenesisEnv(gym.Env):
         assert self._loop is not None
         heading = self._loop.heading_deg
         action = np.asarray(action, np.float64).reshape(-1)
-        knobs = list(self.mapper.knobs)
         values = dict(self.episode_start.values)
-        for name in self.held_knobs:
-            a, spec, now = float(np.clip(action[knobs.index(name)], -1.0, 1.0)), KNOBS[name], values[name]
+        for name, i in zip(self.held_knobs, self.held_indices(), strict=True):
+            a, spec, now = float(np.clip(action[i], -1.0, 1.0)), KNOBS[name], values[name]
             if name == "sun_azimuth_angle":
                 values[name] = (heading + 180.0 * a - spec.low) % spec.span + spec.low
             else:
@@ -381,6 +380,11 @@ class GenesisEnv(gym.Env):
         return tuple(k for k, d in zip(self.mapper.knobs, self.mapper.max_delta, strict=True)
                      if d * steps < HELD_REACH * KNOBS[k].span and k not in self.config.disabled_knobs
                      and not KNOBS[k].is_actor)
+
+    def held_indices(self) -> list[int]:
+        """Where the held knobs sit in the action vector (``held_knobs`` order)."""
+        knobs = list(self.mapper.knobs)
+        return [knobs.index(k) for k in self.held_knobs]
 
     def start_from(self, position: Sequence[float]) -> Weather:
         """The start weather with each held knob at ``position`` (0..1 of its range, in ``held_knobs`` order),

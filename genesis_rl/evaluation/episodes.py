@@ -57,9 +57,7 @@ class CampaignRunner:
         return self.env.held_knobs
 
     def held_indices(self) -> list[int]:
-        """Where the held knobs sit in the action vector."""
-        knobs = list(self.env.mapper.knobs)
-        return [knobs.index(k) for k in self.held_knobs]
+        return self.env.held_indices()
 
     def start_from(self, position: Sequence[float]) -> Weather:
         return self.env.start_from(position)
