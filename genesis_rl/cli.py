@@ -477,6 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
     from genesis_rl.zoo_cmd import add_zoo_command
 
     add_zoo_command(sub)
+    from genesis_rl.estimate_cmd import add_estimate_command
+
+    add_estimate_command(sub)
 
     from genesis_rl.evaluation.commands import add_evaluation_commands
 

@@ -28,9 +28,11 @@ from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
-KINDS = ("run", "campaign", "export", "drive", "render", "benchmark", "sweep")
+KINDS = ("run", "campaign", "export", "drive", "render", "benchmark", "sweep", "estimate")
+#: kinds that continue with --resume (the refusal to overwrite one says so)
+RESUMABLE = ("run", "campaign", "benchmark", "sweep", "estimate")
 #: kinds whose folder is one unit that --force replaces whole; drive and render write named files into theirs
-WHOLE_FOLDER = ("run", "campaign", "export", "benchmark", "sweep")
+WHOLE_FOLDER = ("run", "campaign", "export", "benchmark", "sweep", "estimate")
 
 #: what genesis-rl itself writes at the top of a run, campaign or export folder (regular expressions on the
 #: entry's name; a folder named here, e.g. checkpoints/, is the tool's as a whole). ``--force`` replaces a folder
@@ -47,6 +49,7 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
     "benchmark": (r"\.genesis-rl\.json", r"benchmark\.json", r"campaigns", r"leaderboard\.json",
                   r"leaderboard\.html"),
     "sweep": (r"\.genesis-rl\.json", r"sweep\.json", r"sweep\.png", r"campaigns"),
+    "estimate": (r"\.genesis-rl\.json", r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
 }
 
 
@@ -259,10 +262,10 @@ def claim(folder: Path, kind: str, force: bool, *, resume: bool = False, files: 
     if resume:
         ensure_folder_path(Path(folder))
     else:
-        check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign", "benchmark", "sweep"))
+        check_target(folder, kind, force, files, resume_hint=kind in RESUMABLE)
     with hold(folder):
         if not resume:
-            check_target(folder, kind, force, files, resume_hint=kind in ("run", "campaign", "benchmark", "sweep"))
+            check_target(folder, kind, force, files, resume_hint=kind in RESUMABLE)
         elif Path(folder).is_dir() and not (Path(folder) / MARKER).exists() and legacy_kind(Path(folder)) == kind:
             write_marker(folder, kind)
         yield not Path(folder).is_dir() or not any(Path(folder).iterdir())

@@ -371,6 +371,14 @@ class GenesisEnv(gym.Env):
         return proposed
 
     @property
+    def heading_deg(self) -> float:
+        """The ego camera's heading now [deg, counter-clockwise from east]: glare and the sun's bearing are
+        taken from it."""
+        if self._loop is None:
+            raise RuntimeError("call reset() before heading_deg")
+        return float(self._loop.heading_deg)
+
+    @property
     def held_knobs(self) -> tuple[str, ...]:
         """The knobs the agent turns that an episode can barely move (all its steps reach under
         ``HELD_REACH`` of the range: under natural dynamics the sun, 0.25 deg a minute, whose position is the

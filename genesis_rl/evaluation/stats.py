@@ -45,12 +45,20 @@ def paired_comparison(a: Sequence[float], b: Sequence[float], seed: int, n_boot:
 
 
 def _binom_cdf(k: int, n: int, p: float) -> float:
-    return float(sum(math.comb(n, i) * p**i * (1 - p) ** (n - i) for i in range(k + 1)))
+    """P(X <= k) for X ~ Binomial(n, p), summed in log space (no overflow at large n)."""
+    if p <= 0.0:
+        return 1.0
+    if p >= 1.0:
+        return 1.0 if k >= n else 0.0
+    lp, lq = math.log(p), math.log1p(-p)
+    return float(min(1.0, sum(math.exp(math.lgamma(n + 1) - math.lgamma(i + 1) - math.lgamma(n - i + 1)
+                                       + i * lp + (n - i) * lq) for i in range(k + 1))))
 
 
-def clopper_pearson(k: int, n: int, level: float = 0.95) -> dict[str, float | int | None]:
+def clopper_pearson(k: int, n: int, level: float = 0.95, digits: int | None = 4) -> dict[str, float | int | None]:
     """The exact (Clopper-Pearson) confidence interval of a rate of ``k`` events in ``n`` trials, found by
-    bisection on the binomial tail probabilities (no SciPy needed)."""
+    bisection on the binomial tail probabilities (no SciPy needed); rounded to ``digits`` (None: not rounded,
+    for rates far below 1e-4)."""
     if n == 0:
         return {"rate": None, "ci_low": None, "ci_high": None, "k": 0, "n": 0}
     alpha = (1 - level) / 2
@@ -64,4 +72,7 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> dict[str, float | in
 
     low = 0.0 if k == 0 else solve(lambda p: 1 - _binom_cdf(k - 1, n, p) >= alpha)
     high = 1.0 if k == n else solve(lambda p: _binom_cdf(k, n, p) <= alpha)
-    return {"rate": k / n, "ci_low": round(low, 4), "ci_high": round(high, 4), "k": k, "n": n}
+    def shown(v: float) -> float:
+        return v if digits is None else round(v, digits)
+
+    return {"rate": k / n, "ci_low": shown(low), "ci_high": shown(high), "k": k, "n": n}

@@ -1,0 +1,78 @@
+"""``genesis-rl estimate``: how often a zoo member fails inside its ODD under natural conditions, by crude Monte
+Carlo or by importance sampling with a cross-entropy-adapted proposal (docs/estimation.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from genesis_rl.cli_args import seed_int
+from genesis_rl.errors import UserInputError
+
+
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    from genesis_rl import limits
+    from genesis_rl.estimation.nominal import load_starts
+    from genesis_rl.estimation.run import EstimateSpec, run_estimate
+    from genesis_rl.output_paths import check_folder_output
+    from genesis_rl.zoo.members import zoo_member
+
+    zoo_member(args.member)  # an unknown name is refused with the list
+    if args.workers < 1:
+        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
+    limits.WORKERS.check(args.workers, "--workers")
+    limits.SCENES.check(args.episodes, "--episodes")
+    if args.steps is not None:
+        limits.SIM_STEPS.check(args.steps, "--steps")
+    check_folder_output(args.out)
+    nominal = load_starts(Path(args.nominal)) if args.nominal else None
+    spec = EstimateSpec(member=args.member, method=args.method, episodes=args.episodes, seed=args.seed,
+                        steps=args.steps, stages=args.stages if args.method == "importance" else 1,
+                        defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal)
+    result = run_estimate(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
+                          progress=not args.quiet)
+    est = result["estimate"]
+    lo, hi = est["ci95"]
+    print(f"{args.member}: in-ODD failure probability per {result['episode_s']:g} s episode "
+          f"{est['probability']:.3g} [95 % CI {lo:.3g}, {hi:.3g}] from {est['episodes']} episodes "
+          f"({est['failures']} failed; {args.method}; {result['episodes_spent']} played in all); per hour driven "
+          f"{result['per_hour']:.3g}")
+    for w in est["warnings"]:
+        print(f"warning: {w}")
+    for c in result["clusters"][:5]:
+        print(f"  {c['share']:.0%} of it: {c['cluster']} ({c['failures']} failure(s))")
+    print(json.dumps({"out": args.out, "probability": est["probability"], "ci95": est["ci95"],
+                      "episodes": est["episodes"], "failures": est["failures"], "ess": est["ess"]}))
+    return 0
+
+
+def add_estimate_command(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("estimate", help="how often a zoo member fails inside its ODD under natural conditions "
+                                        "(crude Monte Carlo or importance sampling)")
+    p.add_argument("--member", required=True, help="the zoo member (genesis-rl zoo list)")
+    p.add_argument("--method", default="importance", choices=["crude", "importance"],
+                   help="crude: episodes drawn from the nominal model; importance: from a cross-entropy-adapted "
+                        "start proposal with a defensive share of nominal starts, weighted (default)")
+    p.add_argument("--episodes", type=int, default=120, help="episodes in all (default 120)")
+    p.add_argument("--stages", type=int, default=4,
+                   help="importance: stages; all but the last adapt the proposal by cross-entropy (default 4)")
+    p.add_argument("--pilot", type=float, default=0.5,
+                   help="importance: the share of the episodes the pilot stages take to adapt the proposal; the "
+                        "last stage's episodes make the estimate (default 0.5)")
+    p.add_argument("--defensive", type=float, default=0.2,
+                   help="importance: the share of nominal starts in every proposal (default 0.2; bounds each "
+                        "weight by 1/share)")
+    p.add_argument("--elite", type=float, default=0.2,
+                   help="importance: the share of a stage, highest scores first, that refits the proposal "
+                        "(default 0.2; every failure is in it)")
+    p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's)")
+    p.add_argument("--nominal", default=None,
+                   help="a TOML file of start ranges replacing the default nominal model (docs/estimation.md)")
+    p.add_argument("--seed", type=seed_int, default=0, help="every draw flows from it (default 0)")
+    p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
+    p.add_argument("--out", required=True, help="output folder: episodes.csv, estimate.json, estimate.png")
+    p.add_argument("--force", action="store_true", help="replace an estimate already in --out")
+    p.add_argument("--resume", action="store_true", help="continue the estimate in --out where it stopped")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_estimate)

@@ -1,0 +1,86 @@
+"""One drawn episode, played: the scene, the start and the step actions come from the driver (so the
+results are the same whatever the number of workers); the worker says whether it failed inside the ODD."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from genesis_rl.adversaries.base import in_odd_failure_at
+from genesis_rl.config import from_mapping
+from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+from genesis_rl.estimation.nominal import BEARING
+from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
+from genesis_rl.knobs import KNOBS, Weather
+from genesis_rl.odd.domain import IN_ODD
+
+
+@dataclass(frozen=True)
+class EpisodeTask:
+    """What the driver drew for episode ``index``: its scene, seeds and start (nominal variables)."""
+
+    index: int
+    scene: int
+    episode_seed: int
+    action_seed: tuple[int, ...]
+    start: dict[str, float]
+
+
+def start_weather(env: GenesisEnv, start: dict[str, float], heading_deg: float) -> Weather:
+    """The start weather: the env's start with each drawn held knob set (the bearing turned into the sun's
+    azimuth at the ego's heading)."""
+    values = dict(env.start_weather.values)
+    for name, v in start.items():
+        if name == BEARING:
+            spec = KNOBS["sun_azimuth_angle"]
+            values["sun_azimuth_angle"] = (heading_deg + v - spec.low) % spec.span + spec.low
+        else:
+            values[name] = v
+    return Weather(values)
+
+
+def play(env: GenesisEnv, task: EpisodeTask, steps: int) -> dict[str, Any]:
+    """Play ``task`` for ``steps`` steps with the nominal step actions; the row that describes it."""
+    env.reset(options={"scene": task.scene, "episode_seed": task.episode_seed})
+    heading = env.heading_deg
+    env.reset(options={"scene": task.scene, "episode_seed": task.episode_seed,
+                       "weather": start_weather(env, task.start, heading)})
+    actions = np.random.default_rng(list(task.action_seed)).uniform(
+        -1.0, 1.0, (steps, env.mapper.action_dim)).astype(np.float32)
+    score = 0.0
+    for a in actions:
+        _, reward, terminated, truncated, _ = env.step(a)
+        score += float(reward)
+        if terminated or truncated:
+            break
+    records = env.records
+    hit = in_odd_failure_at(records)
+    row: dict[str, Any] = {"index": task.index, "scene": task.scene, "episode_seed": task.episode_seed,
+                           **{f"start_{k}": round(v, 6) for k, v in task.start.items()},
+                           "heading": round(heading, 3), "steps": len(records), "score": round(score, 6),
+                           "in_odd_steps": sum(r.odd_status in IN_ODD for r in records),
+                           "failed": hit is not None, "fail_step": hit, "cluster": None}
+    if hit is not None:
+        c = records[hit].conditions
+        parts = [what_was_hit(records, hit, env.dt, env.actor_events())]
+        if c is not None:
+            parts += [c.light, "glare" if c.sun_glare else "no glare", visibility_band(c.visibility_m),
+                      rain_band(c.rain_mm_h)]
+        row["cluster"] = " / ".join(parts)
+    return row
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def init_worker(env_config: dict[str, Any], steps: int) -> None:
+    """A worker process's env, built once (one torch thread: the same arithmetic in every process)."""
+    torch.set_num_threads(1)
+    _WORKER.update(env=GenesisEnv(from_mapping(EnvConfig, env_config, "env")), steps=steps)
+
+
+def run_task(task: EpisodeTask) -> dict[str, Any]:
+    return play(_WORKER["env"], task, _WORKER["steps"])

@@ -1,0 +1,56 @@
+"""``estimate.png``: the estimate converging with its interval, beside the starts the episodes were drawn from
+(failures marked), so a reader sees both whether to trust the number and where the probability lives."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.estimation.nominal import NominalModel
+from genesis_rl.io_utils import atomic_write
+
+
+def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, Any], nominal: NominalModel) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    run = result["running"]
+    n = [r["episodes"] for r in run]
+    ax.fill_between(n, [r["low"] for r in run], [r["high"] for r in run], color="tab:blue", alpha=0.2,
+                    label="95 % interval")
+    ax.plot(n, [r["probability"] for r in run], color="tab:blue", label="estimate")
+    est = result["estimate"]
+    ax.set_xlabel("episodes")
+    ax.set_ylabel("failure probability per episode")
+    ax.set_title(f"{est['method']}: {est['probability']:.2e} [{est['ci95'][0]:.2e}, {est['ci95'][1]:.2e}]",
+                 fontsize=10)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8)
+    names = [r.name for r in nominal.starts]
+    x_name, y_name = (names + [None])[:2] if len(names) >= 1 else (None, None)
+    if x_name is not None:
+        x = np.array([float(r[f"start_{x_name}"]) for r in rows])
+        y = np.array([float(r[f"start_{y_name}"]) for r in rows]) if y_name else np.array([r["index"] for r in rows])
+        failed = np.array([bool(r["failed"]) for r in rows])
+        stage = np.array([int(r["stage"]) for r in rows])
+        sc = bx.scatter(x[~failed], y[~failed], c=stage[~failed], s=8, cmap="viridis", alpha=0.6,
+                        vmin=0, vmax=max(1, stage.max()))
+        bx.scatter(x[failed], y[failed], marker="x", color="tab:red", s=40, label="in-ODD failure")
+        if stage.max() > 0:
+            fig.colorbar(sc, ax=bx, label="stage")
+        bx.set_xlabel(f"start {x_name}")
+        bx.set_ylabel(f"start {y_name}" if y_name else "episode")
+        bx.set_title(f"{len(rows)} episodes, {int(failed.sum())} failed", fontsize=10)
+        bx.grid(alpha=0.3)
+        if failed.any():
+            bx.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, dpi=110, format="png"))
+    plt.close(fig)

@@ -1,0 +1,121 @@
+"""Start proposals that concentrate on failures, and their cross-entropy adaptation.
+
+A proposal draws the held knobs' start from a defensive mixture: with probability ``defensive`` the nominal
+model's own start, else independent truncated normals on the nominal ranges. The mixture's density is never
+below ``defensive`` times the nominal's, so no weight exceeds ``1 / defensive``: the estimate stays unbiased
+and its variance bounded where the normals miss a failure region (Hesterberg's defensive importance sampling).
+Step actions keep the nominal model under every proposal, so their likelihood ratio is exactly 1.
+
+Cross-entropy (Rubinstein's multilevel method): after a stage, the elite (the ``elite`` share of its episodes
+with the highest score, failures first) refits each normal's mean and spread by moments weighted with the
+episodes' likelihood ratios; a floor on the spread keeps the proposal from collapsing onto one episode.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from genesis_rl.estimation.nominal import NominalModel, StartRange
+
+_STD = NormalDist()
+#: the spread never shrinks below this share of a range's width
+MIN_SPREAD = 0.05
+#: the estimating stage's normals are this much wider than the last fit: a normal fit to an elite is narrower
+#: than the failure region it came from, and the region's edges it misses then carry large weights drawn rarely
+#: (on the toy of tests/test_estimation.py the 95 % interval covered the truth in 55 % of 60 runs without it,
+#: 92 % with it and a 5 % spread floor)
+WIDEN_FINAL = 1.5
+
+
+@dataclass(frozen=True)
+class TruncatedNormal:
+    """A normal with ``mean`` and ``spread`` truncated to ``range``."""
+
+    range: StartRange
+    mean: float
+    spread: float
+
+    def _mass(self) -> tuple[float, float]:
+        a = _STD.cdf((self.range.low - self.mean) / self.spread)
+        b = _STD.cdf((self.range.high - self.mean) / self.spread)
+        return a, b
+
+    def log_pdf(self, x: float) -> float:
+        if not self.range.low <= x <= self.range.high:
+            return -math.inf
+        a, b = self._mass()
+        z = (x - self.mean) / self.spread
+        return -0.5 * z * z - math.log(self.spread * math.sqrt(2 * math.pi)) - math.log(max(b - a, 1e-300))
+
+    def sample(self, rng: np.random.Generator) -> float:
+        a, b = self._mass()
+        u = float(rng.uniform(a, b))
+        u = min(max(u, 1e-12), 1 - 1e-12)
+        return float(np.clip(self.mean + self.spread * _STD.inv_cdf(u), self.range.low, self.range.high))
+
+
+@dataclass(frozen=True)
+class StartProposal:
+    """The defensive mixture ``defensive * nominal + (1 - defensive) * prod(normals)``."""
+
+    nominal: NominalModel
+    normals: tuple[TruncatedNormal, ...]
+    defensive: float
+
+    @classmethod
+    def broad(cls, nominal: NominalModel, defensive: float) -> StartProposal:
+        """The first stage's: each normal centred on its range with a spread of half the width (close to
+        the nominal, so the first stage sees what natural starts give)."""
+        return cls(nominal, tuple(TruncatedNormal(r, (r.low + r.high) / 2, r.width / 2) for r in nominal.starts),
+                   defensive)
+
+    def log_pdf(self, start: Mapping[str, float]) -> float:
+        log_p = self.nominal.start_log_density(start)
+        log_n = sum(n.log_pdf(start[n.range.name]) for n in self.normals)
+        terms = [t for t in (math.log(self.defensive) + log_p if self.defensive > 0 else -math.inf,
+                             math.log1p(-self.defensive) + log_n if self.defensive < 1 else -math.inf)
+                 if t > -math.inf]
+        if not terms:
+            return -math.inf
+        top = max(terms)
+        return top + math.log(sum(math.exp(t - top) for t in terms))
+
+    def sample(self, rng: np.random.Generator) -> dict[str, float]:
+        if rng.uniform() < self.defensive:
+            return self.nominal.sample_start(rng)
+        return {n.range.name: n.sample(rng) for n in self.normals}
+
+    def refit(self, starts: Sequence[Mapping[str, float]], weights: Sequence[float]) -> StartProposal:
+        """The cross-entropy update on the elite ``starts`` with their likelihood ratios ``weights``."""
+        w = np.asarray(weights, np.float64)
+        if not len(starts) or not np.isfinite(w).all() or w.sum() <= 0:
+            return self
+        w = w / w.sum()
+        normals = []
+        for n in self.normals:
+            x = np.array([s[n.range.name] for s in starts], np.float64)
+            mean = float(np.sum(w * x))
+            spread = float(np.sqrt(np.sum(w * (x - mean) ** 2)))
+            normals.append(TruncatedNormal(n.range, mean, max(spread, MIN_SPREAD * n.range.width)))
+        return StartProposal(self.nominal, tuple(normals), self.defensive)
+
+    def widened(self, factor: float) -> StartProposal:
+        return StartProposal(self.nominal, tuple(TruncatedNormal(n.range, n.mean, n.spread * factor)
+                                                 for n in self.normals), self.defensive)
+
+    def to_json(self) -> dict[str, object]:
+        return {"defensive": self.defensive,
+                "normals": {n.range.name: {"mean": round(n.mean, 4), "spread": round(n.spread, 4)}
+                            for n in self.normals}}
+
+
+def elite(scores: Sequence[float], failed: Sequence[bool], share: float) -> list[int]:
+    """The indices of the elite: every failure, else (and at least) the ``share`` with the highest score."""
+    order = sorted(range(len(scores)), key=lambda i: (not failed[i], -scores[i], i))
+    count = max(1, math.ceil(share * len(scores)), sum(bool(f) for f in failed))
+    return order[:count]

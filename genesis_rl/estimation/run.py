@@ -1,0 +1,317 @@
+"""``genesis-rl estimate``'s driver: draws every episode from its seed, plays them on workers, adapts the
+proposal between stages, checkpoints ``episodes.csv`` after every batch and writes ``estimate.json`` and
+``estimate.png`` (docs/estimation.md).
+
+Every draw happens here, from ``(seed, episode index)``: the scene, the episode seed, the start and the seed of
+the step actions; the workers only play. So the same seed gives the same episodes and the same estimate with
+any number of workers, and ``--resume`` continues from the episodes on disk (a stage's proposal is refit from
+the stages before it, which are on disk too).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import multiprocessing as mp
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from genesis_rl import output_folder
+from genesis_rl.errors import UserInputError
+from genesis_rl.estimation import estimator
+from genesis_rl.estimation.episodes import EpisodeTask, init_worker, run_task
+from genesis_rl.estimation.nominal import NominalModel, StartRange, check_starts, default_starts
+from genesis_rl.estimation.proposal import WIDEN_FINAL, StartProposal, elite
+from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
+
+if TYPE_CHECKING:
+    from genesis_rl.env.genesis_env import GenesisEnv
+
+SCHEMA = "genesis-rl/estimate"
+METHODS = ("crude", "importance")
+#: episodes between checkpoints of episodes.csv
+BATCH = 25
+
+
+@dataclass(frozen=True)
+class EstimateSpec:
+    """Everything that decides an estimate's episodes (``workers`` does not)."""
+
+    member: str
+    method: str
+    episodes: int
+    seed: int = 0
+    steps: int | None = None  # None: the member's episode length
+    stages: int = 4  # importance: stages; all but the last adapt the proposal (pilots), the last estimates
+    pilot: float = 0.5  # importance: the share of the episodes the pilot stages take, split evenly
+    defensive: float = 0.2  # importance: the nominal model's share of the proposal
+    elite: float = 0.2  # importance: the share of a stage that refits the proposal
+    catalog_seed: int = 0
+    nominal: tuple[StartRange, ...] | None = None  # None: default_starts of the member's ODD
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise UserInputError(f"--method = '{self.method}'; allowed: {', '.join(METHODS)}")
+        if self.episodes < 1:
+            raise UserInputError(f"--episodes = {self.episodes}; allowed: an integer >= 1")
+        if not 1 <= self.stages <= self.episodes:
+            raise UserInputError(f"--stages = {self.stages}; allowed: 1..--episodes ({self.episodes})")
+        if not 0.0 < self.defensive <= 1.0:
+            raise UserInputError(f"--defensive = {self.defensive}; allowed: a share in (0, 1] (0 would leave the "
+                                 "weights unbounded where the proposal misses a failure region)")
+        if not 0.0 < self.elite <= 1.0:
+            raise UserInputError(f"--elite = {self.elite}; allowed: a share in (0, 1]")
+        if not 0.0 <= self.pilot < 1.0:
+            raise UserInputError(f"--pilot = {self.pilot}; allowed: a share in [0, 1) (the last stage needs episodes)")
+        if self.method == "importance" and self.stages > 1 and min(self.stage_sizes) < 1:
+            raise UserInputError(f"--episodes {self.episodes} with --pilot {self.pilot} leaves a stage of "
+                                 f"{self.stages} without an episode; give more episodes or fewer stages")
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["nominal"] = None if self.nominal is None else {r.name: [r.low, r.high] for r in self.nominal}
+        return d
+
+    @property
+    def stage_sizes(self) -> list[int]:
+        """Episodes per stage: the pilots share ``pilot`` of them evenly, the last stage takes the rest."""
+        if self.method == "crude" or self.stages == 1:
+            return [self.episodes]
+        each = int(self.episodes * self.pilot) // (self.stages - 1)
+        return [each] * (self.stages - 1) + [self.episodes - each * (self.stages - 1)]
+
+    @property
+    def estimating_stage(self) -> int:
+        """The stage whose episodes make the estimate (the pilots only adapt the proposal: with their
+        weights in it, an early stage's few lucky failures, each weighing up to 1/defensive, would dominate it)."""
+        return len(self.stage_sizes) - 1
+
+
+def env_config(spec: EstimateSpec, catalog: Path) -> dict[str, Any]:
+    from genesis_rl.zoo.members import env_settings, zoo_member
+
+    m = zoo_member(spec.member)
+    return {**env_settings(m), "catalog": str(catalog), "observation": "features",
+            "episode_steps": steps_of(spec)}
+
+
+def steps_of(spec: EstimateSpec) -> int:
+    from genesis_rl.zoo.members import zoo_member
+
+    return spec.steps or int(zoo_member(spec.member).env.get("episode_steps", 512))
+
+
+def nominal_model(spec: EstimateSpec, env: GenesisEnv) -> NominalModel:
+    """The ``--nominal`` file's start ranges, else the default model of the member's ODD at its start weather."""
+    held, dim = env.held_knobs, env.mapper.action_dim
+    if spec.nominal is not None:
+        return NominalModel(check_starts(spec.nominal, held), dim)
+    return NominalModel(default_starts(held, env.odd, env.start_weather, env.conditions_model), dim)
+
+
+def draw(spec: EstimateSpec, index: int, n_scenes: int, sample_start: Callable[[np.random.Generator], dict]
+         ) -> EpisodeTask:
+    """Episode ``index``: its scene, episode seed, start and step-action seed, all from ``(seed, index)``."""
+    rng = np.random.default_rng([spec.seed, index, 0x5E57])
+    scene = int(rng.integers(n_scenes))
+    episode_seed = int(rng.integers(2**31 - 1))
+    return EpisodeTask(index, scene, episode_seed, (spec.seed, index, 2), sample_start(rng))
+
+
+def proposal_for(stage: int, rows: Sequence[dict[str, Any]], spec: EstimateSpec, nominal: NominalModel
+                 ) -> StartProposal:
+    """The proposal of ``stage``: the broad one, refit after each earlier stage on its elite (the estimating
+    stage's widened by ``WIDEN_FINAL``)."""
+    proposal = StartProposal.broad(nominal, spec.defensive)
+    for s in range(stage):
+        done = [r for r in rows if int(r["stage"]) == s]
+        picked = elite([float(r["score"]) for r in done], [bool(r["failed"]) for r in done], spec.elite)
+        starts = [start_of(done[i], nominal) for i in picked]
+        proposal = proposal.refit(starts, [math.exp(float(done[i]["log_weight"])) for i in picked])
+    return proposal.widened(WIDEN_FINAL) if 0 < stage == spec.estimating_stage else proposal
+
+
+def play_stages(spec: EstimateSpec, nominal: NominalModel, n_scenes: int, rows: list[dict[str, Any]],
+                play: Callable[[Sequence[EpisodeTask]], Iterable[dict[str, Any]]], *,
+                on_batch: Callable[[list[dict[str, Any]]], None] = lambda rows: None,
+                on_episode: Callable[[], None] = lambda: None) -> list[dict[str, Any]]:
+    """Draw and ``play`` every episode not in ``rows`` (appended, index order), stage by stage: each stage's
+    proposal is refit on the stages before it. ``on_batch`` sees the rows after every batch (the checkpoint).
+    Each row gains its stage and its log likelihood ratio of the start, log p - log q (the step actions are
+    the nominal's under every proposal: their ratio is 1). Returns each stage's proposal and counts."""
+    done = {r["index"] for r in rows}
+    stages = []
+    bounds = np.cumsum([0, *spec.stage_sizes])
+    for stage in range(len(spec.stage_sizes)):
+        proposal = proposal_for(stage, rows, spec, nominal) if spec.method == "importance" else None
+        sample = proposal.sample if proposal else nominal.sample_start
+        first, last = int(bounds[stage]), int(bounds[stage + 1])
+        todo = [draw(spec, i, n_scenes, sample) for i in range(first, last) if i not in done]
+        for b in range(0, len(todo), BATCH):
+            batch = todo[b:b + BATCH]
+            for task, row in zip(batch, play(batch), strict=True):
+                log_p = nominal.start_log_density(task.start)
+                log_q = proposal.log_pdf(task.start) if proposal else log_p
+                rows.append({**row, "stage": stage, "log_weight": round(log_p - log_q, 10)})
+                on_episode()
+            rows.sort(key=lambda r: r["index"])
+            on_batch(rows)
+        stages.append({"stage": stage, "episodes": last - first,
+                       "failures": sum(bool(r["failed"]) for r in rows if r["stage"] == stage),
+                       "proposal": proposal.to_json() if proposal else "nominal"})
+    return stages
+
+
+def start_of(row: dict[str, Any], nominal: NominalModel) -> dict[str, float]:
+    return {r.name: float(row[f"start_{r.name}"]) for r in nominal.starts}
+
+
+# -- files ------------------------------------------------------------------------------------------------------
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    out = []
+    with path.open(newline="", encoding="utf-8") as f:
+        for r in csv.DictReader(f):
+            row: dict[str, Any] = dict(r)
+            for k in ("index", "stage", "scene", "episode_seed", "steps", "in_odd_steps"):
+                row[k] = int(row[k])
+            row["failed"] = row["failed"] == "True"
+            row["fail_step"] = int(row["fail_step"]) if row["fail_step"] else None
+            row["cluster"] = row["cluster"] or None
+            out.append(row)
+    return out
+
+
+def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write(path, lambda p: p.write_text(buf.getvalue(), encoding="utf-8"))
+
+
+@dataclass
+class _Pool:
+    """The workers (none: this process plays)."""
+
+    env: dict[str, Any]
+    steps: int
+    workers: int
+
+    def __enter__(self) -> _Pool:
+        if self.workers > 1:
+            self._pool = mp.get_context("spawn").Pool(self.workers, initializer=init_worker,
+                                                      initargs=(self.env, self.steps))
+        else:
+            init_worker(self.env, self.steps)
+        return self
+
+    def play(self, tasks: Sequence[EpisodeTask]) -> Iterator[dict[str, Any]]:
+        if self.workers > 1:
+            yield from self._pool.imap(run_task, tasks)
+        else:
+            yield from map(run_task, tasks)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.workers > 1:
+            self._pool.terminate()
+            self._pool.join()
+
+
+def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool = False, resume: bool = False,
+                 progress: bool = True) -> dict[str, Any]:
+    """Play every episode not yet on disk, then write ``estimate.json`` and ``estimate.png``; the result."""
+    from tqdm import tqdm
+
+    from genesis_rl import __version__
+    from genesis_rl.backends import catalog_or_generate
+    from genesis_rl.config import from_mapping
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.lite.scenes import DEFAULT_COUNTS
+    from genesis_rl.zoo.members import zoo_member
+
+    member = zoo_member(spec.member)
+    out = Path(out)
+    if resume and not (out / "estimate.json").exists():
+        raise UserInputError(f"--resume: '{out}' holds no estimate.json; start it without --resume")
+    with output_folder.claim(out, "estimate", force, resume=resume):
+        if resume:
+            found = read_json(out / "estimate.json", f"estimate '{out}': estimate.json").get("spec")
+            if found != spec.to_json():
+                raise UserInputError(f"--resume: estimate '{out}' was started with {found!r}; resume it with the "
+                                     "same settings, or start again with --force")
+        else:
+            output_folder.replace(out, "estimate")
+            catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
+                                traffic=member.traffic).save(out / "catalog.json")
+            atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
+                                                      "spec": spec.to_json(), "done": False}, indent=1)
+        env_cfg = env_config(spec, out / "catalog.json")
+        probe = GenesisEnv(from_mapping(EnvConfig, env_cfg, "env"))
+        held, n_scenes, dt = probe.held_knobs, len(probe.catalog.scenes), probe.dt
+        if not held:
+            raise UserInputError(f"member '{spec.member}': no knob is held within an episode, so the proposal has no "
+                                 "start to tilt (estimate needs natural dynamics)")
+        nominal = nominal_model(spec, probe)
+        probe.close()
+        rows = read_rows(out / "episodes.csv") if resume else []
+        steps = steps_of(spec)
+        bar = tqdm(total=spec.episodes, initial=len(rows), desc=f"estimate {spec.member} ({spec.method})",
+                   unit="episode", disable=not progress)
+        with _Pool(env_cfg, steps, workers) as pool:
+            stages = play_stages(spec, nominal, n_scenes, rows, pool.play,
+                                 on_batch=lambda done: write_rows(out / "episodes.csv", done),
+                                 on_episode=lambda: bar.update(1))
+        bar.close()
+        result = summarise(spec, rows, nominal, steps * dt, stages)
+        atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__, "spec": spec.to_json(),
+                                                  "done": True, **result}, indent=1)
+        from genesis_rl.estimation.plot import plot_estimate
+
+        plot_estimate(out / "estimate.png", rows, result, nominal)
+        return result
+
+
+def summarise(spec: EstimateSpec, rows: Sequence[dict[str, Any]], nominal: NominalModel, episode_s: float,
+              stages: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The estimate (from the estimating stage), its diagnostics, the clusters that carry it and its
+    convergence; ``episodes_spent`` counts the pilots too."""
+    spent = len(rows)
+    rows = [r for r in rows if int(r["stage"]) == spec.estimating_stage]
+    failed = [bool(r["failed"]) for r in rows]
+    log_w = [float(r["log_weight"]) for r in rows]
+    est = estimator.crude(failed) if spec.method == "crude" else estimator.importance(failed, log_w)
+    weights = np.exp(np.asarray(log_w))
+    n = len(rows)
+    clusters: dict[str, float] = {}
+    counts: dict[str, int] = {}
+    for r, w in zip(rows, weights, strict=True):
+        if r["failed"]:
+            key = str(r["cluster"])
+            clusters[key] = clusters.get(key, 0.0) + float(w) / n
+            counts[key] = counts.get(key, 0) + 1
+    total = sum(clusters.values()) or 1.0
+    by_cluster = [{"cluster": k, "failures": counts[k], "probability": v, "share": round(v / total, 4)}
+                  for k, v in sorted(clusters.items(), key=lambda kv: -kv[1])]
+    steps = np.array([r["steps"] for r in rows], np.float64)
+    in_odd = float(np.sum(weights * np.array([r["in_odd_steps"] for r in rows]) / steps) / n)
+    rhw = est.relative_half_width
+    crude_needed = estimator.episodes_for(est.probability) if est.probability > 0 else None
+    every = max(1, n // 100)
+    return {"nominal": nominal.to_json(), "episode_s": episode_s, "estimate": est.to_json(),
+            "per_hour": estimator.per_hour(est.probability, episode_s),
+            "per_hour_ci95": [estimator.per_hour(v, episode_s) for v in est.ci95],
+            "in_odd_share": round(in_odd, 4),
+            "crude_episodes_for_0.3": None if crude_needed is None else round(crude_needed),
+            "episodes_spent": spent,
+            "episodes_ratio": None if crude_needed is None or rhw is None or rhw > 0.3 else
+            round(crude_needed / spent, 1),
+            "clusters": by_cluster, "stages": list(stages),
+            "running": estimator.running(failed, None if spec.method == "crude" else log_w, every)}

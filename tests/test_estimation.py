@@ -1,0 +1,199 @@
+"""genesis-rl estimate (issue 34): the estimator on a toy problem with a known answer, the likelihood ratio by
+hand, the degeneracy warning, determinism, the nominal model's ranges and the command's refusals."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from statistics import NormalDist
+
+import numpy as np
+import pytest
+
+from genesis_rl.errors import UserInputError
+from genesis_rl.estimation import estimator
+from genesis_rl.estimation.nominal import BEARING, NominalModel, StartRange, check_starts, load_starts
+from genesis_rl.estimation.proposal import StartProposal, TruncatedNormal, elite
+from genesis_rl.estimation.run import EstimateSpec, play_stages, summarise
+
+ALT = StartRange("sun_altitude_angle", 0.0, 90.0)
+BEAR = StartRange(BEARING, -180.0, 180.0)
+NOMINAL = NominalModel((ALT, BEAR), action_dim=3)
+#: the toy system fails, with probability 1/2, when the sun is under 10 deg and within 30 deg of ahead
+TOY_P = (10 / 90) * (60 / 360) * 0.5
+
+
+def toy_play(tasks):
+    """A synthetic system with a closed-form failure probability under NOMINAL (TOY_P); its score rises as the
+    start nears the region, as a danger score does."""
+    for t in tasks:
+        alt, bear = t.start["sun_altitude_angle"], t.start[BEARING]
+        coin = np.random.default_rng(list(t.action_seed)).uniform() < 0.5
+        failed = bool(alt < 10 and abs(bear) < 30 and coin)
+        score = -(max(0.0, alt - 10) / 90 + max(0.0, abs(bear) - 30) / 180)
+        yield {"index": t.index, "scene": t.scene, "episode_seed": t.episode_seed,
+               **{f"start_{k}": v for k, v in t.start.items()}, "heading": 0.0, "steps": 10, "score": score,
+               "in_odd_steps": 10, "failed": failed, "fail_step": 3 if failed else None,
+               "cluster": "toy" if failed else None}
+
+
+def toy_estimate(seed: int, method: str = "importance", episodes: int = 120) -> tuple[estimator.Estimate, list]:
+    spec = EstimateSpec(member="glare_blind", method=method, episodes=episodes, seed=seed,
+                        stages=4 if method == "importance" else 1)
+    rows: list = []
+    play_stages(spec, NOMINAL, 50, rows, toy_play)
+    used = [r for r in rows if r["stage"] == spec.estimating_stage]
+    failed = [r["failed"] for r in used]
+    est = estimator.crude(failed) if method == "crude" else estimator.importance(failed,
+                                                                               [r["log_weight"] for r in used])
+    return est, rows
+
+
+def test_importance_sampling_is_unbiased_on_a_toy_with_a_known_answer() -> None:
+    estimates = [toy_estimate(seed)[0] for seed in range(30)]
+    values = np.array([e.probability for e in estimates])
+    # unbiased: the mean of 30 runs within 12 % of the closed form (its standard error is about 5 %)
+    assert abs(values.mean() - TOY_P) < 0.12 * TOY_P, (values.mean(), TOY_P)
+    covered = sum(e.ci95[0] <= TOY_P <= e.ci95[1] for e in estimates)
+    assert covered >= 25, covered  # a 95 % interval covers the truth in most runs (55 % before WIDEN_FINAL)
+    # and it concentrates: 120 episodes in all give a relative half-width crude Monte Carlo needs ~10x more for
+    median = float(np.median([e.relative_half_width for e in estimates]))
+    assert median < 0.7 and estimator.episodes_for(TOY_P, median) > 8 * 120, median
+
+
+def test_cross_entropy_moves_the_proposal_onto_the_failure_region() -> None:
+    est, rows = toy_estimate(0)
+    last = [r for r in rows if r["stage"] == 3]
+    assert len(last) == 60 and sum(r["failed"] for r in last) >= 10  # nominal draws: 0.9 % fail, 0.6 of 60
+    spec = EstimateSpec(member="glare_blind", method="importance", episodes=120, seed=0)
+    from genesis_rl.estimation.run import proposal_for
+
+    p = proposal_for(3, rows, spec, NOMINAL).normals
+    assert p[0].mean < 15 and abs(p[1].mean) < 40
+
+
+def test_crude_monte_carlo_agrees_and_bounds_zero_failures() -> None:
+    est, _ = toy_estimate(0, method="crude", episodes=400)
+    assert est.ci95[0] <= TOY_P <= est.ci95[1]
+    zero = estimator.crude([False] * 1000)
+    assert zero.probability == 0 and 0.0029 < zero.ci95[1] < 0.0038  # the rule of three, exactly: 3.69e-3
+
+
+def test_the_likelihood_ratio_of_a_crafted_start_by_hand() -> None:
+    proposal = StartProposal(NOMINAL, (TruncatedNormal(ALT, 5.0, 10.0), TruncatedNormal(BEAR, 0.0, 20.0)), 0.2)
+    start = {"sun_altitude_angle": 7.0, BEARING: 10.0}
+    n = NormalDist()
+    alt = math.exp(-0.5 * 0.2**2) / (10 * math.sqrt(2 * math.pi)) / (n.cdf(8.5) - n.cdf(-0.5))
+    bear = math.exp(-0.5 * 0.5**2) / (20 * math.sqrt(2 * math.pi)) / (n.cdf(9) - n.cdf(-9))
+    nominal = 1 / (90 * 360)
+    q = 0.2 * nominal + 0.8 * alt * bear
+    assert proposal.log_pdf(start) == pytest.approx(math.log(q), rel=1e-12)
+    assert NOMINAL.start_log_density(start) == pytest.approx(math.log(nominal), rel=1e-12)
+    assert math.exp(NOMINAL.start_log_density(start) - proposal.log_pdf(start)) <= 1 / 0.2  # defensive bound
+    assert NOMINAL.start_log_density({"sun_altitude_angle": -1.0, BEARING: 0.0}) == -math.inf
+
+
+def test_the_step_actions_do_not_depend_on_the_proposal() -> None:
+    _, crude_rows = toy_estimate(3, method="crude", episodes=40)
+    _, is_rows = toy_estimate(3, episodes=40)
+    # the same (seed, index) gives the same scene, episode seed and step-action stream under any proposal
+    assert [(r["scene"], r["episode_seed"]) for r in crude_rows] == [(r["scene"], r["episode_seed"]) for r in is_rows]
+
+
+def test_degenerate_weights_raise_the_warning() -> None:
+    failed = [True, True] + [False] * 98
+    est = estimator.importance(failed, [8.0, 0.0] + [-30.0] * 98)
+    assert any("degenerate" in w for w in est.warnings)
+    assert any("one failure carries" in w for w in est.warnings)
+    healthy = estimator.importance(failed, [0.0] * 100)
+    assert not healthy.warnings and healthy.probability == pytest.approx(0.02)
+
+
+def test_the_same_seed_gives_the_same_estimate() -> None:
+    a, rows_a = toy_estimate(5, episodes=60)
+    b, rows_b = toy_estimate(5, episodes=60)
+    c, _ = toy_estimate(6, episodes=60)
+    assert rows_a == rows_b and a == b
+    assert c.probability != a.probability or c.ess != a.ess
+
+
+def test_summary_splits_the_estimate_over_failure_clusters() -> None:
+    est, rows = toy_estimate(1)
+    spec = EstimateSpec(member="glare_blind", method="importance", episodes=120, seed=1)
+    s = summarise(spec, rows, NOMINAL, 12.8, [])
+    assert s["estimate"]["probability"] == pytest.approx(est.probability)
+    assert s["clusters"][0]["cluster"] == "toy" and s["clusters"][0]["share"] == 1.0
+    assert s["per_hour"] == pytest.approx(est.probability * 3600 / 12.8)
+    assert s["crude_episodes_for_0.3"] > 2000 and s["episodes_spent"] == 120 and s["estimate"]["episodes"] == 60
+
+
+def test_elite_takes_every_failure_else_the_top_share() -> None:
+    assert elite([0.1, 0.9, 0.5, 0.2, 0.3], [False] * 5, 0.2) == [1]
+    assert sorted(elite([0.1, 0.9, 0.5, 0.2, 0.3], [True, False, False, True, False], 0.2)) == [0, 3]
+
+
+def test_nominal_files_are_checked(tmp_path: Path) -> None:
+    f = tmp_path / "n.toml"
+    f.write_text("[start.sun_altitude_angle]\nlow = 0\nhigh = 20\n[start.sun_bearing]\nlow = -180\nhigh = 180\n")
+    starts = check_starts(load_starts(f), ("sun_altitude_angle", "sun_azimuth_angle"))
+    assert [(r.name, r.low, r.high) for r in starts] == [("sun_altitude_angle", 0, 20), (BEARING, -180, 180)]
+    with pytest.raises(UserInputError, match="held knobs need exactly"):
+        check_starts(starts, ("sun_altitude_angle",))
+    f.write_text("[start.sun_altitude_angle]\nlow = 0\nhigh = 200\n")
+    with pytest.raises(UserInputError, match="leaves the allowed"):
+        load_starts(f)
+    f.write_text("[start.fog]\nlow = 0\nhigh = 2\n")
+    with pytest.raises(UserInputError, match="not a knob"):
+        load_starts(f)
+    with pytest.raises(UserInputError, match="low < high"):
+        StartRange("x", 3.0, 3.0)
+
+
+def test_spec_refuses_bad_values_naming_the_flag() -> None:
+    for kwargs, flag in (({"method": "mcmc"}, "--method"), ({"defensive": 0.0}, "--defensive"),
+                         ({"stages": 0}, "--stages"), ({"episodes": 0}, "--episodes"), ({"elite": 1.5}, "--elite")):
+        with pytest.raises(UserInputError, match=flag):
+            EstimateSpec(**{"member": "low_sun", "method": "importance", "episodes": 10, **kwargs})
+
+
+def test_default_nominal_is_what_each_odd_allows() -> None:
+    from genesis_rl.config import from_mapping
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.estimation.nominal import default_starts
+    from genesis_rl.zoo.members import env_settings, zoo_member
+
+    expected = {"glare_blind": (-90.0, 90.0), "low_sun": (0.0, 90.0), "builtin_highway": (15.0, 90.0)}
+    for name, (lo, hi) in expected.items():
+        env = GenesisEnv(from_mapping(EnvConfig, {**env_settings(zoo_member(name)), "scenes": 2,
+                                                  "observation": "features"}, "env"))
+        try:
+            starts = default_starts(env.held_knobs, env.odd, env.start_weather, env.conditions_model)
+        finally:
+            env.close()
+        assert [(r.name, round(r.low, 6), r.high) for r in starts] == [("sun_altitude_angle", lo, hi),
+                                                                        (BEARING, -180.0, 180.0)]
+
+
+def test_estimate_command_refuses_bad_input_with_exit_2(tmp_path: Path, capsys) -> None:
+    from genesis_rl.cli import main
+
+    assert main(["estimate", "--member", "nobody", "--out", str(tmp_path / "o")]) == 2
+    assert "nobody" in capsys.readouterr().err
+    assert main(["estimate", "--member", "low_sun", "--defensive", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--defensive" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.xdist_group("estimate")
+def test_a_real_estimate_is_the_same_with_one_or_two_workers_and_resumes(tmp_path: Path) -> None:
+    from genesis_rl.cli import main
+
+    args = ["estimate", "--member", "glare_blind", "--episodes", "4", "--stages", "2", "--steps", "12", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    assert main([*args, "--workers", "2", "--out", str(tmp_path / "two")]) == 0
+    one, two = ((tmp_path / d / "episodes.csv").read_text() for d in ("one", "two"))
+    assert one == two and len(one.splitlines()) == 5
+    assert main([*args, "--out", str(tmp_path / "one")]) == 2  # written: --resume or --force
+    assert main([*args, "--out", str(tmp_path / "one"), "--resume"]) == 0
+    assert (tmp_path / "one" / "episodes.csv").read_text() == one
+    assert (tmp_path / "one" / "estimate.png").stat().st_size > 10_000
