@@ -73,6 +73,8 @@ def add_estimate_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
     p.add_argument("--out", required=True, help="output folder: episodes.csv, estimate.json, estimate.png")
     p.add_argument("--force", action="store_true", help="replace an estimate already in --out")
-    p.add_argument("--resume", action="store_true", help="continue the estimate in --out where it stopped")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the estimate in --out where it stopped (crude Monte Carlo may change --episodes: "
+                        "it goes on to more, or reports the first N)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_estimate)

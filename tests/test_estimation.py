@@ -137,8 +137,15 @@ def test_nominal_files_are_checked(tmp_path: Path) -> None:
     f.write_text("[start.sun_altitude_angle]\nlow = 0\nhigh = 20\n[start.sun_bearing]\nlow = -180\nhigh = 180\n")
     starts = check_starts(load_starts(f), ("sun_altitude_angle", "sun_azimuth_angle"))
     assert [(r.name, r.low, r.high) for r in starts] == [("sun_altitude_angle", 0, 20), (BEARING, -180, 180)]
-    with pytest.raises(UserInputError, match="held knobs need exactly"):
-        check_starts(starts, ("sun_altitude_angle",))
+    with pytest.raises(UserInputError, match="needs every held knob"):
+        check_starts(starts, ("sun_altitude_angle",))  # the bearing is no knob this member turns
+    f.write_text("[start.sun_altitude_angle]\nlow = 0\nhigh = 20\n[start.sun_bearing]\nlow = -180\nhigh = 180\n"
+                 "[start.fog_density]\nlow = 0\nhigh = 10\n")
+    held = ("sun_altitude_angle", "sun_azimuth_angle")
+    with_fog = check_starts(load_starts(f), held, ("fog_density", *held))  # a climatological fog start
+    assert [r.name for r in with_fog] == ["sun_altitude_angle", BEARING, "fog_density"]
+    with pytest.raises(UserInputError, match="may add knobs it turns"):
+        check_starts(load_starts(f), held, held)
     f.write_text("[start.sun_altitude_angle]\nlow = 0\nhigh = 200\n")
     with pytest.raises(UserInputError, match="leaves the allowed"):
         load_starts(f)
@@ -197,3 +204,19 @@ def test_a_real_estimate_is_the_same_with_one_or_two_workers_and_resumes(tmp_pat
     assert main([*args, "--out", str(tmp_path / "one"), "--resume"]) == 0
     assert (tmp_path / "one" / "episodes.csv").read_text() == one
     assert (tmp_path / "one" / "estimate.png").stat().st_size > 10_000
+
+
+@pytest.mark.xdist_group("estimate")
+def test_crude_monte_carlo_goes_on_to_more_episodes_with_resume(tmp_path: Path) -> None:
+    import json
+
+    from genesis_rl.cli import main
+
+    args = ["estimate", "--member", "low_sun", "--method", "crude", "--steps", "8", "--quiet", "--out", str(tmp_path)]
+    assert main([*args, "--episodes", "2"]) == 0
+    first = (tmp_path / "episodes.csv").read_text().splitlines()
+    assert main([*args, "--episodes", "3", "--resume"]) == 0
+    more = (tmp_path / "episodes.csv").read_text().splitlines()
+    assert more[:3] == first and len(more) == 4  # the first two kept as they were, one more played
+    assert json.loads((tmp_path / "estimate.json").read_text())["estimate"]["episodes"] == 3
+    assert main([*args, "--episodes", "3", "--resume", "--stages", "2", "--method", "importance"]) == 2

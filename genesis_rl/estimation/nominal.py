@@ -156,11 +156,15 @@ def load_starts(path: Path) -> tuple[StartRange, ...]:
     return tuple(out)
 
 
-def check_starts(starts: Sequence[StartRange], held: Sequence[str]) -> tuple[StartRange, ...]:
-    """``starts`` in the held knobs' order; refused, naming both, when they are not exactly the held knobs."""
+def check_starts(starts: Sequence[StartRange], held: Sequence[str], turned: Sequence[str] = ()
+                 ) -> tuple[StartRange, ...]:
+    """``starts`` with the held knobs first, in their order, then any other knob the agent turns (a
+    climatological start of fog or rain: drawn, then moved by the step noise); refused, naming both lists, when a
+    held knob is missing or a name is neither."""
     names = start_names(held)
     given = {r.name: r for r in starts}
-    if sorted(given) != sorted(names):
-        raise UserInputError(f"--nominal: the start ranges name {sorted(given)}; this member's held knobs need "
-                             f"exactly {names}")
-    return tuple(given[n] for n in names)
+    extra = [n for n in given if n not in names]
+    if not set(names) <= set(given) or any(n not in turned or n in held for n in extra):
+        raise UserInputError(f"--nominal: the start ranges name {sorted(given)}; this member needs every held knob "
+                             f"{names}, and may add knobs it turns {[k for k in turned if k not in held]}")
+    return tuple(given[n] for n in [*names, *extra])

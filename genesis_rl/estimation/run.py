@@ -110,7 +110,7 @@ def nominal_model(spec: EstimateSpec, env: GenesisEnv) -> NominalModel:
     """The ``--nominal`` file's start ranges, else the default model of the member's ODD at its start weather."""
     held, dim = env.held_knobs, env.mapper.action_dim
     if spec.nominal is not None:
-        return NominalModel(check_starts(spec.nominal, held), dim)
+        return NominalModel(check_starts(spec.nominal, held, env.mapper.knobs), dim)
     return NominalModel(default_starts(held, env.odd, env.start_weather, env.conditions_model), dim)
 
 
@@ -244,6 +244,8 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
     with output_folder.claim(out, "estimate", force, resume=resume):
         if resume:
             found = read_json(out / "estimate.json", f"estimate '{out}': estimate.json").get("spec")
+            if spec.method == "crude" and isinstance(found, dict) and found.get("method") == "crude":
+                found = {**found, "episodes": spec.episodes}  # crude Monte Carlo may go on to more (or stop at fewer)
             if found != spec.to_json():
                 raise UserInputError(f"--resume: estimate '{out}' was started with {found!r}; resume it with the "
                                      "same settings, or start again with --force")
@@ -261,7 +263,10 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
                                  "start to tilt (estimate needs natural dynamics)")
         nominal = nominal_model(spec, probe)
         probe.close()
-        rows = read_rows(out / "episodes.csv") if resume else []
+        rows = [r for r in read_rows(out / "episodes.csv") if r["index"] < spec.episodes] if resume else []
+        if resume:
+            atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
+                                                      "spec": spec.to_json(), "done": False}, indent=1)
         steps = steps_of(spec)
         bar = tqdm(total=spec.episodes, initial=len(rows), desc=f"estimate {spec.member} ({spec.method})",
                    unit="episode", disable=not progress)
