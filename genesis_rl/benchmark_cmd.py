@@ -34,6 +34,17 @@ def _agents(given: list[str] | None) -> dict[str, tuple[str, ...]]:
     return {m: tuple(r) for m, r in out.items()}
 
 
+def _estimates(given: list[str] | None) -> dict[str, Path]:
+    """``--estimate MEMBER=FOLDER`` (repeated): each member's failure-rate estimate for the page."""
+    out: dict[str, Path] = {}
+    for item in given or ():
+        member, sep, folder = item.partition("=")
+        if not sep or not member.strip() or not folder.strip():
+            raise UserInputError(f"--estimate '{item}': give MEMBER=FOLDER, e.g. glare_blind=runs/est_glare_is_s0")
+        out[member.strip()] = Path(folder.strip())
+    return out
+
+
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.matrix import ADVERSARIES, SMOKE, BenchmarkSpec
     from genesis_rl.zoo.members import ZOO
@@ -72,7 +83,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.matrix import run_benchmark
 
     board = run_benchmark(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
-                          executor=executor, progress=not args.quiet)
+                          executor=executor, progress=not args.quiet, estimates=_estimates(args.estimate))
     short = {m: {p: {k: c[k] for k in ("falsification_rate", "triggered", "median_steps_to_failure",
                                         "distinct_in_odd_failures", "false_alarm_candidates")}
                  for p, c in cells.items()} for m, cells in board["cells"].items()}
@@ -100,6 +111,9 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                     help="a trained agent (a run folder of genesis-rl train on the member's env) to play on MEMBER "
                          "as the policy agent:RUN, one campaign a trial on the trial's scenes; repeat it (or give a "
                          "comma list) for more training seeds. --resume may add agents to a finished benchmark")
+    bm.add_argument("--estimate", action="append", metavar="MEMBER=FOLDER",
+                    help="show a genesis-rl estimate folder's failure rate under natural conditions on the member's "
+                         "section (repeat per member)")
     bm.add_argument("--trials", type=int, default=10, help="trials (campaign seeds) per member (default 10)")
     bm.add_argument("--scenes", type=int, default=5, help="scenes a trial plays per policy (default 5)")
     bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")

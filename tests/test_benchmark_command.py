@@ -258,3 +258,20 @@ def test_a_trained_agent_joins_a_finished_benchmark_on_its_own_members_scenes(bl
 
     assert agent_label(str(run)) == agent_label(str(run / "agent.zip")) == "agent:agent_s1"
     assert agent_label(str(run / "checkpoints" / "step_00000016.zip")) == "agent:agent_s1/step_00000016"
+
+
+def test_the_page_shows_a_members_failure_rate_estimate_beside_its_failures(blind_benchmark, tmp_path):
+    spec, out = blind_benchmark
+    est = tmp_path / "est"
+    assert main(["estimate", "--member", "oracle_highway", "--method", "crude", "--episodes", "2", "--steps", "8",
+                 "--quiet", "--out", str(est)]) == 0
+    copy = tmp_path / "b"
+    shutil.copytree(out, copy)
+    with pytest.raises(UserInputError, match="is of member 'oracle_highway', not 'blind_highway'"):
+        run_benchmark(spec, copy, resume=True, progress=False, estimates={"blind_highway": est})
+    with pytest.raises(UserInputError, match="does not play"):
+        run_benchmark(spec, copy, resume=True, progress=False, estimates={"low_sun": est})
+    board = run_benchmark(spec, copy, resume=True, progress=False, estimates={"oracle_highway": est})
+    assert board["estimates"]["oracle_highway"]["estimate"]["episodes"] == 2
+    page = (copy / "leaderboard.html").read_text()
+    assert page.count("Failure rate under natural conditions: 0 per 0.4 s episode") == 1

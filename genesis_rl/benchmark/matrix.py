@@ -230,16 +230,25 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
 
 
 def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume: bool = False,
-                  workers: int = 1, executor: Any = None, progress: bool = True) -> dict[str, Any]:
-    """Run every (member, trial) campaign not yet finished, then write the leaderboard; returns it."""
+                  workers: int = 1, executor: Any = None, progress: bool = True,
+                  estimates: Mapping[str, Path] | None = None) -> dict[str, Any]:
+    """Run every (member, trial) campaign not yet finished, then write the leaderboard; returns it.
+    ``estimates``: per member, a finished ``genesis-rl estimate`` folder whose rate the page shows beside the
+    failures found (read first: a wrong one is refused before any episode runs)."""
     from genesis_rl import __version__
     from genesis_rl.benchmark.leaderboard import leaderboard, write_leaderboard
+    from genesis_rl.estimation.run import load_estimate
 
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
     # each agent's env, once: a run trained elsewhere is refused before the folder is touched
     agent_envs = {(m, r): agent_env(m, r) for m, runs in spec.agents.items() for r in runs}
+    unknown = sorted(set(estimates or {}) - set(spec.members))
+    if unknown:
+        raise UserInputError(f"--estimate names member(s) {unknown} that this benchmark does not play; its members: "
+                             f"{', '.join(spec.members)}")
+    rates = {m: load_estimate(Path(f), m) for m, f in (estimates or {}).items()}
     with output_folder.claim(out, "benchmark", force, resume=resume):
         if resume:
             _check_same_spec(out, spec)
@@ -263,6 +272,7 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
         board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members},
                             {m: {agent_label(r): [agent_campaign_folder(out, m, t, r) for t in range(spec.trials)]
                                  for r in runs} for m, runs in spec.agents.items()})
+        board["estimates"] = rates
         write_leaderboard(out, board)
     return board
 
