@@ -26,7 +26,8 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
                     label="95 % interval")
     ax.plot(n, [r["probability"] for r in run], color="tab:blue", label="estimate")
     est = result["estimate"]
-    ax.set_xlabel("episodes")
+    pilots = int(result.get("episodes_spent", n[-1] if n else 0)) - (n[-1] if n else 0)
+    ax.set_xlabel("episodes" + (f" of the estimating stage (after {pilots} pilot episodes)" if pilots > 0 else ""))
     ax.set_ylabel("failure probability per episode")
     ax.set_title(f"{est['method']}: {est['probability']:.2e} [{est['ci95'][0]:.2e}, {est['ci95'][1]:.2e}]",
                  fontsize=10)
@@ -40,11 +41,14 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
         y = np.array([float(r[f"start_{y_name}"]) for r in rows]) if y_name else np.array([r["index"] for r in rows])
         failed = np.array([bool(r["failed"]) for r in rows])
         stage = np.array([int(r["stage"]) for r in rows])
-        sc = bx.scatter(x[~failed], y[~failed], c=stage[~failed], s=8, cmap="viridis", alpha=0.6,
-                        vmin=0, vmax=max(1, stage.max()))
+        last = int(stage.max())
+        cmap = matplotlib.colormaps["viridis"].resampled(last + 1)
+        sc = bx.scatter(x[~failed], y[~failed], c=stage[~failed], s=8, cmap=cmap, alpha=0.6,
+                        vmin=-0.5, vmax=last + 0.5)
         bx.scatter(x[failed], y[failed], marker="x", color="tab:red", s=40, label="in-ODD failure")
-        if stage.max() > 0:
-            fig.colorbar(sc, ax=bx, label="stage")
+        if last > 0:
+            bar = fig.colorbar(sc, ax=bx, ticks=range(last + 1))
+            bar.set_label(f"stage ({last}: the estimating one)")
         bx.set_xlabel(f"start {x_name}")
         bx.set_ylabel(f"start {y_name}" if y_name else "episode")
         bx.set_title(f"{len(rows)} episodes, {int(failed.sum())} failed", fontsize=10)
