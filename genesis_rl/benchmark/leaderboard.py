@@ -86,16 +86,6 @@ def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]],
             "controls": [m for m in members if zoo_member(m).kind == "control"], "weaknesses": weak}
 
 
-def estimate_line(rate: Mapping[str, Any]) -> str:
-    """One sentence: how often the member fails under natural conditions, per ``genesis-rl estimate``."""
-    e = rate["estimate"]
-    lo, hi = e["ci95"]
-    carried = "; ".join(f"{c['share']:.0%} {c['cluster']}" for c in (rate.get("clusters") or [])[:3])
-    return (f"Failure rate under natural conditions: {e['probability']:.2g} per {rate['episode_s']:g} s episode "
-            f"[95 % CI {lo:.2g}, {hi:.2g}], {rate['per_hour']:.3g} an hour driven ({e['method']}, "
-            f"{rate['episodes_spent']} episodes, {rate['folder']})" + (f"; carried by {carried}" if carried else ""))
-
-
 def write_leaderboard(out: Path, board: dict[str, Any]) -> None:
     atomic_write_json(Path(out) / "leaderboard.json", board, indent=1)
     page = render_page(board)
@@ -195,6 +185,8 @@ def render_page(board: dict[str, Any]) -> str:
                  f"<p class=meta>{html.escape(m.summary)}</p>")
         rate = (board.get("estimates") or {}).get(member)
         if rate:
+            from genesis_rl.estimation.text import estimate_line
+
             h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
         h.append("<table><tr>" + "".join(f"<th class=l>{c}</th>" for c in head) + "</tr>")
         for policy, c in board["cells"][member].items():

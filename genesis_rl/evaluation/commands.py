@@ -132,7 +132,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from genesis_rl.output_paths import is_stdout
 
     path = build_report(Path(args.campaign), args.out, force=args.force,
-                        scenarios=Path(args.scenarios) if args.scenarios else None)
+                        scenarios=Path(args.scenarios) if args.scenarios else None,
+                        estimate=Path(args.estimate) if args.estimate else None)
     print(f"report: {path}", file=sys.stderr if is_stdout(args.out) else sys.stdout)
     return 0
 
@@ -284,6 +285,9 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--scenarios", default=None,
                     help="an OpenSCENARIO export of this campaign (export --format openscenario --out DIR): each "
                          "failure links its .xosc and says whether it validated and replayed")
+    rp.add_argument("--estimate", default=None,
+                    help="a genesis-rl estimate folder of the same system, ODD and map: the report states its "
+                         "failure rate under natural conditions beside the failures found")
     rp.set_defaults(func=_cmd_report)
 
     cp = sub.add_parser("compare", help="policies from different campaigns, paired scene by scene (Markdown)",

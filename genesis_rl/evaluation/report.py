@@ -260,10 +260,12 @@ def _scenario_line(folder: Path, record: str, scenarios: Path | None, index: dic
 
 
 def build_report(folder: Path, out: Path | str | None = None, force: bool = False,
-                 max_examples: int = 5, scenarios: Path | None = None) -> Path | str:
+                 max_examples: int = 5, scenarios: Path | None = None, estimate: Path | None = None) -> Path | str:
     """Write ``report.html`` in the campaign folder (or ``out``: a file, or '-' for standard output); returns
     where it went. ``out`` may not be, or lie inside, the campaign (but for ``report*.html``). ``scenarios``: an
-    OpenSCENARIO export of the campaign (``export --format openscenario``), whose files the failures link."""
+    OpenSCENARIO export of the campaign (``export --format openscenario``), whose files the failures link.
+    ``estimate``: a ``genesis-rl estimate`` folder of the same system, ODD and map, whose failure rate under
+    natural conditions the report states beside the failures found."""
     from genesis_rl.output_paths import check_inputs, is_stdout, output_file
 
     folder = Path(folder)
@@ -273,6 +275,13 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
         raise UserInputError(f"report '{given}' exists; pass --force to rebuild it")
     target = output_file(given, force, inputs=[folder], products=REPORT_PRODUCTS)
     meta, rows = load_campaign(folder)
+    rate = None
+    if estimate is not None:
+        from genesis_rl.estimation.run import load_estimate
+        from genesis_rl.estimation.text import check_same_system
+
+        rate = load_estimate(Path(estimate))
+        check_same_system(rate, meta["spec"].get("env", {}), meta["spec"].get("map", "highway"))
     scenario_index = _scenario_index(scenarios)
     out = target.path if target.path is not None else Path(str(given))
     if not any(rows.values()):
@@ -291,6 +300,10 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
              f"{summary['scenes']} scenes (seed {spec['seed']}) · {spec['steps']} steps each · agent "
              f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {meta.get('package_version')} "
              f"({str(meta.get('git_commit'))[:10]})</p>")
+    if rate is not None:
+        from genesis_rl.estimation.text import estimate_line
+
+        h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
     if not summary["complete"]:
         missing = {p: v["missing"] for p, v in summary["policies"].items() if v["missing"]}
         h.append(f"<p class=warn>This campaign is not finished: missing episodes {missing}. Figures use the "
