@@ -15,7 +15,7 @@ import io
 import math
 import multiprocessing as mp
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -244,6 +244,8 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
     with output_folder.claim(out, "estimate", force, resume=resume):
         if resume:
             found = read_json(out / "estimate.json", f"estimate '{out}': estimate.json").get("spec")
+            if isinstance(found, dict):  # a field added since the estimate was started reads as its default
+                found = {**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING}, **found}
             if spec.method == "crude" and isinstance(found, dict) and found.get("method") == "crude":
                 found = {**found, "episodes": spec.episodes}  # crude Monte Carlo may go on to more (or stop at fewer)
             if found != spec.to_json():
