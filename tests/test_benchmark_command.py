@@ -279,7 +279,7 @@ def test_the_page_shows_a_members_failure_rate_estimate_beside_its_failures(blin
 
     report = tmp_path / "report.html"
     build_report(campaign_folder(copy, "oracle_highway", 0), report, estimate=est)
-    assert "Failure rate under natural conditions: 0 per 0.4 s episode [95 % CI 0, 0.84]" in report.read_text()
+    assert "Failure rate under natural conditions: 0 per 0.4 s episode [95 % CI 0, 0.842]" in report.read_text()
     with pytest.raises(UserInputError, match="estimates member 'oracle_highway' .system = 'oracle'.; the campaign "
                                              "has system = "):
         build_report(campaign_folder(copy, "blind_highway", 0), tmp_path / "r2.html", estimate=est)

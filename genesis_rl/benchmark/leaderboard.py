@@ -185,7 +185,7 @@ def render_page(board: dict[str, Any]) -> str:
                  f"<p class=meta>{html.escape(m.summary)}</p>")
         rate = (board.get("estimates") or {}).get(member)
         if rate:
-            from genesis_rl.estimation.text import estimate_line
+            from genesis_rl.evaluation.estimate_files import estimate_line
 
             h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
         h.append("<table><tr>" + "".join(f"<th class=l>{c}</th>" for c in head) + "</tr>")

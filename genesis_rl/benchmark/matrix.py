@@ -237,7 +237,7 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     failures found (read first: a wrong one is refused before any episode runs)."""
     from genesis_rl import __version__
     from genesis_rl.benchmark.leaderboard import leaderboard, write_leaderboard
-    from genesis_rl.estimation.run import load_estimate
+    from genesis_rl.evaluation.estimate_files import load_estimate
 
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():

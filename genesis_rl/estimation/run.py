@@ -27,12 +27,12 @@ from genesis_rl.estimation import estimator
 from genesis_rl.estimation.episodes import EpisodeTask, init_worker, run_task
 from genesis_rl.estimation.nominal import NominalModel, StartRange, check_starts, default_starts
 from genesis_rl.estimation.proposal import WIDEN_FINAL, StartProposal, elite
+from genesis_rl.evaluation.estimate_files import SCHEMA
 from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
 
 if TYPE_CHECKING:
     from genesis_rl.env.genesis_env import GenesisEnv
 
-SCHEMA = "genesis-rl/estimate"
 METHODS = ("crude", "importance")
 #: episodes between checkpoints of episodes.csv
 BATCH = 25
@@ -323,16 +323,3 @@ def summarise(spec: EstimateSpec, rows: Sequence[dict[str, Any]], nominal: Nomin
             "clusters": by_cluster, "stages": list(stages),
             "running": estimator.running(failed, None if spec.method == "crude" else log_w, every)}
 
-
-def load_estimate(folder: Path, member: str | None = None) -> dict[str, Any]:
-    """A finished estimate's summary (for the benchmark's page), refused, naming the folder, when it is not
-    one, is unfinished, or estimates another member."""
-    data = read_json(Path(folder) / "estimate.json", f"estimate '{folder}': estimate.json")
-    if not isinstance(data, dict) or data.get("schema") != SCHEMA or not data.get("done"):
-        raise UserInputError(f"'{folder}' holds no finished estimate (run genesis-rl estimate --out {folder}, or "
-                             "--resume it)")
-    found = data["spec"]["member"]
-    if member is not None and found != member:
-        raise UserInputError(f"the estimate in '{folder}' is of member '{found}', not '{member}'")
-    keys = ("estimate", "episode_s", "per_hour", "per_hour_ci95", "episodes_spent", "clusters", "in_odd_share")
-    return {"folder": str(folder), "spec": data["spec"], **{k: data.get(k) for k in keys}}

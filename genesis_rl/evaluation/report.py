@@ -277,8 +277,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     meta, rows = load_campaign(folder)
     rate = None
     if estimate is not None:
-        from genesis_rl.estimation.run import load_estimate
-        from genesis_rl.estimation.text import check_same_system
+        from genesis_rl.evaluation.estimate_files import check_same_system, load_estimate
 
         rate = load_estimate(Path(estimate))
         check_same_system(rate, meta["spec"].get("env", {}), meta["spec"].get("map", "highway"))
@@ -301,7 +300,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
              f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {meta.get('package_version')} "
              f"({str(meta.get('git_commit'))[:10]})</p>")
     if rate is not None:
-        from genesis_rl.estimation.text import estimate_line
+        from genesis_rl.evaluation.estimate_files import estimate_line
 
         h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
     if not summary["complete"]:
