@@ -70,6 +70,13 @@ class KnobSpec:
     def span(self) -> float:
         return self.high - self.low
 
+    def fit(self, value: float) -> float:
+        """``value`` inside the knob's range: wrapped around for a knob that wraps (the sun's azimuth: -1 is
+        359), clipped otherwise."""
+        if self.wraps:
+            return self.low + (value - self.low) % self.span
+        return min(max(value, self.low), self.high)
+
     @property
     def is_actor(self) -> bool:
         """An actor knob (other road users' behaviour), not a weather one."""

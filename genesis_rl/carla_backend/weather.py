@@ -74,9 +74,7 @@ def from_carla(params: Any) -> Weather:
         v = float(getattr(params, field))
         if not math.isfinite(v):
             raise UserInputError(f"carla weather field '{field}' is not finite: {v}")
-        if spec.wraps:
-            v = spec.low + (v - spec.low) % spec.span
-        values[spec.name] = round(min(max(v, spec.low), spec.high), _DECIMALS)
+        values[spec.name] = round(spec.fit(v), _DECIMALS)
     return Weather.from_recorded(values)  # knobs CARLA lacks stay at their defaults
 
 

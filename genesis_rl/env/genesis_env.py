@@ -362,7 +362,7 @@ class GenesisEnv(gym.Env):
         for name, i in zip(self.held_knobs, self.held_indices(), strict=True):
             a, spec, now = float(np.clip(action[i], -1.0, 1.0)), KNOBS[name], values[name]
             if name == "sun_azimuth_angle":
-                values[name] = (heading + 180.0 * a - spec.low) % spec.span + spec.low
+                values[name] = spec.fit(heading + 180.0 * a)
             else:
                 values[name] = now + a * ((now - spec.low) if a < 0 else (spec.high - now))
         proposed = Weather(values)
@@ -446,7 +446,7 @@ class GenesisEnv(gym.Env):
             lo, hi = (base - reach, base + reach) if spec.wraps else \
                 (max(spec.low, base - reach), min(spec.high, base + reach))
             value = float(rng.uniform(lo, hi))
-            moved[name] = (value - spec.low) % spec.span + spec.low if spec.wraps else value
+            moved[name] = spec.fit(value)  # a range inside the knob's already, unless it wraps
         drawn = Weather(moved)
         if self.odd is not None and c.odd_keep_inside:
             drawn = self.odd.keep_inside(self.start_weather, drawn, self.conditions_model)

@@ -35,8 +35,7 @@ def start_weather(env: GenesisEnv, start: dict[str, float], heading_deg: float) 
     values = dict(env.start_weather.values)
     for name, v in start.items():
         if name == BEARING:
-            spec = KNOBS["sun_azimuth_angle"]
-            values["sun_azimuth_angle"] = (heading_deg + v - spec.low) % spec.span + spec.low
+            values["sun_azimuth_angle"] = KNOBS["sun_azimuth_angle"].fit(heading_deg + v)
         else:
             values[name] = v
     return Weather(values)

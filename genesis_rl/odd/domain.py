@@ -171,9 +171,7 @@ _FIRST_LOOK = 1.0 / 64.0
 
 def _with(weather: Weather, name: str, value: float) -> Weather:
     """``weather`` with one knob set, wrapped or clipped to its range."""
-    spec = KNOBS[name]
-    v = spec.low + (value - spec.low) % spec.span if spec.wraps else min(max(value, spec.low), spec.high)
-    return Weather({**weather.values, name: float(v)})
+    return Weather({**weather.values, name: float(KNOBS[name].fit(value))})
 
 
 # -- reading a file ------------------------------------------------------------------------------------------
