@@ -19,6 +19,7 @@ from genesis_rl.benchmark.metrics import PolicyMetrics, falsifier_metrics
 from genesis_rl.benchmark.ranks import compare_ranks
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
 from genesis_rl.evaluation.distinct import KEY_FIELDS
+from genesis_rl.evaluation.estimate_files import estimate_line
 from genesis_rl.evaluation.stats import clopper_pearson
 from genesis_rl.io_utils import atomic_write, atomic_write_json
 from genesis_rl.zoo.members import zoo_member
@@ -185,8 +186,6 @@ def render_page(board: dict[str, Any]) -> str:
                  f"<p class=meta>{html.escape(m.summary)}</p>")
         rate = (board.get("estimates") or {}).get(member)
         if rate:
-            from genesis_rl.evaluation.estimate_files import estimate_line
-
             h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
         h.append("<table><tr>" + "".join(f"<th class=l>{c}</th>" for c in head) + "</tr>")
         for policy, c in board["cells"][member].items():

@@ -76,14 +76,11 @@ class StartProposal:
 
     def log_pdf(self, start: Mapping[str, float]) -> float:
         log_p = self.nominal.start_log_density(start)
+        if self.defensive >= 1.0:
+            return log_p
         log_n = sum(n.log_pdf(start[n.range.name]) for n in self.normals)
-        terms = [t for t in (math.log(self.defensive) + log_p if self.defensive > 0 else -math.inf,
-                             math.log1p(-self.defensive) + log_n if self.defensive < 1 else -math.inf)
-                 if t > -math.inf]
-        if not terms:
-            return -math.inf
-        top = max(terms)
-        return top + math.log(sum(math.exp(t - top) for t in terms))
+        mixed = math.log1p(-self.defensive) + log_n
+        return mixed if self.defensive <= 0.0 else float(np.logaddexp(math.log(self.defensive) + log_p, mixed))
 
     def sample(self, rng: np.random.Generator) -> dict[str, float]:
         if rng.uniform() < self.defensive:

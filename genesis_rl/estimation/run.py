@@ -255,20 +255,20 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
             output_folder.replace(out, "estimate")
             catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
                                 traffic=member.traffic).save(out / "catalog.json")
-            atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
-                                                      "spec": spec.to_json(), "done": False}, indent=1)
+        # unfinished until the end (a resumed one too: its spec may have gone on to more episodes)
+        atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
+                                                  "spec": spec.to_json(), "done": False}, indent=1)
         env_cfg = env_config(spec, out / "catalog.json")
         probe = GenesisEnv(from_mapping(EnvConfig, env_cfg, "env"))
-        held, n_scenes, dt = probe.held_knobs, len(probe.catalog.scenes), probe.dt
-        if not held:
-            raise UserInputError(f"member '{spec.member}': no knob is held within an episode, so the proposal has no "
-                                 "start to tilt (estimate needs natural dynamics)")
-        nominal = nominal_model(spec, probe)
-        probe.close()
+        try:
+            held, n_scenes, dt = probe.held_knobs, len(probe.catalog.scenes), probe.dt
+            if not held:
+                raise UserInputError(f"member '{spec.member}': no knob is held within an episode, so the proposal "
+                                     "has no start to tilt (estimate needs natural dynamics)")
+            nominal = nominal_model(spec, probe)
+        finally:
+            probe.close()
         rows = [r for r in read_rows(out / "episodes.csv") if r["index"] < spec.episodes] if resume else []
-        if resume:
-            atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
-                                                      "spec": spec.to_json(), "done": False}, indent=1)
         steps = steps_of(spec)
         bar = tqdm(total=spec.episodes, initial=len(rows), desc=f"estimate {spec.member} ({spec.method})",
                    unit="episode", disable=not progress)

@@ -30,6 +30,7 @@ from PIL import Image
 from genesis_rl.adversaries.agent import agent_learning_curve
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
+from genesis_rl.evaluation.estimate_files import check_same_system, estimate_line, load_estimate
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.evaluation.report_natural import section as natural_section
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
@@ -277,8 +278,6 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     meta, rows = load_campaign(folder)
     rate = None
     if estimate is not None:
-        from genesis_rl.evaluation.estimate_files import check_same_system, load_estimate
-
         rate = load_estimate(Path(estimate))
         check_same_system(rate, meta["spec"].get("env", {}), meta["spec"].get("map", "highway"))
     scenario_index = _scenario_index(scenarios)
@@ -300,8 +299,6 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
              f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {meta.get('package_version')} "
              f"({str(meta.get('git_commit'))[:10]})</p>")
     if rate is not None:
-        from genesis_rl.evaluation.estimate_files import estimate_line
-
         h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
     if not summary["complete"]:
         missing = {p: v["missing"] for p, v in summary["policies"].items() if v["missing"]}
