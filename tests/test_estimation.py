@@ -158,7 +158,8 @@ def test_nominal_files_are_checked(tmp_path: Path) -> None:
 
 def test_spec_refuses_bad_values_naming_the_flag() -> None:
     for kwargs, flag in (({"method": "mcmc"}, "--method"), ({"defensive": 0.0}, "--defensive"),
-                         ({"stages": 0}, "--stages"), ({"episodes": 0}, "--episodes"), ({"elite": 1.5}, "--elite")):
+                         ({"stages": 0}, "--stages"), ({"episodes": 0}, "--episodes"), ({"elite": 1.5}, "--elite"),
+                         ({"steps": 0}, "--steps")):
         with pytest.raises(UserInputError, match=flag):
             EstimateSpec(**{"member": "low_sun", "method": "importance", "episodes": 10, **kwargs})
 
@@ -223,3 +224,5 @@ def test_crude_monte_carlo_goes_on_to_more_episodes_with_resume(tmp_path: Path) 
     assert more[:3] == first and len(more) == 4  # the first two kept as they were, one more played
     assert json.loads((tmp_path / "estimate.json").read_text())["estimate"]["episodes"] == 3
     assert main([*args, "--episodes", "3", "--resume", "--stages", "2", "--method", "importance"]) == 2
+    (tmp_path / "estimate.json").write_text("[1, 2]")  # a damaged file: refused, no traceback
+    assert main([*args, "--episodes", "3", "--resume"]) == 2

@@ -59,6 +59,8 @@ class EstimateSpec:
             raise UserInputError(f"--method = '{self.method}'; allowed: {', '.join(METHODS)}")
         if self.episodes < 1:
             raise UserInputError(f"--episodes = {self.episodes}; allowed: an integer >= 1")
+        if self.steps is not None and self.steps < 1:
+            raise UserInputError(f"--steps = {self.steps}; allowed: an integer >= 1 (or leave it out: the member's)")
         if not 1 <= self.stages <= self.episodes:
             raise UserInputError(f"--stages = {self.stages}; allowed: 1..--episodes ({self.episodes})")
         if not 0.0 < self.defensive <= 1.0:
@@ -243,14 +245,21 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
         raise UserInputError(f"--resume: '{out}' holds no estimate.json; start it without --resume")
     with output_folder.claim(out, "estimate", force, resume=resume):
         if resume:
-            found = read_json(out / "estimate.json", f"estimate '{out}': estimate.json").get("spec")
-            if isinstance(found, dict):  # a field added since the estimate was started reads as its default
-                found = {**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING}, **found}
-            if spec.method == "crude" and isinstance(found, dict) and found.get("method") == "crude":
-                found = {**found, "episodes": spec.episodes}  # crude Monte Carlo may go on to more (or stop at fewer)
-            if found != spec.to_json():
-                raise UserInputError(f"--resume: estimate '{out}' was started with {found!r}; resume it with the "
-                                     "same settings, or start again with --force")
+            data = read_json(out / "estimate.json", f"estimate '{out}': estimate.json")
+            found = data.get("spec") if isinstance(data, dict) else None
+            if not isinstance(found, dict):
+                raise UserInputError(f"--resume: '{out / 'estimate.json'}' holds no estimate spec; start the estimate "
+                                     "again with --force")
+            # a field added since the estimate was started reads as its default
+            found = {**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING}, **found}
+            if spec.method == "crude" and found.get("method") == "crude":
+                found["episodes"] = spec.episodes  # crude Monte Carlo may go on to more (or stop at fewer)
+            wanted = spec.to_json()
+            differ = [k for k in wanted if found.get(k) != wanted[k]]
+            if differ:
+                k = differ[0]
+                raise UserInputError(f"--resume: estimate '{out}' was started with {k} = {found.get(k)!r}, not "
+                                     f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
         else:
             output_folder.replace(out, "estimate")
             catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
