@@ -283,3 +283,7 @@ def test_the_page_shows_a_members_failure_rate_estimate_beside_its_failures(blin
     with pytest.raises(UserInputError, match="estimates member 'oracle_highway' .system = 'oracle'.; the campaign "
                                              "has system = "):
         build_report(campaign_folder(copy, "blind_highway", 0), tmp_path / "r2.html", estimate=est)
+    kept = (est / "estimate.json").read_text()
+    with pytest.raises(UserInputError):  # never onto the estimate it reads, --force or not
+        build_report(campaign_folder(copy, "oracle_highway", 0), est / "estimate.json", force=True, estimate=est)
+    assert (est / "estimate.json").read_text() == kept

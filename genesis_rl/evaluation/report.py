@@ -271,10 +271,11 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
 
     folder = Path(folder)
     given = out if out else folder / "report.html"
-    check_inputs(given, [folder], products=REPORT_PRODUCTS)  # before "pass --force", which would not help
+    inputs = [folder, estimate]  # the report may not land on what it reads (an estimate's files included)
+    check_inputs(given, inputs, products=REPORT_PRODUCTS)  # before "pass --force", which would not help
     if not is_stdout(given) and Path(given).exists() and not Path(given).is_symlink() and not force:
         raise UserInputError(f"report '{given}' exists; pass --force to rebuild it")
-    target = output_file(given, force, inputs=[folder], products=REPORT_PRODUCTS)
+    target = output_file(given, force, inputs=inputs, products=REPORT_PRODUCTS)
     meta, rows = load_campaign(folder)
     rate = None
     if estimate is not None:
