@@ -480,6 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
     from genesis_rl.estimate_cmd import add_estimate_command
 
     add_estimate_command(sub)
+    from genesis_rl.harden_cmd import add_harden_command
+
+    add_harden_command(sub)
 
     from genesis_rl.evaluation.commands import add_evaluation_commands
 

@@ -28,11 +28,11 @@ from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
-KINDS = ("run", "campaign", "export", "drive", "render", "benchmark", "sweep", "estimate")
+KINDS = ("run", "campaign", "export", "drive", "render", "benchmark", "sweep", "estimate", "harden")
 #: kinds that continue with --resume (the refusal to overwrite one says so)
-RESUMABLE = ("run", "campaign", "benchmark", "sweep", "estimate")
+RESUMABLE = ("run", "campaign", "benchmark", "sweep", "estimate", "harden")
 #: kinds whose folder is one unit that --force replaces whole; drive and render write named files into theirs
-WHOLE_FOLDER = ("run", "campaign", "export", "benchmark", "sweep", "estimate")
+WHOLE_FOLDER = ("run", "campaign", "export", "benchmark", "sweep", "estimate", "harden")
 
 #: what genesis-rl itself writes at the top of a run, campaign or export folder (regular expressions on the
 #: entry's name; a folder named here, e.g. checkpoints/, is the tool's as a whole). ``--force`` replaces a folder
@@ -50,6 +50,8 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
                   r"leaderboard\.html"),
     "sweep": (r"\.genesis-rl\.json", r"sweep\.json", r"sweep\.png", r"campaigns"),
     "estimate": (r"\.genesis-rl\.json", r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
+    "harden": (r"\.genesis-rl\.json", r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
+               r"round_\d+", r"final_attack"),
 }
 
 

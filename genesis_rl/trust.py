@@ -59,10 +59,10 @@ def plugin_modules(args: argparse.Namespace) -> list[str]:
 
 def named_modules(args: argparse.Namespace) -> set[str]:
     """Every module this command line names: ``--plugin``, ``GENESIS_RL_PLUGINS`` and the modules of import
-    paths given to ``--system``, ``--backend`` and ``--policies``."""
+    paths given to ``--system``, ``--backend``, ``--policies`` and ``--retrain``."""
     names = set(plugin_modules(args))
     names |= {n.strip() for n in os.environ.get(PLUGINS_VARIABLE, "").split(",") if n.strip()}
-    for flag in ("system", "backend", "policies", "policy"):
+    for flag in ("system", "backend", "policies", "policy", "retrain"):
         value = getattr(args, flag, None)
         if isinstance(value, str):
             names |= {m for m in (module_of(v.strip()) for v in value.split(",")) if m}

@@ -1,0 +1,113 @@
+"""The hardening's report: ``harden.png`` (held-out failure rate, what each attack found, clear-day precision and
+recall, round by round) and ``harden.html`` (the same as a table, every round, those that did not help too)."""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from genesis_rl.io_utils import atomic_write, atomic_write_text
+
+
+def _rate(test: Mapping[str, Any] | None) -> str:
+    if not test or not test.get("rate"):
+        return "-"
+    r = test["rate"]
+    return f"{r['k']}/{r['n']} = {r['rate']:.2f} [{r['ci_low']:.2f}, {r['ci_high']:.2f}]"
+
+
+def _clear(clear: Mapping[str, Any] | None) -> str:
+    if not clear:
+        return "-"
+    return f"{clear['precision']:.3f} / {clear['recall']:.3f}"
+
+
+def plot(path: Path, result: Mapping[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from genesis_rl.harden.rounds import rates
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
+    rows = rates(result)
+    ax = axes[0]
+    xs = [r[0] for r in rows]
+    ax.errorbar(xs, [r[1] for r in rows], yerr=[[r[1] - r[2] for r in rows], [r[3] - r[1] for r in rows]],
+                fmt="o-", capsize=4, color="#c0392b")
+    ax.set(xlabel="round (0: before)", ylabel="in-ODD failure rate per episode", xticks=xs,
+           title="held-out re-test (95 % CI)")
+    ax.set_ylim(bottom=0)
+    ax = axes[1]
+    attacks = [(r["round"], r["attack"]) for r in result["rounds"]]
+    if result.get("final_attack"):
+        attacks.append((len(result["rounds"]) + 1, result["final_attack"]))
+    ax.bar([a[0] - 0.2 for a in attacks], [a[1]["in_odd_failures"] for a in attacks], width=0.4,
+           label="in-ODD failures", color="#e67e22")
+    ax.bar([a[0] + 0.2 for a in attacks], [a[1]["distinct"] for a in attacks], width=0.4, label="distinct",
+           color="#8e44ad")
+    ax.set(xlabel="attack against the weights of round (x - 1)", ylabel="found", xticks=[a[0] for a in attacks],
+           title="what each attack found")
+    ax.legend(frameon=False)
+    ax = axes[2]
+    clears = [(rnd["round"], rnd["clear"]) for rnd in [result["baseline"], *result["rounds"]] if rnd.get("clear")]
+    if clears:
+        base = result["baseline"].get("clear") or clears[0][1]
+        tol = result["spec"]["tolerance"]
+        for key, color in (("precision", "#2471a3"), ("recall", "#1e8449")):
+            ax.plot([c[0] for c in clears], [c[1][key] for c in clears], "o-", color=color, label=key)
+            ax.axhspan(base[key] - tol, base[key] + tol, color=color, alpha=0.12)
+        ax.set(xticks=[c[0] for c in clears])
+        ax.legend(frameon=False)
+    ax.set(xlabel="round", title=f"clear day (band: before +- {result['spec']['tolerance']})")
+    fig.suptitle(f"harden: {result['system']} on {result['map']}, attack '{result['spec']['campaign']}'")
+    fig.tight_layout()
+    atomic_write(path, lambda p: fig.savefig(p, dpi=100, format="png"))
+    plt.close(fig)
+
+
+def write_page(folder: Path, result: Mapping[str, Any]) -> None:
+    """``harden.png`` and ``harden.html`` into ``folder``."""
+    from genesis_rl.evaluation.report import CSS
+
+    plot(folder / "harden.png", result)
+    spec = result["spec"]
+    h = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL harden</title><style>{CSS}</style>"
+         "</head><body>",
+         f"<h1>Harden: {html.escape(result['system'])} on {html.escape(result['map'])}</h1>",
+         f"<p class=meta>attack campaign {html.escape(spec['campaign'])}; {spec['rounds']} round(s); retrain "
+         f"hook {html.escape(spec['retrain'])}; held-out re-test on {spec['test_scenes']} scenes; seesaw tolerance "
+         f"{spec['tolerance']}; genesis-rl {html.escape(result['version'])}</p>"]
+    if result.get("stopped"):
+        h.append(f"<p class=warn>Stopped: {html.escape(result['stopped'])}.</p>")
+    h.append("<img src=harden.png alt='failure rate, attacks and clear-day metrics by round'>")
+    h.append("<table><tr><th>round</th><th class=l>status</th><th>attack: in-ODD failures / episodes</th>"
+             "<th>distinct</th><th>frames retrained on</th><th class=l>held-out in-ODD failure rate [95 % CI]</th>"
+             "<th>clear precision / recall</th><th class=l>weights sha256</th></tr>")
+    base = result["baseline"]
+    h.append(f"<tr><td>0</td><td class=l>before</td><td>-</td><td>-</td><td>-</td><td class=l>{_rate(base['test'])}"
+             f"</td><td>{_clear(base.get('clear'))}</td><td class=l>{str(result.get('base_weights_sha256'))[:12]}</td>"
+             "</tr>")
+    for rnd in result["rounds"]:
+        status = rnd["status"]
+        cls = "good" if status == "accepted" else "bad"
+        why = rnd.get("seesaw", {}).get("why", "")
+        h.append(f"<tr><td>{rnd['round']}</td><td class='l {cls}'>{html.escape(status)}"
+                 f"{' (' + html.escape(why) + ')' if why else ''}</td>"
+                 f"<td>{rnd['attack']['in_odd_failures']} / {rnd['attack']['episodes']}</td>"
+                 f"<td>{rnd['attack']['distinct']}</td><td>{rnd.get('frames') or '-'}</td>"
+                 f"<td class=l>{_rate(rnd.get('test'))}</td><td>{_clear(rnd.get('clear'))}</td>"
+                 f"<td class=l>{str(rnd.get('weights_sha256') or '-')[:12]}</td></tr>")
+    final = result.get("final_attack")
+    if final:
+        h.append(f"<tr><td>final</td><td class=l>re-attack of the hardened system</td>"
+                 f"<td>{final['in_odd_failures']} / {final['episodes']}</td><td>{final['distinct']}</td>"
+                 "<td>-</td><td class=l>-</td><td>-</td>"
+                 f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
+    h.append("</table><p class=meta>A round's attack runs against the weights the round before accepted (round 1: "
+             "the given campaign). A round whose clear-day precision or recall fell by more than the tolerance is "
+             "marked seesaw and the next round starts from the weights before it.</p></body></html>")
+    atomic_write_text(folder / "harden.html", "\n".join(h))

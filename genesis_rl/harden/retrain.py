@@ -1,0 +1,192 @@
+"""The retrain hook of a hardening round: what it is given (:class:`RetrainRequest`), the built-in one
+(:func:`finetune_detector`: fine-tunes a genesis-rl detector checkpoint on the failure frames mixed with its own
+training data) and how a user's hook is named (``package.module:function``, gated like every plug-in).
+
+A hook is a function ``hook(request: RetrainRequest) -> Path`` that writes new weights under ``request.out`` and
+returns their path (a file or a folder): the round then runs the system with ``system_kwargs["weights"]`` set to
+it, so a user's system reads its weights from a ``weights`` argument, as the built-in ones do.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import inspect
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.errors import UserInputError
+
+#: the systems whose weights are genesis-rl detector checkpoints (the built-in fine-tune retrains them)
+CHECKPOINT_SYSTEMS = ("builtin", "latency", "adaptive")
+BUILTIN_HOOK = "builtin"
+
+
+@dataclass(frozen=True)
+class FinetuneConfig:
+    """The built-in fine-tune: a few epochs from the current weights at a low learning rate, on every round's
+    failure frames so far (each seen ``failure_repeat`` times an epoch) mixed with ``original_frames`` frames of
+    the detector's own training data (so that it does not forget clear weather)."""
+
+    epochs: int = 4
+    lr: float = 5e-4  # Adam, cosine decay to 2 %; the original training peaked at 2e-3
+    original_frames: int = 800
+    failure_repeat: int = 2
+    batch_size: int = 32
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "original_frames", "failure_repeat", "batch_size", "threads"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise UserInputError(f"harden finetune.{name} = {value!r}; allowed: an integer >= 1")
+        if not (isinstance(self.lr, (int, float)) and 0 < self.lr <= 0.1):
+            raise UserInputError(f"harden finetune.lr = {self.lr!r}; allowed: a number in (0, 0.1]")
+
+
+@dataclass(frozen=True)
+class RetrainRequest:
+    """What a retrain hook is given. ``failures``: the export folders (YOLO layout, ``metadata.jsonl`` with every
+    frame's boxes, distance, visibility, weather, policy, scene and step; docs/evaluation.md) of this round's
+    and every earlier round's in-ODD failure frames, before the impact; ``weights``: the weights this round
+    starts from; ``out``: an empty folder for the new weights; ``seed``: every draw of the retraining."""
+
+    round: int
+    system: str
+    weights: Path
+    failures: tuple[Path, ...]
+    out: Path
+    seed: int
+    #: the harden folder: the built-in hook keeps its rendered original data there, shared by the rounds
+    work: Path
+    options: dict[str, Any] = field(default_factory=dict)
+    progress: bool = False
+
+
+Hook = Callable[[RetrainRequest], Path]
+
+
+def load_hook(name: str) -> Hook:
+    """The hook ``name`` names: ``builtin`` or ``package.module:function`` (its module must be one the command
+    line names, as every plug-in's)."""
+    if name == BUILTIN_HOOK:
+        return finetune_detector
+    from genesis_rl.plugins import check_import
+
+    module_name, sep, func_name = name.partition(":")
+    if not sep or not module_name or not func_name:
+        raise UserInputError(f"--retrain '{name}' is neither '{BUILTIN_HOOK}' nor an import path "
+                             "'package.module:function'")
+    check_import(module_name, f"retrain hook '{name}'")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
+        raise UserInputError(f"retrain hook '{name}': cannot import module '{module_name}': {err}") from None
+    func = getattr(module, func_name, None)
+    if func is None or not callable(func) or inspect.isclass(func):
+        raise UserInputError(f"retrain hook '{name}': module '{module_name}' has no function '{func_name}'")
+    return func
+
+
+def base_train_config(weights: Path) -> dict[str, Any]:
+    """The recipe a checkpoint records (``metadata.train_config``); the defaults for one that records none."""
+    from genesis_rl.perception.detector import load_checkpoint
+    from genesis_rl.perception.train import DetectorTrainConfig
+
+    recorded = dict(load_checkpoint(weights).get("metadata", {}).get("train_config") or {})
+    known = {f.name for f in dataclasses.fields(DetectorTrainConfig)}
+    return {**DetectorTrainConfig().as_dict(), **{k: v for k, v in recorded.items() if k in known}}
+
+
+def finetune_detector(request: RetrainRequest) -> Path:
+    """The built-in hook: fine-tune the genesis-rl detector checkpoint ``request.weights``; returns the new
+    checkpoint (its score threshold kept: the clear-day check judges the same operating point)."""
+    import torch
+
+    import genesis_rl
+    from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
+    from genesis_rl.io_utils import atomic_write, atomic_write_json
+    from genesis_rl.perception.detector import file_sha256, load_checkpoint
+    from genesis_rl.perception.model import DetectorModelConfig, VehicleDetectorNet
+    from genesis_rl.perception.train import METRICS_NAME, WEIGHTS_NAME, DetectorTrainConfig, _batch, detector_loss
+
+    if request.system not in CHECKPOINT_SYSTEMS:
+        raise UserInputError(f"--retrain builtin fine-tunes genesis-rl detector checkpoints (systems "
+                             f"{', '.join(CHECKPOINT_SYSTEMS)}), not system '{request.system}'; pass --retrain "
+                             "package.module:function, a hook that retrains its weights (docs/harden.md)")
+    cfg = FinetuneConfig(**request.options)
+    ckpt = load_checkpoint(request.weights)
+    recipe = base_train_config(request.weights)
+    train_cfg = DetectorTrainConfig(**{**recipe, "channels": tuple(recipe["channels"]), "epochs": cfg.epochs,
+                                       "lr": cfg.lr, "batch_size": cfg.batch_size, "threads": cfg.threads})
+    original = original_frames(recipe, cfg.original_frames, request.work / "original_data.npz", request.progress)
+    failures = concat([export_frames(f) for f in request.failures])
+    if not len(failures):
+        raise UserInputError(f"round {request.round}: the failure exports hold no frame to retrain on")
+    data = concat([original] + [failures] * cfg.failure_repeat)
+
+    torch.set_num_threads(cfg.threads)
+    init_ss, shuffle_ss = np.random.SeedSequence([request.seed, request.round, 4099]).spawn(2)
+    torch.manual_seed(int(init_ss.generate_state(1)[0]))
+    rng = np.random.default_rng(shuffle_ss)
+    mcfg = DetectorModelConfig.from_dict(dict(ckpt["model_config"]))
+    # Module.to takes memory_format at run time, but torch's overloads for it omit the keyword
+    net = VehicleDetectorNet(mcfg).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    net.load_state_dict(ckpt["state_dict"])
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=train_cfg.weight_decay)
+    per_epoch = math.ceil(len(data) / cfg.batch_size)
+    total = per_epoch * cfg.epochs
+    bar = None
+    if request.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=f"round {request.round}: fine-tune", unit="batch")
+    history, step, t0 = [], 0, time.perf_counter()
+    try:
+        for epoch in range(cfg.epochs):
+            net.train()
+            order = rng.permutation(len(data))
+            loss_sum = 0.0
+            for s in range(0, len(order), cfg.batch_size):
+                x, t = _batch(data, np.sort(order[s : s + cfg.batch_size]), train_cfg, rng)
+                for g in opt.param_groups:
+                    g["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / total)))
+                loss, _ = detector_loss(net(x), t, train_cfg)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+                opt.step()
+                step += 1
+                loss_sum += float(loss.detach())
+                if bar is not None:
+                    bar.update(1)
+            history.append({"epoch": epoch + 1, "loss": round(loss_sum / per_epoch, 4)})
+    finally:
+        if bar is not None:
+            bar.close()
+    net.eval()
+    state = {k: v.detach().to(torch.float32).contiguous().clone() if v.is_floating_point() else v.clone()
+             for k, v in net.state_dict().items()}
+    finetune = {"round": request.round, "seed": request.seed, "config": dataclasses.asdict(cfg),
+                "base_weights_sha256": file_sha256(request.weights), "original_frames": len(original),
+                "original_sha256": dataset_sha256(original), "failure_frames": len(failures),
+                "failure_sha256": dataset_sha256(failures), "failure_exports": [str(f) for f in request.failures],
+                "history": history, "seconds": round(time.perf_counter() - t0, 1)}
+    meta = dict(ckpt.get("metadata", {}))
+    out_ckpt = {**ckpt, "state_dict": state,
+                "metadata": {**meta, "genesis_rl_version": genesis_rl.__version__,
+                             "finetunes": [*meta.get("finetunes", []), finetune]}}
+    request.out.mkdir(parents=True, exist_ok=True)
+    path = request.out / WEIGHTS_NAME
+    atomic_write(path, lambda p: torch.save(out_ckpt, p))
+    atomic_write_json(request.out / METRICS_NAME, {"format": ckpt["format"], "weights": WEIGHTS_NAME,
+                                                   "score_threshold": ckpt["score_threshold"],
+                                                   "model_config": ckpt["model_config"], "train_config": recipe,
+                                                   "finetune": finetune}, indent=2)
+    return path

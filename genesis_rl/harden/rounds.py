@@ -1,0 +1,325 @@
+"""The hardening loop (``genesis-rl harden``): attack -> retrain -> re-test, round after round.
+
+Round ``r`` starts from the weights round ``r - 1`` accepted (round 1: the campaign's own system):
+
+1. **attack**: round 1's failures are the given campaign's; a later round re-runs that campaign's spec (its
+   adversaries, env, steps) against the current weights on scenes picked by another seed (``seed + r - 1``);
+2. **data**: the in-ODD failures of the attack (collisions that began inside the ODD or on its boundary), their
+   kept frames up to the impact, exported with the simulator's labels (``genesis-rl export``'s YOLO layout);
+3. **retrain**: the hook (built-in: fine-tune the detector on every round's failure frames so far mixed with its
+   own training data) writes new weights;
+4. **re-test**: the same adversaries on held-out scenes (another catalog, the same scenes and episode seeds every
+   round, so rounds compare paired) give the in-ODD failure rate; the clear-day detector evaluation gives
+   precision and recall, and a round that lowers either by more than the tolerance (the seesaw) is rejected:
+   the next round starts from the weights before it.
+
+After the last round a final attack measures what a re-run adversary finds against the hardened system. Round 0
+is the baseline: the held-out test and the clear-day evaluation of the weights before any round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from genesis_rl import output_folder
+from genesis_rl.errors import UserInputError
+from genesis_rl.io_utils import atomic_write_json, read_json
+
+SCHEMA = "genesis-rl/harden"
+#: campaign summaries older than the ODD labels have no odd status: harden needs it
+IN_ODD = ("inside", "boundary")
+
+
+@dataclass(frozen=True)
+class HardenSpec:
+    """Everything that decides a hardening's results (``workers`` does not)."""
+
+    campaign: str  # the attack campaign: round 1's failures, and the spec later rounds re-run
+    rounds: int = 3
+    test_scenes: int = 20  # held-out scenes of the re-test
+    test_catalog_seed: int | None = None  # the held-out catalog (default: the attack catalog's seed + 1)
+    seed: int = 0  # the retraining's draws
+    retrain: str = "builtin"  # the hook: builtin (fine-tune a genesis-rl detector) or package.module:function
+    finetune: dict[str, Any] = field(default_factory=dict)  # the hook's options (FinetuneConfig fields)
+    clear_frames: int = 200  # clear-day evaluation frames on the campaign's map
+    tolerance: float = 0.01  # the largest clear-day precision or recall drop a round may cause
+
+    def __post_init__(self) -> None:
+        for name, low in (("rounds", 1), ("test_scenes", 1), ("clear_frames", 1)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise UserInputError(f"harden {name} = {value!r}; allowed: an integer >= {low}")
+        if not (isinstance(self.tolerance, (int, float)) and 0 <= self.tolerance < 1):
+            raise UserInputError(f"harden tolerance = {self.tolerance!r}; allowed: a number in [0, 1)")
+        if self.retrain == "builtin":
+            from genesis_rl.harden.retrain import FinetuneConfig
+
+            known = {f.name for f in dataclasses.fields(FinetuneConfig)}
+            unknown = sorted(set(self.finetune) - known)
+            if unknown:
+                raise UserInputError(f"harden finetune: unknown setting(s) {unknown}; allowed: "
+                                     f"{', '.join(sorted(known))}")
+            FinetuneConfig(**self.finetune)
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+# ------------------------------------------------------------------------------------------- campaigns
+def _with_weights(env: Mapping[str, Any], weights: Path | None) -> dict[str, Any]:
+    env = dict(env)
+    if weights is not None:
+        env["system_kwargs"] = {**env.get("system_kwargs", {}), "weights": str(Path(weights).resolve())}
+    return env
+
+
+def start_weights(env: Mapping[str, Any]) -> Path:
+    """The weights the campaign's system ran with (the shipped detector's when it names none)."""
+    given = env.get("system_kwargs", {}).get("weights")
+    if given:
+        return Path(given)
+    if env.get("system", "builtin") in ("builtin", "latency", "adaptive"):
+        from genesis_rl.perception.detector import DEFAULT_WEIGHTS
+
+        return DEFAULT_WEIGHTS
+    raise UserInputError(f"campaign system '{env.get('system')}' names no weights (system_kwargs.weights); "
+                         "harden retrains a system's weights, so run the campaign with --weights")
+
+
+def attack_spec(base: Any, r: int, weights: Path | None) -> Any:
+    """Round ``r``'s attack: the campaign's spec against ``weights`` on the scenes seed ``base.seed + r - 1``
+    picks."""
+    return dataclasses.replace(base, seed=base.seed + r - 1, env=_with_weights(base.env, weights))
+
+
+def test_spec(base: Any, spec: HardenSpec, weights: Path | None) -> Any:
+    """The held-out re-test: the campaign's adversaries on ``test_scenes`` scenes of another generated catalog."""
+    seed = test_catalog_seed(base, spec)
+    return dataclasses.replace(base, catalog=None, catalog_seed=seed, scenes=spec.test_scenes,
+                               env=_with_weights(base.env, weights))
+
+
+def test_catalog_seed(base: Any, spec: HardenSpec) -> int:
+    seed = spec.test_catalog_seed if spec.test_catalog_seed is not None else base.catalog_seed + 1
+    if base.catalog is None and seed == base.catalog_seed:
+        raise UserInputError(f"--test-catalog-seed {seed} is the attack campaign's own catalog seed; held-out "
+                             "scenes need another")
+    return int(seed)
+
+
+def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None:
+    from genesis_rl.evaluation.campaign import run_campaign
+
+    done = (folder / "summary.json").is_file()
+    if not done:
+        run_campaign(campaign_spec, folder, workers=workers, resume=(folder / "campaign.json").is_file(),
+                     progress=progress)
+
+
+def in_odd_failures(folder: Path) -> dict[str, Any]:
+    """The campaign's in-ODD failures: the episodes, their count and rate (exact 95 % CI) over every episode of
+    every policy, the distinct ones, and the (policy, scene) -> impact step of each."""
+    from genesis_rl.evaluation.distinct import _failure_of, clusters
+    from genesis_rl.evaluation.stats import clopper_pearson
+    from genesis_rl.evaluation.summary import load_campaign
+
+    _, rows = load_campaign(folder)
+    episodes = sum(len(eps) for eps in rows.values())
+    failures = [_failure_of(r, p) for p, eps in rows.items() for r in eps
+                if r.get("failure") and r["failure"].get("odd_status") in IN_ODD]
+    if episodes and not any("odd" in r for eps in rows.values() for r in eps):
+        raise UserInputError(f"campaign '{folder}' has no ODD labels (run it with an ODD, e.g. a zoo member's "
+                             "config): harden takes the in-ODD failures")
+    impacts = {(f["policy"], int(f["scene"])): int(f["step"]) for f in failures}
+    return {"folder": str(folder), "episodes": episodes, "in_odd_failures": len(failures),
+            "rate": clopper_pearson(len(failures), episodes) if episodes else None,
+            "distinct": len(clusters(failures)), "impacts": impacts,
+            "by_policy": {p: sum(1 for f in failures if f["policy"] == p) for p in rows}}
+
+
+def _public(result: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in result.items() if k != "impacts"}
+
+
+# -------------------------------------------------------------------------------------------- clear day
+def clear_day(system: str, system_kwargs: Mapping[str, Any], map_name: str, frames: int,
+              progress: bool) -> dict[str, Any] | None:
+    """The system's detector on clear-day frames of its map (``detector eval``'s protocol and held-out scenes);
+    None when the system exposes no ``detector``."""
+    from genesis_rl.perception.evaluate import evaluate_detector
+    from genesis_rl.system.protocol import load_system
+
+    detector = getattr(load_system(system, **dict(system_kwargs)), "detector", None)
+    if detector is None or not callable(getattr(detector, "detect_batch", None)):
+        return None
+    (row,) = evaluate_detector(detector, (map_name,), ("clear",), frames, progress=progress)
+    return row
+
+
+def seesaw(before: Mapping[str, Any] | None, after: Mapping[str, Any] | None, tolerance: float) -> dict[str, Any]:
+    """Whether a round kept clear-day precision and recall within ``tolerance`` of the weights before any round."""
+    if before is None or after is None:
+        return {"checked": False, "ok": True, "why": "the system exposes no detector to evaluate"}
+    drops = {k: round(float(before[k] or 0) - float(after[k] or 0), 4) for k in ("precision", "recall")}
+    bad = [k for k, d in drops.items() if d > tolerance]
+    return {"checked": True, "ok": not bad, "drop": drops, "tolerance": tolerance,
+            "why": f"clear-day {' and '.join(bad)} fell by more than {tolerance}" if bad else ""}
+
+
+# ------------------------------------------------------------------------------------------------ loop
+def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = False, resume: bool = False,
+               progress: bool = True) -> dict[str, Any]:
+    """Play the rounds not yet on disk; write ``harden.json``, ``harden.png`` and ``harden.html``; the result."""
+    from genesis_rl import __version__
+    from genesis_rl.evaluation.campaign_files import read_campaign_meta
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.harden.retrain import load_hook
+    from genesis_rl.perception.detector import file_sha256
+
+    out = Path(out)
+    campaign = Path(spec.campaign)
+    output_folder.check_inputs(out, [campaign])
+    base = CampaignSpec.from_json(read_campaign_meta(campaign)["spec"])
+    hook = load_hook(spec.retrain)  # a bad name is refused before anything runs
+    test_catalog_seed(base, spec)
+    weights0 = start_weights(base.env)
+    system, kwargs0 = base.env.get("system", "builtin"), dict(base.env.get("system_kwargs", {}))
+    if resume and not (out / "harden.json").exists():
+        raise UserInputError(f"--resume: '{out}' holds no harden.json; start it without --resume")
+    with output_folder.claim(out, "harden", force, resume=resume, inputs=[campaign]):
+        if resume:
+            found = read_json(out / "harden.json", f"harden '{out}': harden.json")
+            old = found.get("spec") if isinstance(found, dict) else None
+            if not isinstance(old, dict):
+                raise UserInputError(f"--resume: '{out / 'harden.json'}' holds no harden spec; start again with "
+                                     "--force")
+            wanted = spec.to_json()
+            differ = [k for k in wanted if k != "rounds" and old.get(k) != wanted[k]]
+            if differ:
+                k = differ[0]
+                raise UserInputError(f"--resume: harden '{out}' was started with {k} = {old.get(k)!r}, not "
+                                     f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
+        else:
+            output_folder.replace(out, "harden")
+        head = {"schema": SCHEMA, "version": __version__, "spec": spec.to_json(), "system": system,
+                "map": base.map, "base_weights": str(weights0), "base_weights_sha256": _sha(weights0, file_sha256)}
+        atomic_write_json(out / "harden.json", {**head, "done": False}, indent=1)
+
+        baseline = _baseline(spec, base, out / "round_0", system, kwargs0, weights0, workers, progress)
+        rounds: list[dict[str, Any]] = []
+        weights = weights0
+        failure_exports: list[Path] = []
+        stopped = ""
+        for r in range(1, spec.rounds + 1):
+            result = _round(spec, base, out, r, system, kwargs0, weights, failure_exports, baseline, hook,
+                            workers, progress)
+            rounds.append(result)
+            atomic_write_json(out / "harden.json", {**head, "done": False, "baseline": baseline, "rounds": rounds},
+                              indent=1)
+            if result["status"] == "no failure":
+                stopped = f"round {r}'s attack found no in-ODD failure"
+                break
+            if result["status"] == "accepted":
+                weights = Path(result["weights"])
+        final = None
+        if not stopped:
+            folder = out / "final_attack"
+            _run(attack_spec(base, spec.rounds + 1, weights), folder, workers, progress)
+            final = {**_public(in_odd_failures(folder)), "weights": str(weights)}
+        result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
+                  "stopped": stopped, "final_weights": str(weights),
+                  "final_weights_sha256": _sha(weights, file_sha256)}
+        atomic_write_json(out / "harden.json", result, indent=1)
+        from genesis_rl.harden.page import write_page
+
+        write_page(out, result)
+        return result
+
+
+def _sha(path: Path, file_sha256: Any) -> str | None:
+    return file_sha256(path) if Path(path).is_file() else None
+
+
+def _baseline(spec: HardenSpec, base: Any, folder: Path, system: str, kwargs0: Mapping[str, Any], weights0: Path,
+              workers: int, progress: bool) -> dict[str, Any]:
+    folder.mkdir(parents=True, exist_ok=True)
+    done = folder / "round.json"
+    if done.is_file():
+        return dict(read_json(done, f"'{done}'"))
+    _run(test_spec(base, spec, None), folder / "test", workers, progress)
+    clear = clear_day(system, kwargs0, base.map, spec.clear_frames, progress)
+    result = {"round": 0, "weights": str(weights0), "test": _public(in_odd_failures(folder / "test")), "clear": clear}
+    atomic_write_json(done, result, indent=1)
+    return result
+
+
+def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0: Mapping[str, Any], weights: Path,
+           failure_exports: list[Path], baseline: Mapping[str, Any], hook: Any, workers: int,
+           progress: bool) -> dict[str, Any]:
+    from genesis_rl.evaluation.export import export_dataset
+    from genesis_rl.harden.retrain import RetrainRequest
+    from genesis_rl.perception.detector import file_sha256
+
+    folder = out / f"round_{r}"
+    folder.mkdir(parents=True, exist_ok=True)
+    done = folder / "round.json"
+    if done.is_file():
+        finished = dict(read_json(done, f"'{done}'"))
+        if finished.get("export"):
+            failure_exports.append(Path(finished["export"]))
+        return finished
+    t0 = time.perf_counter()
+    attack = Path(spec.campaign) if r == 1 else folder / "attack"
+    if r > 1:
+        _run(attack_spec(base, r, weights), attack, workers, progress)
+    found = in_odd_failures(attack)
+    result: dict[str, Any] = {"round": r, "start_weights": str(weights), "attack": _public(found)}
+    if not found["in_odd_failures"]:
+        result.update(status="no failure", export=None)
+        atomic_write_json(done, result, indent=1)
+        return result
+    impacts = found["impacts"]
+    export = folder / "failures"
+    if not (export / "export.json").is_file():
+        export_dataset(attack, "yolo", export, force=export.exists(),
+                       keep=lambda p, s, step: (p, s) in impacts and step <= impacts[(p, s)])
+    failure_exports.append(export)
+    exported = read_json(export / "export.json", f"'{export}'")
+    request = RetrainRequest(round=r, system=system, weights=weights, failures=tuple(failure_exports),
+                             out=folder / "weights", seed=spec.seed, work=out, options=dict(spec.finetune),
+                             progress=progress)
+    new_weights = Path(hook(request))
+    if not new_weights.exists():
+        raise UserInputError(f"retrain hook '{spec.retrain}' returned '{new_weights}', which does not exist")
+    kwargs = {**kwargs0, "weights": str(new_weights.resolve())}
+    _run(test_spec(base, spec, new_weights), folder / "test", workers, progress)
+    clear = clear_day(system, kwargs, base.map, spec.clear_frames, progress)
+    check = seesaw(baseline.get("clear"), clear, spec.tolerance)
+    result.update(export=str(export), frames=exported.get("images"), labels=exported.get("labels"),
+                  weights=str(new_weights), weights_sha256=_sha(new_weights, file_sha256),
+                  test=_public(in_odd_failures(folder / "test")), clear=clear, seesaw=check,
+                  status="accepted" if check["ok"] else "seesaw", seconds=round(time.perf_counter() - t0, 1))
+    atomic_write_json(done, result, indent=1)
+    return result
+
+
+def load_harden(folder: Path) -> dict[str, Any]:
+    """A finished hardening's ``harden.json``."""
+    data = read_json(Path(folder) / "harden.json", f"harden '{folder}'")
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
+        raise UserInputError(f"'{folder}/harden.json' is not a genesis-rl harden result")
+    return data
+
+
+def rates(result: Mapping[str, Any]) -> Sequence[tuple[int, float, float, float]]:
+    """(round, rate, low, high) of the held-out test, round 0 first."""
+    out = []
+    for rnd in [result["baseline"], *[r for r in result["rounds"] if r.get("test")]]:
+        rate = rnd["test"]["rate"]
+        out.append((int(rnd["round"]), float(rate["rate"]), float(rate["ci_low"]), float(rate["ci_high"])))
+    return out

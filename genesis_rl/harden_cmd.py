@@ -1,0 +1,88 @@
+"""``genesis-rl harden``: retrain a system's detector on the failures an attack found, re-test it on held-out
+scenes and on clear-day frames, in rounds (docs/harden.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from genesis_rl.cli_args import seed_int
+from genesis_rl.errors import UserInputError
+
+
+def _cmd_harden(args: argparse.Namespace) -> int:
+    from genesis_rl import limits
+    from genesis_rl.harden.rounds import HardenSpec, run_harden
+    from genesis_rl.output_paths import check_folder_output
+
+    if args.workers < 1:
+        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
+    limits.WORKERS.check(args.workers, "--workers")
+    limits.SCENES.check(args.test_scenes, "--test-scenes")
+    check_folder_output(args.out)
+    finetune = {k: v for k, v in (("epochs", args.epochs), ("lr", args.lr), ("original_frames", args.original_frames),
+                                  ("failure_repeat", args.failure_repeat)) if v is not None}
+    if finetune and args.retrain != "builtin":
+        raise UserInputError(f"--epochs, --lr, --original-frames and --failure-repeat set the built-in fine-tune; "
+                             f"--retrain {args.retrain} takes none of them")
+    spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
+                      test_catalog_seed=args.test_catalog_seed, seed=args.seed, retrain=args.retrain,
+                      finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance)
+    result = run_harden(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
+                        progress=not args.quiet)
+    base = result["baseline"]["test"]["rate"]
+    print(f"before: held-out in-ODD failure rate {base['rate']:.3f} ({base['k']}/{base['n']})")
+    for rnd in result["rounds"]:
+        test = rnd.get("test")
+        rate = f"{test['rate']['rate']:.3f} ({test['rate']['k']}/{test['rate']['n']})" if test else "-"
+        clear = rnd.get("clear")
+        cl = f"; clear precision {clear['precision']:.3f} recall {clear['recall']:.3f}" if clear else ""
+        print(f"round {rnd['round']}: {rnd['status']}; attack found {rnd['attack']['in_odd_failures']} in-ODD "
+              f"failure(s), {rnd['attack']['distinct']} distinct; held-out rate {rate}{cl}")
+    final = result.get("final_attack")
+    if final:
+        print(f"re-attack of the hardened system: {final['in_odd_failures']} in-ODD failure(s), "
+              f"{final['distinct']} distinct, in {final['episodes']} episodes")
+    if result.get("stopped"):
+        print(f"stopped: {result['stopped']}")
+    print(json.dumps({"out": args.out, "final_weights": result["final_weights"],
+                      "final_weights_sha256": result["final_weights_sha256"]}))
+    return 0
+
+
+def add_harden_command(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("harden", help="retrain the system's detector on the failures found, re-test, in rounds",
+                       description="Attack -> retrain -> re-test. Round 1 takes the in-ODD failures of CAMPAIGN "
+                                   "(their frames up to the impact, with the simulator's labels), retrains the "
+                                   "system's detector on them mixed with its own training data, and re-tests on "
+                                   "held-out scenes and on clear-day frames (a round that lowers clear-day "
+                                   "precision or recall by more than --tolerance is rejected). Later rounds re-run "
+                                   "CAMPAIGN's adversaries against the hardened system. docs/harden.md")
+    p.add_argument("campaign", help="the attack campaign folder (genesis-rl evaluate; one inside a benchmark run "
+                                    "will do): its system, ODD, adversaries and steps are the ones hardened against")
+    p.add_argument("--out", required=True, help="output folder: harden.json, harden.html, harden.png, round_N/")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of attack -> retrain -> re-test (default 3)")
+    p.add_argument("--test-scenes", type=int, default=20, help="held-out scenes of every re-test (default 20)")
+    p.add_argument("--test-catalog-seed", type=int, default=None,
+                   help="the held-out scenes' catalog seed (default: the campaign's catalog seed + 1)")
+    p.add_argument("--retrain", default="builtin",
+                   help="the retrain hook: builtin (fine-tune a genesis-rl detector checkpoint: systems builtin, "
+                        "latency, adaptive) or package.module:function (docs/harden.md)")
+    p.add_argument("--epochs", type=int, default=None, help="builtin fine-tune: epochs a round (default 4)")
+    p.add_argument("--lr", type=float, default=None, help="builtin fine-tune: learning rate (default 5e-4)")
+    p.add_argument("--original-frames", type=int, default=None,
+                   help="builtin fine-tune: frames of the detector's own training data mixed in (default 800)")
+    p.add_argument("--failure-repeat", type=int, default=None,
+                   help="builtin fine-tune: times each failure frame is seen an epoch (default 2)")
+    p.add_argument("--clear-frames", type=int, default=200,
+                   help="clear-day evaluation frames on the campaign's map (default 200)")
+    p.add_argument("--tolerance", type=float, default=0.01,
+                   help="the largest clear-day precision or recall drop a round may cause (default 0.01)")
+    p.add_argument("--seed", type=seed_int, default=0, help="the retraining's draws flow from it (default 0)")
+    p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
+    p.add_argument("--force", action="store_true", help="replace a hardening already in --out")
+    p.add_argument("--resume", action="store_true", help="continue the hardening in --out where it stopped "
+                                                         "(--rounds may grow)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_harden)
