@@ -9,6 +9,7 @@ from pathlib import Path
 
 from genesis_rl.cli_args import seed_int
 from genesis_rl.errors import UserInputError
+from genesis_rl.harden.page import clear_text
 
 
 def _cmd_harden(args: argparse.Namespace) -> int:
@@ -37,7 +38,7 @@ def _cmd_harden(args: argparse.Namespace) -> int:
         test = rnd.get("test")
         rate = f"{test['rate']['rate']:.3f} ({test['rate']['k']}/{test['rate']['n']})" if test else "-"
         clear = rnd.get("clear")
-        cl = f"; clear precision {clear['precision']:.3f} recall {clear['recall']:.3f}" if clear else ""
+        cl = f"; clear precision / recall {clear_text(clear)}" if clear else ""
         print(f"round {rnd['round']}: {rnd['status']}; attack found {rnd['attack']['in_odd_failures']} in-ODD "
               f"failure(s), {rnd['attack']['distinct']} distinct; held-out rate {rate}{cl}")
     final = result.get("final_attack")

@@ -18,10 +18,15 @@ def _rate(test: Mapping[str, Any] | None) -> str:
     return f"{r['k']}/{r['n']} = {r['rate']:.2f} [{r['ci_low']:.2f}, {r['ci_high']:.2f}]"
 
 
-def _clear(clear: Mapping[str, Any] | None) -> str:
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+def clear_text(clear: Mapping[str, Any] | None) -> str:
+    """Precision / recall; precision is undefined (-) for a detector that fired on nothing."""
     if not clear:
         return "-"
-    return f"{clear['precision']:.3f} / {clear['recall']:.3f}"
+    return f"{_num(clear['precision'])} / {_num(clear['recall'])}"
 
 
 def plot(path: Path, result: Mapping[str, Any]) -> None:
@@ -58,8 +63,10 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
         base = result["baseline"].get("clear") or clears[0][1]
         tol = result["spec"]["tolerance"]
         for key, color in (("precision", "#2471a3"), ("recall", "#1e8449")):
-            ax.plot([c[0] for c in clears], [c[1][key] for c in clears], "o-", color=color, label=key)
-            ax.axhspan(base[key] - tol, base[key] + tol, color=color, alpha=0.12)
+            ax.plot([c[0] for c in clears], [c[1][key] if c[1][key] is not None else float("nan") for c in clears],
+                    "o-", color=color, label=key)
+            if base[key] is not None:
+                ax.axhspan(base[key] - tol, base[key] + tol, color=color, alpha=0.12)
         ax.set(xticks=[c[0] for c in clears])
         ax.legend(frameon=False)
     ax.set(xlabel="round", title=f"clear day (band: before +- {result['spec']['tolerance']})")
@@ -89,8 +96,8 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
              "<th>clear precision / recall</th><th class=l>weights sha256</th></tr>")
     base = result["baseline"]
     h.append(f"<tr><td>0</td><td class=l>before</td><td>-</td><td>-</td><td>-</td><td class=l>{_rate(base['test'])}"
-             f"</td><td>{_clear(base.get('clear'))}</td><td class=l>{str(result.get('base_weights_sha256'))[:12]}</td>"
-             "</tr>")
+             f"</td><td>{clear_text(base.get('clear'))}</td>"
+             f"<td class=l>{str(result.get('base_weights_sha256'))[:12]}</td></tr>")
     for rnd in result["rounds"]:
         status = rnd["status"]
         cls = "good" if status == "accepted" else "bad"
@@ -99,7 +106,7 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
                  f"{' (' + html.escape(why) + ')' if why else ''}</td>"
                  f"<td>{rnd['attack']['in_odd_failures']} / {rnd['attack']['episodes']}</td>"
                  f"<td>{rnd['attack']['distinct']}</td><td>{rnd.get('frames') or '-'}</td>"
-                 f"<td class=l>{_rate(rnd.get('test'))}</td><td>{_clear(rnd.get('clear'))}</td>"
+                 f"<td class=l>{_rate(rnd.get('test'))}</td><td>{clear_text(rnd.get('clear'))}</td>"
                  f"<td class=l>{str(rnd.get('weights_sha256') or '-')[:12]}</td></tr>")
     final = result.get("final_attack")
     if final:

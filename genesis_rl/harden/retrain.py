@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
+import io
 import math
 import time
 from collections.abc import Callable
@@ -104,6 +105,24 @@ def base_train_config(weights: Path) -> dict[str, Any]:
     return {**DetectorTrainConfig().as_dict(), **{k: v for k, v in recorded.items() if k in known}}
 
 
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return Path(path).resolve().relative_to(Path(root).resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def _train_frozen_norms(net: Any) -> None:
+    """Training mode with every batch norm kept in eval mode: a few hundred frames of one condition would pull
+    the running statistics that every clear-day frame is normalised by (the seesaw's first cause)."""
+    import torch
+
+    net.train()
+    for module in net.modules():
+        if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+            module.eval()
+
+
 def finetune_detector(request: RetrainRequest) -> Path:
     """The built-in hook: fine-tune the genesis-rl detector checkpoint ``request.weights``; returns the new
     checkpoint (its score threshold kept: the clear-day check judges the same operating point)."""
@@ -150,7 +169,7 @@ def finetune_detector(request: RetrainRequest) -> Path:
     history, step, t0 = [], 0, time.perf_counter()
     try:
         for epoch in range(cfg.epochs):
-            net.train()
+            _train_frozen_norms(net)
             order = rng.permutation(len(data))
             loss_sum = 0.0
             for s in range(0, len(order), cfg.batch_size):
@@ -176,17 +195,24 @@ def finetune_detector(request: RetrainRequest) -> Path:
     finetune = {"round": request.round, "seed": request.seed, "config": dataclasses.asdict(cfg),
                 "base_weights_sha256": file_sha256(request.weights), "original_frames": len(original),
                 "original_sha256": dataset_sha256(original), "failure_frames": len(failures),
-                "failure_sha256": dataset_sha256(failures), "failure_exports": [str(f) for f in request.failures],
-                "history": history, "seconds": round(time.perf_counter() - t0, 1)}
+                "failure_sha256": dataset_sha256(failures),
+                # relative to the harden folder: a round resumed in a moved folder writes the same checkpoint
+                "failure_exports": [_relative(f, request.work) for f in request.failures],
+                "history": history}
     meta = dict(ckpt.get("metadata", {}))
     out_ckpt = {**ckpt, "state_dict": state,
                 "metadata": {**meta, "genesis_rl_version": genesis_rl.__version__,
                              "finetunes": [*meta.get("finetunes", []), finetune]}}
     request.out.mkdir(parents=True, exist_ok=True)
     path = request.out / WEIGHTS_NAME
-    atomic_write(path, lambda p: torch.save(out_ckpt, p))
+    # torch names a file's records after the file, here atomic_write's temporary: through a buffer the same
+    # weights give the same bytes (a resumed round is checked by its hash)
+    buffer = io.BytesIO()
+    torch.save(out_ckpt, buffer)
+    atomic_write(path, lambda p: p.write_bytes(buffer.getvalue()))
     atomic_write_json(request.out / METRICS_NAME, {"format": ckpt["format"], "weights": WEIGHTS_NAME,
                                                    "score_threshold": ckpt["score_threshold"],
                                                    "model_config": ckpt["model_config"], "train_config": recipe,
-                                                   "finetune": finetune}, indent=2)
+                                                   "finetune": finetune,
+                                                   "seconds": round(time.perf_counter() - t0, 1)}, indent=2)
     return path
