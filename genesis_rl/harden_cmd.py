@@ -29,7 +29,8 @@ def _cmd_harden(args: argparse.Namespace) -> int:
                              f"--retrain {args.retrain} takes none of them")
     spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
                       test_catalog_seed=args.test_catalog_seed, seed=args.seed, retrain=args.retrain,
-                      finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance)
+                      finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance,
+                      adversary=args.adversary)
     result = run_harden(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
                         progress=not args.quiet)
     base = result["baseline"]["test"]["rate"]
@@ -45,6 +46,10 @@ def _cmd_harden(args: argparse.Namespace) -> int:
     if final:
         print(f"re-attack of the hardened system: {final['in_odd_failures']} in-ODD failure(s), "
               f"{final['distinct']} distinct, in {final['episodes']} episodes")
+    again = result.get("retrained_attack")
+    if again:
+        print(f"an agent re-trained against the hardened system: {again['in_odd_failures']} in-ODD failure(s), "
+              f"{again['distinct']} distinct, in {again['episodes']} episodes")
     if result.get("stopped"):
         print(f"stopped: {result['stopped']}")
     print(json.dumps({"out": args.out, "final_weights": result["final_weights"],
@@ -80,6 +85,9 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
                    help="clear-day evaluation frames on the campaign's map (default 200)")
     p.add_argument("--tolerance", type=float, default=0.01,
                    help="the largest clear-day precision or recall drop a round may cause (default 0.01)")
+    p.add_argument("--adversary", default=None, metavar="CONFIG",
+                   help="a train config (TOML, as genesis-rl train --config): after the last round an agent trained "
+                        "by it against the hardened weights re-attacks them (the re-trained adversary)")
     p.add_argument("--seed", type=seed_int, default=0, help="the retraining's draws flow from it (default 0)")
     p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
     p.add_argument("--force", action="store_true", help="replace a hardening already in --out")

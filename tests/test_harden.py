@@ -141,6 +141,7 @@ def test_seesaw_tolerance() -> None:
     (["--retrain", "nohook"], "--retrain"),
     (["--retrain", "builtin", "--epochs", "0"], "finetune.epochs"),
     (["--retrain", "not_a_module_anywhere:fn"], "not_a_module_anywhere"),
+    (["--adversary", "no_such_config.toml"], "--adversary"),
 ])
 def test_bad_input_exits_2_naming_the_field(attack: Path, tmp_path, capsys, args, field) -> None:
     assert main(["harden", str(attack), "--out", str(tmp_path / "x"), *args]) == 2

@@ -50,12 +50,20 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
     attacks = [(r["round"], r["attack"]) for r in result["rounds"]]
     if result.get("final_attack"):
         attacks.append((len(result["rounds"]) + 1, result["final_attack"]))
+    again = result.get("retrained_attack")
     ax.bar([a[0] - 0.2 for a in attacks], [a[1]["in_odd_failures"] for a in attacks], width=0.4,
            label="in-ODD failures", color="#e67e22")
     ax.bar([a[0] + 0.2 for a in attacks], [a[1]["distinct"] for a in attacks], width=0.4, label="distinct",
            color="#8e44ad")
-    ax.set(xlabel="attack against the weights of round (x - 1)", ylabel="found", xticks=[a[0] for a in attacks],
-           title="what each attack found")
+    ticks = [a[0] for a in attacks]
+    labels = [str(t) for t in ticks]
+    if again:
+        x = len(result["rounds"]) + 2
+        ax.bar([x - 0.2], [again["in_odd_failures"]], width=0.4, color="#e67e22", hatch="//")
+        ax.bar([x + 0.2], [again["distinct"]], width=0.4, color="#8e44ad", hatch="//")
+        ticks, labels = [*ticks, x], [*labels, "re-trained"]
+    ax.set_xticks(ticks, labels)
+    ax.set(xlabel="attack against the weights of round (x - 1)", ylabel="found", title="what each attack found")
     ax.legend(frameon=False)
     ax = axes[2]
     clears = [(rnd["round"], rnd["clear"]) for rnd in [result["baseline"], *result["rounds"]] if rnd.get("clear")]
@@ -113,6 +121,12 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
         h.append(f"<tr><td>final</td><td class=l>re-attack of the hardened system</td>"
                  f"<td>{final['in_odd_failures']} / {final['episodes']}</td><td>{final['distinct']}</td>"
                  "<td>-</td><td class=l>-</td><td>-</td>"
+                 f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
+    again = result.get("retrained_attack")
+    if again:
+        h.append(f"<tr><td>final</td><td class=l>an agent re-trained against the hardened system "
+                 f"({html.escape(again['config'])})</td><td>{again['in_odd_failures']} / {again['episodes']}</td>"
+                 f"<td>{again['distinct']}</td><td>-</td><td class=l>-</td><td>-</td>"
                  f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
     h.append("</table><p class=meta>A round's attack runs against the weights the round before accepted (round 1: "
              "the given campaign). A round whose clear-day precision or recall fell by more than the tolerance is "

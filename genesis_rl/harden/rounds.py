@@ -48,6 +48,9 @@ class HardenSpec:
     finetune: dict[str, Any] = field(default_factory=dict)  # the hook's options (FinetuneConfig fields)
     clear_frames: int = 200  # clear-day evaluation frames on the campaign's map
     tolerance: float = 0.01  # the largest clear-day precision or recall drop a round may cause
+    #: a train config (TOML): an agent trained by it against the final weights re-attacks them (the re-trained
+    #: adversary); None: only the campaign's own adversaries re-attack
+    adversary: str | None = None
 
     def __post_init__(self) -> None:
         for name, low in (("rounds", 1), ("test_scenes", 1), ("clear_frames", 1)):
@@ -183,9 +186,16 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
 
     out = Path(out)
     campaign = Path(spec.campaign)
-    output_folder.check_inputs(out, [campaign])
+    output_folder.check_inputs(out, [campaign, spec.adversary])
     base = CampaignSpec.from_json(read_campaign_meta(campaign)["spec"])
     hook = load_hook(spec.retrain)  # a bad name is refused before anything runs
+    if spec.adversary is not None:
+        from genesis_rl.training.config import load_run_config
+
+        if not Path(spec.adversary).is_file():
+            raise UserInputError(f"--adversary '{spec.adversary}' is not a file (a train config, as genesis-rl "
+                                 "train --config takes)")
+        load_run_config(spec.adversary)  # a bad config is refused before anything runs
     test_catalog_seed(base, spec)
     weights0 = start_weights(base.env)
     system, kwargs0 = base.env.get("system", "builtin"), dict(base.env.get("system_kwargs", {}))
@@ -199,7 +209,8 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                 raise UserInputError(f"--resume: '{out / 'harden.json'}' holds no harden spec; start again with "
                                      "--force")
             wanted = spec.to_json()
-            differ = [k for k in wanted if k != "rounds" and old.get(k) != wanted[k]]
+            # more rounds, or a re-trained adversary at the end, continue what is there
+            differ = [k for k in wanted if k not in ("rounds", "adversary") and old.get(k) != wanted[k]]
             if differ:
                 k = differ[0]
                 raise UserInputError(f"--resume: harden '{out}' was started with {k} = {old.get(k)!r}, not "
@@ -231,7 +242,11 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
             folder = out / "final_attack"
             _run(attack_spec(base, spec.rounds + 1, weights), folder, workers, progress)
             final = {**_public(in_odd_failures(folder)), "weights": str(weights)}
+        retrained = None
+        if spec.adversary and not stopped:
+            retrained = _retrained_attack(spec.adversary, spec, base, out, weights, workers, progress)
         result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
+                  "retrained_attack": retrained,
                   "stopped": stopped, "final_weights": str(weights),
                   "final_weights_sha256": _sha(weights, file_sha256)}
         atomic_write_json(out / "harden.json", result, indent=1)
@@ -239,6 +254,27 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
 
         write_page(out, result)
         return result
+
+
+def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weights: Path, workers: int,
+                      progress: bool) -> dict[str, Any]:
+    """Train an agent by ``config`` against ``weights`` (seed ``spec.seed``), then let it attack them on
+    the final attack's scenes."""
+    from genesis_rl.config import read_toml
+    from genesis_rl.training.config import load_run_config
+    from genesis_rl.training.train import train
+
+    run = out / "final_agent"
+    if not (run / "train_result.json").is_file():
+        env = dict(read_toml(config).get("env", {}))
+        kwargs = {**env.get("system_kwargs", {}), "weights": str(Path(weights).resolve())}
+        cfg = load_run_config(config, {"env": {"system_kwargs": kwargs}, "train": {"seed": spec.seed}})
+        train(cfg, run, resume=(run / "run.json").is_file(), progress=progress, inputs=[config])
+    folder = out / "retrained_attack"
+    _run(dataclasses.replace(attack_spec(base, spec.rounds + 1, weights), policies=("agent",),
+                             agent=str(run / "agent.zip")), folder, workers, progress)
+    return {**_public(in_odd_failures(folder)), "agent": str(run), "config": config,
+            "weights": str(weights)}
 
 
 def _sha(path: Path, file_sha256: Any) -> str | None:
