@@ -243,7 +243,7 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
             _run(attack_spec(base, spec.rounds + 1, weights), folder, workers, progress)
             final = {**_public(in_odd_failures(folder)), "weights": str(weights)}
         retrained = None
-        if spec.adversary and not stopped:
+        if spec.adversary:  # also when the same adversary found nothing more: a re-trained one may
             retrained = _retrained_attack(spec.adversary, spec, base, out, weights, workers, progress)
         result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
                   "retrained_attack": retrained,
