@@ -43,6 +43,12 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
     xs = [r[0] for r in rows]
     ax.errorbar(xs, [r[1] for r in rows], yerr=[[r[1] - r[2] for r in rows], [r[3] - r[1] for r in rows]],
                 fmt="o-", capsize=4, color="#c0392b")
+    rejected = {r["round"] for r in result["rounds"] if r["status"] == "seesaw"}
+    for x, rate, _, _ in rows:
+        if x in rejected:  # a rejected round's weights were not carried on
+            ax.plot([x], [rate], "o", ms=11, mfc="white", mec="#7f8c8d", zorder=3)
+            ax.annotate("seesaw:\nrejected", (x, rate), textcoords="offset points", xytext=(0, 12), ha="center",
+                        fontsize=8, color="#7f8c8d")
     ax.set(xlabel="round (0: before)", ylabel="in-ODD failure rate per episode", xticks=xs,
            title="held-out re-test (95 % CI)")
     ax.set_ylim(bottom=0)
@@ -51,18 +57,21 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
     if result.get("final_attack"):
         attacks.append((len(result["rounds"]) + 1, result["final_attack"]))
     again = result.get("retrained_attack")
-    ax.bar([a[0] - 0.2 for a in attacks], [a[1]["in_odd_failures"] for a in attacks], width=0.4,
-           label="in-ODD failures", color="#e67e22")
-    ax.bar([a[0] + 0.2 for a in attacks], [a[1]["distinct"] for a in attacks], width=0.4, label="distinct",
-           color="#8e44ad")
+    bars = ax.bar([a[0] - 0.2 for a in attacks], [a[1]["in_odd_failures"] for a in attacks], width=0.4,
+                  label="in-ODD failures", color="#e67e22")
+    ax.bar_label(bars, fontsize=8)
+    bars = ax.bar([a[0] + 0.2 for a in attacks], [a[1]["distinct"] for a in attacks], width=0.4, label="distinct",
+                  color="#8e44ad")
+    ax.bar_label(bars, fontsize=8)
     ticks = [a[0] for a in attacks]
     labels = [str(t) for t in ticks]
     if again:
         x = len(result["rounds"]) + 2
-        ax.bar([x - 0.2], [again["in_odd_failures"]], width=0.4, color="#e67e22", hatch="//")
-        ax.bar([x + 0.2], [again["distinct"]], width=0.4, color="#8e44ad", hatch="//")
+        ax.bar_label(ax.bar([x - 0.2], [again["in_odd_failures"]], width=0.4, color="#e67e22", hatch="//"), fontsize=8)
+        ax.bar_label(ax.bar([x + 0.2], [again["distinct"]], width=0.4, color="#8e44ad", hatch="//"), fontsize=8)
         ticks, labels = [*ticks, x], [*labels, "re-trained"]
     ax.set_xticks(ticks, labels)
+    ax.margins(y=0.12)
     ax.set(xlabel="attack against the weights of round (x - 1)", ylabel="found", title="what each attack found")
     ax.legend(frameon=False)
     ax = axes[2]
@@ -97,7 +106,8 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
          f"hook {html.escape(spec['retrain'])}; held-out re-test on {spec['test_scenes']} scenes; seesaw tolerance "
          f"{spec['tolerance']}; genesis-rl {html.escape(result['version'])}</p>"]
     if result.get("stopped"):
-        h.append(f"<p class=warn>Stopped: {html.escape(result['stopped'])}.</p>")
+        h.append(f"<p><b>Stopped early:</b> {html.escape(result['stopped'])} (the same adversary, against the weights "
+                 "the rounds before accepted), so there was nothing new to retrain on.</p>")
     h.append("<img src=harden.png alt='failure rate, attacks and clear-day metrics by round'>")
     h.append("<table><tr><th>round</th><th class=l>status</th><th>attack: in-ODD failures / episodes</th>"
              "<th>distinct</th><th>frames retrained on</th><th class=l>held-out in-ODD failure rate [95 % CI]</th>"
@@ -108,7 +118,7 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
              f"<td class=l>{str(result.get('base_weights_sha256'))[:12]}</td></tr>")
     for rnd in result["rounds"]:
         status = rnd["status"]
-        cls = "good" if status == "accepted" else "bad"
+        cls = "bad" if status == "seesaw" else "good"
         why = rnd.get("seesaw", {}).get("why", "")
         h.append(f"<tr><td>{rnd['round']}</td><td class='l {cls}'>{html.escape(status)}"
                  f"{' (' + html.escape(why) + ')' if why else ''}</td>"
