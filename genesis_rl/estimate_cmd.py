@@ -27,9 +27,12 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         limits.SIM_STEPS.check(args.steps, "--steps")
     check_folder_output(args.out)
     nominal = load_starts(Path(args.nominal)) if args.nominal else None
+    if args.weights is not None and not Path(args.weights).exists():
+        raise UserInputError(f"--weights '{args.weights}' does not exist")
     spec = EstimateSpec(member=args.member, method=args.method, episodes=args.episodes, seed=args.seed,
                         steps=args.steps, stages=args.stages if args.method == "importance" else 1,
-                        defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal)
+                        defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal,
+                        weights=args.weights)
     result = run_estimate(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
                           progress=not args.quiet)
     est = result["estimate"]
@@ -69,6 +72,9 @@ def add_estimate_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's)")
     p.add_argument("--nominal", default=None,
                    help="a TOML file of start ranges replacing the default nominal model (docs/estimation.md)")
+    p.add_argument("--weights", default=None,
+                   help="the member's system with these detector weights (a hardened one: genesis-rl harden); "
+                        "default: the member's own")
     p.add_argument("--seed", type=seed_int, default=0, help="every draw flows from it (default 0)")
     p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
     p.add_argument("--out", required=True, help="output folder: episodes.csv, estimate.json, estimate.png")

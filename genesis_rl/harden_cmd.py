@@ -30,7 +30,7 @@ def _cmd_harden(args: argparse.Namespace) -> int:
     spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
                       test_catalog_seed=args.test_catalog_seed, seed=args.seed, retrain=args.retrain,
                       finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance,
-                      adversary=args.adversary)
+                      adversary=args.adversary, member=args.member, estimate_episodes=args.estimate_episodes)
     result = run_harden(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
                         progress=not args.quiet)
     base = result["baseline"]["test"]["rate"]
@@ -50,6 +50,10 @@ def _cmd_harden(args: argparse.Namespace) -> int:
     if again:
         print(f"an agent re-trained against the hardened system: {again['in_odd_failures']} in-ODD failure(s), "
               f"{again['distinct']} distinct, in {again['episodes']} episodes")
+    for when, est in (result.get("estimates") or {}).items():
+        lo, hi = est["ci95"]
+        print(f"in-ODD failure probability per episode under natural conditions, {when}: {est['probability']:.3g} "
+              f"[{lo:.3g}, {hi:.3g}] ({est['failures']}/{est['episodes']})")
     if result.get("stopped"):
         print(f"stopped: {result['stopped']}")
     print(json.dumps({"out": args.out, "final_weights": result["final_weights"],
@@ -88,6 +92,12 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--adversary", default=None, metavar="CONFIG",
                    help="a train config (TOML, as genesis-rl train --config): after the last round an agent trained "
                         "by it against the hardened weights re-attacks them (the re-trained adversary)")
+    p.add_argument("--member", default=None,
+                   help="the zoo member whose system and ODD the campaign ran (genesis-rl zoo list): with "
+                        "--estimate-episodes, its failure rate under natural conditions before and after")
+    p.add_argument("--estimate-episodes", type=int, default=0,
+                   help="crude Monte Carlo episodes of the in-ODD failure-rate estimate before the rounds and for "
+                        "the final weights (default 0: none; genesis-rl estimate)")
     p.add_argument("--seed", type=seed_int, default=0, help="the retraining's draws flow from it (default 0)")
     p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
     p.add_argument("--force", action="store_true", help="replace a hardening already in --out")

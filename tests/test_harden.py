@@ -152,3 +152,22 @@ def test_bad_input_exits_2_naming_the_field(attack: Path, tmp_path, capsys, args
 def test_out_inside_the_campaign_is_refused(attack: Path, capsys) -> None:
     assert main(["harden", str(attack), "--out", str(attack / "hard")]) == 2
     assert "hard" in capsys.readouterr().err
+
+
+def test_a_member_of_another_system_or_map_is_refused(attack: Path, tmp_path, capsys) -> None:
+    assert main(["harden", str(attack), "--out", str(tmp_path / "x"), "--member", "low_sun_highway",
+                 "--estimate-episodes", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "--member low_sun_highway" in err and "map" in err
+    assert main(["harden", str(attack), "--out", str(tmp_path / "x"), "--estimate-episodes", "4"]) == 2
+    assert "--member" in capsys.readouterr().err
+
+
+def test_an_estimate_runs_the_member_with_the_given_weights(tmp_path) -> None:
+    from genesis_rl.estimation.run import EstimateSpec, env_config
+
+    own = env_config(EstimateSpec(member="low_sun", method="crude", episodes=4), tmp_path / "c.json")
+    assert "weights" not in own["system_kwargs"]
+    spec = EstimateSpec(member="glare_blind", method="crude", episodes=4, weights=str(DEFAULT_WEIGHTS))
+    assert env_config(spec, tmp_path / "c.json")["system_kwargs"]["weights"] == str(DEFAULT_WEIGHTS.resolve())
+    assert spec.to_json()["weights"] == str(DEFAULT_WEIGHTS)

@@ -53,6 +53,7 @@ class EstimateSpec:
     elite: float = 0.2  # importance: the share of a stage that refits the proposal
     catalog_seed: int = 0
     nominal: tuple[StartRange, ...] | None = None  # None: default_starts of the member's ODD
+    weights: str | None = None  # the member's system with these detector weights (a hardened one); None: its own
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -98,8 +99,10 @@ def env_config(spec: EstimateSpec, catalog: Path) -> dict[str, Any]:
     from genesis_rl.zoo.members import env_settings, zoo_member
 
     m = zoo_member(spec.member)
-    return {**env_settings(m), "catalog": str(catalog), "observation": "features",
-            "episode_steps": steps_of(spec)}
+    env = env_settings(m)
+    if spec.weights is not None:
+        env["system_kwargs"] = {**env.get("system_kwargs", {}), "weights": str(Path(spec.weights).resolve())}
+    return {**env, "catalog": str(catalog), "observation": "features", "episode_steps": steps_of(spec)}
 
 
 def steps_of(spec: EstimateSpec) -> int:

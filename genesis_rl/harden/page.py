@@ -138,7 +138,18 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
                  f"({html.escape(again['config'])})</td><td>{again['in_odd_failures']} / {again['episodes']}</td>"
                  f"<td>{again['distinct']}</td><td>-</td><td class=l>-</td><td>-</td>"
                  f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
-    h.append("</table><p class=meta>A round's attack runs against the weights the round before accepted (round 1: "
+    h.append("</table>")
+    estimates = result.get("estimates")
+    if estimates:
+        h.append(f"<h2>Failure rate under natural conditions ({html.escape(str(spec.get('member')))}, crude Monte "
+                 "Carlo)</h2><table><tr><th class=l>weights</th><th>failed / episodes</th>"
+                 "<th>per episode [95 % CI]</th></tr>")
+        for when, est in estimates.items():
+            lo, hi = est["ci95"]
+            h.append(f"<tr><td class=l>{html.escape(when)}</td><td>{est['failures']} / {est['episodes']}</td>"
+                     f"<td>{est['probability']:.3g} [{lo:.3g}, {hi:.3g}]</td></tr>")
+        h.append("</table>")
+    h.append("<p class=meta>A round's attack runs against the weights the round before accepted (round 1: "
              "the given campaign). A round whose clear-day precision or recall fell by more than the tolerance is "
              "marked seesaw and the next round starts from the weights before it.</p></body></html>")
     atomic_write_text(folder / "harden.html", "\n".join(h))

@@ -51,12 +51,21 @@ class HardenSpec:
     #: a train config (TOML): an agent trained by it against the final weights re-attacks them (the re-trained
     #: adversary); None: only the campaign's own adversaries re-attack
     adversary: str | None = None
+    #: a zoo member whose system and ODD the campaign ran: its in-ODD failure rate under natural conditions is
+    #: estimated (crude Monte Carlo, ``estimate_episodes`` episodes) before the rounds and for the final weights
+    member: str | None = None
+    estimate_episodes: int = 0
 
     def __post_init__(self) -> None:
         for name, low in (("rounds", 1), ("test_scenes", 1), ("clear_frames", 1)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise UserInputError(f"harden {name} = {value!r}; allowed: an integer >= {low}")
+        if not isinstance(self.estimate_episodes, int) or self.estimate_episodes < 0:
+            raise UserInputError(f"harden estimate_episodes = {self.estimate_episodes!r}; allowed: an integer >= 0")
+        if self.estimate_episodes and self.member is None:
+            raise UserInputError("--estimate-episodes needs --member (the zoo member whose system and ODD the "
+                                 "campaign ran: its natural conditions define the rate)")
         if not (isinstance(self.tolerance, (int, float)) and 0 <= self.tolerance < 1):
             raise UserInputError(f"harden tolerance = {self.tolerance!r}; allowed: a number in [0, 1)")
         if self.retrain == "builtin":
@@ -197,6 +206,8 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                                  "train --config takes)")
         load_run_config(spec.adversary)  # a bad config is refused before anything runs
     test_catalog_seed(base, spec)
+    if spec.member is not None:
+        check_member(spec.member, base)
     weights0 = start_weights(base.env)
     system, kwargs0 = base.env.get("system", "builtin"), dict(base.env.get("system_kwargs", {}))
     if resume and not (out / "harden.json").exists():
@@ -210,7 +221,8 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                                      "--force")
             wanted = spec.to_json()
             # more rounds, or a re-trained adversary at the end, continue what is there
-            differ = [k for k in wanted if k not in ("rounds", "adversary") and old.get(k) != wanted[k]]
+            later = ("rounds", "adversary", "member", "estimate_episodes")  # what runs after the rounds
+            differ = [k for k in wanted if k not in later and old.get(k) != wanted[k]]
             if differ:
                 k = differ[0]
                 raise UserInputError(f"--resume: harden '{out}' was started with {k} = {old.get(k)!r}, not "
@@ -245,8 +257,13 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
         retrained = None
         if spec.adversary:  # also when the same adversary found nothing more: a re-trained one may
             retrained = _retrained_attack(spec.adversary, spec, base, out, weights, workers, progress)
+        estimates = None
+        if spec.estimate_episodes:
+            assert spec.member is not None  # HardenSpec checks it
+            estimates = {"before": _estimate(spec, spec.member, None, out / "round_0" / "estimate", workers, progress),
+                         "after": _estimate(spec, spec.member, weights, out / "final_estimate", workers, progress)}
         result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
-                  "retrained_attack": retrained,
+                  "retrained_attack": retrained, "estimates": estimates,
                   "stopped": stopped, "final_weights": str(weights),
                   "final_weights_sha256": _sha(weights, file_sha256)}
         atomic_write_json(out / "harden.json", result, indent=1)
@@ -254,6 +271,36 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
 
         write_page(out, result)
         return result
+
+
+def check_member(name: str, base: Any) -> None:
+    """Refuse a member whose system, map or ODD is not the campaign's (its rate would be of another system)."""
+    from genesis_rl.zoo.members import zoo_member
+
+    m = zoo_member(name)
+    env = base.env
+    theirs = {"system": m.system, "map": m.map, "odd": Path(m.odd_path).resolve()}
+    ours = {"system": env.get("system", "builtin"), "map": base.map,
+            "odd": Path(env["odd"]).resolve() if env.get("odd") else None}
+    for key, value in theirs.items():
+        if ours[key] != value:
+            raise UserInputError(f"--member {name}: its {key} is {value}, the campaign's {ours[key]}; give the member "
+                                 "whose system and ODD the campaign ran")
+
+
+def _estimate(spec: HardenSpec, member: str, weights: Path | None, folder: Path, workers: int,
+              progress: bool) -> dict[str, Any]:
+    """The member's in-ODD failure rate under natural conditions (crude Monte Carlo) with ``weights``."""
+    from genesis_rl.estimation.run import EstimateSpec, run_estimate
+
+    est = EstimateSpec(member=member, method="crude", episodes=spec.estimate_episodes, seed=spec.seed,
+                       stages=1, weights=None if weights is None else str(Path(weights).resolve()))
+    if (folder / "estimate.json").is_file():
+        data = read_json(folder / "estimate.json", f"'{folder}'")
+        if data.get("done") and data.get("spec", {}).get("episodes") == spec.estimate_episodes:
+            return {"folder": str(folder), **data["estimate"]}
+    result = run_estimate(est, folder, workers=workers, resume=(folder / "estimate.json").is_file(), progress=progress)
+    return {"folder": str(folder), **result["estimate"]}
 
 
 def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weights: Path, workers: int,
