@@ -23,10 +23,15 @@ def _cmd_harden(args: argparse.Namespace) -> int:
     limits.SCENES.check(args.test_scenes, "--test-scenes")
     check_folder_output(args.out)
     finetune = {k: v for k, v in (("epochs", args.epochs), ("lr", args.lr), ("original_frames", args.original_frames),
-                                  ("failure_repeat", args.failure_repeat)) if v is not None}
+                                  ("failure_repeat", args.failure_repeat),
+                                  ("validation_frames", args.validation_frames), ("distill", args.distill))
+                if v is not None}
+    if args.keep_threshold:
+        finetune["repick_threshold"] = False
     if finetune and args.retrain != "builtin":
-        raise UserInputError(f"--epochs, --lr, --original-frames and --failure-repeat set the built-in fine-tune; "
-                             f"--retrain {args.retrain} takes none of them")
+        raise UserInputError("--epochs, --lr, --original-frames, --failure-repeat, --validation-frames, --distill "
+                             f"and --keep-threshold set the built-in fine-tune; --retrain {args.retrain} takes none of "
+                             "them")
     spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
                       test_catalog_seed=args.test_catalog_seed, seed=args.seed, retrain=args.retrain,
                       finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance,
@@ -85,6 +90,14 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
                    help="builtin fine-tune: frames of the detector's own training data mixed in (default 800)")
     p.add_argument("--failure-repeat", type=int, default=None,
                    help="builtin fine-tune: times each failure frame is seen an epoch (default 2)")
+    p.add_argument("--validation-frames", type=int, default=None,
+                   help="builtin fine-tune: frames of the detector's own validation data the score threshold is "
+                        "re-picked on (best F1, as detector train picks it; default 480)")
+    p.add_argument("--distill", type=float, default=None,
+                   help="builtin fine-tune: weight of the distillation term that keeps the heatmap on the original "
+                        "frames close to the starting weights' (learning without forgetting; default 5, 0: off)")
+    p.add_argument("--keep-threshold", action="store_true",
+                   help="builtin fine-tune: keep the checkpoint's score threshold instead of re-picking it")
     p.add_argument("--clear-frames", type=int, default=200,
                    help="clear-day evaluation frames on the campaign's map (default 200)")
     p.add_argument("--tolerance", type=float, default=0.01,

@@ -51,6 +51,7 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
     "sweep": (r"\.genesis-rl\.json", r"sweep\.json", r"sweep\.png", r"campaigns"),
     "estimate": (r"\.genesis-rl\.json", r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
     "harden": (r"\.genesis-rl\.json", r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
+               r"validation_data\.npz",
                r"round_\d+", r"final_attack", r"final_agent", r"retrained_attack",
                r"final_estimate"),
 }

@@ -86,15 +86,17 @@ def concat(parts: Sequence[DetectionDataset]) -> DetectionDataset:
 
 
 def original_frames(train_config: dict[str, Any], frames: int, cache: Path | None, progress: bool = False,
-                    backend: Any = None) -> DetectionDataset:
-    """The first ``frames`` frames of the detector's own training data, rendered from the recipe its checkpoint
-    records (map, weather condition, catalog seed, seed); kept in ``cache`` (an ``.npz``) when given."""
+                    backend: Any = None, split: str = "train") -> DetectionDataset:
+    """The first ``frames`` frames of the detector's own training (or, ``split="val"``, validation) data, rendered
+    from the recipe its checkpoint records (map, weather condition, catalog seed, seed); kept in ``cache`` (an
+    ``.npz``) when given."""
     from genesis_rl.perception.dataset import render_dataset
     from genesis_rl.sim.interface import CameraConfig
 
     fps = int(train_config.get("frames_per_scene", 4))
+    seed_key, seed_default = ("train_catalog_seed", 100) if split == "train" else ("val_catalog_seed", 101)
     want = {"map": train_config.get("map", "urban"), "condition": train_config.get("condition", "typical"),
-            "catalog_seed": int(train_config.get("train_catalog_seed", 100)), "seed": int(train_config.get("seed", 0)),
+            "catalog_seed": int(train_config.get(seed_key, seed_default)), "seed": int(train_config.get("seed", 0)),
             "frames": int(frames), "frames_per_scene": fps}
     if cache is not None and cache.is_file():
         try:

@@ -41,12 +41,23 @@ class FinetuneConfig:
     failure_repeat: int = 2
     batch_size: int = 32
     threads: int = 2
+    #: re-pick the score threshold as ``detector train`` picks it (best F1 on the detector's own validation
+    #: frames, ``validation_frames`` of them); False keeps the checkpoint's
+    repick_threshold: bool = True
+    validation_frames: int = 480
+    #: weight of the distillation term: on the original frames, the KL divergence of the new heatmap from the
+    #: starting weights' (learning without forgetting, Li & Hoiem 2016); 0 turns it off
+    distill: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "original_frames", "failure_repeat", "batch_size", "threads"):
+        if not isinstance(self.repick_threshold, bool):
+            raise UserInputError(f"harden finetune.repick_threshold = {self.repick_threshold!r}; allowed: true, false")
+        for name in ("epochs", "original_frames", "failure_repeat", "batch_size", "threads", "validation_frames"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise UserInputError(f"harden finetune.{name} = {value!r}; allowed: an integer >= 1")
+        if not (isinstance(self.distill, (int, float)) and 0 <= self.distill <= 100):
+            raise UserInputError(f"harden finetune.distill = {self.distill!r}; allowed: a number in [0, 100]")
         if not (isinstance(self.lr, (int, float)) and 0 < self.lr <= 0.1):
             raise UserInputError(f"harden finetune.lr = {self.lr!r}; allowed: a number in (0, 0.1]")
 
@@ -105,6 +116,44 @@ def base_train_config(weights: Path) -> dict[str, Any]:
     return {**DetectorTrainConfig().as_dict(), **{k: v for k, v in recorded.items() if k in known}}
 
 
+def _repick_threshold(net: Any, ckpt: dict[str, Any], recipe: dict[str, Any], train_cfg: Any, cfg: FinetuneConfig,
+                      request: RetrainRequest) -> tuple[float, dict[str, Any]]:
+    """The threshold with the best F1 on the detector's own validation frames (as ``detector train`` picks it):
+    fine-tuning on failure frames shifts the scores, so the threshold picked for the old weights no longer sits
+    at the same operating point. Both thresholds' validation figures are returned for the record."""
+    from genesis_rl.harden.data import original_frames
+    from genesis_rl.perception.train import THRESHOLD_GRID, _predict, _r, pick_threshold
+
+    val = original_frames(recipe, cfg.validation_frames, request.work / "validation_data.npz", request.progress,
+                          split="val")
+    best, by_t = pick_threshold(_predict(net, val, train_cfg, THRESHOLD_GRID[0]), val)
+    old = float(ckpt["score_threshold"])
+    nearest_old = min(THRESHOLD_GRID, key=lambda t: abs(t - old))
+    best, nearest_old = float(best), float(nearest_old)  # numpy scalars would not load with weights_only
+    record = {"frames": len(val), "threshold": best, "precision": _r(by_t[best].precision),
+              "recall": _r(by_t[best].recall), "at_old_threshold": {
+                  "threshold": nearest_old, "precision": _r(by_t[nearest_old].precision),
+                  "recall": _r(by_t[nearest_old].recall)}}
+    return float(best), record
+
+
+def _distillation(out: dict[str, Any], teacher: Any, x: Any, original: np.ndarray) -> Any:
+    """Per original frame, the summed KL divergence of the heatmap's per-pixel Bernoulli from the starting
+    weights' on the same (augmented) input: keeps what the detector fired on, and did not, where it was right."""
+    import torch
+    import torch.nn.functional as F
+
+    mask = torch.from_numpy(original)
+    if not bool(mask.any()):
+        return torch.zeros(())
+    with torch.no_grad():
+        target = torch.sigmoid(teacher(x[mask])["heatmap"].float())
+    logits = out["heatmap"][mask].float()
+    cross = F.binary_cross_entropy_with_logits(logits, target, reduction="sum")
+    entropy = F.binary_cross_entropy(target, target, reduction="sum")
+    return (cross - entropy) / int(mask.sum())
+
+
 def _relative(path: Path, root: Path) -> str:
     try:
         return Path(path).resolve().relative_to(Path(root).resolve()).as_posix()
@@ -158,6 +207,11 @@ def finetune_detector(request: RetrainRequest) -> Path:
     # Module.to takes memory_format at run time, but torch's overloads for it omit the keyword
     net = VehicleDetectorNet(mcfg).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     net.load_state_dict(ckpt["state_dict"])
+    teacher = None
+    if cfg.distill > 0:
+        teacher = VehicleDetectorNet(mcfg).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        teacher.load_state_dict(ckpt["state_dict"])
+        teacher.eval()
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=train_cfg.weight_decay)
     per_epoch = math.ceil(len(data) / cfg.batch_size)
     total = per_epoch * cfg.epochs
@@ -173,10 +227,14 @@ def finetune_detector(request: RetrainRequest) -> Path:
             order = rng.permutation(len(data))
             loss_sum = 0.0
             for s in range(0, len(order), cfg.batch_size):
-                x, t = _batch(data, np.sort(order[s : s + cfg.batch_size]), train_cfg, rng)
+                idx = np.sort(order[s : s + cfg.batch_size])
+                x, t = _batch(data, idx, train_cfg, rng)
                 for g in opt.param_groups:
                     g["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / total)))
-                loss, _ = detector_loss(net(x), t, train_cfg)
+                out = net(x)
+                loss, _ = detector_loss(out, t, train_cfg)
+                if teacher is not None:
+                    loss = loss + cfg.distill * _distillation(out, teacher, x, idx < len(original))
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
@@ -190,6 +248,9 @@ def finetune_detector(request: RetrainRequest) -> Path:
         if bar is not None:
             bar.close()
     net.eval()
+    threshold, validation = float(ckpt["score_threshold"]), None
+    if cfg.repick_threshold:
+        threshold, validation = _repick_threshold(net, ckpt, recipe, train_cfg, cfg, request)
     state = {k: v.detach().to(torch.float32).contiguous().clone() if v.is_floating_point() else v.clone()
              for k, v in net.state_dict().items()}
     finetune = {"round": request.round, "seed": request.seed, "config": dataclasses.asdict(cfg),
@@ -198,9 +259,9 @@ def finetune_detector(request: RetrainRequest) -> Path:
                 "failure_sha256": dataset_sha256(failures),
                 # relative to the harden folder: a round resumed in a moved folder writes the same checkpoint
                 "failure_exports": [_relative(f, request.work) for f in request.failures],
-                "history": history}
+                "history": history, "score_threshold": threshold, "validation": validation}
     meta = dict(ckpt.get("metadata", {}))
-    out_ckpt = {**ckpt, "state_dict": state,
+    out_ckpt = {**ckpt, "state_dict": state, "score_threshold": threshold,
                 "metadata": {**meta, "genesis_rl_version": genesis_rl.__version__,
                              "finetunes": [*meta.get("finetunes", []), finetune]}}
     request.out.mkdir(parents=True, exist_ok=True)
@@ -211,7 +272,7 @@ def finetune_detector(request: RetrainRequest) -> Path:
     torch.save(out_ckpt, buffer)
     atomic_write(path, lambda p: p.write_bytes(buffer.getvalue()))
     atomic_write_json(request.out / METRICS_NAME, {"format": ckpt["format"], "weights": WEIGHTS_NAME,
-                                                   "score_threshold": ckpt["score_threshold"],
+                                                   "score_threshold": threshold,
                                                    "model_config": ckpt["model_config"], "train_config": recipe,
                                                    "finetune": finetune,
                                                    "seconds": round(time.perf_counter() - t0, 1)}, indent=2)
