@@ -32,7 +32,10 @@ def _cmd_harden(args: argparse.Namespace) -> int:
         raise UserInputError("--epochs, --lr, --original-frames, --failure-repeat, --validation-frames, --distill "
                              f"and --keep-threshold set the built-in fine-tune; --retrain {args.retrain} takes none of "
                              "them")
+    if args.attack_scenes is not None:
+        limits.SCENES.check(args.attack_scenes, "--attack-scenes")
     spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
+                      attack_scenes=args.attack_scenes,
                       test_catalog_seed=args.test_catalog_seed, seed=args.seed, retrain=args.retrain,
                       finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance,
                       adversary=args.adversary, member=args.member, estimate_episodes=args.estimate_episodes)
@@ -79,6 +82,9 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder: harden.json, harden.html, harden.png, round_N/")
     p.add_argument("--rounds", type=int, default=3, help="rounds of attack -> retrain -> re-test (default 3)")
     p.add_argument("--test-scenes", type=int, default=20, help="held-out scenes of every re-test (default 20)")
+    p.add_argument("--attack-scenes", type=int, default=None,
+                   help="scenes of the later rounds' attacks and the final one (default: the campaign's count); a "
+                        "hardened system fails rarely, so what is left takes a bigger attack")
     p.add_argument("--test-catalog-seed", type=int, default=None,
                    help="the held-out scenes' catalog seed (default: the campaign's catalog seed + 1)")
     p.add_argument("--retrain", default="builtin",

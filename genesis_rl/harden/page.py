@@ -110,7 +110,7 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
                  "the rounds before accepted), so there was nothing new to retrain on.</p>")
     h.append("<img src=harden.png alt='failure rate, attacks and clear-day metrics by round'>")
     h.append("<table><tr><th>round</th><th class=l>status</th><th>attack: in-ODD failures / episodes</th>"
-             "<th>distinct</th><th>frames retrained on</th><th class=l>held-out in-ODD failure rate [95 % CI]</th>"
+             "<th>distinct</th><th>new failure frames</th><th class=l>held-out in-ODD failure rate [95 % CI]</th>"
              "<th>clear precision / recall</th><th class=l>weights sha256</th></tr>")
     base = result["baseline"]
     h.append(f"<tr><td>0</td><td class=l>before</td><td>-</td><td>-</td><td>-</td><td class=l>{_rate(base['test'])}"

@@ -42,6 +42,9 @@ class HardenSpec:
     campaign: str  # the attack campaign: round 1's failures, and the spec later rounds re-run
     rounds: int = 3
     test_scenes: int = 20  # held-out scenes of the re-test
+    #: scenes of the later rounds' attacks and the final one (None: the campaign's own count); a hardened system
+    #: fails rarely, so finding what is left takes a bigger attack
+    attack_scenes: int | None = None
     test_catalog_seed: int | None = None  # the held-out catalog (default: the attack catalog's seed + 1)
     seed: int = 0  # the retraining's draws
     retrain: str = "builtin"  # the hook: builtin (fine-tune a genesis-rl detector) or package.module:function
@@ -57,6 +60,8 @@ class HardenSpec:
     estimate_episodes: int = 0
 
     def __post_init__(self) -> None:
+        if self.attack_scenes is not None and (not isinstance(self.attack_scenes, int) or self.attack_scenes < 1):
+            raise UserInputError(f"harden attack_scenes = {self.attack_scenes!r}; allowed: an integer >= 1")
         for name, low in (("rounds", 1), ("test_scenes", 1), ("clear_frames", 1)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
@@ -103,10 +108,11 @@ def start_weights(env: Mapping[str, Any]) -> Path:
                          "harden retrains a system's weights, so run the campaign with --weights")
 
 
-def attack_spec(base: Any, r: int, weights: Path | None) -> Any:
-    """Round ``r``'s attack: the campaign's spec against ``weights`` on the scenes seed ``base.seed + r - 1``
-    picks."""
-    return dataclasses.replace(base, seed=base.seed + r - 1, env=_with_weights(base.env, weights))
+def attack_spec(base: Any, r: int, weights: Path | None, scenes: int | None = None) -> Any:
+    """Round ``r``'s attack: the campaign's spec against ``weights`` on the ``scenes`` (default: the campaign's
+    count) that seed ``base.seed + r - 1`` picks."""
+    return dataclasses.replace(base, seed=base.seed + r - 1, scenes=scenes or base.scenes,
+                               env=_with_weights(base.env, weights))
 
 
 def test_spec(base: Any, spec: HardenSpec, weights: Path | None) -> Any:
@@ -221,7 +227,8 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                                      "--force")
             wanted = spec.to_json()
             # more rounds, or a re-trained adversary at the end, continue what is there
-            later = ("rounds", "adversary", "member", "estimate_episodes")  # what runs after the rounds
+            # what runs after the rounds done, and the attack size of rounds still to come (each round records its own)
+            later = ("rounds", "adversary", "member", "estimate_episodes", "attack_scenes")
             differ = [k for k in wanted if k not in later and old.get(k) != wanted[k]]
             if differ:
                 k = differ[0]
@@ -252,7 +259,7 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
         final = None
         if not stopped:
             folder = out / "final_attack"
-            _run(attack_spec(base, spec.rounds + 1, weights), folder, workers, progress)
+            _run(attack_spec(base, spec.rounds + 1, weights, spec.attack_scenes), folder, workers, progress)
             final = {**_public(in_odd_failures(folder)), "weights": str(weights)}
         retrained = None
         if spec.adversary:  # also when the same adversary found nothing more: a re-trained one may
@@ -318,7 +325,7 @@ def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weigh
         cfg = load_run_config(config, {"env": {"system_kwargs": kwargs}, "train": {"seed": spec.seed}})
         train(cfg, run, resume=(run / "run.json").is_file(), progress=progress, inputs=[config])
     folder = out / "retrained_attack"
-    _run(dataclasses.replace(attack_spec(base, spec.rounds + 1, weights), policies=("agent",),
+    _run(dataclasses.replace(attack_spec(base, spec.rounds + 1, weights, spec.attack_scenes), policies=("agent",),
                              agent=str(run / "agent.zip")), folder, workers, progress)
     return {**_public(in_odd_failures(folder)), "agent": str(run), "config": config,
             "weights": str(weights)}
@@ -359,7 +366,7 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
     t0 = time.perf_counter()
     attack = Path(spec.campaign) if r == 1 else folder / "attack"
     if r > 1:
-        _run(attack_spec(base, r, weights), attack, workers, progress)
+        _run(attack_spec(base, r, weights, spec.attack_scenes), attack, workers, progress)
     found = in_odd_failures(attack)
     result: dict[str, Any] = {"round": r, "start_weights": str(weights), "attack": _public(found)}
     if not found["in_odd_failures"]:
