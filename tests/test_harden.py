@@ -79,9 +79,11 @@ def test_a_round_retrains_the_detector_on_the_failure_frames_and_records_them(at
     kept = len(list((attack / "frames").glob("*/*/*.jpg")))
     assert 10 <= rnd["frames"] < kept
     assert rnd["weights_sha256"] != result["base_weights_sha256"]
-    ckpt = load_checkpoint(Path(rnd["weights"]))
+    assert rnd["weights"] == "round_1/weights/vehicle_detector.pt"  # relative: a moved folder resumes on its own
+    ckpt = load_checkpoint(hardened / rnd["weights"])
     (finetune,) = ckpt["metadata"]["finetunes"]
     assert finetune["failure_frames"] == rnd["frames"] and finetune["original_frames"] == 16
+    assert rnd["export"] == "round_1/failures"
     assert finetune["failure_exports"] == ["round_1/failures"] and len(finetune["failure_sha256"]) == 64
     base = load_checkpoint(DEFAULT_WEIGHTS)
     changed = [k for k, v in ckpt["state_dict"].items() if v.is_floating_point() and

@@ -255,7 +255,7 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                 stopped = f"round {r}'s attack found no in-ODD failure"
                 break
             if result["status"] == "accepted":
-                weights = Path(result["weights"])
+                weights = inside(out, result["weights"])
         final = None
         if not stopped:
             folder = out / "final_attack"
@@ -331,6 +331,24 @@ def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weigh
             "weights": str(weights)}
 
 
+def relative(out: Path, path: Path) -> str:
+    """``path`` as ``round.json`` stores it: relative to the harden folder when inside it, so that a hardening
+    moved elsewhere resumes with its own weights and exports."""
+    try:
+        return Path(path).resolve().relative_to(Path(out).resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def inside(out: Path, stored: str) -> Path:
+    """A path ``round.json`` stored: relative ones are the harden folder's (those written before 0.22.0 were the
+    working directory's, and still read so when the folder holds no such file)."""
+    path = Path(stored)
+    if path.is_absolute() or not (Path(out) / path).exists():
+        return path
+    return Path(out) / path
+
+
 def _sha(path: Path, file_sha256: Any) -> str | None:
     return file_sha256(path) if Path(path).is_file() else None
 
@@ -361,7 +379,7 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
     if done.is_file():
         finished = dict(read_json(done, f"'{done}'"))
         if finished.get("export"):
-            failure_exports.append(Path(finished["export"]))
+            failure_exports.append(inside(out, finished["export"]))
         return finished
     t0 = time.perf_counter()
     attack = Path(spec.campaign) if r == 1 else folder / "attack"
@@ -390,8 +408,8 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
     _run(test_spec(base, spec, new_weights), folder / "test", workers, progress)
     clear = clear_day(system, kwargs, base.map, spec.clear_frames, progress)
     check = seesaw(baseline.get("clear"), clear, spec.tolerance)
-    result.update(export=str(export), frames=exported.get("images"), labels=exported.get("labels"),
-                  weights=str(new_weights), weights_sha256=_sha(new_weights, file_sha256),
+    result.update(export=relative(out, export), frames=exported.get("images"), labels=exported.get("labels"),
+                  weights=relative(out, new_weights), weights_sha256=_sha(new_weights, file_sha256),
                   test=_public(in_odd_failures(folder / "test")), clear=clear, seesaw=check,
                   status="accepted" if check["ok"] else "seesaw", seconds=round(time.perf_counter() - t0, 1))
     atomic_write_json(done, result, indent=1)
