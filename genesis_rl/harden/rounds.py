@@ -226,7 +226,6 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                 raise UserInputError(f"--resume: '{out / 'harden.json'}' holds no harden spec; start again with "
                                      "--force")
             wanted = spec.to_json()
-            # more rounds, or a re-trained adversary at the end, continue what is there
             # what runs after the rounds done, and the attack size of rounds still to come (each round records its own)
             later = ("rounds", "adversary", "member", "estimate_episodes", "attack_scenes")
             differ = [k for k in wanted if k not in later and old.get(k) != wanted[k]]
@@ -267,7 +266,8 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
         estimates = None
         if spec.estimate_episodes:
             assert spec.member is not None  # HardenSpec checks it
-            estimates = {"before": _estimate(spec, spec.member, None, out / "round_0" / "estimate", workers, progress),
+            estimates = {"before": _estimate(spec, spec.member, weights0, out / "round_0" / "estimate", workers,
+                                             progress),
                          "after": _estimate(spec, spec.member, weights, out / "final_estimate", workers, progress)}
         result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
                   "retrained_attack": retrained, "estimates": estimates,
@@ -295,13 +295,13 @@ def check_member(name: str, base: Any) -> None:
                                  "whose system and ODD the campaign ran")
 
 
-def _estimate(spec: HardenSpec, member: str, weights: Path | None, folder: Path, workers: int,
+def _estimate(spec: HardenSpec, member: str, weights: Path, folder: Path, workers: int,
               progress: bool) -> dict[str, Any]:
     """The member's in-ODD failure rate under natural conditions (crude Monte Carlo) with ``weights``."""
     from genesis_rl.estimation.run import EstimateSpec, run_estimate
 
     est = EstimateSpec(member=member, method="crude", episodes=spec.estimate_episodes, seed=spec.seed,
-                       stages=1, weights=None if weights is None else str(Path(weights).resolve()))
+                       stages=1, weights=str(Path(weights).resolve()))
     if (folder / "estimate.json").is_file():
         data = read_json(folder / "estimate.json", f"'{folder}'")
         if data.get("done") and data.get("spec", {}).get("episodes") == spec.estimate_episodes:
