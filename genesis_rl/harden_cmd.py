@@ -36,7 +36,8 @@ def _cmd_harden(args: argparse.Namespace) -> int:
         limits.SCENES.check(args.attack_scenes, "--attack-scenes")
     spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
                       attack_scenes=args.attack_scenes,
-                      test_catalog_seed=args.test_catalog_seed, seed=args.seed, retrain=args.retrain,
+                      test_catalog_seed=args.test_catalog_seed, test_catalog=args.test_catalog, seed=args.seed,
+                      retrain=args.retrain,
                       finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance,
                       adversary=args.adversary, member=args.member, estimate_episodes=args.estimate_episodes)
     result = run_harden(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
@@ -87,6 +88,9 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
                         "hardened system fails rarely, so what is left takes a bigger attack")
     p.add_argument("--test-catalog-seed", type=int, default=None,
                    help="the held-out scenes' catalog seed (default: the campaign's catalog seed + 1)")
+    p.add_argument("--test-catalog", default=None, metavar="FILE",
+                   help="a catalog file of held-out scenes (genesis-rl scenes; a CARLA town's) instead of a generated "
+                        "one")
     p.add_argument("--retrain", default="builtin",
                    help="the retrain hook: builtin (fine-tune a genesis-rl detector checkpoint: systems builtin, "
                         "latency, adaptive) or package.module:function (docs/harden.md)")

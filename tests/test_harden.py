@@ -25,7 +25,7 @@ odd = "genesis_rl/zoo/odd/urban_day.toml"
 dynamics = "natural"
 start_weather = "sun_altitude_angle=5,sun_azimuth_angle=0"
 """
-BASE = ["--rounds", "1", "--test-scenes", "1", "--test-catalog-seed", "3", "--clear-frames", "12", "--quiet"]
+BASE = ["--rounds", "1", "--test-scenes", "1", "--clear-frames", "12", "--quiet"]
 SMALL = [*BASE, "--epochs", "1", "--original-frames", "16", "--validation-frames", "16"]
 
 HOOK = '''
@@ -51,11 +51,17 @@ def blinding(request):
 '''
 
 
+def held_out(attack: Path) -> list[str]:
+    return ["--test-catalog", str(attack.parent / "held_out.json")]
+
+
 @pytest.fixture(scope="module")
 def attack(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("harden")
     (tmp / "low_sun.toml").write_text(CONFIG)
     assert main(["scenes", "--map", "urban", "--count", "8", "--seed", "0", "--out", str(tmp / "urban8.json")]) == 0
+    # held-out scenes: another catalog seed (a file, so that no run generates the map's 1,202 scenes)
+    assert main(["scenes", "--map", "urban", "--count", "4", "--seed", "3", "--out", str(tmp / "held_out.json")]) == 0
     out = tmp / "attack"
     assert main(["evaluate", "--config", str(tmp / "low_sun.toml"), "--policies", "sunny", "--catalog",
                  str(tmp / "urban8.json"), "--scenes", "2", "--seed", "0", "--steps", "120", "--out", str(out),
@@ -66,7 +72,7 @@ def attack(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def hardened(attack: Path) -> Path:
     out = attack.parent / "hard"
-    assert main(["harden", str(attack), "--out", str(out), *SMALL]) == 0
+    assert main(["harden", str(attack), "--out", str(out), *SMALL, *held_out(attack)]) == 0
     return out
 
 
@@ -106,7 +112,8 @@ def test_a_resumed_round_gives_the_same_weights(hardened: Path, tmp_path) -> Non
     (copy / "round_1" / "round.json").unlink()
     shutil.rmtree(copy / "round_1" / "weights")
     shutil.rmtree(copy / "final_attack")
-    assert main(["harden", before["attack"]["folder"], "--out", str(copy), "--resume", *SMALL]) == 0
+    assert main(["harden", before["attack"]["folder"], "--out", str(copy), "--resume", *SMALL,
+                 *held_out(Path(before["attack"]["folder"]))]) == 0
     after = json.loads((copy / "round_1" / "round.json").read_text())
     assert after["weights_sha256"] == before["weights_sha256"]
     assert after["test"]["rate"] == before["test"]["rate"] and after["clear"] == before["clear"]
@@ -117,7 +124,8 @@ def test_an_outside_retrain_hook_is_called_and_the_seesaw_rejects_its_blind_weig
     (tmp_path / "my_hook.py").write_text(HOOK)
     monkeypatch.syspath_prepend(str(tmp_path))
     out = tmp_path / "hooked"
-    assert main(["harden", str(attack), "--out", str(out), "--retrain", "my_hook:blinding", *BASE]) == 0
+    assert main(["harden", str(attack), "--out", str(out), "--retrain", "my_hook:blinding", *BASE,
+                 *held_out(attack)]) == 0
     call = json.loads((out / "hook_calls.json").read_text())
     assert call["round"] == 1 and call["system"] == "builtin" and call["weights"] == str(DEFAULT_WEIGHTS)
     assert call["failures"] == [str(out / "round_1" / "failures")] and call["frames"] > 0
@@ -146,8 +154,11 @@ def test_seesaw_tolerance() -> None:
     (["--retrain", "builtin", "--epochs", "0"], "finetune.epochs"),
     (["--retrain", "not_a_module_anywhere:fn"], "not_a_module_anywhere"),
     (["--adversary", "no_such_config.toml"], "--adversary"),
+    (["--test-catalog", "{attack}/../urban8.json"], "attack campaign's own catalog"),
+    (["--test-catalog", "{attack}/../held_out.json", "--test-scenes", "5"], "holds 4 scenes"),
 ])
 def test_bad_input_exits_2_naming_the_field(attack: Path, tmp_path, capsys, args, field) -> None:
+    args = [a.replace("{attack}", str(attack)) for a in args]
     assert main(["harden", str(attack), "--out", str(tmp_path / "x"), *args]) == 2
     assert field in capsys.readouterr().err
     assert not (tmp_path / "x").exists()

@@ -46,6 +46,8 @@ class HardenSpec:
     #: fails rarely, so finding what is left takes a bigger attack
     attack_scenes: int | None = None
     test_catalog_seed: int | None = None  # the held-out catalog (default: the attack catalog's seed + 1)
+    #: a catalog file of held-out scenes instead of a generated one (a CARLA town's, or fewer scenes)
+    test_catalog: str | None = None
     seed: int = 0  # the retraining's draws
     retrain: str = "builtin"  # the hook: builtin (fine-tune a genesis-rl detector) or package.module:function
     finetune: dict[str, Any] = field(default_factory=dict)  # the hook's options (FinetuneConfig fields)
@@ -116,10 +118,36 @@ def attack_spec(base: Any, r: int, weights: Path | None, scenes: int | None = No
 
 
 def test_spec(base: Any, spec: HardenSpec, weights: Path | None) -> Any:
-    """The held-out re-test: the campaign's adversaries on ``test_scenes`` scenes of another generated catalog."""
+    """The held-out re-test: the campaign's adversaries on ``test_scenes`` scenes of another catalog (the
+    ``test_catalog`` file, else a generated one)."""
+    if spec.test_catalog is not None:
+        return dataclasses.replace(base, catalog=spec.test_catalog, scenes=spec.test_scenes,
+                                   env=_with_weights(base.env, weights))
     seed = test_catalog_seed(base, spec)
     return dataclasses.replace(base, catalog=None, catalog_seed=seed, scenes=spec.test_scenes,
                                env=_with_weights(base.env, weights))
+
+
+def check_test_catalog(base: Any, spec: HardenSpec) -> None:
+    """A held-out catalog file must hold the campaign's map, enough scenes, and not be the attack's own."""
+    if spec.test_catalog is None:
+        test_catalog_seed(base, spec)
+        return
+    from genesis_rl.evaluation.campaign_spec import campaign_map
+    from genesis_rl.scenes.catalog import read_catalog
+
+    if spec.test_catalog_seed is not None:
+        raise UserInputError("--test-catalog and --test-catalog-seed both name the held-out scenes; pass one")
+    if base.traffic != "mixed":
+        raise UserInputError(f"--test-catalog: the campaign's traffic is '{base.traffic}', generated on the fly; "
+                             "its held-out scenes come from --test-catalog-seed")
+    campaign_map(base.map, spec.test_catalog)  # refuses another map's catalog, naming both
+    if base.catalog and Path(base.catalog).resolve() == Path(spec.test_catalog).resolve():
+        raise UserInputError(f"--test-catalog '{spec.test_catalog}' is the attack campaign's own catalog; held-out "
+                             "scenes need another")
+    n = len(read_catalog(spec.test_catalog).scenes)
+    if spec.test_scenes > n:
+        raise UserInputError(f"--test-scenes {spec.test_scenes}: --test-catalog '{spec.test_catalog}' holds {n} scenes")
 
 
 def test_catalog_seed(base: Any, spec: HardenSpec) -> int:
@@ -201,7 +229,7 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
 
     out = Path(out)
     campaign = Path(spec.campaign)
-    output_folder.check_inputs(out, [campaign, spec.adversary])
+    output_folder.check_inputs(out, [campaign, spec.adversary, spec.test_catalog])
     base = CampaignSpec.from_json(read_campaign_meta(campaign)["spec"])
     hook = load_hook(spec.retrain)  # a bad name is refused before anything runs
     if spec.adversary is not None:
@@ -211,7 +239,7 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
             raise UserInputError(f"--adversary '{spec.adversary}' is not a file (a train config, as genesis-rl "
                                  "train --config takes)")
         load_run_config(spec.adversary)  # a bad config is refused before anything runs
-    test_catalog_seed(base, spec)
+    check_test_catalog(base, spec)
     if spec.member is not None:
         check_member(spec.member, base)
     weights0 = start_weights(base.env)
