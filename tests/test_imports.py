@@ -17,7 +17,7 @@ import genesis_rl
 ROOT = Path(genesis_rl.__file__).parent
 SUBPACKAGES = ("sim", "lite", "scenes", "system", "perception", "rules", "env", "evaluation", "training",
                "carla_backend", "viz", "odd", "distributed", "scenic_scenes", "zoo", "benchmark", "openscenario",
-               "adversaries", "estimation")
+               "adversaries", "estimation", "harden")
 
 
 def _module_name(path: Path) -> str:
