@@ -29,13 +29,20 @@ def clear_text(clear: Mapping[str, Any] | None) -> str:
     return f"{_num(clear['precision'])} / {_num(clear['recall'])}"
 
 
+def rates(result: Mapping[str, Any]) -> list[tuple[int, float, float, float]]:
+    """(round, rate, low, high) of the held-out test, round 0 first."""
+    out = []
+    for rnd in [result["baseline"], *[r for r in result["rounds"] if r.get("test")]]:
+        rate = rnd["test"]["rate"]
+        out.append((int(rnd["round"]), float(rate["rate"]), float(rate["ci_low"]), float(rate["ci_high"])))
+    return out
+
+
 def plot(path: Path, result: Mapping[str, Any]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from genesis_rl.harden.rounds import rates
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
     rows = rates(result)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -450,12 +450,3 @@ def load_harden(folder: Path) -> dict[str, Any]:
     if not isinstance(data, dict) or data.get("schema") != SCHEMA:
         raise UserInputError(f"'{folder}/harden.json' is not a genesis-rl harden result")
     return data
-
-
-def rates(result: Mapping[str, Any]) -> Sequence[tuple[int, float, float, float]]:
-    """(round, rate, low, high) of the held-out test, round 0 first."""
-    out = []
-    for rnd in [result["baseline"], *[r for r in result["rounds"] if r.get("test")]]:
-        rate = rnd["test"]["rate"]
-        out.append((int(rnd["round"]), float(rate["rate"]), float(rate["ci_low"]), float(rate["ci_high"])))
-    return out
