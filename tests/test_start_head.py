@@ -169,3 +169,18 @@ def test_a_trained_head_chooses_its_start_in_natural_campaigns_only(tmp_path, ca
 
     played = agent_env("oracle_highway", str(run))  # the benchmark plays it with its head, on the member's map
     assert played["start_head"] is True and played["map"] == "highway" and played["system"] == "oracle"
+
+
+def test_evaluate_warns_when_a_start_head_agent_plays_a_fixed_start(tmp_path, capsys):
+    """An agent trained with env.start_head plays from the start weather under --start fixed (the default): the
+    command says so, and names --start natural; under --start natural it says nothing."""
+    run = tmp_path / "head"
+    config = tmp_path / "head.toml"
+    config.write_text(TINY_HEAD_AGENT.format(odd=ODD_DIR / "highway_day.toml"))
+    assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
+    for start, warned in (("fixed", True), ("natural", False)):
+        capsys.readouterr()
+        assert main(["evaluate", "--agent", str(run), "--policies", "agent", "--map", "urban", "--scenes", "1",
+                     "--steps", "4", "--start", start, "--out", str(tmp_path / start), "--no-report",
+                     "--quiet"]) == 0
+        assert ("pass --start natural" in capsys.readouterr().err) is warned

@@ -97,6 +97,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                                     if args.constant_action is not None else {}),
                                  **({"start": args.start} if args.start != "fixed" else {}),
                                  **({"counterfactual": False} if args.no_counterfactual else {})})
+    if "agent" in policies and env.get("start_head") and args.start != "natural":
+        print("warning: the agent was trained with env.start_head (its first action chooses where the held knobs, "
+              "such as the sun, start), but --start is fixed, so it plays from the start weather; pass --start "
+              "natural to let it choose", file=sys.stderr)
     if args.out:
         out = Path(args.out)
     elif args.agent:
