@@ -110,12 +110,7 @@ def load_class(spec: str, kind: str, builtins: Mapping[str, str], *, base: type 
         raise UserInputError(f"{kind} '{spec}' is not an import path 'package.module:Class' nor a built-in "
                              f"({', '.join(builtins)})")
     module_name, _, class_name = path.partition(":")
-    if spec not in builtins:
-        check_import(module_name, f"{kind} '{spec}'")
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
-        raise UserInputError(f"{kind} '{spec}': cannot import module '{module_name}': {err}") from None
+    module = _import_named(module_name, kind, spec, checked=spec not in builtins)
     cls = getattr(module, class_name, None)
     if cls is None or not inspect.isclass(cls):
         raise UserInputError(f"{kind} '{spec}': module '{module_name}' has no class '{class_name}'")
@@ -127,6 +122,26 @@ def load_class(spec: str, kind: str, builtins: Mapping[str, str], *, base: type 
         raise UserInputError(f"{kind} '{spec}': class {class_name} lacks the protocol's methods: "
                              f"{', '.join(missing)} (a {kind} needs {', '.join(methods)}; see {protocol})")
     return cls
+
+
+def load_function(spec: str, kind: str) -> Any:
+    """The function ``package.module:function`` names (a user's hook), its module gated as every plug-in's."""
+    module_name, _, func_name = spec.partition(":")
+    module = _import_named(module_name, kind, spec)
+    func = getattr(module, func_name, None)
+    if func is None or not callable(func) or inspect.isclass(func):
+        raise UserInputError(f"{kind} '{spec}': module '{module_name}' has no function '{func_name}'")
+    return func
+
+
+def _import_named(module_name: str, kind: str, spec: str, checked: bool = True) -> Any:
+    """Import the module of plug-in ``spec`` (the gate first, unless a built-in's); errors name both."""
+    if checked:
+        check_import(module_name, f"{kind} '{spec}'")
+    try:
+        return importlib.import_module(module_name)
+    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
+        raise UserInputError(f"{kind} '{spec}': cannot import module '{module_name}': {err}") from None
 
 
 def user_modules(classes: Iterable[type], modules: Iterable[str] = ()) -> list[str]:

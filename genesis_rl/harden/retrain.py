@@ -10,8 +10,6 @@ it, so a user's system reads its weights from a ``weights`` argument, as the bui
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import inspect
 import io
 import math
 import time
@@ -89,21 +87,13 @@ def load_hook(name: str) -> Hook:
     line names, as every plug-in's)."""
     if name == BUILTIN_HOOK:
         return finetune_detector
-    from genesis_rl.plugins import check_import
+    from genesis_rl.plugins import load_function
 
     module_name, sep, func_name = name.partition(":")
     if not sep or not module_name or not func_name:
         raise UserInputError(f"--retrain '{name}' is neither '{BUILTIN_HOOK}' nor an import path "
                              "'package.module:function'")
-    check_import(module_name, f"retrain hook '{name}'")
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as err:  # noqa: BLE001 - any import failure is the user's to see
-        raise UserInputError(f"retrain hook '{name}': cannot import module '{module_name}': {err}") from None
-    func = getattr(module, func_name, None)
-    if func is None or not callable(func) or inspect.isclass(func):
-        raise UserInputError(f"retrain hook '{name}': module '{module_name}' has no function '{func_name}'")
-    return func
+    return load_function(name, "retrain hook")
 
 
 def base_train_config(weights: Path) -> dict[str, Any]:
