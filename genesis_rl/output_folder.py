@@ -53,7 +53,7 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
     "harden": (r"\.genesis-rl\.json", r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
                r"validation_data\.npz",
                r"round_\d+", r"final_attack", r"final_agent", r"retrained_attack",
-               r"final_estimate"),
+               r"final_estimate", r"retest_\d+"),
 }
 
 

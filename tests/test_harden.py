@@ -119,6 +119,32 @@ def test_a_resumed_round_gives_the_same_weights(hardened: Path, tmp_path) -> Non
     assert after["test"]["rate"] == before["test"]["rate"] and after["clear"] == before["clear"]
 
 
+def test_a_wide_retest_added_on_resume_replays_every_rounds_weights_on_the_same_scenes(hardened: Path,
+                                                                                         tmp_path) -> None:
+    from genesis_rl.evaluation.summary import load_campaign
+
+    copy = tmp_path / "hard"
+    shutil.copytree(hardened, copy)
+    attack = Path(json.loads((copy / "harden.json").read_text())["spec"]["campaign"])
+    assert main(["harden", str(attack), "--out", str(copy), "--resume", *SMALL, *held_out(attack),
+                 "--retest-scenes", "4"]) == 0
+    result = json.loads((copy / "harden.json").read_text())
+    rows = result["retest"]["rounds"]
+    assert result["retest"]["scenes"] == 4 and [r["round"] for r in rows] == [0, 1]
+    assert all(r["episodes"] == 4 for r in rows)
+    # the in-loop re-test's scene is one of the four, with its episode seed: the same weights give the same episode
+    for rnd, row in zip([result["baseline"], *result["rounds"]], rows, strict=True):
+        _, small = load_campaign(copy / f"round_{rnd['round']}" / "test")
+        _, wide = load_campaign(copy / row["folder"])
+        (episode,) = small["sunny"]
+        same = [e for e in wide["sunny"] if e["scene"] == episode["scene"]]
+        assert len(same) == 1 and same[0]["episode_seed"] == episode["episode_seed"]
+        assert same[0]["total"] == episode["total"]
+    assert rows[1]["fall"] == (None if rows[0]["rate"]["rate"] == 0 else
+                               pytest.approx(1 - rows[1]["rate"]["rate"] / rows[0]["rate"]["rate"], abs=1e-4))
+    assert "Re-test on 4 held-out scenes" in (copy / "harden.html").read_text()
+
+
 def test_an_outside_retrain_hook_is_called_and_the_seesaw_rejects_its_blind_weights(attack: Path, tmp_path,
                                                                                      monkeypatch) -> None:
     (tmp_path / "my_hook.py").write_text(HOOK)
@@ -156,6 +182,9 @@ def test_seesaw_tolerance() -> None:
     (["--adversary", "no_such_config.toml"], "--adversary"),
     (["--test-catalog", "{attack}/../urban8.json"], "attack campaign's own catalog"),
     (["--test-catalog", "{attack}/../held_out.json", "--test-scenes", "5"], "holds 4 scenes"),
+    (["--test-catalog", "{attack}/../held_out.json", "--test-scenes", "1", "--retest-scenes", "5"],
+     "--retest-scenes 5"),
+    (["--retest-scenes", "-1"], "retest_scenes"),
 ])
 def test_bad_input_exits_2_naming_the_field(attack: Path, tmp_path, capsys, args, field) -> None:
     args = [a.replace("{attack}", str(attack)) for a in args]

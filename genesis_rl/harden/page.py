@@ -38,6 +38,13 @@ def rates(result: Mapping[str, Any]) -> list[tuple[int, float, float, float]]:
     return out
 
 
+def retest_rates(result: Mapping[str, Any]) -> list[tuple[int, float, float, float]]:
+    """(round, rate, low, high) of the wide re-test after the rounds (``--retest-scenes``), when there is one."""
+    retest = result.get("retest") or {}
+    return [(int(r["round"]), float(r["rate"]["rate"]), float(r["rate"]["ci_low"]), float(r["rate"]["ci_high"]))
+            for r in retest.get("rounds", [])]
+
+
 def plot(path: Path, result: Mapping[str, Any]) -> None:
     import matplotlib
 
@@ -49,7 +56,13 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
     ax = axes[0]
     xs = [r[0] for r in rows]
     ax.errorbar(xs, [r[1] for r in rows], yerr=[[r[1] - r[2] for r in rows], [r[3] - r[1] for r in rows]],
-                fmt="o-", capsize=4, color="#c0392b")
+                fmt="o-", capsize=4, color="#c0392b", label=f"in the loop ({result['spec']['test_scenes']} scenes)")
+    wide = retest_rates(result)
+    if wide:
+        ax.errorbar([r[0] + 0.12 for r in wide], [r[1] for r in wide],
+                    yerr=[[r[1] - r[2] for r in wide], [r[3] - r[1] for r in wide]], fmt="s--", capsize=4,
+                    color="#1f618d", label=f"re-test ({result['retest']['scenes']} scenes)")
+        ax.legend(frameon=False, fontsize=8)
     rejected = {r["round"] for r in result["rounds"] if r["status"] == "seesaw"}
     for x, rate, _, _ in rows:
         if x in rejected:  # a rejected round's weights were not carried on
@@ -146,6 +159,17 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
                  f"<td>{again['distinct']}</td><td>-</td><td class=l>-</td><td>-</td>"
                  f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
     h.append("</table>")
+    retest = result.get("retest")
+    if retest:
+        h.append(f"<h2>Re-test on {retest['scenes']} held-out scenes</h2><p class=meta>Every round's weights on the "
+                 "same scenes and episode seeds of the re-test catalog, after the rounds. The fall is measured "
+                 "from the accepted weights before the round.</p><table><tr><th>round</th><th class=l>status</th>"
+                 "<th class=l>in-ODD failure rate [95 % CI]</th><th>distinct</th><th>fall</th></tr>")
+        for row in retest["rounds"]:
+            fell = "-" if row.get("fall") is None else f"{row['fall']:.0%}"
+            h.append(f"<tr><td>{row['round']}</td><td class=l>{html.escape(row['status'])}</td>"
+                     f"<td class=l>{_rate(row)}</td><td>{row['distinct']}</td><td>{fell}</td></tr>")
+        h.append("</table>")
     estimates = result.get("estimates")
     if estimates:
         h.append(f"<h2>Failure rate under natural conditions ({html.escape(str(spec.get('member')))}, crude Monte "

@@ -33,6 +33,8 @@ from genesis_rl.io_utils import atomic_write_json, read_json
 SCHEMA = "genesis-rl/harden"
 #: campaign summaries older than the ODD labels have no odd status: harden needs it
 IN_ODD = ("inside", "boundary")
+#: what a setting added after 0.22.0 meant for a hardening whose harden.json predates it (``--resume``)
+LEGACY: dict[str, Any] = {"retest_scenes": 0}
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,10 @@ class HardenSpec:
     #: estimated (crude Monte Carlo, ``estimate_episodes`` episodes) before the rounds and for the final weights
     member: str | None = None
     estimate_episodes: int = 0
+    #: after the rounds, the weights before any round and every round's are re-tested on this many held-out scenes
+    #: (the same catalog, scenes and episode seeds for all): the in-loop re-test is small, and a falling rate needs
+    #: more episodes to be told apart round from round (0: none)
+    retest_scenes: int = 0
 
     def __post_init__(self) -> None:
         if self.attack_scenes is not None and (not isinstance(self.attack_scenes, int) or self.attack_scenes < 1):
@@ -68,6 +74,8 @@ class HardenSpec:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise UserInputError(f"harden {name} = {value!r}; allowed: an integer >= {low}")
+        if not isinstance(self.retest_scenes, int) or isinstance(self.retest_scenes, bool) or self.retest_scenes < 0:
+            raise UserInputError(f"harden retest_scenes = {self.retest_scenes!r}; allowed: an integer >= 0")
         if not isinstance(self.estimate_episodes, int) or self.estimate_episodes < 0:
             raise UserInputError(f"harden estimate_episodes = {self.estimate_episodes!r}; allowed: an integer >= 0")
         if self.estimate_episodes and self.member is None:
@@ -146,8 +154,9 @@ def check_test_catalog(base: Any, spec: HardenSpec) -> None:
         raise UserInputError(f"--test-catalog '{spec.test_catalog}' is the attack campaign's own catalog; held-out "
                              "scenes need another")
     n = len(read_catalog(spec.test_catalog).scenes)
-    if spec.test_scenes > n:
-        raise UserInputError(f"--test-scenes {spec.test_scenes}: --test-catalog '{spec.test_catalog}' holds {n} scenes")
+    for flag, count in (("--test-scenes", spec.test_scenes), ("--retest-scenes", spec.retest_scenes)):
+        if count > n:
+            raise UserInputError(f"{flag} {count}: --test-catalog '{spec.test_catalog}' holds {n} scenes")
 
 
 def test_catalog_seed(base: Any, spec: HardenSpec) -> int:
@@ -255,8 +264,8 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                                      "--force")
             wanted = spec.to_json()
             # what runs after the rounds done, and the attack size of rounds still to come (each round records its own)
-            later = ("rounds", "adversary", "member", "estimate_episodes", "attack_scenes")
-            differ = [k for k in wanted if k not in later and old.get(k) != wanted[k]]
+            later = ("rounds", "adversary", "member", "estimate_episodes", "attack_scenes", "retest_scenes")
+            differ = [k for k in wanted if k not in later and old.get(k, LEGACY.get(k)) != wanted[k]]
             if differ:
                 k = differ[0]
                 raise UserInputError(f"--resume: harden '{out}' was started with {k} = {old.get(k)!r}, not "
@@ -297,8 +306,9 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
             estimates = {"before": _estimate(spec, spec.member, weights0, out / "round_0" / "estimate", workers,
                                              progress),
                          "after": _estimate(spec, spec.member, weights, out / "final_estimate", workers, progress)}
+        retest = _retest(spec, base, out, baseline, rounds, workers, progress) if spec.retest_scenes else None
         result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
-                  "retrained_attack": retrained, "estimates": estimates,
+                  "retrained_attack": retrained, "estimates": estimates, "retest": retest,
                   "stopped": stopped, "final_weights": str(weights),
                   "final_weights_sha256": _sha(weights, file_sha256)}
         atomic_write_json(out / "harden.json", result, indent=1)
@@ -357,6 +367,35 @@ def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weigh
                              agent=str(run / "agent.zip")), folder, workers, progress)
     return {**_public(in_odd_failures(folder)), "agent": str(run), "config": config,
             "weights": str(weights)}
+
+
+def _retest(spec: HardenSpec, base: Any, out: Path, baseline: Mapping[str, Any], rounds: list[dict[str, Any]],
+            workers: int, progress: bool) -> dict[str, Any]:
+    """Every round's weights (round 0: before any round; rejected rounds too) on ``retest_scenes`` held-out scenes
+    of the re-test's catalog, in ``retest_N/round_R/``; each rate's fall from the accepted weights before it."""
+    wide = dataclasses.replace(spec, test_scenes=spec.retest_scenes)
+    rows: list[dict[str, Any]] = []
+    before: dict[str, Any] | None = None
+    for rnd in [baseline, *rounds]:
+        if rnd["round"] and not rnd.get("weights"):
+            continue  # an attack that found nothing made no weights
+        weights = None if not rnd["round"] else inside(out, rnd["weights"])
+        folder = out / f"retest_{spec.retest_scenes}" / f"round_{rnd['round']}"
+        _run(test_spec(base, wide, weights), folder, workers, progress)
+        found = _public(in_odd_failures(folder))
+        row = {"round": rnd["round"], "status": rnd.get("status", "before"), "folder": relative(out, folder),
+               **{k: found[k] for k in ("episodes", "in_odd_failures", "rate", "distinct")}}
+        if before is not None:
+            row["fall"] = fall(before["rate"]["rate"], found["rate"]["rate"])
+        rows.append(row)
+        if row["status"] in ("before", "accepted"):
+            before = row
+    return {"scenes": spec.retest_scenes, "rounds": rows}
+
+
+def fall(before: float, after: float) -> float | None:
+    """The relative fall of a rate (0.5: halved; negative: it rose); None when there was nothing to fall from."""
+    return None if before <= 0 else round(1.0 - after / before, 4)
 
 
 def relative(out: Path, path: Path) -> str:
