@@ -42,7 +42,7 @@ def _cmd_harden(args: argparse.Namespace) -> int:
                       retrain=args.retrain,
                       finetune=finetune, clear_frames=args.clear_frames, tolerance=args.tolerance,
                       adversary=args.adversary, member=args.member, estimate_episodes=args.estimate_episodes,
-                      retest_scenes=args.retest_scenes)
+                      retest_scenes=args.retest_scenes, near_miss_ttc=args.near_miss_ttc)
     result = run_harden(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
                         progress=not args.quiet)
     base = result["baseline"]["test"]["rate"]
@@ -131,6 +131,10 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimate-episodes", type=int, default=0,
                    help="crude Monte Carlo episodes of the in-ODD failure-rate estimate before the rounds and for "
                         "the final weights (default 0: none; genesis-rl estimate)")
+    p.add_argument("--near-miss-ttc", type=float, default=1.5, metavar="SECONDS",
+                   help="near misses join the data: collision-free episodes whose time to collision with the lead "
+                        "fell to SECONDS or below inside the ODD, replayed from their records for their frames up "
+                        "to the closest approach (default 1.5, the traffic-conflict line; 0: failures only)")
     p.add_argument("--retest-scenes", type=int, default=0,
                    help="after the rounds, re-test the weights before any round and every round's on this many "
                         "held-out scenes (the same for all; default 0: none). 20 scenes cannot tell a rate of 0.10 "

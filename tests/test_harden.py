@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from genesis_rl.cli import main
+from genesis_rl.errors import UserInputError
 from genesis_rl.harden.rounds import seesaw
 from genesis_rl.perception.detector import DEFAULT_WEIGHTS, file_sha256, load_checkpoint
 
@@ -101,6 +102,8 @@ def test_a_round_retrains_the_detector_on_the_failure_frames_and_records_them(at
     assert result["baseline"]["test"]["episodes"] == 1 and rnd["test"]["episodes"] == 1
     assert rnd["clear"]["frames"] == 12 and rnd["status"] in ("accepted", "seesaw")
     assert result["final_attack"]["episodes"] == 2
+    # both attack episodes collided: no near miss to add (the line is the default 1.5 s)
+    assert rnd["near_misses"]["ttc_s"] == 1.5 and rnd["near_misses"]["found"] == 0
     page = (hardened / "harden.html").read_text()
     assert "harden.png" in page and rnd["weights_sha256"][:12] in page
 
@@ -145,6 +148,56 @@ def test_a_wide_retest_added_on_resume_replays_every_rounds_weights_on_the_same_
     assert "Re-test on 4 held-out scenes" in (copy / "harden.html").read_text()
 
 
+def test_closest_approach_is_the_smallest_time_to_collision_inside_the_odd() -> None:
+    from genesis_rl.harden.near_miss import closest_approach
+
+    def row(step, gap, ego, lead, odd="inside"):
+        return {"step": step, "true_lead_distance": gap, "ego_speed": ego, "lead_speed": lead, "odd_status": odd}
+
+    rows = [row(1, 30.0, 10.0, 5.0),              # 6 s
+            row(2, 6.0, 10.0, 5.0, "outside"),    # 1.2 s, but outside the ODD
+            row(3, 2.0, 5.2, 5.0),                # closing at 0.2 m/s: no conflict
+            row(4, 9.0, 12.0, 2.0),               # 0.9 s: the closest approach
+            row(5, 3.0, 3.0, 4.0),                # opening
+            row(6, float("inf"), 10.0, 0.0)]      # no lead
+    assert closest_approach(rows) == (4, pytest.approx(0.9))
+    assert closest_approach(rows[4:]) is None
+
+
+def test_a_near_miss_is_replayed_for_its_frames_and_exported_with_labels(hardened: Path, tmp_path) -> None:
+    """Round 1's re-test drove its scene without a collision, closing to a time to collision of 1.27 s: a near miss.
+    Its frames are rendered again from the record, the same bytes twice, and exported with the simulator's boxes;
+    a record that no longer drives the same episode is refused."""
+    from genesis_rl.evaluation.export import export_dataset
+    from genesis_rl.harden.near_miss import near_misses, render_frames
+
+    test = hardened / "round_1" / "test"
+    weights = hardened / "round_1" / "weights" / "vehicle_detector.pt"
+    found = near_misses(test, 1.5)
+    assert list(found) == [("sunny", 3)] and 1.0 < found[("sunny", 3)]["ttc"] <= 1.5
+    assert near_misses(test, 1.0) == {} and near_misses(test, 0) == {}
+    step = int(found[("sunny", 3)]["step"])
+    first = render_frames(test, found, tmp_path / "a", weights, frames_before=40, stride=2)
+    render_frames(test, found, tmp_path / "b", weights, frames_before=40, stride=2)
+    assert first == {"episodes": ["sunny_scene_0003"], "departed": [], "unrecorded": []}
+    frames = sorted((tmp_path / "a" / "frames" / "sunny" / "scene_0003").glob("*.jpg"))
+    assert [f.name for f in frames] == [f"step_{s:04d}.jpg" for s in range(max(step - 40, 1), step + 1)
+                                        if (step - s) % 2 == 0]
+    assert all(f.read_bytes() == (tmp_path / "b" / f.relative_to(tmp_path / "a")).read_bytes() for f in frames)
+    exported = export_dataset(test, "yolo", tmp_path / "export", extra_frames=tmp_path / "a",
+                              keep=lambda p, s, st: (p, s) == ("sunny", 3) and st <= step)
+    assert exported["images"] == len(frames) and exported["labels"] >= len(frames)
+    # another episode seed in the record: the replay departs from the campaign's step data
+    copy = tmp_path / "campaign"
+    shutil.copytree(test, copy)
+    record = copy / "records" / "sunny_scene_0003.json"
+    data = json.loads(record.read_text())
+    data["episode_seed"] += 1
+    record.write_text(json.dumps(data))
+    with pytest.raises(UserInputError, match="replayed as the campaign recorded it"):
+        render_frames(copy, found, tmp_path / "c", weights, frames_before=40, stride=2)
+
+
 def test_an_outside_retrain_hook_is_called_and_the_seesaw_rejects_its_blind_weights(attack: Path, tmp_path,
                                                                                      monkeypatch) -> None:
     (tmp_path / "my_hook.py").write_text(HOOK)
@@ -185,6 +238,7 @@ def test_seesaw_tolerance() -> None:
     (["--test-catalog", "{attack}/../held_out.json", "--test-scenes", "1", "--retest-scenes", "5"],
      "--retest-scenes 5"),
     (["--retest-scenes", "-1"], "retest_scenes"),
+    (["--near-miss-ttc", "11"], "near_miss_ttc"),
 ])
 def test_bad_input_exits_2_naming_the_field(attack: Path, tmp_path, capsys, args, field) -> None:
     args = [a.replace("{attack}", str(attack)) for a in args]

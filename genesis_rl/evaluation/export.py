@@ -47,11 +47,13 @@ def _frames(folder: Path) -> list[tuple[str, int, int, Path]]:
 def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
                    policies: list[str] | None = None,
                    add_to_export: Callable[[Path], dict[str, Any]] | None = None,
-                   keep: Callable[[str, int, int], bool] | None = None) -> dict[str, Any]:
+                   keep: Callable[[str, int, int], bool] | None = None,
+                   extra_frames: Path | None = None) -> dict[str, Any]:
     """The failure frames of campaign ``folder`` as a YOLO or COCO set in ``out``; ``add_to_export`` writes more
     into the export before it is put in place (the OpenSCENARIO files of the failures) and returns what to add to
     ``export.json``; ``keep(policy, scene, step)`` picks the frames (``harden``: in-ODD failures, before the
-    impact)."""
+    impact); ``extra_frames``: a folder with more frames of the campaign's episodes in its ``frames/`` layout
+    (``harden``: near misses rendered again), labelled from the same step data."""
     if fmt not in FORMATS:
         raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
     output_folder.check_inputs(out, [folder])  # before reading: export CAMP --out CAMP --force wiped CAMP
@@ -61,7 +63,8 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
         raise UserInputError(f"--policies: {unknown} not in this campaign; allowed: {', '.join(rows)}")
     modes = {(p, e["scene"]): e["failure_mode"] for p, eps in rows.items() for e in eps}
     # only finished episodes (a summary row exists): an interrupted one may have left frames behind
-    frames = [f for f in _frames(folder) if (policies is None or f[0] in policies) and (f[0], f[1]) in modes
+    found = _frames(folder) + (_frames(extra_frames) if extra_frames is not None else [])
+    frames = [f for f in found if (policies is None or f[0] in policies) and (f[0], f[1]) in modes
               and (keep is None or keep(f[0], f[1], f[2]))]
     if not frames:
         hits = sum(1 for p, eps in rows.items() if policies is None or p in policies

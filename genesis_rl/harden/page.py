@@ -22,6 +22,13 @@ def _num(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
+def _near(near: Mapping[str, Any] | None) -> str:
+    """Near misses exported of those found (a hardening before 0.23.0, or --near-miss-ttc 0: -)."""
+    if not near or not near.get("ttc_s"):
+        return "-"
+    return f"{near['exported']} of {near['found']} (TTC <= {near['ttc_s']:g} s)"
+
+
 def clear_text(clear: Mapping[str, Any] | None) -> str:
     """Precision / recall; precision is undefined (-) for a detector that fired on nothing."""
     if not clear:
@@ -130,10 +137,12 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
                  "the rounds before accepted), so there was nothing new to retrain on.</p>")
     h.append("<img src=harden.png alt='failure rate, attacks and clear-day metrics by round'>")
     h.append("<table><tr><th>round</th><th class=l>status</th><th>attack: in-ODD failures / episodes</th>"
-             "<th>distinct</th><th>new failure frames</th><th class=l>held-out in-ODD failure rate [95 % CI]</th>"
+             "<th>distinct</th><th>near misses</th><th>new frames</th>"
+             "<th class=l>held-out in-ODD failure rate [95 % CI]</th>"
              "<th>clear precision / recall</th><th class=l>weights sha256</th></tr>")
     base = result["baseline"]
-    h.append(f"<tr><td>0</td><td class=l>before</td><td>-</td><td>-</td><td>-</td><td class=l>{_rate(base['test'])}"
+    h.append(f"<tr><td>0</td><td class=l>before</td><td>-</td><td>-</td><td>-</td><td>-</td>"
+             f"<td class=l>{_rate(base['test'])}"
              f"</td><td>{clear_text(base.get('clear'))}</td>"
              f"<td class=l>{str(result.get('base_weights_sha256'))[:12]}</td></tr>")
     for rnd in result["rounds"]:
@@ -143,20 +152,21 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
         h.append(f"<tr><td>{rnd['round']}</td><td class='l {cls}'>{html.escape(status)}"
                  f"{' (' + html.escape(why) + ')' if why else ''}</td>"
                  f"<td>{rnd['attack']['in_odd_failures']} / {rnd['attack']['episodes']}</td>"
-                 f"<td>{rnd['attack']['distinct']}</td><td>{rnd.get('frames') or '-'}</td>"
+                 f"<td>{rnd['attack']['distinct']}</td><td>{_near(rnd.get('near_misses'))}</td>"
+                 f"<td>{rnd.get('frames') or '-'}</td>"
                  f"<td class=l>{_rate(rnd.get('test'))}</td><td>{clear_text(rnd.get('clear'))}</td>"
                  f"<td class=l>{str(rnd.get('weights_sha256') or '-')[:12]}</td></tr>")
     final = result.get("final_attack")
     if final:
         h.append(f"<tr><td>final</td><td class=l>re-attack of the hardened system</td>"
                  f"<td>{final['in_odd_failures']} / {final['episodes']}</td><td>{final['distinct']}</td>"
-                 "<td>-</td><td class=l>-</td><td>-</td>"
+                 "<td>-</td><td>-</td><td class=l>-</td><td>-</td>"
                  f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
     again = result.get("retrained_attack")
     if again:
         h.append(f"<tr><td>final</td><td class=l>an agent re-trained against the hardened system "
                  f"({html.escape(again['config'])})</td><td>{again['in_odd_failures']} / {again['episodes']}</td>"
-                 f"<td>{again['distinct']}</td><td>-</td><td class=l>-</td><td>-</td>"
+                 f"<td>{again['distinct']}</td><td>-</td><td>-</td><td class=l>-</td><td>-</td>"
                  f"<td class=l>{str(result.get('final_weights_sha256') or '-')[:12]}</td></tr>")
     h.append("</table>")
     retest = result.get("retest")
@@ -181,6 +191,9 @@ def write_page(folder: Path, result: Mapping[str, Any]) -> None:
                      f"<td>{est['probability']:.3g} [{lo:.3g}, {hi:.3g}]</td></tr>")
         h.append("</table>")
     h.append("<p class=meta>A round's attack runs against the weights the round before accepted (round 1: "
-             "the given campaign). A round whose clear-day precision or recall fell by more than the tolerance is "
-             "marked seesaw and the next round starts from the weights before it.</p></body></html>")
+             "the given campaign). Its data are the in-ODD failures' frames up to the impact and the near misses' "
+             "(collision-free, time to collision with the lead at or below the line inside the ODD) up to the "
+             "closest approach, rendered again from their records. A round whose clear-day precision or recall "
+             "fell by more than the tolerance is marked seesaw and the next round starts from the weights before "
+             "it.</p></body></html>")
     atomic_write_text(folder / "harden.html", "\n".join(h))

@@ -28,13 +28,12 @@ from typing import Any
 
 from genesis_rl import output_folder
 from genesis_rl.errors import UserInputError
+from genesis_rl.harden.near_miss import IN_ODD, near_misses  # IN_ODD: failures and near misses alike
 from genesis_rl.io_utils import atomic_write_json, read_json
 
 SCHEMA = "genesis-rl/harden"
-#: campaign summaries older than the ODD labels have no odd status: harden needs it
-IN_ODD = ("inside", "boundary")
 #: what a setting added after 0.22.0 meant for a hardening whose harden.json predates it (``--resume``)
-LEGACY: dict[str, Any] = {"retest_scenes": 0}
+LEGACY: dict[str, Any] = {"retest_scenes": 0, "near_miss_ttc": 0}
 
 
 @dataclass(frozen=True)
@@ -66,6 +65,9 @@ class HardenSpec:
     #: (the same catalog, scenes and episode seeds for all): the in-loop re-test is small, and a falling rate needs
     #: more episodes to be told apart round from round (0: none)
     retest_scenes: int = 0
+    #: near misses join the data: collision-free episodes whose time to collision with the lead fell to this many
+    #: seconds or below inside the ODD, with their frames up to the closest approach (0: failures only)
+    near_miss_ttc: float = 1.5
 
     def __post_init__(self) -> None:
         if self.attack_scenes is not None and (not isinstance(self.attack_scenes, int) or self.attack_scenes < 1):
@@ -76,6 +78,10 @@ class HardenSpec:
                 raise UserInputError(f"harden {name} = {value!r}; allowed: an integer >= {low}")
         if not isinstance(self.retest_scenes, int) or isinstance(self.retest_scenes, bool) or self.retest_scenes < 0:
             raise UserInputError(f"harden retest_scenes = {self.retest_scenes!r}; allowed: an integer >= 0")
+        if isinstance(self.near_miss_ttc, bool) or not (isinstance(self.near_miss_ttc, (int, float))
+                                                        and 0 <= self.near_miss_ttc <= 10):
+            raise UserInputError(f"harden near_miss_ttc = {self.near_miss_ttc!r}; allowed: seconds in [0, 10] (0: "
+                                 "no near misses)")
         if not isinstance(self.estimate_episodes, int) or self.estimate_episodes < 0:
             raise UserInputError(f"harden estimate_episodes = {self.estimate_episodes!r}; allowed: an integer >= 0")
         if self.estimate_episodes and self.member is None:
@@ -459,12 +465,23 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
         atomic_write_json(done, result, indent=1)
         return result
     impacts = found["impacts"]
+    near = near_misses(attack, spec.near_miss_ttc)
+    near_root = folder / "near_misses"
+    rendered = _near_miss_frames(attack, near, near_root, weights, base, progress)
+    closest = {key: int(near[key]["step"]) for key in near
+               if f"{key[0]}_scene_{key[1]:04d}" in rendered["episodes"]}
     export = folder / "failures"
     if not (export / "export.json").is_file():
         export_dataset(attack, "yolo", export, force=export.exists(),
-                       keep=lambda p, s, step: (p, s) in impacts and step <= impacts[(p, s)])
+                       keep=lambda p, s, step: (p, s) in impacts and step <= impacts[(p, s)]
+                       or (p, s) in closest and step <= closest[(p, s)],
+                       extra_frames=near_root if closest else None)
     failure_exports.append(export)
     exported = read_json(export / "export.json", f"'{export}'")
+    result["near_misses"] = {"ttc_s": spec.near_miss_ttc, "found": len(near), "exported": len(closest),
+                             "frames": len(list(near_root.glob("frames/*/*/*.jpg"))),
+                             "departed": rendered["departed"], "unrecorded": rendered["unrecorded"],
+                             "episodes": {f"{p}_scene_{s:04d}": v for (p, s), v in sorted(near.items())}}
     request = RetrainRequest(round=r, system=system, weights=weights, failures=tuple(failure_exports),
                              out=folder / "weights", seed=spec.seed, work=out, options=dict(spec.finetune),
                              progress=progress)
@@ -481,6 +498,24 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
                   status="accepted" if check["ok"] else "seesaw", seconds=round(time.perf_counter() - t0, 1))
     atomic_write_json(done, result, indent=1)
     return result
+
+
+def _near_miss_frames(attack: Path, near: Mapping[tuple[str, int], Mapping[str, float]], root: Path, weights: Path,
+                      base: Any, progress: bool) -> dict[str, Any]:
+    """The near misses' frames, rendered again into ``root`` (once: ``root/near_misses.json`` marks them done)."""
+    from genesis_rl.harden.near_miss import render_frames
+    from genesis_rl.io_utils import remove_tree
+
+    done = root / "near_misses.json"
+    if done.is_file():
+        return dict(read_json(done, f"'{done}'"))
+    if root.exists():  # an interrupted rendering: its frames may be partial
+        remove_tree(root)
+    if not near:
+        return {"episodes": [], "departed": [], "unrecorded": []}
+    rendered = render_frames(attack, near, root, weights, base.frames_before, base.frame_stride, progress)
+    atomic_write_json(done, rendered, indent=1)
+    return rendered
 
 
 def load_harden(folder: Path) -> dict[str, Any]:
