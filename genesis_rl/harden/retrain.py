@@ -77,6 +77,8 @@ class RetrainRequest:
     work: Path
     options: dict[str, Any] = field(default_factory=dict)
     progress: bool = False
+    map: str = ""  # the campaign's map (the coco fine-tune renders its clear-day frames there)
+    system_kwargs: dict[str, Any] = field(default_factory=dict)  # the campaign's system arguments
 
 
 Hook = Callable[[RetrainRequest], Path]
@@ -86,7 +88,7 @@ def load_hook(name: str) -> Hook:
     """The hook ``name`` names: ``builtin`` or ``package.module:function`` (its module must be one the command
     line names, as every plug-in's)."""
     if name == BUILTIN_HOOK:
-        return finetune_detector
+        return builtin_hook
     from genesis_rl.plugins import load_function
 
     module_name, sep, func_name = name.partition(":")
@@ -94,6 +96,29 @@ def load_hook(name: str) -> Hook:
         raise UserInputError(f"--retrain '{name}' is neither '{BUILTIN_HOOK}' nor an import path "
                              "'package.module:function'")
     return load_function(name, "retrain hook")
+
+
+def builtin_hook(request: RetrainRequest) -> Path:
+    """``--retrain builtin``: the fine-tune of the system's kind (a genesis-rl checkpoint, or coco's darknet)."""
+    if request.system == "coco":
+        from genesis_rl.harden.retrain_darknet import finetune_darknet
+
+        return finetune_darknet(request)
+    return finetune_detector(request)
+
+
+def check_options(options: dict[str, Any]) -> None:
+    """Refuse built-in fine-tune settings that neither fine-tune knows, or bad values (before anything runs)."""
+    from genesis_rl.harden.retrain_darknet import DarknetFinetuneConfig
+
+    configs = (FinetuneConfig, DarknetFinetuneConfig)
+    fields = [{f.name for f in dataclasses.fields(c)} for c in configs]
+    unknown = sorted(set(options) - set().union(*fields))
+    if unknown:
+        raise UserInputError(f"harden finetune: unknown setting(s) {unknown}; allowed: "
+                             f"{', '.join(sorted(set().union(*fields)))}")
+    for config, names in zip(configs, fields, strict=True):
+        config(**{k: v for k, v in options.items() if k in names})
 
 
 def base_train_config(weights: Path) -> dict[str, Any]:
@@ -176,8 +201,12 @@ def finetune_detector(request: RetrainRequest) -> Path:
 
     if request.system not in CHECKPOINT_SYSTEMS:
         raise UserInputError(f"--retrain builtin fine-tunes genesis-rl detector checkpoints (systems "
-                             f"{', '.join(CHECKPOINT_SYSTEMS)}), not system '{request.system}'; pass --retrain "
-                             "package.module:function, a hook that retrains its weights (docs/harden.md)")
+                             f"{', '.join(CHECKPOINT_SYSTEMS)}) and coco's darknet model, not system "
+                             f"'{request.system}'; pass --retrain package.module:function, a hook that retrains its "
+                             "weights (docs/harden.md)")
+    unknown = sorted(set(request.options) - {f.name for f in dataclasses.fields(FinetuneConfig)})
+    if unknown:
+        raise UserInputError(f"harden finetune: {unknown} do(es) not apply to a genesis-rl detector's fine-tune")
     cfg = FinetuneConfig(**request.options)
     ckpt = load_checkpoint(request.weights)
     recipe = base_train_config(request.weights)

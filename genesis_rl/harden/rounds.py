@@ -90,14 +90,9 @@ class HardenSpec:
         if not (isinstance(self.tolerance, (int, float)) and 0 <= self.tolerance < 1):
             raise UserInputError(f"harden tolerance = {self.tolerance!r}; allowed: a number in [0, 1)")
         if self.retrain == "builtin":
-            from genesis_rl.harden.retrain import FinetuneConfig
+            from genesis_rl.harden.retrain import check_options
 
-            known = {f.name for f in dataclasses.fields(FinetuneConfig)}
-            unknown = sorted(set(self.finetune) - known)
-            if unknown:
-                raise UserInputError(f"harden finetune: unknown setting(s) {unknown}; allowed: "
-                                     f"{', '.join(sorted(known))}")
-            FinetuneConfig(**self.finetune)
+            check_options(self.finetune)
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -120,6 +115,10 @@ def start_weights(env: Mapping[str, Any]) -> Path:
         from genesis_rl.perception.detector import DEFAULT_WEIGHTS
 
         return DEFAULT_WEIGHTS
+    if env.get("system") == "coco":  # the model store's darknet folder
+        from genesis_rl.perception.model_store import find_model
+
+        return find_model("coco")["yolov3-tiny.weights"].parent
     raise UserInputError(f"campaign system '{env.get('system')}' names no weights (system_kwargs.weights); "
                          "harden retrains a system's weights, so run the campaign with --weights")
 
@@ -423,7 +422,14 @@ def inside(out: Path, stored: str) -> Path:
 
 
 def _sha(path: Path, file_sha256: Any) -> str | None:
-    return file_sha256(path) if Path(path).is_file() else None
+    """A weights file's sha256; of a model folder (coco's darknet), the sha256 of its model files' digests."""
+    path = Path(path)
+    if path.is_dir():
+        import hashlib
+
+        files = sorted(f for f in path.iterdir() if f.suffix in (".cfg", ".weights", ".names", ".pt", ".onnx"))
+        return hashlib.sha256("".join(f"{f.name}:{file_sha256(f)}\n" for f in files).encode()).hexdigest()
+    return file_sha256(path) if path.is_file() else None
 
 
 def _baseline(spec: HardenSpec, base: Any, folder: Path, system: str, kwargs0: Mapping[str, Any], weights0: Path,
@@ -484,7 +490,7 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
                              "episodes": {f"{p}_scene_{s:04d}": v for (p, s), v in sorted(near.items())}}
     request = RetrainRequest(round=r, system=system, weights=weights, failures=tuple(failure_exports),
                              out=folder / "weights", seed=spec.seed, work=out, options=dict(spec.finetune),
-                             progress=progress)
+                             progress=progress, map=base.map, system_kwargs=dict(kwargs0))
     new_weights = Path(hook(request))
     if not new_weights.exists():
         raise UserInputError(f"retrain hook '{spec.retrain}' returned '{new_weights}', which does not exist")
