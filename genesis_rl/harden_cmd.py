@@ -103,11 +103,14 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
                         "one")
     p.add_argument("--retrain", default="builtin",
                    help="the retrain hook: builtin (fine-tune a genesis-rl detector checkpoint: systems builtin, "
-                        "latency, adaptive) or package.module:function (docs/harden.md)")
-    p.add_argument("--epochs", type=int, default=None, help="builtin fine-tune: epochs a round (default 4)")
-    p.add_argument("--lr", type=float, default=None, help="builtin fine-tune: learning rate (default 5e-4)")
+                        "latency, adaptive; or coco's darknet model) or package.module:function (docs/harden.md)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="builtin fine-tune: epochs a round (default 4; coco 3)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="builtin fine-tune: learning rate (default 5e-4; coco 1e-4)")
     p.add_argument("--original-frames", type=int, default=None,
-                   help="builtin fine-tune: frames of the detector's own training data mixed in (default 800)")
+                   help="builtin fine-tune: frames of the detector's own training data mixed in (default 800; "
+                        "coco: 300 clear-day frames of the campaign's map)")
     p.add_argument("--failure-repeat", type=int, default=None,
                    help="builtin fine-tune: times each failure frame is seen an epoch (default 2)")
     p.add_argument("--validation-frames", type=int, default=None,
@@ -115,7 +118,8 @@ def add_harden_command(sub: argparse._SubParsersAction) -> None:
                         "re-picked on (best F1, as detector train picks it; default 480)")
     p.add_argument("--distill", type=float, default=None,
                    help="builtin fine-tune: weight of the distillation term that keeps the heatmap on the original "
-                        "frames close to the starting weights' (learning without forgetting; default 5, 0: off)")
+                        "frames close to the starting weights' (learning without forgetting; default 5, coco 1; "
+                        "0: off)")
     p.add_argument("--keep-threshold", action="store_true",
                    help="builtin fine-tune: keep the checkpoint's score threshold instead of re-picking it")
     p.add_argument("--clear-frames", type=int, default=200,

@@ -64,7 +64,8 @@ class FinetuneConfig:
 class RetrainRequest:
     """What a retrain hook is given. ``failures``: the export folders (YOLO layout, ``metadata.jsonl`` with every
     frame's boxes, distance, visibility, weather, policy, scene and step; docs/evaluation.md) of this round's
-    and every earlier round's in-ODD failure frames, before the impact; ``weights``: the weights this round
+    and every earlier round's in-ODD failure frames, before the impact, and near misses' frames, before the
+    closest approach; ``weights``: the weights this round
     starts from; ``out``: an empty folder for the new weights; ``seed``: every draw of the retraining."""
 
     round: int
@@ -107,15 +108,19 @@ def builtin_hook(request: RetrainRequest) -> Path:
     return finetune_detector(request)
 
 
-def check_options(options: dict[str, Any]) -> None:
-    """Refuse built-in fine-tune settings that neither fine-tune knows, or bad values (before anything runs)."""
+def check_options(options: dict[str, Any], system: str | None = None) -> None:
+    """Refuse built-in fine-tune settings that the fine-tune of ``system`` (None: either) does not know, or bad
+    values (before anything runs)."""
     from genesis_rl.harden.retrain_darknet import DarknetFinetuneConfig
 
-    configs = (FinetuneConfig, DarknetFinetuneConfig)
+    configs: tuple[type, ...] = (FinetuneConfig, DarknetFinetuneConfig)
+    if system is not None:
+        configs = (DarknetFinetuneConfig,) if system == "coco" else (FinetuneConfig,)
     fields = [{f.name for f in dataclasses.fields(c)} for c in configs]
     unknown = sorted(set(options) - set().union(*fields))
     if unknown:
-        raise UserInputError(f"harden finetune: unknown setting(s) {unknown}; allowed: "
+        raise UserInputError(f"harden finetune: unknown setting(s) {unknown}"
+                             f"{' for system ' + repr(system) if system else ''}; allowed: "
                              f"{', '.join(sorted(set().union(*fields)))}")
     for config, names in zip(configs, fields, strict=True):
         config(**{k: v for k, v in options.items() if k in names})

@@ -258,6 +258,10 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
         check_member(spec.member, base)
     weights0 = start_weights(base.env)
     system, kwargs0 = base.env.get("system", "builtin"), dict(base.env.get("system_kwargs", {}))
+    if spec.retrain == "builtin":
+        from genesis_rl.harden.retrain import check_options
+
+        check_options(spec.finetune, system)  # a setting of the other kind's fine-tune, before anything runs
     if resume and not (out / "harden.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no harden.json; start it without --resume")
     with output_folder.claim(out, "harden", force, resume=resume, inputs=[campaign]):
