@@ -18,13 +18,14 @@ import errno
 import fcntl
 import os
 import re
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from genesis_rl import __version__, output_paths
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_message, remove_tree
+from genesis_rl.io_utils import atomic_write_json, ensure_folder_path, os_error_message, read_json, remove_tree
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
@@ -168,6 +169,31 @@ def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | No
 def write_marker(folder: Path, kind: str) -> None:
     atomic_write_json(Path(folder) / MARKER, {"schema": MARKER_SCHEMA, "kind": kind, "version": __version__},
                       indent=2)
+
+
+def recorded_spec(path: Path, kind: str) -> dict[str, Any]:
+    """The spec a resumable folder's result file (``benchmark.json``, ``harden.json``, ...) was started with."""
+    path = Path(path)
+    if not path.exists():
+        raise UserInputError(f"--resume: '{path.parent}' holds no {path.name}; start it without --resume")
+    data = read_json(path, f"{kind} '{path.parent}': {path.name}")
+    found = data.get("spec") if isinstance(data, dict) else None
+    if not isinstance(found, dict):
+        raise UserInputError(f"--resume: '{path}' holds no {kind} spec; start the {kind} again with --force")
+    return found
+
+
+def check_same_settings(kind: str, folder: Path, found: Mapping[str, Any], wanted: Mapping[str, Any], *,
+                        may_change: Collection[str] = (), defaults: Mapping[str, Any] | None = None) -> None:
+    """Refuse a ``--resume`` whose settings differ from those ``folder`` was started with, naming the first that
+    does. ``may_change``: settings a resume may change; ``defaults``: what a setting added since the folder was
+    started meant when its spec lacks it."""
+    defaults = defaults or {}
+    for key, value in wanted.items():
+        before = found.get(key, defaults.get(key))
+        if key not in may_change and before != value:
+            raise UserInputError(f"--resume: {kind} '{folder}' was started with {key} = {before!r}, not {value!r}; "
+                                 "resume it with the same settings, or start again with --force")
 
 
 def replace(folder: Path, kind: str) -> None:

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from genesis_rl import limits, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
-from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.io_utils import atomic_write_json
 from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
 
 SCHEMA = "genesis-rl/benchmark"
@@ -192,13 +192,7 @@ def _same_weights_spelling(kwargs: Any) -> Any:
 
 
 def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
-    path = out / "benchmark.json"
-    if not path.exists():
-        raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
-    data = read_json(path, f"benchmark '{out}': benchmark.json")
-    found = data.get("spec") if isinstance(data, dict) else None
-    if not isinstance(found, dict):
-        raise UserInputError(f"--resume: '{path}' holds no benchmark spec; start the benchmark again with --force")
+    found = output_folder.recorded_spec(out / "benchmark.json", "benchmark")
     wanted = spec.to_json()
     # agents may be added to a benchmark (their campaigns are new; nothing run changes), not taken away
     before = {m: list(r) for m, r in (found.get("agents") or {}).items()}
@@ -207,11 +201,7 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
     if dropped:
         raise UserInputError(f"--resume: benchmark '{out}' has agents {dropped} that --agent leaves out; name "
                              "them again, or start again with --force")
-    differ = [k for k in wanted if k != "agents" and found.get(k) != wanted[k]]
-    if differ:
-        k = differ[0]
-        raise UserInputError(f"--resume: benchmark '{out}' was started with {k} = {found.get(k)!r}, not "
-                             f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
+    output_folder.check_same_settings("benchmark", out, found, wanted, may_change=("agents",))
 
 
 def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1, executor: Any = None) -> None:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from genesis_rl import output_folder
 from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.io_utils import atomic_write_json
 from genesis_rl.knobs import KNOBS
 from genesis_rl.zoo.members import ZooMember, env_settings, zoo_member
 from genesis_rl.zoo.trigger import CONDITION_FLAGS
@@ -145,10 +145,8 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
         raise UserInputError(f"--resume: '{out}' holds no sweep.json; start it without --resume")
     with output_folder.claim(out, "sweep", force, resume=resume):
         if resume:
-            found = read_json(out / "sweep.json", f"sweep '{out}': sweep.json").get("spec")
-            if found != spec.to_json():
-                raise UserInputError(f"--resume: sweep '{out}' was started with {found!r}; resume it with the same "
-                                     "settings, or start again with --force")
+            found = output_folder.recorded_spec(out / "sweep.json", "sweep")
+            output_folder.check_same_settings("sweep", out, found, spec.to_json())
         else:
             output_folder.replace(out, "sweep")
             atomic_write_json(out / "sweep.json", {"schema": SCHEMA, "version": __version__,

@@ -28,7 +28,7 @@ from genesis_rl.estimation.episodes import EpisodeTask, init_worker, run_task
 from genesis_rl.estimation.nominal import NominalModel, StartRange, check_starts, default_starts
 from genesis_rl.estimation.proposal import WIDEN_FINAL, StartProposal, elite
 from genesis_rl.evaluation.estimate_files import SCHEMA
-from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
+from genesis_rl.io_utils import atomic_write, atomic_write_json
 
 if TYPE_CHECKING:
     from genesis_rl.env.genesis_env import GenesisEnv
@@ -248,21 +248,13 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
         raise UserInputError(f"--resume: '{out}' holds no estimate.json; start it without --resume")
     with output_folder.claim(out, "estimate", force, resume=resume):
         if resume:
-            data = read_json(out / "estimate.json", f"estimate '{out}': estimate.json")
-            found = data.get("spec") if isinstance(data, dict) else None
-            if not isinstance(found, dict):
-                raise UserInputError(f"--resume: '{out / 'estimate.json'}' holds no estimate spec; start the estimate "
-                                     "again with --force")
-            # a field added since the estimate was started reads as its default
-            found = {**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING}, **found}
-            if spec.method == "crude" and found.get("method") == "crude":
-                found["episodes"] = spec.episodes  # crude Monte Carlo may go on to more (or stop at fewer)
-            wanted = spec.to_json()
-            differ = [k for k in wanted if found.get(k) != wanted[k]]
-            if differ:
-                k = differ[0]
-                raise UserInputError(f"--resume: estimate '{out}' was started with {k} = {found.get(k)!r}, not "
-                                     f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
+            found = output_folder.recorded_spec(out / "estimate.json", "estimate")
+            # crude Monte Carlo may go on to more episodes (or stop at fewer); a field added since the estimate was
+            # started reads as its default
+            crude = spec.method == "crude" and found.get("method") == "crude"
+            output_folder.check_same_settings(
+                "estimate", out, found, spec.to_json(), may_change=("episodes",) if crude else (),
+                defaults={f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING})
         else:
             output_folder.replace(out, "estimate")
             catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,

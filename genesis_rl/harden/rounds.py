@@ -266,19 +266,11 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
         raise UserInputError(f"--resume: '{out}' holds no harden.json; start it without --resume")
     with output_folder.claim(out, "harden", force, resume=resume, inputs=[campaign]):
         if resume:
-            found = read_json(out / "harden.json", f"harden '{out}': harden.json")
-            old = found.get("spec") if isinstance(found, dict) else None
-            if not isinstance(old, dict):
-                raise UserInputError(f"--resume: '{out / 'harden.json'}' holds no harden spec; start again with "
-                                     "--force")
-            wanted = spec.to_json()
             # what runs after the rounds done, and the attack size of rounds still to come (each round records its own)
-            later = ("rounds", "adversary", "member", "estimate_episodes", "attack_scenes", "retest_scenes")
-            differ = [k for k in wanted if k not in later and old.get(k, LEGACY.get(k)) != wanted[k]]
-            if differ:
-                k = differ[0]
-                raise UserInputError(f"--resume: harden '{out}' was started with {k} = {old.get(k)!r}, not "
-                                     f"{wanted[k]!r}; resume it with the same settings, or start again with --force")
+            output_folder.check_same_settings(
+                "harden", out, output_folder.recorded_spec(out / "harden.json", "harden"), spec.to_json(),
+                may_change=("rounds", "adversary", "member", "estimate_episodes", "attack_scenes", "retest_scenes"),
+                defaults=LEGACY)
         else:
             output_folder.replace(out, "harden")
         head = {"schema": SCHEMA, "version": __version__, "spec": spec.to_json(), "system": system,
