@@ -91,7 +91,8 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
                   color="#8e44ad")
     ax.bar_label(bars, fontsize=8)
     ticks = [a[0] for a in attacks]
-    labels = [str(t) for t in ticks]
+    near = {r["round"]: (r.get("near_misses") or {}).get("exported", 0) for r in result["rounds"]}
+    labels = [f"{t}\n+{near[t]} near" if near.get(t) else str(t) for t in ticks]
     if again:
         x = len(result["rounds"]) + 2
         ax.bar_label(ax.bar([x - 0.2], [again["in_odd_failures"]], width=0.4, color="#e67e22", hatch="//"), fontsize=8)
@@ -99,7 +100,8 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
         ticks, labels = [*ticks, x], [*labels, "re-trained"]
     ax.set_xticks(ticks, labels)
     ax.margins(y=0.12)
-    ax.set(xlabel="attack against the weights of round (x - 1)", ylabel="found", title="what each attack found")
+    ax.set(xlabel="attack against the weights of round (x - 1); +n near: near misses in its data", ylabel="found",
+           title="what each attack found")
     ax.legend(frameon=False)
     ax = axes[2]
     clears = [(rnd["round"], rnd["clear"]) for rnd in [result["baseline"], *result["rounds"]] if rnd.get("clear")]
