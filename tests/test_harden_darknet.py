@@ -16,7 +16,6 @@ from genesis_rl.harden.data import original_frames
 from genesis_rl.harden.retrain import RetrainRequest, builtin_hook, check_options
 from genesis_rl.harden.retrain_darknet import (
     WEIGHTS_NAME,
-    _forward,
     _input,
     _targets,
     finetune_darknet,
@@ -89,7 +88,7 @@ def test_the_yolo_loss_falls_on_the_frames_it_trains_on(failures: Path) -> None:
     det.net.train()
     losses = []
     for _ in range(4):
-        loss = yolo_loss(det.net, _forward(det.net, x, 8), boxes, ignores, hw, det.class_ids)
+        loss = yolo_loss(det.net, det.net(x, frozen=8), boxes, ignores, hw, det.class_ids)
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -174,6 +174,53 @@ def _distillation(out: dict[str, Any], teacher: Any, x: Any, original: np.ndarra
     return (cross - entropy) / int(mask.sum())
 
 
+def train_epochs(opt: Any, params: list[Any], frames: int, epochs: int, batch_size: int, lr: float,
+                 rng: np.random.Generator, batch_loss: Callable[[np.ndarray], Any],
+                 on_epoch: Callable[[], None] | None = None, desc: str | None = None) -> list[dict[str, Any]]:
+    """The fine-tunes' loop: ``epochs`` passes over ``frames`` frames in an order ``rng`` shuffles, batches of
+    sorted indices, the cosine learning rate, gradients clipped at norm 10; ``batch_loss(indices)`` is a batch's
+    loss, ``on_epoch`` runs before each pass, ``desc`` names a progress bar. Returns each epoch's mean loss."""
+    import torch
+
+    per_epoch = math.ceil(frames / batch_size)
+    total = per_epoch * epochs
+    bar = None
+    if desc is not None:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=desc, unit="batch")
+    history, step = [], 0
+    try:
+        for epoch in range(epochs):
+            if on_epoch is not None:
+                on_epoch()
+            order = rng.permutation(frames)
+            loss_sum = 0.0
+            for s in range(0, len(order), batch_size):
+                idx = np.sort(order[s : s + batch_size])
+                loss = batch_loss(idx)
+                for g in opt.param_groups:
+                    g["lr"] = cosine_lr(lr, step, total)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, 10.0)
+                opt.step()
+                step += 1
+                loss_sum += float(loss.detach())
+                if bar is not None:
+                    bar.update(1)
+            history.append({"epoch": epoch + 1, "loss": round(loss_sum / per_epoch, 4)})
+    finally:
+        if bar is not None:
+            bar.close()
+    return history
+
+
+def cosine_lr(base: float, step: int, total: int) -> float:
+    """The fine-tunes' learning rate at ``step`` of ``total``: cosine decay from ``base`` to 2 % of it."""
+    return base * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / total)))
+
+
 def _relative(path: Path, root: Path) -> str:
     try:
         return Path(path).resolve().relative_to(Path(root).resolve()).as_posix()
@@ -237,40 +284,19 @@ def finetune_detector(request: RetrainRequest) -> Path:
         teacher.load_state_dict(ckpt["state_dict"])
         teacher.eval()
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=train_cfg.weight_decay)
-    per_epoch = math.ceil(len(data) / cfg.batch_size)
-    total = per_epoch * cfg.epochs
-    bar = None
-    if request.progress:
-        from tqdm import tqdm
+    t0 = time.perf_counter()
 
-        bar = tqdm(total=total, desc=f"round {request.round}: fine-tune", unit="batch")
-    history, step, t0 = [], 0, time.perf_counter()
-    try:
-        for epoch in range(cfg.epochs):
-            _train_frozen_norms(net)
-            order = rng.permutation(len(data))
-            loss_sum = 0.0
-            for s in range(0, len(order), cfg.batch_size):
-                idx = np.sort(order[s : s + cfg.batch_size])
-                x, t = _batch(data, idx, train_cfg, rng)
-                for g in opt.param_groups:
-                    g["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / total)))
-                out = net(x)
-                loss, _ = detector_loss(out, t, train_cfg)
-                if teacher is not None:
-                    loss = loss + cfg.distill * _distillation(out, teacher, x, idx < len(original))
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
-                opt.step()
-                step += 1
-                loss_sum += float(loss.detach())
-                if bar is not None:
-                    bar.update(1)
-            history.append({"epoch": epoch + 1, "loss": round(loss_sum / per_epoch, 4)})
-    finally:
-        if bar is not None:
-            bar.close()
+    def batch_loss(idx: np.ndarray) -> Any:
+        x, t = _batch(data, idx, train_cfg, rng)
+        out = net(x)
+        loss, _ = detector_loss(out, t, train_cfg)
+        if teacher is not None:
+            loss = loss + cfg.distill * _distillation(out, teacher, x, idx < len(original))
+        return loss
+
+    history = train_epochs(opt, list(net.parameters()), len(data), cfg.epochs, cfg.batch_size, cfg.lr, rng,
+                           batch_loss, on_epoch=lambda: _train_frozen_norms(net),
+                           desc=f"round {request.round}: fine-tune" if request.progress else None)
     net.eval()
     threshold, validation = float(ckpt["score_threshold"]), None
     if cfg.repick_threshold:

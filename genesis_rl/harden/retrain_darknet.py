@@ -18,7 +18,6 @@ convolutions' biases, ``yolov3-tiny.weights``, ``coco.names``.
 from __future__ import annotations
 
 import dataclasses
-import math
 import shutil
 import time
 from dataclasses import dataclass
@@ -223,27 +222,6 @@ def _targets(data: Any, idx: np.ndarray, scale: float, flips: np.ndarray, width:
     return boxes, ignores
 
 
-def _forward(net: Any, x: Any, freeze: int) -> list[Any]:
-    """``net.forward`` with the first ``freeze`` layers run without gradients (their features are inputs)."""
-    import torch
-
-    outputs: list[Any] = []
-    raw: list[Any] = []
-    for index, (kind, layer) in enumerate(zip(net.kinds, net.layers, strict=True)):
-        with torch.set_grad_enabled(index >= freeze and torch.is_grad_enabled()):
-            if kind == "route":
-                refs = net.routes[index]
-                x = outputs[refs[0]] if len(refs) == 1 else torch.cat([outputs[r] for r in refs], 1)
-            elif kind == "shortcut":
-                x = x + outputs[net.routes[index][0]]
-            elif kind == "yolo":
-                raw.append(x)
-            else:
-                x = layer(x)
-        outputs.append(x)
-    return raw
-
-
 # ------------------------------------------------------------------------------------------------------ hook
 def finetune_darknet(request: Any) -> Path:
     """Fine-tune the darknet model folder ``request.weights`` (the ``coco`` system's); returns the new folder."""
@@ -251,7 +229,7 @@ def finetune_darknet(request: Any) -> Path:
 
     import genesis_rl
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
-    from genesis_rl.harden.retrain import _relative
+    from genesis_rl.harden.retrain import _relative, train_epochs
     from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
     from genesis_rl.perception.coco_detector import CocoDetector
     from genesis_rl.perception.model_store import file_sha256
@@ -285,46 +263,25 @@ def finetune_darknet(request: Any) -> Path:
         param.requires_grad_(index >= cfg.freeze)
     params = [p for p in net.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr)
-    per_epoch = math.ceil(len(data) / cfg.batch_size)
-    total = per_epoch * cfg.epochs
-    bar = None
-    if request.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc=f"round {request.round}: fine-tune (darknet)", unit="batch")
-    history, step, t0 = [], 0, time.perf_counter()
+    t0 = time.perf_counter()
     width = data.images.shape[2]
-    try:
-        for epoch in range(cfg.epochs):
-            order = rng.permutation(len(data))
-            loss_sum = 0.0
-            for s in range(0, len(order), cfg.batch_size):
-                idx = np.sort(order[s : s + cfg.batch_size])
-                flips = rng.random(len(idx)) < 0.5
-                images = data.images[idx]
-                images = np.where(flips[:, None, None, None], images[:, :, ::-1], images)
-                x, scale, hw = _input(images, detector.image_size)
-                boxes, ignores = _targets(data, idx, scale, flips, width)
-                for g in opt.param_groups:
-                    g["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / total)))
-                raw = _forward(net, x, cfg.freeze)
-                loss = yolo_loss(net, raw, boxes, ignores, hw, detector.class_ids)
-                if teacher is not None:
-                    with torch.no_grad():
-                        t_raw = teacher(x)
-                    loss = loss + cfg.distill * distillation(net, raw, t_raw, torch.from_numpy(idx < len(original)))
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, 10.0)
-                opt.step()
-                step += 1
-                loss_sum += float(loss.detach())
-                if bar is not None:
-                    bar.update(1)
-            history.append({"epoch": epoch + 1, "loss": round(loss_sum / per_epoch, 4)})
-    finally:
-        if bar is not None:
-            bar.close()
+
+    def batch_loss(idx: np.ndarray) -> Any:
+        flips = rng.random(len(idx)) < 0.5
+        images = data.images[idx]
+        images = np.where(flips[:, None, None, None], images[:, :, ::-1], images)
+        x, scale, hw = _input(images, detector.image_size)
+        boxes, ignores = _targets(data, idx, scale, flips, width)
+        raw = net(x, frozen=cfg.freeze)
+        loss = yolo_loss(net, raw, boxes, ignores, hw, detector.class_ids)
+        if teacher is not None:
+            with torch.no_grad():
+                t_raw = teacher(x)
+            loss = loss + cfg.distill * distillation(net, raw, t_raw, torch.from_numpy(idx < len(original)))
+        return loss
+
+    history = train_epochs(opt, params, len(data), cfg.epochs, cfg.batch_size, cfg.lr, rng, batch_loss,
+                           desc=f"round {request.round}: fine-tune (darknet)" if request.progress else None)
     net.eval()
     out = request.out
     out.mkdir(parents=True, exist_ok=True)

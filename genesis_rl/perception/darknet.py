@@ -149,19 +149,22 @@ class DarknetYolo(nn.Module):
             raise UserInputError(f"{source}: [yolo] layers disagree on classes: {sorted(classes)}")
         self.classes = classes.pop()
 
-    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+    def forward(self, x: torch.Tensor, frozen: int = 0) -> list[torch.Tensor]:
+        """The raw head maps; the first ``frozen`` layers run without gradients (a fine-tune's fixed features)."""
         outputs: list[torch.Tensor] = []
         raw: list[torch.Tensor] = []
+        grad = torch.is_grad_enabled()
         for index, (kind, layer) in enumerate(zip(self.kinds, self.layers, strict=True)):
-            if kind == "route":
-                refs = self.routes[index]
-                x = outputs[refs[0]] if len(refs) == 1 else torch.cat([outputs[r] for r in refs], 1)
-            elif kind == "shortcut":
-                x = x + outputs[self.routes[index][0]]
-            elif kind == "yolo":
-                raw.append(x)
-            else:
-                x = layer(x)
+            with torch.set_grad_enabled(grad and index >= frozen):
+                if kind == "route":
+                    refs = self.routes[index]
+                    x = outputs[refs[0]] if len(refs) == 1 else torch.cat([outputs[r] for r in refs], 1)
+                elif kind == "shortcut":
+                    x = x + outputs[self.routes[index][0]]
+                elif kind == "yolo":
+                    raw.append(x)
+                else:
+                    x = layer(x)
             outputs.append(x)
         return raw
 
