@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from genesis_rl.errors import UserInputError
+from genesis_rl.harden.loop import relative_to, train_epochs
 
 #: the systems whose weights are genesis-rl detector checkpoints (the built-in fine-tune retrains them)
 CHECKPOINT_SYSTEMS = ("builtin", "latency", "adaptive")
@@ -174,60 +174,6 @@ def _distillation(out: dict[str, Any], teacher: Any, x: Any, original: np.ndarra
     return (cross - entropy) / int(mask.sum())
 
 
-def train_epochs(opt: Any, params: list[Any], frames: int, epochs: int, batch_size: int, lr: float,
-                 rng: np.random.Generator, batch_loss: Callable[[np.ndarray], Any],
-                 on_epoch: Callable[[], None] | None = None, desc: str | None = None) -> list[dict[str, Any]]:
-    """The fine-tunes' loop: ``epochs`` passes over ``frames`` frames in an order ``rng`` shuffles, batches of
-    sorted indices, the cosine learning rate, gradients clipped at norm 10; ``batch_loss(indices)`` is a batch's
-    loss, ``on_epoch`` runs before each pass, ``desc`` names a progress bar. Returns each epoch's mean loss."""
-    import torch
-
-    per_epoch = math.ceil(frames / batch_size)
-    total = per_epoch * epochs
-    bar = None
-    if desc is not None:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc=desc, unit="batch")
-    history, step = [], 0
-    try:
-        for epoch in range(epochs):
-            if on_epoch is not None:
-                on_epoch()
-            order = rng.permutation(frames)
-            loss_sum = 0.0
-            for s in range(0, len(order), batch_size):
-                idx = np.sort(order[s : s + batch_size])
-                loss = batch_loss(idx)
-                for g in opt.param_groups:
-                    g["lr"] = cosine_lr(lr, step, total)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, 10.0)
-                opt.step()
-                step += 1
-                loss_sum += float(loss.detach())
-                if bar is not None:
-                    bar.update(1)
-            history.append({"epoch": epoch + 1, "loss": round(loss_sum / per_epoch, 4)})
-    finally:
-        if bar is not None:
-            bar.close()
-    return history
-
-
-def cosine_lr(base: float, step: int, total: int) -> float:
-    """The fine-tunes' learning rate at ``step`` of ``total``: cosine decay from ``base`` to 2 % of it."""
-    return base * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / total)))
-
-
-def _relative(path: Path, root: Path) -> str:
-    try:
-        return Path(path).resolve().relative_to(Path(root).resolve()).as_posix()
-    except ValueError:
-        return str(path)
-
-
 def _train_frozen_norms(net: Any) -> None:
     """Training mode with every batch norm kept in eval mode: a few hundred frames of one condition would pull
     the running statistics that every clear-day frame is normalised by (the seesaw's first cause)."""
@@ -308,7 +254,7 @@ def finetune_detector(request: RetrainRequest) -> Path:
                 "original_sha256": dataset_sha256(original), "failure_frames": len(failures),
                 "failure_sha256": dataset_sha256(failures),
                 # relative to the harden folder: a round resumed in a moved folder writes the same checkpoint
-                "failure_exports": [_relative(f, request.work) for f in request.failures],
+                "failure_exports": [relative_to(f, request.work) for f in request.failures],
                 "history": history, "score_threshold": threshold, "validation": validation}
     meta = dict(ckpt.get("metadata", {}))
     out_ckpt = {**ckpt, "state_dict": state, "score_threshold": threshold,

@@ -229,7 +229,7 @@ def finetune_darknet(request: Any) -> Path:
 
     import genesis_rl
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
-    from genesis_rl.harden.retrain import _relative, train_epochs
+    from genesis_rl.harden.loop import relative_to, train_epochs
     from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
     from genesis_rl.perception.coco_detector import CocoDetector
     from genesis_rl.perception.model_store import file_sha256
@@ -298,6 +298,6 @@ def finetune_darknet(request: Any) -> Path:
         "base_weights_sha256": file_sha256(base_dir / WEIGHTS_NAME), "image_size": detector.image_size,
         "original_frames": len(original), "original_sha256": dataset_sha256(original),
         "failure_frames": len(failures), "failure_sha256": dataset_sha256(failures),
-        "failure_exports": [_relative(f, request.work) for f in request.failures],
+        "failure_exports": [relative_to(f, request.work) for f in request.failures],
         "history": history, "seconds": round(time.perf_counter() - t0, 1)}, indent=2)
     return out

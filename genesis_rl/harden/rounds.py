@@ -28,6 +28,7 @@ from typing import Any
 
 from genesis_rl import output_folder
 from genesis_rl.errors import UserInputError
+from genesis_rl.harden.loop import relative_to  # round.json stores paths inside the harden folder relative to it
 from genesis_rl.harden.near_miss import IN_ODD, near_misses  # IN_ODD: failures and near misses alike
 from genesis_rl.io_utils import atomic_write_json, read_json
 
@@ -384,7 +385,7 @@ def _retest(spec: HardenSpec, base: Any, out: Path, baseline: Mapping[str, Any],
         folder = out / f"retest_{spec.retest_scenes}" / f"round_{rnd['round']}"
         _run(test_spec(base, wide, weights), folder, workers, progress)
         found = _public(in_odd_failures(folder))
-        row = {"round": rnd["round"], "status": rnd.get("status", "before"), "folder": relative(out, folder),
+        row = {"round": rnd["round"], "status": rnd.get("status", "before"), "folder": relative_to(folder, out),
                **{k: found[k] for k in ("episodes", "in_odd_failures", "rate", "distinct")}}
         if before is not None:
             row["fall"] = fall(before["rate"]["rate"], found["rate"]["rate"])
@@ -397,15 +398,6 @@ def _retest(spec: HardenSpec, base: Any, out: Path, baseline: Mapping[str, Any],
 def fall(before: float, after: float) -> float | None:
     """The relative fall of a rate (0.5: halved; negative: it rose); None when there was nothing to fall from."""
     return None if before <= 0 else round(1.0 - after / before, 4)
-
-
-def relative(out: Path, path: Path) -> str:
-    """``path`` as ``round.json`` stores it: relative to the harden folder when inside it, so that a hardening
-    moved elsewhere resumes with its own weights and exports."""
-    try:
-        return Path(path).resolve().relative_to(Path(out).resolve()).as_posix()
-    except ValueError:
-        return str(path)
 
 
 def inside(out: Path, stored: str) -> Path:
@@ -494,8 +486,8 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
     _run(test_spec(base, spec, new_weights), folder / "test", workers, progress)
     clear = clear_day(system, kwargs, base.map, spec.clear_frames, progress)
     check = seesaw(baseline.get("clear"), clear, spec.tolerance)
-    result.update(export=relative(out, export), frames=exported.get("images"), labels=exported.get("labels"),
-                  weights=relative(out, new_weights), weights_sha256=_sha(new_weights, file_sha256),
+    result.update(export=relative_to(export, out), frames=exported.get("images"), labels=exported.get("labels"),
+                  weights=relative_to(new_weights, out), weights_sha256=_sha(new_weights, file_sha256),
                   test=_public(in_odd_failures(folder / "test")), clear=clear, seesaw=check,
                   status="accepted" if check["ok"] else "seesaw", seconds=round(time.perf_counter() - t0, 1))
     atomic_write_json(done, result, indent=1)
