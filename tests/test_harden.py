@@ -4,6 +4,7 @@ exported failures, and the seesaw check rejects a round that lowers clear-day re
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -146,6 +147,24 @@ def test_a_wide_retest_added_on_resume_replays_every_rounds_weights_on_the_same_
     assert rows[1]["fall"] == (None if rows[0]["rate"]["rate"] == 0 else
                                pytest.approx(1 - rows[1]["rate"]["rate"] / rows[0]["rate"]["rate"], abs=1e-4))
     assert "Re-test on 4 held-out scenes" in (copy / "harden.html").read_text()
+
+
+def test_a_stage_run_against_other_weights_is_replaced_not_resumed(attack: Path, tmp_path) -> None:
+    """--rounds may grow on resume: the final attack then runs against the new last weights and seed, so a
+    campaign of another spec in its folder is replaced (resuming it would mix two systems' episodes)."""
+    from genesis_rl.evaluation.campaign_files import read_campaign_meta
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.harden.rounds import _run, attack_spec
+
+    base = dataclasses.replace(CampaignSpec.from_json(read_campaign_meta(attack)["spec"]), scenes=1, steps=20)
+    folder = tmp_path / "final_attack"
+    first, later = attack_spec(base, 2, DEFAULT_WEIGHTS), attack_spec(base, 3, DEFAULT_WEIGHTS)
+    _run(first, folder, 1, False)
+    _run(first, folder, 1, False)  # the same spec: kept as it is
+    assert CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).seed == first.seed
+    _run(later, folder, 1, False)
+    assert CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).to_json() == later.to_json()
+    assert (folder / "summary.json").is_file()
 
 
 def test_closest_approach_is_the_smallest_time_to_collision_inside_the_odd() -> None:

@@ -174,10 +174,18 @@ def test_catalog_seed(base: Any, spec: HardenSpec) -> int:
 
 
 def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None:
+    """Play ``campaign_spec`` into ``folder``, or resume it there. A campaign of another spec in ``folder`` is
+    replaced: a resume that added rounds moves the final attack to other weights and seed."""
     from genesis_rl.evaluation.campaign import run_campaign
+    from genesis_rl.evaluation.campaign_files import read_campaign_meta
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.io_utils import remove_tree
 
-    done = (folder / "summary.json").is_file()
-    if not done:
+    if (folder / "campaign.json").is_file():
+        recorded = CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).to_json()
+        if recorded != campaign_spec.to_json():
+            remove_tree(folder)
+    if not (folder / "summary.json").is_file():
         run_campaign(campaign_spec, folder, workers=workers, resume=(folder / "campaign.json").is_file(),
                      progress=progress)
 
@@ -344,10 +352,23 @@ def _estimate(spec: HardenSpec, member: str, weights: Path, folder: Path, worker
                        stages=1, weights=str(Path(weights).resolve()))
     if (folder / "estimate.json").is_file():
         data = read_json(folder / "estimate.json", f"'{folder}'")
-        if data.get("done") and data.get("spec", {}).get("episodes") == spec.estimate_episodes:
+        if data.get("spec", {}).get("weights") != est.weights:  # other weights (a resume that added rounds)
+            from genesis_rl.io_utils import remove_tree
+
+            remove_tree(folder)
+        elif data.get("done") and data.get("spec", {}).get("episodes") == spec.estimate_episodes:
             return {"folder": str(folder), **data["estimate"]}
     result = run_estimate(est, folder, workers=workers, resume=(folder / "estimate.json").is_file(), progress=progress)
     return {"folder": str(folder), **result["estimate"]}
+
+
+def _trained_against(run: Path) -> str | None:
+    """The weights a final agent was trained against (its config's system_kwargs.weights)."""
+    from genesis_rl.config import read_toml
+
+    if not (run / "config.toml").is_file():
+        return None
+    return read_toml(run / "config.toml").get("env", {}).get("system_kwargs", {}).get("weights")
 
 
 def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weights: Path, workers: int,
@@ -359,6 +380,10 @@ def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weigh
     from genesis_rl.training.train import train
 
     run = out / "final_agent"
+    if run.exists() and _trained_against(run) != str(Path(weights).resolve()):
+        from genesis_rl.io_utils import remove_tree
+
+        remove_tree(run)  # trained against other weights (a resume that added rounds)
     if not (run / "train_result.json").is_file():
         env = dict(read_toml(config).get("env", {}))
         kwargs = {**env.get("system_kwargs", {}), "weights": str(Path(weights).resolve())}
