@@ -280,6 +280,21 @@ def test_a_member_of_another_system_or_map_is_refused(attack: Path, tmp_path, ca
     assert "--member" in capsys.readouterr().err
 
 
+def test_a_member_is_matched_by_its_odd_text_not_its_path(attack: Path, tmp_path) -> None:
+    """The same ODD file in another checkout is the member's ODD; a changed copy is not."""
+    from genesis_rl.evaluation.campaign_files import read_campaign_meta
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.harden.rounds import check_member
+
+    base = CampaignSpec.from_json(read_campaign_meta(attack)["spec"])
+    copy = tmp_path / "urban_day.toml"
+    copy.write_bytes(Path(base.env["odd"]).read_bytes())
+    check_member("low_sun", dataclasses.replace(base, env={**base.env, "odd": str(copy)}))
+    copy.write_text(copy.read_text() + "\n# changed\n")
+    with pytest.raises(UserInputError, match="its odd"):
+        check_member("low_sun", dataclasses.replace(base, env={**base.env, "odd": str(copy)}))
+
+
 def test_an_estimate_runs_the_member_with_the_given_weights(tmp_path) -> None:
     from genesis_rl.estimation.run import EstimateSpec, env_config
 

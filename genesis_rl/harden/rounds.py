@@ -334,9 +334,12 @@ def check_member(name: str, base: Any) -> None:
 
     m = zoo_member(name)
     env = base.env
-    theirs = {"system": m.system, "map": m.map, "odd": Path(m.odd_path).resolve()}
-    ours = {"system": env.get("system", "builtin"), "map": base.map,
-            "odd": Path(env["odd"]).resolve() if env.get("odd") else None}
+    theirs: dict[str, Any] = {"system": m.system, "map": m.map, "odd": Path(m.odd_path).resolve()}
+    ours: dict[str, Any] = {"system": env.get("system", "builtin"), "map": base.map,
+                            "odd": Path(env["odd"]).resolve() if env.get("odd") else None}
+    if ours["odd"] is not None and ours["odd"].is_file() and theirs["odd"].is_file() \
+            and ours["odd"].read_bytes() == theirs["odd"].read_bytes():
+        ours["odd"] = theirs["odd"]  # the same ODD from another checkout (its text is what counts)
     for key, value in theirs.items():
         if ours[key] != value:
             raise UserInputError(f"--member {name}: its {key} is {value}, the campaign's {ours[key]}; give the member "
