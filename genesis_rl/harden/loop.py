@@ -1,14 +1,30 @@
-"""What both built-in fine-tunes share: the training loop over shuffled batches with a cosine learning rate, and
-how they record paths inside the harden folder."""
+"""What both built-in fine-tunes share: how their settings are read, the training loop over shuffled batches with a
+cosine learning rate, and how they record paths inside the harden folder."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+
+from genesis_rl.errors import UserInputError
+
+Config = TypeVar("Config")
+
+
+def finetune_config(config: type[Config], options: Mapping[str, Any], kind: str) -> Config:
+    """``config(**options)``: a fine-tune's settings, a setting it does not know refused by name (``kind`` names
+    the fine-tune), bad values by the config's own checks."""
+    known = {f.name for f in dataclasses.fields(config)}  # type: ignore[arg-type]  # a dataclass type
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise UserInputError(f"harden finetune: unknown setting(s) {unknown} for {kind}; allowed: "
+                             f"{', '.join(sorted(known))}")
+    return config(**options)
 
 
 def train_epochs(opt: Any, params: list[Any], frames: int, epochs: int, batch_size: int, lr: float,

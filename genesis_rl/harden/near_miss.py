@@ -40,8 +40,8 @@ def closest_approach(rows: Sequence[Mapping[str, Any]]) -> tuple[int, float] | N
 
 
 def near_misses(folder: Path, ttc_s: float) -> dict[tuple[str, int], dict[str, float]]:
-    """The campaign's in-ODD near misses: (policy, scene) -> {step, ttc} of each collision-free episode whose time
-    to collision fell to ``ttc_s`` or below (0: none are looked for)."""
+    """The campaign's in-ODD near misses: (policy, scene) -> {step, ttc, gap, ego_speed} at the closest approach of
+    each collision-free episode whose time to collision fell to ``ttc_s`` or below (0: none are looked for)."""
     from genesis_rl.evaluation.campaign_files import read_steps, steps_path
     from genesis_rl.evaluation.summary import load_campaign
 
@@ -57,19 +57,23 @@ def near_misses(folder: Path, ttc_s: float) -> dict[tuple[str, int], dict[str, f
                                columns=["step", "true_lead_distance", "ego_speed", "lead_speed", "odd_status"])
             closest = closest_approach(steps)
             if closest is not None and closest[1] <= ttc_s:
-                found[(policy, int(ep["scene"]))] = {"step": closest[0], "ttc": round(closest[1], 3)}
+                row = next(r for r in steps if r["step"] == closest[0])
+                # the gap and speed there: what the replay must reproduce (render_frames)
+                found[(policy, int(ep["scene"]))] = {"step": closest[0], "ttc": round(closest[1], 3),
+                                                     "gap": float(row["true_lead_distance"]),
+                                                     "ego_speed": float(row["ego_speed"])}
     return found
 
 
 def render_frames(folder: Path, misses: Mapping[tuple[str, int], Mapping[str, float]], out: Path, weights: Path,
                   frames_before: int, stride: int, progress: bool = False) -> dict[str, Any]:
-    """Replay each near miss from its record up to its closest approach and write the frames a collision would have
-    kept (``frames_before`` steps before it, every ``stride``-th) as ``out/frames/POLICY/scene_NNNN/step_SSSS.jpg``,
-    the campaign's layout. An episode whose replay departs from the campaign's step data is skipped and named, as is
-    one without a record (``records = "failures"`` records collisions and proximity violations only)."""
+    """Replay each near miss (as ``near_misses`` gives it) from its record up to its closest approach and write the
+    frames a collision would have kept (``frames_before`` steps before it, every ``stride``-th) as
+    ``out/frames/POLICY/scene_NNNN/step_SSSS.jpg``, the campaign's layout. An episode whose replay departs from the
+    recorded gap and speed there is skipped and named, as is one without a record (``records = "failures"`` records
+    collisions and proximity violations only)."""
     from tqdm import tqdm
 
-    from genesis_rl.evaluation.campaign_files import read_steps, steps_path
     from genesis_rl.evaluation.episodes import _write_jpeg
     from genesis_rl.evaluation.records import load_record, replay_record
 
@@ -88,12 +92,9 @@ def render_frames(folder: Path, misses: Mapping[tuple[str, int], Mapping[str, fl
         rec["schedule"] = rec["schedule"][:step]  # steps are numbered from 1: step s is schedule row s - 1
         rec["steps"] = step
         replay = replay_record(rec, weights=str(weights), keep_frames=True)
-        recorded = {r["step"]: r for r in read_steps(steps_path(folder, policy, scene),
-                                                     columns=["step", "true_lead_distance", "ego_speed"])}
         last = replay["records"][-1]
-        want = recorded.get(last.step)
-        if want is None or not (math.isclose(last.lead.true_distance, want["true_lead_distance"], abs_tol=1e-6)
-                                and math.isclose(last.ego.speed, want["ego_speed"], abs_tol=1e-6)):
+        if last.step != step or not (math.isclose(last.lead.true_distance, miss["gap"], abs_tol=1e-6)
+                                     and math.isclose(last.ego.speed, miss["ego_speed"], abs_tol=1e-6)):
             departed.append(name)
             continue
         for rec_step, rgb in zip(replay["records"], replay["frames"], strict=True):

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from genesis_rl.errors import UserInputError
-from genesis_rl.harden.loop import relative_to, train_epochs
+from genesis_rl.harden.loop import finetune_config, relative_to, train_epochs
 
 #: the systems whose weights are genesis-rl detector checkpoints (the built-in fine-tune retrains them)
 CHECKPOINT_SYSTEMS = ("builtin", "latency", "adaptive")
@@ -113,17 +113,17 @@ def check_options(options: dict[str, Any], system: str | None = None) -> None:
     values (before anything runs)."""
     from genesis_rl.harden.retrain_darknet import DarknetFinetuneConfig
 
-    configs: tuple[type, ...] = (FinetuneConfig, DarknetFinetuneConfig)
     if system is not None:
-        configs = (DarknetFinetuneConfig,) if system == "coco" else (FinetuneConfig,)
+        finetune_config(DarknetFinetuneConfig if system == "coco" else FinetuneConfig, options, f"system '{system}'")
+        return
+    configs: tuple[type, ...] = (FinetuneConfig, DarknetFinetuneConfig)
     fields = [{f.name for f in dataclasses.fields(c)} for c in configs]
     unknown = sorted(set(options) - set().union(*fields))
     if unknown:
-        raise UserInputError(f"harden finetune: unknown setting(s) {unknown}"
-                             f"{' for system ' + repr(system) if system else ''}; allowed: "
+        raise UserInputError(f"harden finetune: unknown setting(s) {unknown}; allowed: "
                              f"{', '.join(sorted(set().union(*fields)))}")
     for config, names in zip(configs, fields, strict=True):
-        config(**{k: v for k, v in options.items() if k in names})
+        finetune_config(config, {k: v for k, v in options.items() if k in names}, config.__name__)
 
 
 def base_train_config(weights: Path) -> dict[str, Any]:
@@ -202,10 +202,7 @@ def finetune_detector(request: RetrainRequest) -> Path:
                              f"{', '.join(CHECKPOINT_SYSTEMS)}) and coco's darknet model, not system "
                              f"'{request.system}'; pass --retrain package.module:function, a hook that retrains its "
                              "weights (docs/harden.md)")
-    unknown = sorted(set(request.options) - {f.name for f in dataclasses.fields(FinetuneConfig)})
-    if unknown:
-        raise UserInputError(f"harden finetune: {unknown} do(es) not apply to a genesis-rl detector's fine-tune")
-    cfg = FinetuneConfig(**request.options)
+    cfg = finetune_config(FinetuneConfig, request.options, "a genesis-rl detector's fine-tune")
     ckpt = load_checkpoint(request.weights)
     recipe = base_train_config(request.weights)
     train_cfg = DetectorTrainConfig(**{**recipe, "channels": tuple(recipe["channels"]), "epochs": cfg.epochs,

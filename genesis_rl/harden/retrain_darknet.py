@@ -229,17 +229,12 @@ def finetune_darknet(request: Any) -> Path:
 
     import genesis_rl
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
-    from genesis_rl.harden.loop import relative_to, train_epochs
+    from genesis_rl.harden.loop import finetune_config, relative_to, train_epochs
     from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
     from genesis_rl.perception.coco_detector import CocoDetector
     from genesis_rl.perception.model_store import file_sha256
 
-    known = {f.name for f in dataclasses.fields(DarknetFinetuneConfig)}
-    unknown = sorted(set(request.options) - known)
-    if unknown:
-        raise UserInputError(f"harden finetune: {unknown} do(es) not apply to the coco system's fine-tune; "
-                             f"allowed: {', '.join(sorted(known))}")
-    cfg = DarknetFinetuneConfig(**request.options)
+    cfg = finetune_config(DarknetFinetuneConfig, request.options, "the coco system's fine-tune")
     kwargs = dict(request.system_kwargs)
     detector = CocoDetector(request.weights, image_size=int(kwargs.get("image_size", 416)))
     net = detector.net
