@@ -81,6 +81,11 @@ ACTOR_KNOBS: dict[str, ActorKnobSpec] = {
            "time-to-collision of the gap a neighbour cuts into (ego's speed minus the cutter's, over the gap)",
            "UN R157: 0.48/0.71/0.94/1.18/1.41/1.64 s at 10..60 km/h relative speed is what a careful driver "
            "handles; 0.4 s lower bound and 10 s default (a harmless cut-in) assumed; rate assumed"),
+        _a("cut_in_relative_speed", 0.0, 20.0, "m/s", 0.0, 1.0,
+           "how much slower than the ego the neighbour a cut-in is asked of drives as it gets ready (0: at its own "
+           "pace, so only the traffic supplies a closing gap)",
+           "UN R157 Annex 4 Appendix 3: cut-ins at 10..60 km/h (2.8..16.7 m/s) relative speed; 20 m/s upper bound "
+           "and rate (1 m/s per s) assumed"),
         _a("cut_in_onset", 0.0, 30.0, "s", 30.0, 1.0,
            "episode time at which the neighbour starts its lane change (30: never within a default episode)",
            "assumed"),
@@ -148,22 +153,27 @@ def limit_step(before: Mapping[str, float], wanted: Mapping[str, float], dt: flo
 
 @dataclass(frozen=True)
 class TrafficConditions:
-    """What an ODD releases the system for in traffic: the strongest lead deceleration [m/s^2] and the
-    shortest cut-in time-to-collision [s]. Defaults release nothing unusual beyond R157's careful driver."""
+    """What an ODD releases the system for in traffic: the strongest lead deceleration [m/s^2], the
+    shortest cut-in time-to-collision [s] and the largest relative speed of a cut-in [m/s]. Defaults release
+    nothing unusual beyond R157's careful driver."""
 
     max_lead_decel: float = 6.0  # Euro NCAP CCRb's hard case
     min_cut_in_ttc: float = 1.64  # UN R157 at 60 km/h relative speed (the longest of its boundary TTCs)
+    max_cut_in_relative_speed: float = 60.0 / 3.6  # UN R157's fastest cut-in: 60 km/h relative speed
 
     def violations(self, values: Mapping[str, float]) -> list[str]:
         """The actor knob values beyond these conditions, each with its bound (empty: inside; knobs not given
         count as their default)."""
         decel = float(values.get("lead_decel", ACTOR_KNOBS["lead_decel"].default))
         ttc = float(values.get("cut_in_ttc", ACTOR_KNOBS["cut_in_ttc"].default))
+        rel = float(values.get("cut_in_relative_speed", ACTOR_KNOBS["cut_in_relative_speed"].default))
         out = []
         if decel > self.max_lead_decel:
             out.append(f"lead_decel {decel:g} m/s^2 > {self.max_lead_decel:g}")
         if ttc < self.min_cut_in_ttc:
             out.append(f"cut_in_ttc {ttc:g} s < {self.min_cut_in_ttc:g}")
+        if rel > self.max_cut_in_relative_speed + 1e-9:
+            out.append(f"cut_in_relative_speed {rel:g} m/s > {self.max_cut_in_relative_speed:g}")
         return out
 
     def contains(self, values: Mapping[str, float]) -> bool:
@@ -171,7 +181,7 @@ class TrafficConditions:
         return not self.violations(values)
 
 
-TRAFFIC_FIELDS = ("max_lead_decel", "min_cut_in_ttc")
+TRAFFIC_FIELDS = ("max_lead_decel", "min_cut_in_ttc", "max_cut_in_relative_speed")
 
 
 def parse_traffic_conditions(table: object, where: str = "odd.traffic") -> TrafficConditions:
@@ -186,7 +196,9 @@ def parse_traffic_conditions(table: object, where: str = "odd.traffic") -> Traff
                           0.0, ACTOR_KNOBS["lead_decel"].high, "m/s^2")
     ttc = ranges.number(table.get("min_cut_in_ttc", base.min_cut_in_ttc), f"{where}.min_cut_in_ttc",
                         ACTOR_KNOBS["cut_in_ttc"].low, ACTOR_KNOBS["cut_in_ttc"].high, "s")
-    return TrafficConditions(float(decel), float(ttc))
+    rel = ranges.number(table.get("max_cut_in_relative_speed", base.max_cut_in_relative_speed),
+                        f"{where}.max_cut_in_relative_speed", 0.0, ACTOR_KNOBS["cut_in_relative_speed"].high, "m/s")
+    return TrafficConditions(float(decel), float(ttc), float(rel))
 
 
 def pick_cut_in(candidates: Iterable[tuple[int, float, float]], ttc: float) -> tuple[int, float, float] | None:

@@ -139,11 +139,12 @@ def _actor_knob(name: str) -> KnobSpec:
 
 #: Actor knobs that act step by step (issue 32): ``lead_decel`` > 0 makes the vehicle ahead of the ego brake at
 #: that deceleration for as long as it stays > 0; ``cut_in_ttc`` below its default makes a slower neighbour cut
-#: in ahead of the ego into a gap of that time-to-collision; two of CARLA TrafficManager's per-vehicle parameters
-#: set the surrounding traffic's behaviour (docs/actors.md). The others in ``actor_knobs`` are declared but not
-#: yet turned by the step loop.
+#: in ahead of the ego into a gap of that time-to-collision (``cut_in_relative_speed`` > 0: the neighbour slows
+#: to that much below the ego's speed first, so that such a gap comes); two of CARLA TrafficManager's
+#: per-vehicle parameters set the surrounding traffic's behaviour (docs/actors.md). The others in
+#: ``actor_knobs`` are declared but not yet turned by the step loop.
 STEP_ACTOR_KNOBS: tuple[str, ...] = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference",
-                                     "ignore_lights_percentage")
+                                     "ignore_lights_percentage", "cut_in_relative_speed")
 for _name in STEP_ACTOR_KNOBS:
     KNOBS[_name] = _actor_knob(_name)
 

@@ -21,7 +21,8 @@ from genesis_rl.lite.actors import CUT_IN_DURATION, cut_in_offset, cut_in_start_
 
 
 def test_tm_names_and_sources_are_declared_and_only_lead_decel_and_the_cut_in_are_turned():
-    turned = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage")
+    turned = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage",
+              "cut_in_relative_speed")
     for name in ("lead_decel", "lead_brake_onset", "cut_in_ttc", "cut_in_onset", "distance_to_leading_vehicle",
                  "vehicle_percentage_speed_difference", "ignore_lights_percentage", "auto_lane_change",
                  "random_left_lanechange_percentage", "random_right_lanechange_percentage"):

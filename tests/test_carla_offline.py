@@ -87,7 +87,8 @@ WEATHER_KNOBS = weather_knob_names()  # the actor knobs (lead_decel, cut_in_ttc)
 def test_knobs_are_exactly_the_weather_parameters_fields():
     assert set(carla_weather_fields()) == set(WEATHER_KNOBS)
     assert len(WEATHER_KNOBS) == 14 and set(KNOBS) - set(WEATHER_KNOBS) == {
-        "lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage"}
+        "lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage",
+        "cut_in_relative_speed"}
 
 
 @pytest.mark.parametrize("name", sorted(WEATHER_KNOBS))

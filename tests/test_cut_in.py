@@ -224,3 +224,62 @@ def test_with_the_cut_in_the_agent_also_observes_the_neighbour_a_tester_would_cu
         assert row[at + 1] == pytest.approx(0.5 + 0.5 * (ego_speed - neighbour.speed) / SPEED_SCALE, abs=1e-6)
     finally:
         env.close()
+
+
+def _prepared_cut_in(relative_speed: float, steps: int = 400, release_at: int | None = None):
+    """Seeded highway scene 2 of 8 (its traffic keeps the ego's pace: no gap closes on its own), the ego on
+    lite's autopilot at up to 22 m/s, a cut-in asked at R157's 1.64 s with ``relative_speed``; speeds and
+    accelerations of every vehicle per step."""
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+
+    scene = generate_catalog("highway", 8, 3).scenes[2]
+    sim = LiteBackend().create_simulation(scene, seed=0, render=False)
+    tr = sim.traffic
+    tr.drive_ego_on_autopilot(22.0)
+    speeds, accels, lanes = [], [], []
+    for k in range(steps):
+        ttc = KNOBS["cut_in_ttc"].default if release_at is not None and k >= release_at else 1.64
+        tr.set_cut_in(ttc, KNOBS["cut_in_ttc"].default, relative_speed)
+        sim.tick()
+        speeds.append(tr.v.copy())
+        accels.append(tr.accel.copy())
+        lanes.append(tr.lane.copy())
+    events = sim.actor_events()
+    sim.destroy()
+    return tr, events, np.array(speeds), np.array(accels), np.array(lanes)
+
+
+def test_a_neighbour_gets_ready_at_the_relative_speed_asked_so_a_short_cut_in_can_come():
+    """Without ``cut_in_relative_speed`` no gap in this scene closes and no cut-in comes. At 10 m/s the nearest
+    neighbour ahead slows (never harder than its comfortable deceleration), its gap closes at up to that
+    speed, and it crosses at R157's 1.64 s; the cutter then holds the speed it crossed at."""
+    _, events, *_ = _prepared_cut_in(0.0)
+    assert events == []
+    tr, events, speeds, accels, lanes = _prepared_cut_in(10.0)
+    assert len(events) >= 2
+    for e in events:
+        assert 1.64 - 0.25 <= e.ttc_s <= 1.64 and e.ttc_s == pytest.approx(e.gap_m / e.closing_m_s)
+    # one of them came at the relative speed asked (within the 1 s the cutter takes to settle)
+    assert max(e.closing_m_s for e in events) == pytest.approx(10.0, abs=0.6)
+    _, _, _, accels_alone, _ = _prepared_cut_in(0.0, steps=20)
+    for e in events:
+        i, k = e.vehicle_id, round(e.onset_s / DT) - 1
+        # in the first second the scene's own gaps settle (IDM brakes as hard without the knob)
+        np.testing.assert_allclose(accels[:4, i], accels_alone[:4, i])
+        before = accels[20:k, i]
+        assert before.min() >= -tr.b_comf[i] - 1e-9  # it got ready braking comfortably, not hard
+        assert i in tr.cut_in_speed_caps or e is not events[-1]
+    last = events[-1]
+    i, k = last.vehicle_id, round(last.onset_s / DT)
+    in_lane = np.nonzero(lanes[k:, i] == lanes[k:, 0])[0]
+    assert len(in_lane) > 20
+    held = speeds[k + in_lane[0]:k + in_lane[0] + 20, i]
+    assert np.ptp(held) < 0.3 and held[0] == pytest.approx(tr.cut_in_speed_caps[i], abs=0.3)
+
+
+def test_with_the_knob_back_at_its_default_every_vehicle_held_drives_on():
+    tr, events, speeds, _, _ = _prepared_cut_in(10.0, steps=300, release_at=200)
+    assert events and tr.cut_in_speed_caps == {}
+    i = events[-1].vehicle_id
+    assert speeds[-1, i] > speeds[199, i] + 1.0  # released, it speeds up again toward its own target

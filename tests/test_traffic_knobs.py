@@ -169,3 +169,47 @@ def test_a_carla_backend_now_realises_the_cut_in_and_the_traffic_knobs():
 
     for name in ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage"):
         assert name in CarlaBackend.actor_knobs
+
+
+def test_on_carla_a_neighbour_gets_ready_at_the_relative_speed_and_is_let_go_at_the_default():
+    """``cut_in_relative_speed``: the nearest neighbour ahead is given a desired speed that much under the ego's
+    (km/h, the traffic manager's unit), the cutter keeps the speed it crosses at, and at the knob's default
+    each vehicle held gets the traffic's speed difference back (which clears a desired speed in CARLA's TM)."""
+    from genesis_rl.carla_backend.actor_control import CutIn, Neighbour
+
+    tm, cut = _RecordingTM(), CutIn()
+    actors, offsets = {4: "actor4", 7: "actor7"}, {4: 3.5, 7: 3.5}
+    near = [Neighbour(4, 40.0, 0.0, True), Neighbour(7, 25.0, 0.1, False)]  # the traffic's pace: nothing closes
+
+    def step(t: float, ttc: float = 1.64, rel: float = 8.0, ego: float = 20.0) -> None:
+        cut.step(tm, ttc, 10.0, t, lambda: near, actors.get, offsets.get, rel, ego, 15.0)
+
+    step(0.0, rel=0.0)
+    assert tm.calls == [] and cut.preparing == -1  # at 0 the traffic alone decides, as before
+    step(0.05)
+    assert tm.calls == [("set_desired_speed", "actor7", pytest.approx(3.6 * 12.0))] and cut.preparing == 7
+    step(0.10, ego=20.1)  # within a quarter of a m/s: not sent again
+    assert len(tm.calls) == 1
+    near = [Neighbour(4, 40.0, 0.0, True), Neighbour(7, 12.0, 8.0, False)]  # 1.5 s: in R157's window
+    step(0.15)
+    assert tm.calls[-2:] == [("force_lane_change", "actor7", False), ("set_desired_speed", "actor7",
+                                                                      pytest.approx(3.6 * 12.0))]
+    assert cut.held == {7: pytest.approx(12.0)} and cut.preparing == -1
+    (e,) = cut.events()
+    assert e.closing_m_s == 8.0 and e.ttc_s == pytest.approx(1.5)
+    offsets[7] = 0.2
+    step(0.20, ttc=10.0)  # the knob back at its default: let go
+    assert tm.calls[-1] == ("vehicle_percentage_speed_difference", "actor7", 15.0) and cut.held == {}
+    assert not cut.wanted(10.0, 10.0)
+
+
+def test_the_odd_bounds_the_cut_ins_relative_speed_and_names_the_field(tmp_path):
+    from genesis_rl.actor_knobs import TrafficConditions, parse_traffic_conditions
+    from genesis_rl.errors import UserInputError
+
+    assert TrafficConditions().max_cut_in_relative_speed == pytest.approx(16.67, abs=0.01)  # R157: 60 km/h
+    tc = parse_traffic_conditions({"max_cut_in_relative_speed": 5.0})
+    assert tc.violations({"cut_in_relative_speed": 6.0}) == ["cut_in_relative_speed 6 m/s > 5"]
+    assert tc.contains({"cut_in_relative_speed": 5.0}) and tc.contains({})
+    with pytest.raises(UserInputError, match="max_cut_in_relative_speed"):
+        parse_traffic_conditions({"max_cut_in_relative_speed": 25.0})

@@ -15,6 +15,11 @@ vehicles ahead in the ego's neighbouring lanes, and asks the traffic manager to 
 (``force_lane_change(actor, direction)``: True is the lane on the right, as the traffic manager's keep-right
 rule uses it in ``LocalizationStage``). The traffic manager then changes lanes when it finds room; the event's
 onset is when it was asked, and a careful driver can perceive it once the car has wandered 0.375 m.
+With ``cut_in_relative_speed`` > 0 the nearest of those vehicles first gets ready: the traffic manager is given
+its desired speed, that much under the ego's (``set_desired_speed``, km/h), so its gap closes as on lite; the
+cutter keeps the speed it crossed at until the knob is back at its default, when each vehicle held is given
+the traffic's ``vehicle_percentage_speed_difference`` again (which clears a desired speed in the traffic
+manager's ``Parameters::SetPercentageSpeedDifference``).
 
 :class:`TrafficBehaviour` sends ``vehicle_percentage_speed_difference`` and ``ignore_lights_percentage`` to the
 traffic manager for every NPC when a value changes (nothing at their defaults).
@@ -32,7 +37,7 @@ from genesis_rl.sim.interface import ActorEvent, LeadInfo
 
 #: the actor knobs a CARLA simulation realises
 CARLA_ACTOR_KNOBS: tuple[str, ...] = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference",
-                                      "ignore_lights_percentage")
+                                      "ignore_lights_percentage", "cut_in_relative_speed")
 #: the traffic manager's per-vehicle calls, under the knobs' own names, with the knobs' defaults
 TM_BEHAVIOUR_KNOBS: dict[str, float] = {"vehicle_percentage_speed_difference": 0.0, "ignore_lights_percentage": 0.0}
 
@@ -88,6 +93,10 @@ class Neighbour:
     to_right: bool
 
 
+#: how far ahead a neighbour may be to get ready for a cut-in [m] (lite's ``LEAD_RANGE``)
+NEIGHBOUR_RANGE_M = 80.0
+
+
 class CutIn:
     """State of the ``cut_in_ttc`` knob on one CARLA episode: the running cut-in (scene index, -1: none) and
     the events so far (the same fields as lite's, ``sim.interface.ActorEvent``)."""
@@ -96,17 +105,22 @@ class CutIn:
         self.vehicle = -1
         self._events: list[ActorEvent] = []
         self._offset0 = 0.0  # how far the running cut-in's car had to go into the ego's lane [m]
+        self.preparing = -1  # the vehicle slowed by ``cut_in_relative_speed`` to get ready (-1: none)
+        self.held: dict[int, float] = {}  # vehicles given a desired speed [m/s] by this knob
 
     def wanted(self, ttc: float, off: float) -> bool:
-        """Whether ``step`` has anything to do: a cut-in runs, or the knob asks for one."""
-        return self.vehicle >= 0 or ttc < off - 1e-9
+        """Whether ``step`` has anything to do: a cut-in runs, a vehicle is held, or the knob asks for one."""
+        return self.vehicle >= 0 or bool(self.held) or ttc < off - 1e-9
 
     def step(self, tm: Any, ttc: float, off: float, now: float, neighbours: Callable[[], list[Neighbour]],
-             actor: Callable[[int], Any | None], offset: Callable[[int], float | None]) -> None:
+             actor: Callable[[int], Any | None], offset: Callable[[int], float | None],
+             relative_speed: float = 0.0, ego_speed: float = 0.0, speed_difference_pct: float = 0.0) -> None:
         """Before a tick at episode time ``now``: follow the running cut-in (perceivable once the car has
         wandered ``CUT_IN_WANDER_M`` toward the ego's lane, over once it is within 0.5 m of the lane's centre
         line), else, when the knob asks for one (``ttc`` below ``off``), pick the car and ask ``tm`` to move it.
-        ``offset(i)``: vehicle i's distance [m] from the centre line of the ego's lane (None: gone)."""
+        ``offset(i)``: vehicle i's distance [m] from the centre line of the ego's lane (None: gone).
+        ``relative_speed`` > 0 while nobody is suitable: the nearest neighbour ahead is slowed to that much
+        under ``ego_speed`` [m/s]; at ``off`` every vehicle held gets ``speed_difference_pct`` back."""
         if self.vehicle >= 0:
             ev = self._events[-1]
             d = offset(self.vehicle)
@@ -117,11 +131,16 @@ class CutIn:
                     self._events[-1] = replace(ev, perceivable_s=now)
                 if d < 0.5:
                     self.vehicle = -1
-        if ttc >= off - 1e-9 or self.vehicle >= 0:
+        if ttc >= off - 1e-9:
+            self._release(tm, actor, list(self.held), speed_difference_pct)
+            self.preparing = -1
+            return
+        if self.vehicle >= 0:
             return
         near = {n.vehicle: n for n in neighbours()}
         pick = pick_cut_in(((n.vehicle, n.gap, n.closing) for n in near.values()), ttc)
         if pick is None:
+            self._prepare(tm, actor, near, relative_speed, ego_speed, speed_difference_pct)
             return
         j, gap, closing = pick
         a, d0 = actor(j), offset(j)
@@ -130,6 +149,39 @@ class CutIn:
         tm.force_lane_change(a, near[j].to_right)
         self.vehicle, self._offset0 = j, d0
         self._events.append(ActorEvent("cut_in", j, now, None, gap / closing, gap, closing))
+        if j == self.preparing:  # R157's cutter keeps its speed across
+            self._hold(tm, a, j, max(0.0, ego_speed - closing))
+            self.preparing = -1
+
+    def _prepare(self, tm: Any, actor: Callable[[int], Any | None], near: Mapping[int, Neighbour],
+                 relative_speed: float, ego_speed: float, speed_difference_pct: float) -> None:
+        ahead = {j: n.gap for j, n in near.items() if 1.0 < n.gap < NEIGHBOUR_RANGE_M}
+        j = self.preparing
+        if relative_speed <= 0.0 or j not in ahead:
+            self._release(tm, actor, [j] if j >= 0 else [], speed_difference_pct)
+            j = self.preparing = -1
+        if relative_speed <= 0.0 or not ahead:
+            return
+        if j < 0:
+            j = min(ahead, key=ahead.__getitem__)
+        a = actor(j)
+        if a is None:
+            return
+        self.preparing = j
+        target = max(0.0, ego_speed - relative_speed)
+        if abs(self.held.get(j, math.inf) - target) > 0.25:  # one call per quarter m/s, not one per tick
+            self._hold(tm, a, j, target)
+
+    def _hold(self, tm: Any, a: Any, j: int, speed: float) -> None:
+        tm.set_desired_speed(a, 3.6 * speed)
+        self.held[j] = speed
+
+    def _release(self, tm: Any, actor: Callable[[int], Any | None], vehicles: list[int], pct: float) -> None:
+        for j in vehicles:
+            a = actor(j)
+            if a is not None:
+                tm.vehicle_percentage_speed_difference(a, pct)
+            self.held.pop(j, None)
 
     def events(self) -> list[ActorEvent]:
         return list(self._events)

@@ -496,9 +496,12 @@ class CarlaSimulation(Simulation):
         ttc, off = float(self._weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default
         if self._actors and self._cut_in.wanted(ttc, off):
             b.call("changing a neighbour's lane (cut_in_ttc)", self._cut_in.step, self._tm, ttc, off, now,
-                   self._neighbours, self._actors.get, self._offset_from_ego_lane)
+                   self._neighbours, self._actors.get, self._offset_from_ego_lane,
+                   float(self._weather["cut_in_relative_speed"]), float(np.linalg.norm(self._velocity(0))),
+                   float(self._weather["vehicle_percentage_speed_difference"]))
         if self._actors and self._traffic_behaviour.changed(self._weather.values):
-            npcs = [a for i, a in sorted(self._actors.items()) if i != 0 and i != self._lead_braking.vehicle]
+            npcs = [a for i, a in sorted(self._actors.items())  # held ones keep their speed until released
+                    if i != 0 and i != self._lead_braking.vehicle and i not in self._cut_in.held]
             b.call("setting the traffic's behaviour (traffic manager)", self._traffic_behaviour.apply, self._tm,
                    self._weather.values, npcs)
         if self._control != self._applied_control:

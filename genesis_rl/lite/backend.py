@@ -58,7 +58,8 @@ class LiteSimulation(Simulation):
         """Every knob for the next frame; actor knobs (``lite = 'traffic'``) act on the traffic from the next tick."""
         super().set_weather(weather)
         self.traffic.set_lead_braking(float(weather["lead_decel"]))
-        self.traffic.set_cut_in(float(weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default)
+        self.traffic.set_cut_in(float(weather["cut_in_ttc"]), KNOBS["cut_in_ttc"].default,
+                                float(weather["cut_in_relative_speed"]))
         self.traffic.set_traffic_behaviour(float(weather["vehicle_percentage_speed_difference"]),
                                            float(weather["ignore_lights_percentage"]))
 
@@ -122,7 +123,8 @@ class LiteBackend(Backend):
     name = "lite"
     catalog_kind = "lite"
     #: Traffic.set_lead_braking, .set_cut_in, .set_traffic_behaviour
-    actor_knobs = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage")
+    actor_knobs = ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage",
+                   "cut_in_relative_speed")
     #: Bumped whenever a change to the renderer changes pixels (records keep it: replay says when it
     #: differs, since the detector then sees slightly different frames). 2: tiled, two-level static scene.
     #: 3: roads and markings on simplified polylines, coarser ground in far blocks (<= 0.14 % of pixels).

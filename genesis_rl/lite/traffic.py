@@ -131,6 +131,10 @@ class Traffic:
         #: replaced once the cutter has wandered far enough to be perceived
         self._events: list[ActorEvent] = []
         self._cut_in_offset0 = 0.0  # how far the running cut-in's car had to go into the ego's lane [m]
+        #: ``cut_in_relative_speed``: the speed [m/s] each vehicle a cut-in slowed is held to (none unless the knob
+        #: is above 0, so episodes without it are as before); the one getting ready, -1: none
+        self.cut_in_speed_caps: dict[int, float] = {}
+        self._cut_in_preparing = -1
         self._contacts: set[tuple[int, int]] = set()
         sig = [ln.signal or (-1, 0) for ln in road_map.lanes]
         self._lane_sig_j = np.array([j for j, _ in sig], dtype=np.int64)
@@ -295,21 +299,51 @@ class Traffic:
             self._speed_factor = factor
         self.ignore_lights = float(ignore_lights_pct)
 
-    def set_cut_in(self, ttc: float, off: float) -> None:
+    def set_cut_in(self, ttc: float, off: float, relative_speed: float = 0.0) -> None:
         """The ``cut_in_ttc`` actor knob: below ``off`` (its default), the nearest slower vehicle ahead in a
         neighbouring lane of the ego's starts a lane change in front of the ego once the gap it would cut
         into closes to ``ttc`` seconds at the current closing speed (within ``CUT_IN_TTC_WINDOW`` below it).
         One cut-in at a time: the next may start once the cutter is in the ego's lane. Nobody suitable:
-        nothing happens (the knob asks, the traffic decides whether it can)."""
-        if ttc >= off - 1e-9 or (self.forced_cut_in is not None and not self._cut_in_done()):
+        nothing happens (the knob asks, the traffic decides whether it can).
+
+        ``relative_speed`` > 0 (the ``cut_in_relative_speed`` knob): while nobody is suitable, the nearest
+        vehicle ahead one lane over gets ready: it slows, at most at its comfortable deceleration, to that much
+        under the ego's speed, so its gap closes at R157's kind of relative speed until it reaches ``ttc``. The
+        cutter then holds the speed it crossed at (R157's cutter keeps its speed) until the knob is back at
+        ``off``, when every vehicle it held drives on as its autopilot wants."""
+        if ttc >= off - 1e-9:
+            self.cut_in_speed_caps.clear()
+            self._cut_in_preparing = -1
+            return
+        if self.forced_cut_in is not None and not self._cut_in_done():
             return
         candidate = self._cut_in_candidate(ttc)
         if candidate is None:
+            self._prepare_cut_in(relative_speed)
             return
         j, gap, closing = candidate
         self.forced_cut_in = (j, self._episode_time)
         self._events.append(ActorEvent("cut_in", j, self._episode_time, None, gap / closing, gap, closing))
         self._cut_in_offset0 = 0.0  # set when the car starts across (``_start_cut_in``)
+        if j == self._cut_in_preparing:
+            self.cut_in_speed_caps[j] = float(self.v[j])
+            self._cut_in_preparing = -1
+
+    def _prepare_cut_in(self, relative_speed: float) -> None:
+        """Slow the nearest vehicle ahead one lane over to ``relative_speed`` under the ego's speed (see
+        ``set_cut_in``); 0 lets the one getting ready go."""
+        ahead = {j: gap for j, gap, _ in self._beside_ahead() if 1.0 < gap < LEAD_RANGE and j not in self.scripted}
+        j = self._cut_in_preparing
+        if relative_speed <= 0.0 or not ahead or j not in ahead:
+            self.cut_in_speed_caps.pop(j, None)
+            j = -1
+        if relative_speed <= 0.0 or not ahead:
+            self._cut_in_preparing = -1
+            return
+        if j < 0:
+            j = min(ahead, key=ahead.__getitem__)
+        self._cut_in_preparing = j
+        self.cut_in_speed_caps[j] = max(0.0, float(self.v[0]) - float(relative_speed))
 
     def _beside_ahead(self) -> list[tuple[int, float, float]]:
         """(vehicle, bumper gap [m], speed along the ego's heading [m/s]) of every vehicle in a neighbouring
@@ -393,6 +427,8 @@ class Traffic:
                 - 0.0004 * v_e * v_e
             )
             delta[0] = c.steer * MAX_STEER * -1.0  # CARLA: positive steer turns right (clockwise)
+        for i, cap in self.cut_in_speed_caps.items():  # toward the held speed within 1 s, braking comfortably
+            acc[i] = min(acc[i], max(-self.b_comf[i], cap - self.v[i]))
         if self.forced_braking is not None:
             i, decel, onset = self.forced_braking
             # brake for the part of this step after onset, so the profile does not depend on dt

@@ -162,6 +162,9 @@ class ODD:
         if self.traffic is not None:  # only then, so domains without one describe as before
             d["traffic"] = {"max_lead_decel": self.traffic.max_lead_decel,
                             "min_cut_in_ttc": self.traffic.min_cut_in_ttc}
+            base = TrafficConditions().max_cut_in_relative_speed
+            if self.traffic.max_cut_in_relative_speed != base:  # likewise: campaigns before 0.24 resume
+                d["traffic"]["max_cut_in_relative_speed"] = self.traffic.max_cut_in_relative_speed
         return d
 
 
