@@ -35,7 +35,7 @@ from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timelin
 from genesis_rl.evaluation.report_natural import section as natural_section
 from genesis_rl.evaluation.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
 from genesis_rl.io_utils import os_error_message, read_json
-from genesis_rl.knobs import PAPER_KNOBS, Weather
+from genesis_rl.knobs import KNOBS, PAPER_KNOBS, Weather
 from genesis_rl.rules.rulebook import Rulebook
 from genesis_rl.step_record import StepRecord
 from genesis_rl.viz.frames import annotate_frame
@@ -92,6 +92,10 @@ def fig_comparison(summary: dict[str, Any], rulebook: Rulebook) -> str:
     return _png(fig)
 
 
+#: knob trajectory panels per row of the report's figure
+KNOB_PLOTS_PER_ROW = 5
+
+
 def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[str]) -> str | None:
     import matplotlib.pyplot as plt
     series: dict[str, np.ndarray] = {}
@@ -109,15 +113,20 @@ def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[s
             series[policy] = np.stack([r[:n] for r in runs])  # (episodes, steps, knobs)
     if not series:
         return None
-    fig, axes = plt.subplots(1, len(knobs), figsize=(3.1 * len(knobs), 2.9), squeeze=False)
+    cols = min(len(knobs), KNOB_PLOTS_PER_ROW)  # wrapped, so that ten knobs stay readable on a page
+    nrows = -(-len(knobs) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.1 * cols, 2.9 * nrows), squeeze=False)
+    for ax in axes.flat[len(knobs):]:
+        ax.set_visible(False)
     for j, knob in enumerate(knobs):
-        ax = axes[0, j]
+        ax = axes[j // cols, j % cols]
         for k, (policy, arr) in enumerate(series.items()):
             t = np.arange(arr.shape[1]) * 0.05
             ax.plot(t, arr[:, :, j].mean(axis=0), color=_color(policy, k), label=policy, lw=1.6)
             ax.fill_between(t, np.quantile(arr[:, :, j], 0.1, axis=0), np.quantile(arr[:, :, j], 0.9, axis=0),
                             color=_color(policy, k), alpha=0.15, lw=0)
-        ax.set_title(knob.replace("_", " "), fontsize=9)
+        unit = KNOBS[knob].unit if knob in KNOBS else ""
+        ax.set_title(knob.replace("_", " ") + (f" [{unit}]" if unit else ""), fontsize=9)
         ax.set_xlabel("time [s]")
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
