@@ -29,6 +29,9 @@ CUT_IN_TTC_WINDOW = 0.25
 #: UN R157 Annex 4 Appendix 3's lateral wandering distance [m]: a careful driver can perceive a cut-in once the
 #: cutter has moved this far toward the ego's lane
 CUT_IN_WANDER_M = 0.375
+#: a neighbour that ``cut_in_relative_speed`` slows keeps at least this share of its own target speed (lite) or
+#: of its speed limit (CARLA): it gets ready by slowing, not by stopping beside a slow ego
+CUT_IN_SPEED_FLOOR = 0.5
 
 
 @dataclass(frozen=True)

@@ -173,32 +173,45 @@ def test_a_carla_backend_now_realises_the_cut_in_and_the_traffic_knobs():
 
 def test_on_carla_a_neighbour_gets_ready_at_the_relative_speed_and_is_let_go_at_the_default():
     """``cut_in_relative_speed``: the nearest neighbour ahead is given a desired speed that much under the ego's
-    (km/h, the traffic manager's unit), the cutter keeps the speed it crosses at, and at the knob's default
-    each vehicle held gets the traffic's speed difference back (which clears a desired speed in CARLA's TM)."""
+    (km/h, the traffic manager's unit) but not under half its speed limit, the cutter keeps the speed it crosses
+    at, and at the knob's default each vehicle held gets the traffic's speed difference back (which clears a
+    desired speed in CARLA's TM)."""
     from genesis_rl.carla_backend.actor_control import CutIn, Neighbour
 
+    class _Car:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+        def get_speed_limit(self) -> float:
+            return 90.0  # km/h: 25 m/s, so never slowed under 12.5 m/s
+
+        def __eq__(self, other: object) -> bool:
+            return other == self.name
+
     tm, cut = _RecordingTM(), CutIn()
-    actors, offsets = {4: "actor4", 7: "actor7"}, {4: 3.5, 7: 3.5}
+    actors, offsets = {4: _Car("actor4"), 7: _Car("actor7")}, {4: 3.5, 7: 3.5}
     near = [Neighbour(4, 40.0, 0.0, True), Neighbour(7, 25.0, 0.1, False)]  # the traffic's pace: nothing closes
 
-    def step(t: float, ttc: float = 1.64, rel: float = 8.0, ego: float = 20.0) -> None:
+    def step(t: float, ttc: float = 1.64, rel: float = 6.0, ego: float = 20.0) -> None:
         cut.step(tm, ttc, 10.0, t, lambda: near, actors.get, offsets.get, rel, ego, 15.0)
 
     step(0.0, rel=0.0)
     assert tm.calls == [] and cut.preparing == -1  # at 0 the traffic alone decides, as before
     step(0.05)
-    assert tm.calls == [("set_desired_speed", "actor7", pytest.approx(3.6 * 12.0))] and cut.preparing == 7
+    assert tm.calls == [("set_desired_speed", "actor7", pytest.approx(3.6 * 14.0))] and cut.preparing == 7
     step(0.10, ego=20.1)  # within a quarter of a m/s: not sent again
     assert len(tm.calls) == 1
+    step(0.15, rel=12.0)  # 8 m/s wanted, 12.5 m/s at least: half its speed limit
+    assert tm.calls[-1] == ("set_desired_speed", "actor7", pytest.approx(3.6 * 12.5))
     near = [Neighbour(4, 40.0, 0.0, True), Neighbour(7, 12.0, 8.0, False)]  # 1.5 s: in R157's window
-    step(0.15)
+    step(0.20)
     assert tm.calls[-2:] == [("force_lane_change", "actor7", False), ("set_desired_speed", "actor7",
                                                                       pytest.approx(3.6 * 12.0))]
     assert cut.held == {7: pytest.approx(12.0)} and cut.preparing == -1
     (e,) = cut.events()
     assert e.closing_m_s == 8.0 and e.ttc_s == pytest.approx(1.5)
     offsets[7] = 0.2
-    step(0.20, ttc=10.0)  # the knob back at its default: let go
+    step(0.25, ttc=10.0)  # the knob back at its default: let go
     assert tm.calls[-1] == ("vehicle_percentage_speed_difference", "actor7", 15.0) and cut.held == {}
     assert not cut.wanted(10.0, 10.0)
 

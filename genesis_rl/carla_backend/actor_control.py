@@ -16,7 +16,8 @@ vehicles ahead in the ego's neighbouring lanes, and asks the traffic manager to 
 rule uses it in ``LocalizationStage``). The traffic manager then changes lanes when it finds room; the event's
 onset is when it was asked, and a careful driver can perceive it once the car has wandered 0.375 m.
 With ``cut_in_relative_speed`` > 0 the nearest of those vehicles first gets ready: the traffic manager is given
-its desired speed, that much under the ego's (``set_desired_speed``, km/h), so its gap closes as on lite; the
+its desired speed, that much under the ego's but not under half its speed limit (``set_desired_speed``, km/h),
+so its gap closes as on lite; the
 cutter keeps the speed it crossed at until the knob is back at its default, when each vehicle held is given
 the traffic's ``vehicle_percentage_speed_difference`` again (which clears a desired speed in the traffic
 manager's ``Parameters::SetPercentageSpeedDifference``).
@@ -32,7 +33,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in
+from genesis_rl.actor_knobs import CUT_IN_SPEED_FLOOR, CUT_IN_WANDER_M, pick_cut_in
 from genesis_rl.sim.interface import ActorEvent, LeadInfo
 
 #: the actor knobs a CARLA simulation realises
@@ -168,7 +169,7 @@ class CutIn:
         if a is None:
             return
         self.preparing = j
-        target = max(0.0, ego_speed - relative_speed)
+        target = max(CUT_IN_SPEED_FLOOR * float(a.get_speed_limit()) / 3.6, ego_speed - relative_speed)
         if abs(self.held.get(j, math.inf) - target) > 0.25:  # one call per quarter m/s, not one per tick
             self._hold(tm, a, j, target)
 

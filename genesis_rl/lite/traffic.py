@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in
+from genesis_rl.actor_knobs import CUT_IN_SPEED_FLOOR, CUT_IN_WANDER_M, pick_cut_in
 from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.scenes.vehicles import MAKES
@@ -308,9 +308,10 @@ class Traffic:
 
         ``relative_speed`` > 0 (the ``cut_in_relative_speed`` knob): while nobody is suitable, the nearest
         vehicle ahead one lane over gets ready: it slows, at most at its comfortable deceleration, to that much
-        under the ego's speed, so its gap closes at R157's kind of relative speed until it reaches ``ttc``. The
-        cutter then holds the speed it crossed at (R157's cutter keeps its speed) until the knob is back at
-        ``off``, when every vehicle it held drives on as its autopilot wants."""
+        under the ego's speed (never under ``CUT_IN_SPEED_FLOOR`` of its own target speed), so its gap closes at
+        R157's kind of relative speed until it reaches ``ttc``. The cutter then holds the speed it crossed at
+        (R157's cutter keeps its speed) until the knob is back at ``off``, when every vehicle it held drives on
+        as its autopilot wants."""
         if ttc >= off - 1e-9:
             self.cut_in_speed_caps.clear()
             self._cut_in_preparing = -1
@@ -343,7 +344,10 @@ class Traffic:
         if j < 0:
             j = min(ahead, key=ahead.__getitem__)
         self._cut_in_preparing = j
-        self.cut_in_speed_caps[j] = max(0.0, float(self.v[0]) - float(relative_speed))
+        # never under half its own target speed (the least lite's autopilot ever wants): a car that stops
+        # beside a slow ego and then pulls in is no cut-in anyone drives on a motorway
+        floor = CUT_IN_SPEED_FLOOR * float(self.v0_base[j])
+        self.cut_in_speed_caps[j] = max(floor, float(self.v[0]) - float(relative_speed))
 
     def _beside_ahead(self) -> list[tuple[int, float, float]]:
         """(vehicle, bumper gap [m], speed along the ego's heading [m/s]) of every vehicle in a neighbouring
