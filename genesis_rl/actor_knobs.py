@@ -32,6 +32,8 @@ CUT_IN_WANDER_M = 0.375
 #: a neighbour that ``cut_in_relative_speed`` slows keeps at least this share of its own target speed (lite) or
 #: of its speed limit (CARLA): it gets ready by slowing, not by stopping beside a slow ego
 CUT_IN_SPEED_FLOOR = 0.5
+#: how far ahead [m] a neighbour may be to get ready for a cut-in (lite's leader range)
+CUT_IN_PREPARE_RANGE_M = 80.0
 
 
 @dataclass(frozen=True)
@@ -216,6 +218,22 @@ def pick_cut_in(candidates: Iterable[tuple[int, float, float]], ttc: float) -> t
         if ttc - CUT_IN_TTC_WINDOW <= gap / closing <= ttc and (best is None or gap < best[1]):
             best = (int(vehicle), float(gap), float(closing))
     return best
+
+
+def pick_preparing(gaps: Mapping[int, float], current: int) -> int:
+    """The neighbour that gets ready for a cut-in (``cut_in_relative_speed``), from the bumper gap [m] of each
+    vehicle ahead in the ego's neighbouring lanes: ``current`` while it is still ahead within
+    ``CUT_IN_PREPARE_RANGE_M``, else the nearest that is (-1: nobody). One rule for every backend."""
+    ahead = {j: gap for j, gap in gaps.items() if 1.0 < gap < CUT_IN_PREPARE_RANGE_M}
+    if current in ahead:
+        return current
+    return min(ahead, key=ahead.__getitem__) if ahead else -1
+
+
+def preparing_speed(ego_speed: float, relative_speed: float, own_speed: float) -> float:
+    """The speed [m/s] a neighbour getting ready slows to: ``relative_speed`` under the ego's, never under
+    ``CUT_IN_SPEED_FLOOR`` of ``own_speed`` (lite: its target speed; CARLA: its speed limit)."""
+    return max(CUT_IN_SPEED_FLOOR * own_speed, ego_speed - relative_speed)
 
 
 def cut_in_gap(ego_speed: float, cutter_speed: float, ttc: float) -> float:

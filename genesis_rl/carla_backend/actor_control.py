@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-from genesis_rl.actor_knobs import CUT_IN_SPEED_FLOOR, CUT_IN_WANDER_M, pick_cut_in
+from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in, pick_preparing, preparing_speed
 from genesis_rl.sim.interface import ActorEvent, LeadInfo
 
 #: the actor knobs a CARLA simulation realises
@@ -94,10 +94,6 @@ class Neighbour:
     to_right: bool
 
 
-#: how far ahead a neighbour may be to get ready for a cut-in [m] (lite's ``LEAD_RANGE``)
-NEIGHBOUR_RANGE_M = 80.0
-
-
 class CutIn:
     """State of the ``cut_in_ttc`` knob on one CARLA episode: the running cut-in (scene index, -1: none) and
     the events so far (the same fields as lite's, ``sim.interface.ActorEvent``)."""
@@ -156,20 +152,15 @@ class CutIn:
 
     def _prepare(self, tm: Any, actor: Callable[[int], Any | None], near: Mapping[int, Neighbour],
                  relative_speed: float, ego_speed: float, speed_difference_pct: float) -> None:
-        ahead = {j: n.gap for j, n in near.items() if 1.0 < n.gap < NEIGHBOUR_RANGE_M}
-        j = self.preparing
-        if relative_speed <= 0.0 or j not in ahead:
-            self._release(tm, actor, [j] if j >= 0 else [], speed_difference_pct)
-            j = self.preparing = -1
-        if relative_speed <= 0.0 or not ahead:
-            return
-        if j < 0:
-            j = min(ahead, key=ahead.__getitem__)
-        a = actor(j)
+        j = pick_preparing({k: n.gap for k, n in near.items()}, self.preparing) if relative_speed > 0.0 else -1
+        if j != self.preparing:
+            self._release(tm, actor, [self.preparing] if self.preparing >= 0 else [], speed_difference_pct)
+            self.preparing = -1
+        a = actor(j) if j >= 0 else None
         if a is None:
             return
         self.preparing = j
-        target = max(CUT_IN_SPEED_FLOOR * float(a.get_speed_limit()) / 3.6, ego_speed - relative_speed)
+        target = preparing_speed(ego_speed, relative_speed, float(a.get_speed_limit()) / 3.6)
         if abs(self.held.get(j, math.inf) - target) > 0.25:  # one call per quarter m/s, not one per tick
             self._hold(tm, a, j, target)
 

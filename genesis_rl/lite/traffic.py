@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from genesis_rl.actor_knobs import CUT_IN_SPEED_FLOOR, CUT_IN_WANDER_M, pick_cut_in
+from genesis_rl.actor_knobs import CUT_IN_WANDER_M, pick_cut_in, pick_preparing, preparing_speed
 from genesis_rl.lite.collisions import colliding_pairs
 from genesis_rl.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.scenes.vehicles import MAKES
@@ -331,23 +331,16 @@ class Traffic:
             self._cut_in_preparing = -1
 
     def _prepare_cut_in(self, relative_speed: float) -> None:
-        """Slow the nearest vehicle ahead one lane over to ``relative_speed`` under the ego's speed (see
-        ``set_cut_in``); 0 lets the one getting ready go."""
-        ahead = {j: gap for j, gap, _ in self._beside_ahead() if 1.0 < gap < LEAD_RANGE and j not in self.scripted}
-        j = self._cut_in_preparing
-        if relative_speed <= 0.0 or not ahead or j not in ahead:
-            self.cut_in_speed_caps.pop(j, None)
-            j = -1
-        if relative_speed <= 0.0 or not ahead:
-            self._cut_in_preparing = -1
-            return
-        if j < 0:
-            j = min(ahead, key=ahead.__getitem__)
-        self._cut_in_preparing = j
-        # never under half its own target speed (the least lite's autopilot ever wants): a car that stops
-        # beside a slow ego and then pulls in is no cut-in anyone drives on a motorway
-        floor = CUT_IN_SPEED_FLOOR * float(self.v0_base[j])
-        self.cut_in_speed_caps[j] = max(floor, float(self.v[0]) - float(relative_speed))
+        """Slow the neighbour ``actor_knobs.pick_preparing`` names to ``actor_knobs.preparing_speed`` (see
+        ``set_cut_in``); at 0, or with nobody ahead, the one getting ready goes."""
+        gaps = {j: gap for j, gap, _ in self._beside_ahead() if j not in self.scripted}
+        j = pick_preparing(gaps, self._cut_in_preparing) if relative_speed > 0.0 else -1
+        if j != self._cut_in_preparing:
+            self.cut_in_speed_caps.pop(self._cut_in_preparing, None)
+            self._cut_in_preparing = j
+        if j >= 0:
+            self.cut_in_speed_caps[j] = preparing_speed(float(self.v[0]), float(relative_speed),
+                                                        float(self.v0_base[j]))
 
     def _beside_ahead(self) -> list[tuple[int, float, float]]:
         """(vehicle, bumper gap [m], speed along the ego's heading [m/s]) of every vehicle in a neighbouring
