@@ -29,6 +29,11 @@ CUT_IN_TTC_WINDOW = 0.25
 #: UN R157 Annex 4 Appendix 3's lateral wandering distance [m]: a careful driver can perceive a cut-in once the
 #: cutter has moved this far toward the ego's lane
 CUT_IN_WANDER_M = 0.375
+#: how long [s] after a cut-in's onset a careful driver can perceive it (the cutter has wandered ``CUT_IN_WANDER_M``):
+#: lite's lane change, median of the 38 cut-ins of docs/results.md section 11 (quartiles 0.25 and 0.35 s). A
+#: cut-in starts this much before its gap closes to the ``cut_in_ttc`` asked, so that the knob is R157's
+#: time-to-collision, taken at the perceivable moment, not at the onset
+CUT_IN_PERCEIVE_AFTER_S = 0.3
 #: a neighbour that ``cut_in_relative_speed`` slows keeps at least this share of its own target speed (lite) or
 #: of its speed limit (CARLA): it gets ready by slowing, not by stopping beside a slow ego
 CUT_IN_SPEED_FLOOR = 0.5
@@ -83,7 +88,8 @@ ACTOR_KNOBS: dict[str, ActorKnobSpec] = {
            "episode time at which the lead starts braking (30: never within a default episode)",
            "assumed; rate 1 s/s so an onset cannot be pulled earlier faster than time passes"),
         _a("cut_in_ttc", 0.4, 10.0, "s", 10.0, 0.5,
-           "time-to-collision of the gap a neighbour cuts into (ego's speed minus the cutter's, over the gap)",
+           "time-to-collision of the gap a neighbour cuts into (ego's speed minus the cutter's, over the gap), "
+           "when the cut-in becomes perceivable (the cutter 0.375 m across: R157's measure)",
            "UN R157: 0.48/0.71/0.94/1.18/1.41/1.64 s at 10..60 km/h relative speed is what a careful driver "
            "handles; 0.4 s lower bound and 10 s default (a harmless cut-in) assumed; rate assumed"),
         _a("cut_in_relative_speed", 0.0, 20.0, "m/s", 0.0, 1.0,
@@ -208,14 +214,17 @@ def parse_traffic_conditions(table: object, where: str = "odd.traffic") -> Traff
 
 def pick_cut_in(candidates: Iterable[tuple[int, float, float]], ttc: float) -> tuple[int, float, float] | None:
     """The vehicle to cut in for the ``cut_in_ttc`` knob at ``ttc``, from (vehicle, bumper gap [m], closing
-    speed [m/s]) of the vehicles ahead in the ego's neighbouring lanes: the nearest whose gap closes to within
-    ``CUT_IN_TTC_WINDOW`` below ``ttc`` seconds (more than 1 m of gap, closing faster than 0.5 m/s). One rule
-    for every backend: lite's traffic and CARLA's traffic manager cut in the same vehicle."""
+    speed [m/s]) of the vehicles ahead in the ego's neighbouring lanes: the nearest whose time-to-collision
+    once the cut-in is perceivable (``CUT_IN_PERCEIVE_AFTER_S`` from now, at today's closing speed: R157's
+    measure) lies within ``CUT_IN_TTC_WINDOW`` below ``ttc`` seconds (more than 1 m of gap, closing faster
+    than 0.5 m/s). One rule for every backend: lite's traffic and CARLA's traffic manager cut in the same
+    vehicle."""
     best: tuple[int, float, float] | None = None
     for vehicle, gap, closing in candidates:
         if gap <= 1.0 or closing <= 0.5:
             continue
-        if ttc - CUT_IN_TTC_WINDOW <= gap / closing <= ttc and (best is None or gap < best[1]):
+        seen = gap / closing - CUT_IN_PERCEIVE_AFTER_S
+        if ttc - CUT_IN_TTC_WINDOW <= seen <= ttc and (best is None or gap < best[1]):
             best = (int(vehicle), float(gap), float(closing))
     return best
 

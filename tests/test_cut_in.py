@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 
+from genesis_rl.actor_knobs import CUT_IN_PERCEIVE_AFTER_S
 from genesis_rl.evaluation.blame import VISIBILITY_REFERENCE, blame_label, reference_name
 from genesis_rl.evaluation.careful_driver import R157, careful_driver_evidence, event_for_collision
 from genesis_rl.knobs import KNOBS
@@ -121,7 +122,9 @@ def test_a_neighbour_cuts_in_at_the_time_to_collision_the_knob_asks_for():
         assert len(events) == 1
         e = events[0]
         assert e.kind == "cut_in" and e.vehicle_id == 2 and lanes[0] != tr.lane[0]
-        assert 3.0 - 0.25 <= e.ttc_s <= 3.0 and e.ttc_s == pytest.approx(e.gap_m / e.closing_m_s)
+        # the knob is R157's time-to-collision, once the cut-in is perceivable: the onset comes that much sooner
+        assert 3.0 - 0.25 <= e.ttc_s - CUT_IN_PERCEIVE_AFTER_S <= 3.0
+        assert e.ttc_s == pytest.approx(e.gap_m / e.closing_m_s)
         assert e.gap_m > 1.0 and e.closing_m_s > 0.5
         # R157's careful driver perceives it once it has wandered 0.375 m: after the onset, within a second
         assert e.perceivable_s is not None and 0.0 < e.perceivable_s - e.onset_s < 1.0
@@ -161,15 +164,15 @@ def test_the_odd_holds_the_cut_in_at_its_shortest_time_to_collision_and_labels_b
             assert all((s == "outside") == (k < 3.0) for k, s in zip(knob, status, strict=True))
 
 
-def _blind_cut_in_episode(scene: int) -> tuple[list[StepRecord], list[ActorEvent], int | None]:
+def _blind_cut_in_episode(scene: int, lower_steps: int = 200) -> tuple[list[StepRecord], list[ActorEvent], int | None]:
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 
     env = GenesisEnv(EnvConfig(map="highway", scenes=20, knobs=("fog_density", "cut_in_ttc"), dynamics="paper",
                                observation="features", episode_steps=200, system="blind"))
     try:
         env.reset(seed=0, options={"scene": scene, "episode_seed": scene})
-        for _ in range(200):
-            *_, info = env.step(np.array([-1.0, -1.0], np.float32))
+        for k in range(200):  # the knob lowered for ``lower_steps`` steps (5 % of its range each), then held
+            *_, info = env.step(np.array([-1.0, -1.0 if k < lower_steps else 0.0], np.float32))
             if info["collision"]:
                 return list(env.records), env.actor_events(), len(env.records) - 1
         return list(env.records), env.actor_events(), None
@@ -178,13 +181,14 @@ def _blind_cut_in_episode(scene: int) -> tuple[list[StepRecord], list[ActorEvent
 
 
 def test_an_unavoidable_cut_in_is_labelled_unavoidable_and_an_avoidable_one_is_the_systems():
-    """A system that never brakes (``blind``) on two seeded highway scenes, the knob lowered at once: in scene 1
-    the neighbour cuts 2 m ahead (TTC 2.2 s at 0.9 m/s closing) and the careful driver hits it too; in scene 0
-    it cuts in 5 m ahead and the careful driver stops short of it."""
+    """A system that never brakes (``blind``) on two seeded highway scenes: in scene 1, the knob lowered all the
+    way, the neighbour cuts 2 m ahead (0.35 s to collision once perceivable) and the careful driver hits it
+    too; in scene 18, the knob lowered to 2.8 s, it cuts in 6 m ahead (2.8 s once perceivable, 2 m/s closing)
+    and the careful driver stops short of it."""
     from genesis_rl.evaluation.distinct import what_was_hit
 
-    for scene, unavoidable in ((1, True), (0, False)):
-        records, events, hit_at = _blind_cut_in_episode(scene)
+    for scene, lower_steps, unavoidable in ((1, 200, True), (18, 15, False)):
+        records, events, hit_at = _blind_cut_in_episode(scene, lower_steps)
         assert hit_at is not None
         event = event_for_collision(events, records, hit_at)
         assert event is not None and event.kind == "cut_in"
@@ -261,9 +265,12 @@ def test_a_neighbour_gets_ready_at_the_relative_speed_asked_so_a_short_cut_in_ca
     assert events == []
     tr, events, speeds, accels, lanes, caps = _prepared_cut_in(10.0)
     assert events and events[0].vehicle_id == 2
+    assert events[0].closing_m_s > 2.0  # the traffic alone gave none
     for e in events:
-        assert 1.64 - 0.25 <= e.ttc_s <= 1.64 and e.ttc_s == pytest.approx(e.gap_m / e.closing_m_s)
-        assert e.closing_m_s > 2.0  # the traffic alone gave none
+        assert 1.64 - 0.25 <= e.ttc_s - CUT_IN_PERCEIVE_AFTER_S <= 1.64
+        assert e.ttc_s == pytest.approx(e.gap_m / e.closing_m_s)
+        # measured where R157 measures it (the cutter 0.375 m across): within 0.1 s of the window asked
+        assert 1.64 - 0.25 - 0.1 <= e.perceived_ttc_s <= 1.64 + 0.1
     _, _, _, accels_alone, _, _ = _prepared_cut_in(0.0, steps=20)
     e = events[0]
     i, k = e.vehicle_id, round(e.onset_s / DT) - 1

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from genesis_rl.actor_knobs import pick_cut_in
+from genesis_rl.actor_knobs import CUT_IN_PERCEIVE_AFTER_S, pick_cut_in
 from genesis_rl.knobs import KNOBS
 
 
@@ -102,10 +102,12 @@ def test_the_tm_knobs_at_their_defaults_change_no_bit_of_an_episode():
 
 def test_one_rule_picks_the_car_to_cut_in_on_every_backend():
     cands = [(3, 30.0, 10.0), (4, 8.0, 3.0), (5, 0.5, 2.0), (6, 6.0, 0.3), (7, 5.5, 2.0)]
-    # ttc 3.0 s asks for a gap closing in 2.75..3.0 s: vehicle 7 (2.75 s) and 3 (3.0 s); the nearer wins
-    assert pick_cut_in(cands, 3.0) == (7, 5.5, 2.0)
-    assert pick_cut_in(cands, 2.6) is None  # 2.35..2.6 s: nobody there (4 is at 2.67 s)
-    assert pick_cut_in(cands, 2.7) == (4, 8.0, 3.0)  # too close (0.5 m) and not closing (0.3 m/s) never count
+    # the knob is the time-to-collision once the cut-in is perceivable, 0.3 s after it starts: 2.7 s asks for a
+    # gap closing in 3.0..2.75 s now, vehicle 3 (3.0 s) and 7 (2.75 s); the nearer wins
+    assert CUT_IN_PERCEIVE_AFTER_S == 0.3
+    assert pick_cut_in(cands, 2.7) == (7, 5.5, 2.0)
+    assert pick_cut_in(cands, 2.3) is None  # 2.35..2.6 s now: nobody there (4 is at 2.67 s)
+    assert pick_cut_in(cands, 2.4) == (4, 8.0, 3.0)  # too close (0.5 m) and not closing (0.3 m/s) never count
 
 
 class _RecordingTM:
@@ -124,21 +126,24 @@ def test_on_carla_the_cut_in_asks_the_traffic_manager_to_move_the_car_over_and_f
     offsets = {4: 3.5, 7: 3.5}
     near = [Neighbour(4, 20.0, 2.0, True), Neighbour(7, 9.0, 3.0, False)]  # 10 s and 3 s away
     cut.step(tm, 10.0, 10.0, 0.0, lambda: near, actors.get, offsets.get)  # at its default: nothing
-    cut.step(tm, 5.0, 10.0, 0.05, lambda: near, actors.get, offsets.get)  # nobody within 4.75..5 s
+    cut.step(tm, 5.0, 10.0, 0.05, lambda: near, actors.get, offsets.get)  # nobody within 4.75..5 s once seen
     assert tm.calls == [] and cut.events() == []
-    cut.step(tm, 3.0, 10.0, 0.10, lambda: near, actors.get, offsets.get)
+    cut.step(tm, 3.0, 10.0, 0.10, lambda: near, actors.get, offsets.get)  # 3 s now is 2.7 s once perceivable
+    assert tm.calls == [] and cut.events() == []
+    cut.step(tm, 2.7, 10.0, 0.10, lambda: near, actors.get, offsets.get)  # R157's measure: 2.7 s once seen
     assert tm.calls == [("force_lane_change", "actor7", False)]  # in the right lane: it moves left
     offsets[7] = 3.2  # wandered 0.3 m: not yet perceivable
-    cut.step(tm, 3.0, 10.0, 0.15, lambda: near, actors.get, offsets.get)
+    cut.step(tm, 2.7, 10.0, 0.15, lambda: near, actors.get, offsets.get)
     offsets[7] = 3.0  # 0.5 m: perceivable now
-    cut.step(tm, 3.0, 10.0, 0.20, lambda: near, actors.get, offsets.get)
+    cut.step(tm, 2.7, 10.0, 0.20, lambda: near, actors.get, offsets.get)
     assert len(tm.calls) == 1  # one cut-in at a time
     (e,) = cut.events()
     assert (e.kind, e.vehicle_id, e.onset_s, e.perceivable_s) == ("cut_in", 7, 0.10, 0.20)
     assert e.ttc_s == pytest.approx(3.0) and e.gap_m == 9.0 and e.closing_m_s == 3.0
+    assert e.perceived_ttc_s == pytest.approx((9.0 - 3.0 * 0.1) / 3.0)  # projected from the onset to 0.20 s
     offsets[7] = 0.3  # in the ego's lane: over, the next one may come
     near = [Neighbour(4, 5.8, 2.0, True)]
-    cut.step(tm, 3.0, 10.0, 0.25, lambda: near, actors.get, offsets.get)
+    cut.step(tm, 2.7, 10.0, 0.25, lambda: near, actors.get, offsets.get)
     assert tm.calls[-1] == ("force_lane_change", "actor4", True) and cut.vehicle == 4
 
 
@@ -203,13 +208,13 @@ def test_on_carla_a_neighbour_gets_ready_at_the_relative_speed_and_is_let_go_at_
     assert len(tm.calls) == 1
     step(0.15, rel=12.0)  # 8 m/s wanted, 12.5 m/s at least: half its speed limit
     assert tm.calls[-1] == ("set_desired_speed", "actor7", pytest.approx(3.6 * 12.5))
-    near = [Neighbour(4, 40.0, 0.0, True), Neighbour(7, 12.0, 8.0, False)]  # 1.5 s: in R157's window
+    near = [Neighbour(4, 40.0, 0.0, True), Neighbour(7, 14.4, 8.0, False)]  # 1.8 s, 1.5 s once seen: R157's window
     step(0.20)
     assert tm.calls[-2:] == [("force_lane_change", "actor7", False), ("set_desired_speed", "actor7",
                                                                       pytest.approx(3.6 * 12.0))]
     assert cut.held == {7: pytest.approx(12.0)} and cut.preparing == -1
     (e,) = cut.events()
-    assert e.closing_m_s == 8.0 and e.ttc_s == pytest.approx(1.5)
+    assert e.closing_m_s == 8.0 and e.ttc_s == pytest.approx(1.8)
     offsets[7] = 0.2
     step(0.25, ttc=10.0)  # the knob back at its default: let go
     assert tm.calls[-1] == ("vehicle_percentage_speed_difference", "actor7", 15.0) and cut.held == {}

@@ -125,7 +125,9 @@ class CutIn:
                 self.vehicle = -1
             else:
                 if ev.perceivable_s is None and self._offset0 - d >= CUT_IN_WANDER_M:
-                    self._events[-1] = replace(ev, perceivable_s=now)
+                    # R157's time-to-collision there, projected from the onset's gap at its closing speed
+                    seen = (ev.gap_m - ev.closing_m_s * (now - ev.onset_s)) / ev.closing_m_s
+                    self._events[-1] = replace(ev, perceivable_s=now, perceived_ttc_s=max(seen, 0.0))
                 if d < 0.5:
                     self.vehicle = -1
         if ttc >= off - 1e-9:

@@ -29,6 +29,7 @@ from PIL import Image
 
 from genesis_rl.adversaries.agent import agent_learning_curve
 from genesis_rl.errors import UserInputError
+from genesis_rl.evaluation.actor_summary import cut_in_html
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
 from genesis_rl.evaluation.estimate_files import check_same_system, estimate_line, load_estimate
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
@@ -318,6 +319,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     # 0. natural edge cases (campaigns from 0.6.0 on)
     h.extend(natural_section(folder, summary, rows, lambda p, sc: _steps(folder, p, sc), _png,
                              lambda p, sc, recs: frame_strip(folder, p, sc, recs)))
+    h.extend(cut_in_html(summary["policies"]))
 
     # 1. comparison
     h.append("<h2>1. Violations by policy (paper Fig. 2)</h2>")

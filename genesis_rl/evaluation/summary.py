@@ -10,6 +10,7 @@ import zlib
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.evaluation.actor_summary import cut_in_markdown, cut_in_summary
 from genesis_rl.evaluation.campaign_files import read_campaign_meta, read_episode_row, read_step_records, steps_path
 from genesis_rl.evaluation.distinct import natural_summary
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, LABELLER_VERSION, FailureModeThresholds, label_collision
@@ -101,6 +102,9 @@ def summarize_campaign(folder: Path, write: bool = True,
         natural = natural_summary(policy, eps)
         if natural is not None:
             stats["natural"] = natural
+        cut_ins = cut_in_summary(eps)
+        if cut_ins is not None:
+            stats["cut_ins"] = cut_ins
         policies[policy] = stats
     comparisons: dict[str, Any] = {}
     if "agent" in rows:
@@ -197,6 +201,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             lines.append(f"| {p} | {n['collisions']} | {n['in_odd_collisions']} | {rate} | "
                          f"{n['distinct_in_odd_failures']} | {blame} | {n['naturalness_mean']:.3g} / {fails} | "
                          f"{steps} |")
+    lines += cut_in_markdown(summary["policies"])
     if summary["comparisons"]:
         lines += ["", "| comparison | metric | mean difference [95% CI] | wins / ties / losses | p (sign-flip) |",
                   "| --- | --- | --- | --- | --- |"]

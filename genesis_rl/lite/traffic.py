@@ -10,6 +10,7 @@ pre-impact pose and stopped, never passing through each other.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -390,7 +391,16 @@ class Traffic:
         if ev is None or ev.perceivable_s is not None or self.lane[ev.vehicle_id] != self.lane[0]:
             return
         if self._cut_in_offset0 - abs(self._lateral_offset(ev.vehicle_id)) >= CUT_IN_WANDER_M:
-            self._events[-1] = replace(ev, perceivable_s=self._episode_time)
+            self._events[-1] = replace(ev, perceivable_s=self._episode_time,
+                                       perceived_ttc_s=self._time_to_collision(ev.vehicle_id))
+
+    def _time_to_collision(self, i: int) -> float:
+        """The ego's time-to-collision [s] with vehicle ``i`` now: the bumper gap along the ego's heading over the
+        closing speed (inf when not closing)."""
+        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
+        gap = float((self.x[i] - self.x[0]) * c + (self.y[i] - self.y[0]) * s - 0.5 * (self.length[0] + self.length[i]))
+        closing = float(self.v[0] - self.v[i] * np.cos(self.yaw[i] - self.yaw[0]))
+        return max(gap, 0.0) / closing if closing > 1e-6 else math.inf
 
     def actor_events(self) -> list[ActorEvent]:
         """What the actor knobs made happen so far (see :class:`~genesis_rl.sim.interface.ActorEvent`)."""

@@ -238,7 +238,9 @@ class ActorEvent:
     which vehicle (scene index), when it began [s of episode time] and when a careful driver could first
     perceive it [s] (a cut-in: when the cutter has wandered ``CUT_IN_WANDER_M`` toward the ego's lane; a
     braking lead: the onset, its brake lights come on at once; None: not yet perceivable). ``ttc_s``,
-    ``gap_m`` and ``closing_m_s``: the gap the cut-in was made into, at its onset (NaN for braking)."""
+    ``gap_m`` and ``closing_m_s``: the gap the cut-in was made into, at its onset (NaN for braking).
+    ``perceived_ttc_s``: a cut-in's time-to-collision when it became perceivable, R157's measure (NaN until
+    then, for braking, and in records written before 0.25; written only when known)."""
 
     kind: str  # "cut_in" or "lead_braking"
     vehicle_id: int
@@ -247,12 +249,14 @@ class ActorEvent:
     ttc_s: float = math.nan
     gap_m: float = math.nan
     closing_m_s: float = math.nan
+    perceived_ttc_s: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
         return {"kind": self.kind, "vehicle_id": self.vehicle_id, "onset_s": round(self.onset_s, 4),
                 "perceivable_s": None if self.perceivable_s is None else round(self.perceivable_s, 4),
                 **{k: (None if not math.isfinite(v) else round(v, 4))
-                   for k, v in (("ttc_s", self.ttc_s), ("gap_m", self.gap_m), ("closing_m_s", self.closing_m_s))}}
+                   for k, v in (("ttc_s", self.ttc_s), ("gap_m", self.gap_m), ("closing_m_s", self.closing_m_s))},
+                **({"perceived_ttc_s": round(self.perceived_ttc_s, 4)} if math.isfinite(self.perceived_ttc_s) else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ActorEvent:
@@ -262,7 +266,7 @@ class ActorEvent:
 
         p = d.get("perceivable_s")
         return cls(str(d["kind"]), int(d["vehicle_id"]), float(d["onset_s"]), None if p is None else float(p),
-                   num("ttc_s"), num("gap_m"), num("closing_m_s"))
+                   num("ttc_s"), num("gap_m"), num("closing_m_s"), num("perceived_ttc_s"))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,38 @@
+"""The cut-in table of a campaign's summary (issue 32): counted from crafted episode rows by hand."""
+
+from __future__ import annotations
+
+from genesis_rl.evaluation.actor_summary import cut_in_html, cut_in_markdown, cut_in_summary
+
+
+def _cut(ttc: float, perceived: float | None, closing: float) -> dict:
+    e = {"kind": "cut_in", "vehicle_id": 2, "onset_s": 1.0, "perceivable_s": 1.3, "ttc_s": ttc, "gap_m": ttc * closing,
+         "closing_m_s": closing}
+    if perceived is not None:
+        e["perceived_ttc_s"] = perceived
+    return e
+
+
+def test_cut_ins_are_counted_at_r157s_perceivable_moment_and_older_rows_at_their_onset():
+    braking = {"kind": "lead_braking", "vehicle_id": 3, "onset_s": 2.0, "perceivable_s": 2.0}
+    rows = [{"actor_events": [_cut(1.9, 1.6, 9.8), braking]},
+            {"actor_events": [_cut(5.0, 4.7, 2.0), _cut(2.2, 1.7, 3.0)]}, {"actor_events": []}, {}]
+    s = cut_in_summary(rows)
+    assert s == {"cut_ins": 3, "episodes": 2, "under_4s": 2, "at_r157_boundary": 1, "shortest_ttc_s": 1.6,
+                 "median_ttc_s": 1.7, "largest_closing_m_s": 9.8, "measured_at": "perceivable"}
+    # a 0.24 row has no perceived_ttc_s: its onset's time-to-collision counts, and the table says so
+    old = cut_in_summary([{"actor_events": [_cut(1.6, None, 5.0)]}])
+    assert old is not None and old["at_r157_boundary"] == 1 and old["measured_at"] == "onset"
+    mixed = cut_in_summary([*rows, {"actor_events": [_cut(8.0, None, 1.0)]}])
+    assert mixed is not None and mixed["measured_at"] == "both" and mixed["cut_ins"] == 4
+    assert cut_in_summary([{"actor_events": [braking]}]) is None and cut_in_summary([]) is None
+
+
+def test_the_cut_in_table_appears_only_where_a_policy_made_one():
+    one = cut_in_summary([{"actor_events": [_cut(1.9, 1.6, 9.8)]}])
+    policies = {"random": {"episodes": 2}, "constant": {"cut_ins": one}}
+    md = cut_in_markdown(policies)
+    assert len(md) == 4 and md[-1].startswith("| constant | 1 (1) | 1 | 1 | 1.60 / 1.60 s | 9.8 m/s | perceivable |")
+    page = "".join(cut_in_html(policies))
+    assert "<td class=l>constant</td>" in page and "random" not in page
+    assert cut_in_markdown({"random": {}}) == [] and cut_in_html({"random": {}}) == []
