@@ -294,3 +294,47 @@ def test_with_the_knob_back_at_its_default_every_vehicle_held_drives_on():
     assert events and tr.cut_in_speed_caps == {}
     i = events[-1].vehicle_id
     assert speeds[-1, i] > speeds[199, i] + 1.0  # released, it speeds up again toward its own target
+
+
+def test_a_car_standing_at_an_angle_with_a_corner_in_the_egos_path_is_its_lead():
+    """The ego's lead is measured by the other car's turned body: 15 m ahead, its centre 2.4 m to the side, a
+    car parallel to the ego is beside its path, the same car turned 0.35 rad toward it (a cut-in halfway) puts
+    its front corner in the path."""
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+
+    sim = LiteBackend().create_simulation(generate_catalog("highway", 4, 3).scenes[0], seed=0, render=False)
+    try:
+        tr = sim.traffic
+        tr.steer_angle[:] = 0.0
+        far = np.hypot(tr.x - tr.x[0], tr.y - tr.y[0]) > 200.0
+        tr.x[1:] = np.where(far[1:], tr.x[1:], tr.x[0] + 1e4)  # everyone else out of the way
+        c, s = np.cos(tr.yaw[0]), np.sin(tr.yaw[0])
+        j = 1
+        tr.x[j] = tr.x[0] + 15.0 * c + 2.4 * s  # 15 m ahead, 2.4 m to the right
+        tr.y[j] = tr.y[0] + 15.0 * s - 2.4 * c
+        tr.yaw[j] = tr.yaw[0]
+        assert tr.lead() is None
+        tr.yaw[j] = tr.yaw[0] + 0.35  # turned toward the ego's lane
+        lead = tr.lead()
+        assert lead is not None and lead.vehicle_id == j
+        # the gap is to its nearest corner, not to where its rear bumper would be if it drove parallel
+        half_lon = 0.5 * (tr.length[j] * np.cos(0.35) + tr.width[j] * np.sin(0.35))
+        assert lead.gap == pytest.approx(15.0 - 0.5 * tr.length[0] - half_lon)
+    finally:
+        sim.destroy()
+
+
+def test_a_cut_in_stopped_half_across_is_in_the_path_so_the_careful_driver_avoids_it():
+    """Scene 13: the neighbour cuts in 5.4 s ahead (once perceivable), stops half across for the traffic
+    ahead and a red light, and the blind system drives into its front corner. The careful driver saw it in its
+    path and stops 3.6 m short: the collision is the system's, not unavoidable (0.24 called it a side impact
+    no braking avoids, since lite's lead test measured the turned car as if it drove parallel)."""
+    records, events, hit_at = _blind_cut_in_episode(13)
+    assert hit_at is not None
+    event = event_for_collision(events, records, hit_at)
+    assert event is not None and event.kind == "cut_in" and event.perceived_ttc_s > 5.0
+    assert any(r.lead.vehicle_id == event.vehicle_id for r in records[:hit_at])
+    careful = careful_driver_evidence(records, hit_at, event, DT)
+    assert not careful["collides"] and careful["min_gap_m"] > 3.0
+    assert blame_label({"stoppable": True}, True, careful) == "control"

@@ -169,14 +169,24 @@ class Traffic:
         c, s = np.cos(self.yaw)[:, None], np.sin(self.yaw)[:, None]
         return dx * c + dy * s, -dx * s + dy * c
 
-    def _leaders(self, curvature: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _leaders(self, curvature: np.ndarray, bodies: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For every vehicle: index of the nearest vehicle in its predicted corridor, the bumper gap and
-        that vehicle's speed along the follower's heading (gap = inf when none)."""
+        that vehicle's speed along the follower's heading (gap = inf when none). ``bodies``: measure the other
+        vehicle by its turned body, not as if it drove parallel, so that a car standing at an angle with a
+        corner in the corridor (a cut-in stopped half across) is ahead; the NPCs' autopilot keeps the
+        parallel test it was tuned with."""
         lon, lat = self._frames()
         expected = 0.5 * curvature[:, None] * lon**2
-        half = 0.5 * (self.width[:, None] + self.width[None, :]) + 0.2
+        if bodies:
+            turn = self.yaw[None, :] - self.yaw[:, None]
+            c, s = np.abs(np.cos(turn)), np.abs(np.sin(turn))
+            half_lat = 0.5 * (self.length[None, :] * s + self.width[None, :] * c)
+            half_lon = 0.5 * (self.length[None, :] * c + self.width[None, :] * s)
+        else:
+            half_lat, half_lon = 0.5 * self.width[None, :], 0.5 * self.length[None, :]
+        half = 0.5 * self.width[:, None] + half_lat + 0.2
         same_way = np.cos(self.yaw[None, :] - self.yaw[:, None]) > -0.3
-        gap = lon - 0.5 * (self.length[:, None] + self.length[None, :])
+        gap = lon - 0.5 * self.length[:, None] - half_lon
         cand = (lon > 0) & (lon < LEAD_RANGE) & (np.abs(lat - expected) < half) & same_way
         np.fill_diagonal(cand, False)
         gap = np.where(cand, gap, np.inf)
@@ -186,9 +196,10 @@ class Traffic:
         return j, g, vj
 
     def lead(self) -> LeadInfo | None:
-        """The ego's leader by the same corridor test the NPCs use (ego curvature from its steering)."""
+        """The ego's leader by the corridor test the NPCs use (ego curvature from its steering), each vehicle
+        measured by its turned body (``_leaders(bodies=True)``)."""
         curv = np.tan(self.steer_angle) / self.wheelbase
-        j, g, _ = self._leaders(curv)
+        j, g, _ = self._leaders(curv, bodies=True)
         if not np.isfinite(g[0]):
             return None
         return LeadInfo(int(j[0]), float(max(g[0], 0.0)), float(self.v[j[0]]))
