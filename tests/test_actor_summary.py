@@ -36,3 +36,17 @@ def test_the_cut_in_table_appears_only_where_a_policy_made_one():
     page = "".join(cut_in_html(policies))
     assert "<td class=l>constant</td>" in page and "random" not in page
     assert cut_in_markdown({"random": {}}) == [] and cut_in_html({"random": {}}) == []
+
+
+def test_each_cut_in_is_a_point_against_r157s_boundary_and_a_hit_carries_its_blame():
+    from genesis_rl.evaluation.actor_summary import R157_BOUNDARY, cut_in_points, fig_cut_ins
+
+    hit = {"scene": 628, "actor_events": [_cut(9.9, 9.6, 7.8), {**_cut(1.9, 1.6, 10.0), "vehicle_id": 7}],
+           "failure": {"vehicle_id": 7, "hit": "cut in by the tester", "blame": "control"}}
+    pts = cut_in_points([hit, {"scene": 3, "actor_events": [_cut(5.0, None, 2.0)]}])
+    assert [(round(p["closing_km_h"], 2), p["ttc_s"], p["perceived"], p["blame"]) for p in pts] == [
+        (28.08, 9.6, True, None), (36.0, 1.6, True, "control"), (7.2, 5.0, False, None)]
+    assert R157_BOUNDARY[-1] == (60.0, 1.64) and R157_BOUNDARY[0] == (10.0, 0.48)
+    assert fig_cut_ins({"random": [{"actor_events": []}]}, {}) is None
+    fig = fig_cut_ins({"constant": [hit]}, {"constant": "#756bb1"})
+    assert fig is not None and len(fig.axes[0].collections) >= 3  # the boundary's band, the points, the hit

@@ -86,3 +86,57 @@ def cut_in_html(policies: dict[str, dict[str, Any]]) -> list[str]:
     out += ["<tr>" + "".join(f"<td{' class=l' if i == 0 else ''}>{c}</td>" for i, c in enumerate(r)) + "</tr>"
             for r in cells[1:]]
     return [*out, "</table>"]
+
+
+#: UN R157 Annex 4 Appendix 3: relative speed [km/h] -> the shortest cut-in time-to-collision [s] a careful
+#: driver handles
+R157_BOUNDARY = ((10.0, 0.48), (20.0, 0.71), (30.0, 0.94), (40.0, 1.18), (50.0, 1.41), (60.0, 1.64))
+
+
+def cut_in_points(episodes: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every cut-in of a policy's episodes: closing speed [km/h], time-to-collision [s] (as ``_ttc``), and the
+    blame when the ego then hit that car (None: it did not)."""
+    out = []
+    for ep in episodes:
+        failure = ep.get("failure") or {}
+        for e in ep.get("actor_events") or []:
+            if e.get("kind") != "cut_in" or e.get("closing_m_s") is None:
+                continue
+            ttc, seen = _ttc(e)
+            hit = failure.get("vehicle_id") == e.get("vehicle_id") and failure.get("hit") == "cut in by the tester"
+            out.append({"closing_km_h": 3.6 * float(e["closing_m_s"]), "ttc_s": ttc, "perceived": seen,
+                        "scene": ep.get("scene"), "blame": failure.get("blame") if hit else None})
+    return out
+
+
+def fig_cut_ins(rows: dict[str, list[dict[str, Any]]], colors: dict[str, str]) -> Any | None:
+    """Each policy's cut-ins against R157's boundary (None: no cut-in): closing speed across, time-to-collision
+    up, a cross where the ego hit the car (red: avoidable, grey: unavoidable for the careful driver)."""
+    points = {p: cut_in_points(eps) for p, eps in rows.items()}
+    if not any(points.values()):
+        return None
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    speeds, ttcs = zip(*R157_BOUNDARY, strict=True)
+    ax.fill_between(speeds, 0, ttcs, color="#f5b7b1", alpha=0.5, lw=0, label="beyond R157's careful driver")
+    ax.plot(speeds, ttcs, color="#c0392b", lw=1.2)
+    for p, pts in points.items():
+        if not pts:
+            continue
+        ax.scatter([q["closing_km_h"] for q in pts], [min(q["ttc_s"], 10.0) for q in pts], s=18, alpha=0.75,
+                   color=colors.get(p, "#333333"), label=f"{p} ({len(pts)})")
+        for q in pts:
+            if q["blame"] is not None:
+                ax.scatter([q["closing_km_h"]], [min(q["ttc_s"], 10.0)], marker="x", s=70, linewidths=2,
+                           color="#7f8c8d" if q["blame"] == "unavoidable" else "#c0392b")
+    ax.scatter([], [], marker="x", color="#c0392b", label="hit: avoidable")
+    ax.scatter([], [], marker="x", color="#7f8c8d", label="hit: unavoidable")
+    ax.set_xlabel("closing speed at the cut-in [km/h]")
+    ax.set_ylabel("time-to-collision [s]")
+    ax.set_ylim(0, 10.3)
+    ax.set_xlim(0, max(65.0, max(q["closing_km_h"] for pts in points.values() for q in pts) + 5))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="center right")
+    fig.tight_layout()
+    return fig

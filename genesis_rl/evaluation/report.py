@@ -29,7 +29,7 @@ from PIL import Image
 
 from genesis_rl.adversaries.agent import agent_learning_curve
 from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.actor_summary import cut_in_html
+from genesis_rl.evaluation.actor_summary import cut_in_html, fig_cut_ins
 from genesis_rl.evaluation.campaign_files import read_step_records, read_steps, steps_path
 from genesis_rl.evaluation.estimate_files import check_same_system, estimate_line, load_estimate
 from genesis_rl.evaluation.failure_modes import FAILURE_MODES, detection_timeline
@@ -320,6 +320,9 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     h.extend(natural_section(folder, summary, rows, lambda p, sc: _steps(folder, p, sc), _png,
                              lambda p, sc, recs: frame_strip(folder, p, sc, recs)))
     h.extend(cut_in_html(summary["policies"]))
+    cut_fig = fig_cut_ins(rows, {p: _color(p, k) for k, p in enumerate(rows)})
+    if cut_fig is not None:
+        h.append(f"<img src='{_png(cut_fig)}'>")
 
     # 1. comparison
     h.append("<h2>1. Violations by policy (paper Fig. 2)</h2>")
