@@ -338,3 +338,27 @@ def test_a_cut_in_stopped_half_across_is_in_the_path_so_the_careful_driver_avoid
     careful = careful_driver_evidence(records, hit_at, event, DT)
     assert not careful["collides"] and careful["min_gap_m"] > 3.0
     assert blame_label({"stoppable": True}, True, careful) == "control"
+
+
+def test_a_lead_braking_while_the_cutter_crosses_does_not_hide_the_cut_ins_perceivable_moment():
+    """0.24 marked only the latest event, so a lead braked by the tester during a cut-in left the cut-in
+    never perceivable (and its careful driver without a moment to start from)."""
+    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.lite.scenes import generate_catalog
+
+    sim = LiteBackend().create_simulation(generate_catalog("highway", 4, 3).scenes[3], seed=0, render=False)
+    try:
+        tr = sim.traffic
+        tr.drive_ego_on_autopilot(16.0)
+        for _ in range(120):
+            tr.set_cut_in(3.0, KNOBS["cut_in_ttc"].default)
+            if sim.actor_events() and len(sim.actor_events()) == 1:
+                tr.set_lead_braking(2.0)  # the step the cut-in starts, the lead brakes too
+            sim.tick()
+        kinds = [e.kind for e in sim.actor_events()]
+        assert kinds[:2] == ["cut_in", "lead_braking"]
+        cut = sim.actor_events()[0]
+        assert cut.perceivable_s is not None and 0.0 < cut.perceivable_s - cut.onset_s < 1.0
+        assert math.isfinite(cut.perceived_ttc_s)
+    finally:
+        sim.destroy()

@@ -1,10 +1,10 @@
 """What the actor knobs made happen in a policy's episodes (issue 32): how many cut-ins, how short, how fast.
 
-A cut-in's time-to-collision is R157's measure, taken when it became perceivable (``perceived_ttc_s``, 0.25 on);
-episodes written before 0.25 have only the onset's (``ttc_s``), which is counted instead and said so
-(``measured_at``). R157's boundary: the shortest time-to-collision a careful driver handles is 1.64 s at its
-largest relative speed (60 km/h), so a cut-in at or under it is one the regulation's own driver may not
-handle."""
+A cut-in's time-to-collision is R157's measure, taken when it became perceivable (``perceived_ttc_s``, 0.25 on;
+a cut-in that never became perceivable has none); campaigns written before 0.25 have only the onset's
+(``ttc_s``), which is counted instead and said so (``measured_at``). R157's boundary: the shortest
+time-to-collision a careful driver handles at each relative speed (0.48 s at 10 km/h to 1.64 s at 60 km/h); a
+cut-in beyond it is one the regulation does not ask a system to handle."""
 
 from __future__ import annotations
 
@@ -12,48 +12,75 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
+import numpy as np
+
 #: UN R157's longest boundary time-to-collision [s] (at 60 km/h of relative speed)
 R157_BOUNDARY_TTC_S = 1.64
 #: a cut-in at or under this time-to-collision [s] is a short one (docs/results.md sections 10 and 11)
 SHORT_CUT_IN_TTC_S = 4.0
+#: UN R157 Annex 4 Appendix 3: relative speed [km/h] -> the shortest cut-in time-to-collision [s] a careful
+#: driver handles
+R157_BOUNDARY = ((10.0, 0.48), (20.0, 0.71), (30.0, 0.94), (40.0, 1.18), (50.0, 1.41), (60.0, 1.64))
 
 
-def _ttc(event: dict[str, Any]) -> tuple[float, bool]:
-    """The cut-in's time-to-collision [s] and whether it was taken where R157 takes it."""
+def r157_boundary_ttc(closing_km_h: float) -> float:
+    """R157's shortest cut-in time-to-collision [s] a careful driver handles at this relative speed [km/h]
+    (linear between the regulation's points, held beyond its ends)."""
+    speeds, ttcs = zip(*R157_BOUNDARY, strict=True)
+    return float(np.interp(closing_km_h, speeds, ttcs))
+
+
+def measured_at_perceivable(episodes: Iterable[dict[str, Any]]) -> bool:
+    """Whether these episodes took a cut-in's time-to-collision at the perceivable moment (0.25 on: an event
+    there writes ``perceived_ttc_s`` when the gap was closing) or at the onset (before 0.25)."""
+    return any("perceived_ttc_s" in e for ep in episodes for e in ep.get("actor_events") or [])
+
+
+def _ttc(event: dict[str, Any], at_perceivable: bool) -> float | None:
+    """The cut-in's time-to-collision [s]: R157's, once perceivable (inf when the gap was not closing then;
+    None: it never became perceivable), or the onset's for episodes written before 0.25."""
+    if not at_perceivable:
+        return math.inf if event.get("ttc_s") is None else float(event["ttc_s"])
+    if event.get("perceivable_s") is None:
+        return None
     seen = event.get("perceived_ttc_s")
-    if seen is not None:
-        return float(seen), True
-    onset = event.get("ttc_s")
-    return (math.inf if onset is None else float(onset)), False
+    return math.inf if seen is None else float(seen)
 
 
 def cut_in_summary(episodes: Iterable[dict[str, Any]]) -> dict[str, Any] | None:
     """Cut-ins over a policy's episode rows (None: no cut-in happened): count, episodes with one, how many
-    were short or at R157's boundary, the shortest and median time-to-collision, the largest closing speed,
-    and where the time-to-collision was measured (``perceivable``, ``onset`` or ``both``)."""
+    never became perceivable (the cutter never wandered 0.375 m toward the ego: no time-to-collision), how
+    many were short, at R157's 1.64 s or under, or beyond R157's boundary at their closing speed, the shortest
+    and median time-to-collision, the largest closing speed, and where it was measured."""
+    episodes = list(episodes)
+    at_perceivable = measured_at_perceivable(episodes)
     ttcs: list[float] = []
+    beyond = never = cut_ins = scenes = 0
     closing: list[float] = []
-    where: set[str] = set()
-    scenes = 0
     for ep in episodes:
         cuts = [e for e in ep.get("actor_events") or [] if e.get("kind") == "cut_in"]
         scenes += bool(cuts)
         for e in cuts:
-            t, seen = _ttc(e)
-            ttcs.append(t)
-            where.add("perceivable" if seen else "onset")
+            cut_ins += 1
             if e.get("closing_m_s") is not None:
                 closing.append(float(e["closing_m_s"]))
-    if not ttcs:
+            t = _ttc(e, at_perceivable)
+            if t is None:
+                never += 1
+                continue
+            ttcs.append(t)
+            if e.get("closing_m_s") is not None and t < r157_boundary_ttc(3.6 * float(e["closing_m_s"])):
+                beyond += 1
+    if not cut_ins:
         return None
     finite = sorted(t for t in ttcs if math.isfinite(t))
-    return {"cut_ins": len(ttcs), "episodes": scenes,
+    return {"cut_ins": cut_ins, "episodes": scenes, "never_perceivable": never if at_perceivable else None,
             "under_4s": sum(t <= SHORT_CUT_IN_TTC_S for t in ttcs),
-            "at_r157_boundary": sum(t <= R157_BOUNDARY_TTC_S for t in ttcs),
+            "at_r157_boundary": sum(t <= R157_BOUNDARY_TTC_S for t in ttcs), "beyond_r157": beyond,
             "shortest_ttc_s": round(finite[0], 3) if finite else None,
             "median_ttc_s": round(finite[len(finite) // 2], 3) if finite else None,
             "largest_closing_m_s": round(max(closing), 3) if closing else None,
-            "measured_at": where.pop() if len(where) == 1 else "both"}
+            "measured_at": "perceivable" if at_perceivable else "onset"}
 
 
 def cut_in_markdown(policies: dict[str, dict[str, Any]]) -> list[str]:
@@ -61,14 +88,15 @@ def cut_in_markdown(policies: dict[str, dict[str, Any]]) -> list[str]:
     rows = [(p, s["cut_ins"]) for p, s in policies.items() if s.get("cut_ins")]
     if not rows:
         return []
-    lines = ["", f"| policy | cut-ins (episodes) | under {SHORT_CUT_IN_TTC_S:g} s | at R157's {R157_BOUNDARY_TTC_S} s "
-             "or under | shortest / median time-to-collision | largest closing speed | measured at |",
-             "|" + " --- |" * 7]
+    lines = ["", f"| policy | cut-ins (episodes) | never perceivable | under {SHORT_CUT_IN_TTC_S:g} s | at "
+             f"{R157_BOUNDARY_TTC_S} s or under | beyond R157's boundary | shortest / median time-to-collision | "
+             "largest closing speed | measured at |", "|" + " --- |" * 9]
     for p, c in rows:
         short = "–" if c["shortest_ttc_s"] is None else f"{c['shortest_ttc_s']:.2f} / {c['median_ttc_s']:.2f} s"
         fast = "–" if c["largest_closing_m_s"] is None else f"{c['largest_closing_m_s']:.1f} m/s"
-        lines.append(f"| {p} | {c['cut_ins']} ({c['episodes']}) | {c['under_4s']} | {c['at_r157_boundary']} | "
-                     f"{short} | {fast} | {c['measured_at']} |")
+        never = "–" if c.get("never_perceivable") is None else str(c["never_perceivable"])
+        lines.append(f"| {p} | {c['cut_ins']} ({c['episodes']}) | {never} | {c['under_4s']} | "
+                     f"{c['at_r157_boundary']} | {c.get('beyond_r157', '–')} | {short} | {fast} | {c['measured_at']} |")
     return lines
 
 
@@ -88,23 +116,23 @@ def cut_in_html(policies: dict[str, dict[str, Any]]) -> list[str]:
     return [*out, "</table>"]
 
 
-#: UN R157 Annex 4 Appendix 3: relative speed [km/h] -> the shortest cut-in time-to-collision [s] a careful
-#: driver handles
-R157_BOUNDARY = ((10.0, 0.48), (20.0, 0.71), (30.0, 0.94), (40.0, 1.18), (50.0, 1.41), (60.0, 1.64))
-
 
 def cut_in_points(episodes: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Every cut-in of a policy's episodes: closing speed [km/h], time-to-collision [s] (as ``_ttc``), and the
-    blame when the ego then hit that car (None: it did not)."""
+    """Every cut-in of a policy's episodes with a time-to-collision (``_ttc``): closing speed [km/h],
+    time-to-collision [s], and the blame when the ego then hit that car (None: it did not)."""
+    episodes = list(episodes)
+    at_perceivable = measured_at_perceivable(episodes)
     out = []
     for ep in episodes:
         failure = ep.get("failure") or {}
         for e in ep.get("actor_events") or []:
             if e.get("kind") != "cut_in" or e.get("closing_m_s") is None:
                 continue
-            ttc, seen = _ttc(e)
+            ttc = _ttc(e, at_perceivable)
+            if ttc is None:
+                continue
             hit = failure.get("vehicle_id") == e.get("vehicle_id") and failure.get("hit") == "cut in by the tester"
-            out.append({"closing_km_h": 3.6 * float(e["closing_m_s"]), "ttc_s": ttc, "perceived": seen,
+            out.append({"closing_km_h": 3.6 * float(e["closing_m_s"]), "ttc_s": ttc, "perceived": at_perceivable,
                         "scene": ep.get("scene"), "blame": failure.get("blame") if hit else None})
     return out
 

@@ -131,6 +131,7 @@ class Traffic:
         #: what the actor knobs made happen, oldest first (``actor_events``); a running cut-in's event is
         #: replaced once the cutter has wandered far enough to be perceived
         self._events: list[ActorEvent] = []
+        self._cut_in_event = -1  # index in ``_events`` of the running cut-in's event (-1: none yet)
         self._cut_in_offset0 = 0.0  # how far the running cut-in's car had to go into the ego's lane [m]
         #: ``cut_in_relative_speed``: the speed [m/s] each vehicle a cut-in slowed is held to (none unless the knob
         #: is above 0, so episodes without it are as before); the one getting ready, -1: none
@@ -336,6 +337,7 @@ class Traffic:
             return
         j, gap, closing = candidate
         self.forced_cut_in = (j, self._episode_time)
+        self._cut_in_event = len(self._events)
         self._events.append(ActorEvent("cut_in", j, self._episode_time, None, gap / closing, gap, closing))
         self._cut_in_offset0 = 0.0  # set when the car starts across (``_start_cut_in``)
         if j == self._cut_in_preparing:
@@ -392,8 +394,9 @@ class Traffic:
         return bool(self.lane[i] == self.lane[0] and abs(self._lateral_offset(i)) < 0.5)
 
     def _running_cut_in(self) -> ActorEvent | None:
-        """The latest event when it is a cut-in (the one ``forced_cut_in`` runs)."""
-        return self._events[-1] if self._events and self._events[-1].kind == "cut_in" else None
+        """The event of the cut-in ``forced_cut_in`` runs (the latest cut-in: a lead braked meanwhile adds its
+        own event after it)."""
+        return self._events[self._cut_in_event] if self._cut_in_event >= 0 else None
 
     def _note_cut_in_wander(self) -> None:
         """Mark the running cut-in perceivable once the cutter has wandered ``CUT_IN_WANDER_M`` toward the
@@ -402,7 +405,7 @@ class Traffic:
         if ev is None or ev.perceivable_s is not None or self.lane[ev.vehicle_id] != self.lane[0]:
             return
         if self._cut_in_offset0 - abs(self._lateral_offset(ev.vehicle_id)) >= CUT_IN_WANDER_M:
-            self._events[-1] = replace(ev, perceivable_s=self._episode_time,
+            self._events[self._cut_in_event] = replace(ev, perceivable_s=self._episode_time,
                                        perceived_ttc_s=self._time_to_collision(ev.vehicle_id))
 
     def _time_to_collision(self, i: int) -> float:
