@@ -146,7 +146,9 @@ def fig_cut_ins(rows: dict[str, list[dict[str, Any]]], colors: dict[str, str]) -
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
-    speeds, ttcs = zip(*R157_BOUNDARY, strict=True)
+    right = max(65.0, max(q["closing_km_h"] for pts in points.values() for q in pts) + 5)
+    speeds = [0.0, *(v for v, _ in R157_BOUNDARY), right]  # the boundary held beyond the regulation's ends
+    ttcs = [r157_boundary_ttc(v) for v in speeds]
     ax.fill_between(speeds, 0, ttcs, color="#f5b7b1", alpha=0.5, lw=0, label="beyond R157's careful driver")
     ax.plot(speeds, ttcs, color="#c0392b", lw=1.2)
     for p, pts in points.items():
@@ -161,9 +163,9 @@ def fig_cut_ins(rows: dict[str, list[dict[str, Any]]], colors: dict[str, str]) -
     ax.scatter([], [], marker="x", color="#c0392b", label="hit: avoidable")
     ax.scatter([], [], marker="x", color="#7f8c8d", label="hit: unavoidable")
     ax.set_xlabel("closing speed at the cut-in [km/h]")
-    ax.set_ylabel("time-to-collision [s]")
+    ax.set_ylabel("time-to-collision [s] (10: not closing)")
     ax.set_ylim(0, 10.3)
-    ax.set_xlim(0, max(65.0, max(q["closing_km_h"] for pts in points.values() for q in pts) + 5))
+    ax.set_xlim(0, right)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="center right")
     fig.tight_layout()
