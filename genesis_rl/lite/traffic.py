@@ -361,11 +361,13 @@ class Traffic:
         lane of the ego's, measured along the ego's heading (gaps of vehicles behind are negative)."""
         lane = self.map.lanes[int(self.lane[0])]
         neighbours = {lane.left, lane.right} - {-1}
+        return [(j, *self._along_ego(j)) for j in range(1, self.n) if int(self.lane[j]) in neighbours]
+
+    def _along_ego(self, j: int) -> tuple[float, float]:
+        """Vehicle ``j``'s bumper gap ahead of the ego [m] and its speed [m/s], both along the ego's heading."""
         c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
-        return [(j, float((self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s
-                          - 0.5 * (self.length[0] + self.length[j])),
-                 float(self.v[j] * np.cos(self.yaw[j] - self.yaw[0])))
-                for j in range(1, self.n) if int(self.lane[j]) in neighbours]
+        gap = (self.x[j] - self.x[0]) * c + (self.y[j] - self.y[0]) * s - 0.5 * (self.length[0] + self.length[j])
+        return float(gap), float(self.v[j] * np.cos(self.yaw[j] - self.yaw[0]))
 
     def _cut_in_candidate(self, ttc: float) -> tuple[int, float, float] | None:
         """(vehicle, bumper gap [m], closing speed [m/s]) of the vehicle to cut in (``actor_knobs.pick_cut_in``)."""
@@ -406,14 +408,13 @@ class Traffic:
             return
         if self._cut_in_offset0 - abs(self._lateral_offset(ev.vehicle_id)) >= CUT_IN_WANDER_M:
             self._events[self._cut_in_event] = replace(ev, perceivable_s=self._episode_time,
-                                       perceived_ttc_s=self._time_to_collision(ev.vehicle_id))
+                                                       perceived_ttc_s=self._time_to_collision(ev.vehicle_id))
 
     def _time_to_collision(self, i: int) -> float:
         """The ego's time-to-collision [s] with vehicle ``i`` now: the bumper gap along the ego's heading over the
         closing speed (inf when not closing)."""
-        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
-        gap = float((self.x[i] - self.x[0]) * c + (self.y[i] - self.y[0]) * s - 0.5 * (self.length[0] + self.length[i]))
-        closing = float(self.v[0] - self.v[i] * np.cos(self.yaw[i] - self.yaw[0]))
+        gap, speed = self._along_ego(i)
+        closing = float(self.v[0]) - speed
         return max(gap, 0.0) / closing if closing > 1e-6 else math.inf
 
     def actor_events(self) -> list[ActorEvent]:
