@@ -61,3 +61,19 @@ def test_each_cut_in_is_a_point_against_r157s_boundary_and_a_hit_carries_its_bla
     assert fig_cut_ins({"random": [{"actor_events": []}]}, {}) is None
     fig = fig_cut_ins({"constant": [hit]}, {"constant": "#756bb1"})
     assert fig is not None and len(fig.axes[0].collections) >= 3  # the boundary's band, the points, the hit
+
+
+def test_every_cut_in_event_says_where_its_time_to_collision_was_taken():
+    import math
+
+    from genesis_rl.sim.interface import ActorEvent
+
+    unseen = ActorEvent("cut_in", 2, 1.0, None, 3.0, 6.0, 2.0)
+    assert unseen.as_dict()["perceived_ttc_s"] is None  # the key is there: measured the 0.25 way, not known
+    seen = ActorEvent("cut_in", 2, 1.0, 1.3, 3.0, 6.0, 2.0, 2.7)
+    assert seen.as_dict()["perceived_ttc_s"] == 2.7 and ActorEvent.from_dict(seen.as_dict()) == seen
+    assert math.isnan(ActorEvent.from_dict(unseen.as_dict()).perceived_ttc_s)
+    assert "perceived_ttc_s" not in ActorEvent("lead_braking", 3, 2.0, 2.0).as_dict()
+    # a policy whose only cut-in was never perceivable is still counted the 0.25 way
+    s = cut_in_summary([{"actor_events": [unseen.as_dict()]}])
+    assert s is not None and s["measured_at"] == "perceivable" and s["never_perceivable"] == 1

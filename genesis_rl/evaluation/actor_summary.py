@@ -8,6 +8,7 @@ cut-in beyond it is one the regulation does not ask a system to handle."""
 
 from __future__ import annotations
 
+import html
 import math
 from collections.abc import Iterable
 from typing import Any
@@ -31,8 +32,9 @@ def r157_boundary_ttc(closing_km_h: float) -> float:
 
 
 def measured_at_perceivable(episodes: Iterable[dict[str, Any]]) -> bool:
-    """Whether these episodes took a cut-in's time-to-collision at the perceivable moment (0.25 on: an event
-    there writes ``perceived_ttc_s`` when the gap was closing) or at the onset (before 0.25)."""
+    """Whether these episodes took a cut-in's time-to-collision at the perceivable moment (0.25 on: every
+    cut-in event has ``perceived_ttc_s``, null where unknown; 0.25.0's first campaigns wrote it only when the
+    gap was closing then) or at the onset (before 0.25)."""
     return any("perceived_ttc_s" in e for ep in episodes for e in ep.get("actor_events") or [])
 
 
@@ -83,38 +85,44 @@ def cut_in_summary(episodes: Iterable[dict[str, Any]]) -> dict[str, Any] | None:
             "measured_at": "perceivable" if at_perceivable else "onset"}
 
 
-def cut_in_markdown(policies: dict[str, dict[str, Any]]) -> list[str]:
-    """The cut-in table of a summary's policies (no lines when no policy made a cut-in)."""
-    rows = [(p, s["cut_ins"]) for p, s in policies.items() if s.get("cut_ins")]
-    if not rows:
-        return []
-    lines = ["", f"| policy | cut-ins (episodes) | never perceivable | under {SHORT_CUT_IN_TTC_S:g} s | at "
-             f"{R157_BOUNDARY_TTC_S} s or under | beyond R157's boundary | shortest / median time-to-collision | "
-             "largest closing speed | measured at |", "|" + " --- |" * 9]
-    for p, c in rows:
+def _table(policies: dict[str, dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
+    """The cut-in table's header and one row of cells per policy that made a cut-in (no rows: none did)."""
+    head = ["policy", "cut-ins (episodes)", "never perceivable", f"under {SHORT_CUT_IN_TTC_S:g} s",
+            f"at {R157_BOUNDARY_TTC_S} s or under", "beyond R157's boundary", "shortest / median time-to-collision",
+            "largest closing speed", "measured at"]
+    rows = []
+    for p, c in ((p, s["cut_ins"]) for p, s in policies.items() if s.get("cut_ins")):
         short = "–" if c["shortest_ttc_s"] is None else f"{c['shortest_ttc_s']:.2f} / {c['median_ttc_s']:.2f} s"
         fast = "–" if c["largest_closing_m_s"] is None else f"{c['largest_closing_m_s']:.1f} m/s"
         never = "–" if c.get("never_perceivable") is None else str(c["never_perceivable"])
-        lines.append(f"| {p} | {c['cut_ins']} ({c['episodes']}) | {never} | {c['under_4s']} | "
-                     f"{c['at_r157_boundary']} | {c.get('beyond_r157', '–')} | {short} | {fast} | {c['measured_at']} |")
-    return lines
+        rows.append([p, f"{c['cut_ins']} ({c['episodes']})", never, str(c["under_4s"]), str(c["at_r157_boundary"]),
+                     str(c.get("beyond_r157", "–")), short, fast, c["measured_at"]])
+    return head, rows
+
+
+def cut_in_markdown(policies: dict[str, dict[str, Any]]) -> list[str]:
+    """The cut-in table of a summary's policies (no lines when no policy made a cut-in)."""
+    head, rows = _table(policies)
+    if not rows:
+        return []
+    return ["", "| " + " | ".join(head) + " |", "|" + " --- |" * len(head),
+            *("| " + " | ".join(r) + " |" for r in rows)]
 
 
 def cut_in_html(policies: dict[str, dict[str, Any]]) -> list[str]:
     """The cut-in table as the report's HTML (nothing when no policy made a cut-in)."""
-    lines = cut_in_markdown(policies)
-    if not lines:
+    head, rows = _table(policies)
+    if not rows:
         return []
-    head, _, *body = lines[1:]
-    cells = [[c.strip() for c in row.strip("|").split("|")] for row in (head, *body)]
-    out = ["<h2>Cut-ins the tester asked for</h2><p class=meta>time-to-collision as UN R157 takes it, once the "
-           "cutter has wandered 0.375 m toward the ego's lane (campaigns before 0.25: at the lane change's onset); "
-           f"R157's careful driver handles down to {R157_BOUNDARY_TTC_S} s at 60 km/h of relative speed</p><table>",
-           "<tr>" + "".join(f"<th{' class=l' if i == 0 else ''}>{c}</th>" for i, c in enumerate(cells[0])) + "</tr>"]
-    out += ["<tr>" + "".join(f"<td{' class=l' if i == 0 else ''}>{c}</td>" for i, c in enumerate(r)) + "</tr>"
-            for r in cells[1:]]
-    return [*out, "</table>"]
 
+    def cells(tag: str, row: list[str]) -> str:
+        return "<tr>" + "".join(f"<{tag}{' class=l' if i == 0 else ''}>{html.escape(c)}</{tag}>"
+                                for i, c in enumerate(row)) + "</tr>"
+
+    return ["<h2>Cut-ins the tester asked for</h2><p class=meta>time-to-collision as UN R157 takes it, once the "
+            "cutter has wandered 0.375 m toward the ego's lane (campaigns before 0.25: at the lane change's onset); "
+            f"R157's careful driver handles down to {R157_BOUNDARY_TTC_S} s at 60 km/h of relative speed</p><table>",
+            cells("th", head), *(cells("td", r) for r in rows), "</table>"]
 
 
 def cut_in_points(episodes: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -132,8 +140,8 @@ def cut_in_points(episodes: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
             if ttc is None:
                 continue
             hit = failure.get("vehicle_id") == e.get("vehicle_id") and failure.get("hit") == "cut in by the tester"
-            out.append({"closing_km_h": 3.6 * float(e["closing_m_s"]), "ttc_s": ttc, "perceived": at_perceivable,
-                        "scene": ep.get("scene"), "blame": failure.get("blame") if hit else None})
+            out.append({"closing_km_h": 3.6 * float(e["closing_m_s"]), "ttc_s": ttc, "scene": ep.get("scene"),
+                        "blame": failure.get("blame") if hit else None})
     return out
 
 

@@ -240,7 +240,8 @@ class ActorEvent:
     braking lead: the onset, its brake lights come on at once; None: not yet perceivable). ``ttc_s``,
     ``gap_m`` and ``closing_m_s``: the gap the cut-in was made into, at its onset (NaN for braking).
     ``perceived_ttc_s``: a cut-in's time-to-collision when it became perceivable, R157's measure (NaN until
-    then, for braking, and in records written before 0.25; written only when known)."""
+    then, for braking, and in records written before 0.25; a cut-in's row always has the key, null when
+    unknown)."""
 
     kind: str  # "cut_in" or "lead_braking"
     vehicle_id: int
@@ -256,7 +257,9 @@ class ActorEvent:
                 "perceivable_s": None if self.perceivable_s is None else round(self.perceivable_s, 4),
                 **{k: (None if not math.isfinite(v) else round(v, 4))
                    for k, v in (("ttc_s", self.ttc_s), ("gap_m", self.gap_m), ("closing_m_s", self.closing_m_s))},
-                **({"perceived_ttc_s": round(self.perceived_ttc_s, 4)} if math.isfinite(self.perceived_ttc_s) else {})}
+                # every cut-in says it was measured where R157 measures (null: never perceivable, or not closing)
+                **({"perceived_ttc_s": round(self.perceived_ttc_s, 4) if math.isfinite(self.perceived_ttc_s) else None}
+                   if self.kind == "cut_in" else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ActorEvent:
