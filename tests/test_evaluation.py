@@ -421,6 +421,15 @@ def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Pat
     episode.write_text(json.dumps({**row, "collision_events": "two"}))
     assert main(["report", str(copy), "--force"]) == 2
     assert f"'{episode}' is damaged: field 'collision_events' = 'two'; expected an integer" in capsys.readouterr().err
+    # the actor events the cut-in table and the blame read as numbers are checked too
+    event = {"kind": "cut_in", "vehicle_id": 2, "onset_s": 1.0, "perceivable_s": 1.3, "perceived_ttc_s": "soon"}
+    episode.write_text(json.dumps({**row, "actor_events": [event]}))
+    assert main(["report", str(copy), "--force"]) == 2
+    assert (f"'{episode}' is damaged: field 'actor_events[0].perceived_ttc_s' = 'soon'; expected a number or null"
+            in capsys.readouterr().err)
+    episode.write_text(json.dumps({**row, "actor_events": {"kind": "cut_in"}}))
+    assert main(["report", str(copy), "--force"]) == 2
+    assert "field 'actor_events' = {'kind': 'cut_in'}; expected a list of events" in capsys.readouterr().err
     episode.write_text(json.dumps(row))
     assert main(["report", str(copy), "--force"]) == 0
     # a user error is reported as itself, not as damage (it was "holds a damaged or foreign file" before)

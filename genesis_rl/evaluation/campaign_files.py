@@ -110,7 +110,35 @@ def read_episode_row(path: Path) -> dict[str, Any]:
     for name, (expected, ok) in _ROW_FIELDS.items():
         if name not in row or not ok(row[name]):
             raise _damaged(path, f"field '{name}' = {row.get(name, '(missing)')!r}; expected {expected}")
+    _check_actor_events(path, row.get("actor_events"))
     return row
+
+
+#: the fields of an actor event (``sim.interface.ActorEvent.as_dict``) and what each must hold
+_EVENT_FIELDS: dict[str, tuple[str, Any]] = {
+    "kind": ("a string", lambda v: isinstance(v, str)),
+    "vehicle_id": ("an integer", lambda v: _is_int(v)),
+    "onset_s": ("a number", lambda v: _is_number(v)),
+    **{k: ("a number or null", lambda v: v is None or _is_number(v))
+       for k in ("perceivable_s", "ttc_s", "gap_m", "closing_m_s", "perceived_ttc_s")},
+}
+
+
+def _check_actor_events(path: Path, events: Any) -> None:
+    """An episode row's ``actor_events`` (absent in campaigns before actor knobs), field by field: the
+    summaries, the report and the blame read them as numbers."""
+    if events is None:
+        return
+    if not isinstance(events, list):
+        raise _damaged(path, f"field 'actor_events' = {events!r}; expected a list of events")
+    for i, e in enumerate(events):
+        if not isinstance(e, dict):
+            raise _damaged(path, f"field 'actor_events[{i}]' = {e!r}; expected an object")
+        for name, (expected, ok) in _EVENT_FIELDS.items():
+            required = name in ("kind", "vehicle_id", "onset_s")
+            if (required and name not in e) or (name in e and not ok(e[name])):
+                raise _damaged(path, f"field 'actor_events[{i}].{name}' = {e.get(name, '(missing)')!r}; "
+                                     f"expected {expected}")
 
 
 def read_steps(path: Path, columns: list[str] | None = None) -> list[dict[str, Any]]:
