@@ -226,3 +226,95 @@ def test_crude_monte_carlo_goes_on_to_more_episodes_with_resume(tmp_path: Path) 
     assert main([*args, "--episodes", "3", "--resume", "--stages", "2", "--method", "importance"]) == 2
     (tmp_path / "estimate.json").write_text("[1, 2]")  # a damaged file: refused, no traceback
     assert main([*args, "--episodes", "3", "--resume"]) == 2
+
+
+# -- the lead's braking event (members that turn lead_decel) -----------------------------------------------------
+
+def test_the_braking_events_exponential_by_hand_and_by_sampling() -> None:
+    from genesis_rl.estimation.nominal import BRAKE_DECEL
+
+    decel = StartRange(BRAKE_DECEL, 0.0, 6.0, mean=0.6)
+    # the truncated exponential's density by hand, and that it integrates to one
+    by_hand = (1 / 0.6) * math.exp(-3.0 / 0.6) / (1 - math.exp(-6.0 / 0.6))
+    assert math.exp(decel.log_density(3.0)) == pytest.approx(by_hand, rel=1e-12)
+    xs = np.linspace(0.0, 6.0, 60_001)
+    assert np.trapezoid(np.exp([decel.log_density(float(x)) for x in xs]), xs) == pytest.approx(1.0, abs=1e-6)
+    assert decel.log_density(6.01) == -math.inf and decel.log_density(-0.01) == -math.inf
+    # sampling follows it: 1 in about 150 brakes at 3 m/s^2 or harder
+    rng = np.random.default_rng(0)
+    draws = np.array([decel.sample(rng) for _ in range(200_000)])
+    assert draws.min() >= 0.0 and draws.max() <= 6.0
+    assert draws.mean() == pytest.approx(0.6, rel=0.01)
+    assert (draws >= 3.0).mean() == pytest.approx(math.exp(-5) - math.exp(-10), rel=0.1)
+
+
+def test_a_braking_events_likelihood_ratio_by_hand() -> None:
+    from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET
+
+    onset, decel = StartRange(BRAKE_ONSET, 0.0, 12.8), StartRange(BRAKE_DECEL, 0.0, 6.0, mean=0.6)
+    nominal = NominalModel((ALT, onset, decel), action_dim=6)
+    proposal = StartProposal(nominal, (TruncatedNormal(ALT, 45.0, 45.0), TruncatedNormal(onset, 2.0, 2.0),
+                                       TruncatedNormal(decel, 4.0, 1.0)), 0.2)
+    start = {"sun_altitude_angle": 30.0, BRAKE_ONSET: 1.0, BRAKE_DECEL: 4.5}
+    n = NormalDist()
+    p = (1 / 90) * (1 / 12.8) * (1 / 0.6) * math.exp(-4.5 / 0.6) / (1 - math.exp(-10))
+    normals = (n.pdf(-15 / 45) / 45 / (n.cdf(1) - n.cdf(-1))) * (n.pdf(-0.5) / 2 / (n.cdf(5.4) - n.cdf(-1))) * \
+        (n.pdf(0.5) / (n.cdf(2) - n.cdf(-4)))
+    q = 0.2 * p + 0.8 * normals
+    assert nominal.start_log_density(start) == pytest.approx(math.log(p), rel=1e-12)
+    assert proposal.log_pdf(start) == pytest.approx(math.log(q), rel=1e-12)
+    # a hard braking is rare under the nominal model: its weight is far below one where the proposal sits
+    assert math.exp(nominal.start_log_density(start) - proposal.log_pdf(start)) < 0.01
+
+
+def test_braking_event_files_are_checked(tmp_path: Path) -> None:
+    from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET
+
+    held, turned = ("sun_altitude_angle", "sun_azimuth_angle"), ("fog_density", "lead_decel",
+                                                                 "sun_altitude_angle", "sun_azimuth_angle")
+    base = "[start.sun_altitude_angle]\nlow = 15\nhigh = 90\n[start.sun_bearing]\nlow = -180\nhigh = 180\n"
+    f = tmp_path / "n.toml"
+    f.write_text(base + f"[start.{BRAKE_ONSET}]\nlow = 0\nhigh = 10\n"
+                        f"[start.{BRAKE_DECEL}]\nlow = 0\nhigh = 6\nmean = 1.2\n")
+    starts = check_starts(load_starts(f), held, turned)
+    assert [(r.name, r.mean) for r in starts][2:] == [(BRAKE_ONSET, None), (BRAKE_DECEL, 1.2)]
+    with pytest.raises(UserInputError, match="the braking event"):
+        check_starts(load_starts(f), held, ("fog_density", *held))  # no lead_decel: no braking event
+    f.write_text(base + f"[start.{BRAKE_DECEL}]\nlow = 0\nhigh = 6\n")
+    with pytest.raises(UserInputError, match="both"):
+        check_starts(load_starts(f), held, turned)  # an onset is needed too
+    f.write_text(base + f"[start.{BRAKE_DECEL}]\nlow = 0\nhigh = 6\nmean = -1\n")
+    with pytest.raises(UserInputError, match="mean = -1"):
+        load_starts(f)
+    f.write_text(base + f"[start.{BRAKE_DECEL}]\nlow = 0\nhigh = 9\n")
+    with pytest.raises(UserInputError, match="leaves the allowed"):
+        load_starts(f)
+
+
+@pytest.mark.xdist_group("estimate")
+def test_the_lead_brakes_as_the_drawn_event_says() -> None:
+    """latency_braking's default nominal model draws the lead's braking at the start; played, the knob holds 0
+    until the onset, then rises at its natural rate (4 m/s^2 a second) to the drawn deceleration."""
+    from genesis_rl.config import from_mapping
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.estimation.episodes import EpisodeTask, play
+    from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET
+    from genesis_rl.estimation.run import nominal_model
+    from genesis_rl.zoo.members import env_settings, zoo_member
+
+    env = GenesisEnv(from_mapping(EnvConfig, {**env_settings(zoo_member("latency_braking")), "scenes": 2,
+                                              "observation": "features", "episode_steps": 40}, "env"))
+    try:
+        nominal = nominal_model(EstimateSpec("latency_braking", "crude", 1, steps=40, stages=1), env)
+        by_name = {r.name: r for r in nominal.starts}
+        assert (by_name[BRAKE_ONSET].low, by_name[BRAKE_ONSET].high) == (0.0, pytest.approx(2.0))
+        assert (by_name[BRAKE_DECEL].high, by_name[BRAKE_DECEL].mean) == (6.0, 0.6)  # the ODD's strongest
+        start = {"sun_altitude_angle": 60.0, BEARING: 0.0, BRAKE_ONSET: 0.5, BRAKE_DECEL: 1.3}
+        play(env, EpisodeTask(0, 0, 7, (0, 0, 2), start), 40)
+        decel = [r.knobs["lead_decel"] for r in env.records]
+    finally:
+        env.close()
+    onset_step = round(0.5 / 0.05) - 1  # the first step whose end reaches the onset
+    assert decel[:onset_step] == [0.0] * onset_step
+    assert decel[onset_step:onset_step + 7] == pytest.approx([0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.3])
+    assert decel[-1] == pytest.approx(1.3)

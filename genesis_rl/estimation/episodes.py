@@ -12,7 +12,7 @@ import torch
 from genesis_rl.adversaries.base import in_odd_failure_at
 from genesis_rl.config import from_mapping
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
-from genesis_rl.estimation.nominal import BEARING
+from genesis_rl.estimation.nominal import BEARING, BRAKE_DECEL, BRAKE_ONSET, EVENTS
 from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.odd.domain import IN_ODD
@@ -34,11 +34,24 @@ def start_weather(env: GenesisEnv, start: dict[str, float], heading_deg: float) 
     azimuth at the ego's heading)."""
     values = dict(env.start_weather.values)
     for name, v in start.items():
+        if name in EVENTS:  # played by braking_action, step by step
+            continue
         if name == BEARING:
             values["sun_azimuth_angle"] = KNOBS["sun_azimuth_angle"].fit(heading_deg + v)
         else:
             values[name] = v
     return Weather(values)
+
+
+def braking_action(env: GenesisEnv, start: dict[str, float], step: int) -> float:
+    """The ``lead_decel`` action of ``step`` that plays the drawn braking event: hold 0 until the onset, then
+    move toward the event's deceleration as fast as the knob's natural rate allows (a deterministic function of
+    the event and the knob's value, so the likelihood ratio of an episode is its start's alone)."""
+    i = env.mapper.knobs.index("lead_decel")
+    now = float(env.weather["lead_decel"])
+    target = start[BRAKE_DECEL] if (step + 1) * env.dt >= start[BRAKE_ONSET] else 0.0
+    limit = float(env.mapper.max_delta[i])
+    return float(np.clip((target - now) / limit, -1.0, 1.0)) if limit > 0 else 0.0
 
 
 def play(env: GenesisEnv, task: EpisodeTask, steps: int) -> dict[str, Any]:
@@ -50,7 +63,11 @@ def play(env: GenesisEnv, task: EpisodeTask, steps: int) -> dict[str, Any]:
     actions = np.random.default_rng(list(task.action_seed)).uniform(
         -1.0, 1.0, (steps, env.mapper.action_dim)).astype(np.float32)
     score = 0.0
-    for a in actions:
+    event = BRAKE_DECEL in task.start
+    brake_index = env.mapper.knobs.index("lead_decel") if event else -1
+    for k, a in enumerate(actions):
+        if event:
+            a[brake_index] = braking_action(env, task.start, k)
         _, reward, terminated, truncated, _ = env.step(a)
         score += float(reward)
         if terminated or truncated:

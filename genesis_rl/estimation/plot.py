@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.estimation.nominal import NominalModel
+from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET, NominalModel
 from genesis_rl.io_utils import atomic_write
 
 
@@ -35,6 +35,8 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8)
     names = [r.name for r in nominal.starts]
+    if nominal.has_braking_event:  # where a braking member's failures live: how hard, and when
+        names = [BRAKE_DECEL, BRAKE_ONSET]
     x_name, y_name = (names + [None])[:2] if len(names) >= 1 else (None, None)
     if x_name is not None:
         x = np.array([float(r[f"start_{x_name}"]) for r in rows])

@@ -77,7 +77,7 @@ class EstimateSpec:
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
-        d["nominal"] = None if self.nominal is None else {r.name: [r.low, r.high] for r in self.nominal}
+        d["nominal"] = None if self.nominal is None else {r.name: r.to_json() for r in self.nominal}
         return d
 
     @property
@@ -116,7 +116,8 @@ def nominal_model(spec: EstimateSpec, env: GenesisEnv) -> NominalModel:
     held, dim = env.held_knobs, env.mapper.action_dim
     if spec.nominal is not None:
         return NominalModel(check_starts(spec.nominal, held, env.mapper.knobs), dim)
-    return NominalModel(default_starts(held, env.odd, env.start_weather, env.conditions_model), dim)
+    return NominalModel(default_starts(held, env.odd, env.start_weather, env.conditions_model, env.mapper.knobs,
+                                       steps_of(spec) * env.dt), dim)
 
 
 def draw(spec: EstimateSpec, index: int, n_scenes: int, sample_start: Callable[[np.random.Generator], dict]
