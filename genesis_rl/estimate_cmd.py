@@ -32,6 +32,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     spec = EstimateSpec(member=args.member, method=args.method, episodes=args.episodes, seed=args.seed,
                         steps=args.steps, stages=args.stages if args.method == "importance" else 1,
                         defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal,
+                        elite_min=args.elite_min, smoothing=args.smoothing,
+                        tilt=tuple(t for t in args.tilt.split(",") if t) if args.tilt else None,
                         weights=args.weights)
     result = run_estimate(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
                           progress=not args.quiet)
@@ -69,6 +71,14 @@ def add_estimate_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--elite", type=float, default=0.2,
                    help="importance: the share of a stage, highest scores first, that refits the proposal "
                         "(default 0.2; every failure is in it)")
+    p.add_argument("--elite-min", type=int, default=5,
+                   help="importance: the fewest episodes that refit the proposal (default 5)")
+    p.add_argument("--smoothing", type=float, default=1.0,
+                   help="importance: the refit's weight against the proposal before, the rest kept (default 1: the "
+                        "refit alone; Rubinstein and Kroese advise 0.4-0.9 where pilot stages are small)")
+    p.add_argument("--tilt", default=None,
+                   help="importance: the start variables the proposal tilts, comma-separated (e.g. "
+                        "lead_brake_onset_s,lead_brake_decel); the rest keep the nominal model (default: every one)")
     p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's)")
     p.add_argument("--nominal", default=None,
                    help="a TOML file of start ranges replacing the default nominal model (docs/estimation.md)")

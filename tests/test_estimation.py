@@ -217,7 +217,8 @@ def test_crude_monte_carlo_goes_on_to_more_episodes_with_resume(tmp_path: Path) 
     assert main([*args, "--episodes", "2"]) == 0
     first = (tmp_path / "episodes.csv").read_text().splitlines()
     written = json.loads((tmp_path / "estimate.json").read_text())
-    del written["spec"]["pilot"]  # as an estimate started before the field existed: it reads as its default
+    for field in ("pilot", "elite_min", "smoothing", "tilt"):  # as an estimate started before they existed: crude
+        del written["spec"][field]  # Monte Carlo does not use them, so it resumes whatever they read as
     (tmp_path / "estimate.json").write_text(json.dumps(written))
     assert main([*args, "--episodes", "3", "--resume"]) == 0
     more = (tmp_path / "episodes.csv").read_text().splitlines()
@@ -318,3 +319,36 @@ def test_the_lead_brakes_as_the_drawn_event_says() -> None:
     assert decel[:onset_step] == [0.0] * onset_step
     assert decel[onset_step:onset_step + 7] == pytest.approx([0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.3])
     assert decel[-1] == pytest.approx(1.3)
+
+
+def test_a_tilt_of_some_variables_leaves_the_rest_nominal_and_the_ratio_exact() -> None:
+    proposal = StartProposal.broad(NOMINAL, 0.2, tilt=("sun_altitude_angle",))
+    assert [n.range.name for n in proposal.normals] == ["sun_altitude_angle"]
+    start = {"sun_altitude_angle": 7.0, BEARING: 100.0}
+    n = NormalDist()
+    alt = n.pdf((7 - 45) / 45) / 45 / (n.cdf(1) - n.cdf(-1))
+    q = 0.2 / (90 * 360) + 0.8 * alt / 360  # the bearing keeps its nominal density in both components
+    assert proposal.log_pdf(start) == pytest.approx(math.log(q), rel=1e-12)
+    # the untilted bearing is drawn uniformly whatever the normals say
+    narrow = StartProposal(NOMINAL, (TruncatedNormal(ALT, 5.0, 1.0),), 0.0)
+    rng = np.random.default_rng(0)
+    draws = [narrow.sample(rng) for _ in range(4000)]
+    assert list(draws[0]) == ["sun_altitude_angle", BEARING]
+    assert np.mean([d["sun_altitude_angle"] for d in draws]) == pytest.approx(5.0, abs=0.1)
+    bearings = np.array([d[BEARING] for d in draws])
+    assert bearings.min() < -170 and bearings.max() > 170 and abs(bearings.mean()) < 10
+    # a refit moves only the tilted normal, smoothed toward the one before when asked
+    refit = proposal.refit([{"sun_altitude_angle": 5.0, BEARING: 0.0}, {"sun_altitude_angle": 7.0, BEARING: 9.0}],
+                           [1.0, 1.0], smoothing=0.5)
+    (only,) = refit.normals
+    assert (only.mean, only.spread) == (pytest.approx(0.5 * 6.0 + 0.5 * 45.0), pytest.approx(0.5 * 4.5 + 0.5 * 45.0))
+
+
+def test_the_elite_is_never_fewer_than_its_least() -> None:
+    scores, failed = [0.1, 0.9, 0.5, 0.3, 0.7, 0.2, 0.8, 0.4, 0.6, 0.0], [False] * 10
+    assert elite(scores, failed, 0.2) == [1, 6]  # two of ten: a normal fit to two episodes
+    assert elite(scores, failed, 0.2, least=5) == [1, 6, 4, 8, 2]
+    with pytest.raises(UserInputError, match="--elite-min"):
+        EstimateSpec("low_sun", "importance", 10, elite_min=0)
+    with pytest.raises(UserInputError, match="--smoothing"):
+        EstimateSpec("low_sun", "importance", 10, smoothing=0.0)

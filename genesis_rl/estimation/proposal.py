@@ -7,8 +7,13 @@ and its variance bounded where the normals miss a failure region (Hesterberg's d
 Step actions keep the nominal model under every proposal, so their likelihood ratio is exactly 1.
 
 Cross-entropy (Rubinstein's multilevel method): after a stage, the elite (the ``elite`` share of its episodes
-with the highest score, failures first) refits each normal's mean and spread by moments weighted with the
-episodes' likelihood ratios; a floor on the spread keeps the proposal from collapsing onto one episode.
+with the highest score, failures first, and never fewer than a few) refits each normal's mean and spread by
+moments weighted with the episodes' likelihood ratios, smoothed with the stage before (Rubinstein and Kroese's
+smoothed update: a small pilot's elite alone would pull the proposal onto a handful of episodes); a floor on
+the spread keeps it from collapsing onto one episode.
+
+A proposal may tilt only some start variables (``--tilt``): the others are drawn from the nominal model in
+both of its components, so their ratio is exactly 1 and they add no variance to the weights.
 """
 
 from __future__ import annotations
@@ -61,34 +66,46 @@ class TruncatedNormal:
 
 @dataclass(frozen=True)
 class StartProposal:
-    """The defensive mixture ``defensive * nominal + (1 - defensive) * prod(normals)``."""
+    """The defensive mixture ``defensive * nominal + (1 - defensive) * prod(normals) * prod(nominal of the rest)``:
+    the normals tilt some start variables (all by default), the rest keep their nominal distribution."""
 
     nominal: NominalModel
     normals: tuple[TruncatedNormal, ...]
     defensive: float
 
     @classmethod
-    def broad(cls, nominal: NominalModel, defensive: float) -> StartProposal:
-        """The first stage's: each normal centred on its range with a spread of half the width (close to
-        the nominal, so the first stage sees what natural starts give)."""
-        return cls(nominal, tuple(TruncatedNormal(r, (r.low + r.high) / 2, r.width / 2) for r in nominal.starts),
-                   defensive)
+    def broad(cls, nominal: NominalModel, defensive: float, tilt: Sequence[str] | None = None) -> StartProposal:
+        """The first stage's: a normal for each tilted variable (``tilt``; None: every one), centred on its
+        range with a spread of half the width (close to the nominal, so the first stage sees what natural
+        starts give)."""
+        return cls(nominal, tuple(TruncatedNormal(r, (r.low + r.high) / 2, r.width / 2) for r in nominal.starts
+                                  if tilt is None or r.name in tilt), defensive)
+
+    @property
+    def _untilted(self) -> tuple[StartRange, ...]:
+        tilted = {n.range.name for n in self.normals}
+        return tuple(r for r in self.nominal.starts if r.name not in tilted)
 
     def log_pdf(self, start: Mapping[str, float]) -> float:
         log_p = self.nominal.start_log_density(start)
         if self.defensive >= 1.0:
             return log_p
-        log_n = sum(n.log_pdf(start[n.range.name]) for n in self.normals)
+        log_n = sum(n.log_pdf(start[n.range.name]) for n in self.normals) + \
+            sum(r.log_density(start[r.name]) for r in self._untilted)
         mixed = math.log1p(-self.defensive) + log_n
         return mixed if self.defensive <= 0.0 else float(np.logaddexp(math.log(self.defensive) + log_p, mixed))
 
     def sample(self, rng: np.random.Generator) -> dict[str, float]:
         if rng.uniform() < self.defensive:
             return self.nominal.sample_start(rng)
-        return {n.range.name: n.sample(rng) for n in self.normals}
+        drawn = {n.range.name: n.sample(rng) for n in self.normals}
+        drawn.update({r.name: r.sample(rng) for r in self._untilted})
+        return {r.name: drawn[r.name] for r in self.nominal.starts}
 
-    def refit(self, starts: Sequence[Mapping[str, float]], weights: Sequence[float]) -> StartProposal:
-        """The cross-entropy update on the elite ``starts`` with their likelihood ratios ``weights``."""
+    def refit(self, starts: Sequence[Mapping[str, float]], weights: Sequence[float], smoothing: float = 1.0
+              ) -> StartProposal:
+        """The cross-entropy update on the elite ``starts`` with their likelihood ratios ``weights``, each
+        normal's mean and spread ``smoothing * fit + (1 - smoothing) * before`` (1: the fit alone)."""
         w = np.asarray(weights, np.float64)
         if not len(starts) or not np.isfinite(w).all() or w.sum() <= 0:
             return self
@@ -97,8 +114,9 @@ class StartProposal:
         for n in self.normals:
             x = np.array([s[n.range.name] for s in starts], np.float64)
             mean = float(np.sum(w * x))
-            spread = float(np.sqrt(np.sum(w * (x - mean) ** 2)))
-            normals.append(TruncatedNormal(n.range, mean, max(spread, MIN_SPREAD * n.range.width)))
+            spread = max(float(np.sqrt(np.sum(w * (x - mean) ** 2))), MIN_SPREAD * n.range.width)
+            normals.append(TruncatedNormal(n.range, smoothing * mean + (1 - smoothing) * n.mean,
+                                           smoothing * spread + (1 - smoothing) * n.spread))
         return StartProposal(self.nominal, tuple(normals), self.defensive)
 
     def widened(self, factor: float) -> StartProposal:
@@ -111,8 +129,9 @@ class StartProposal:
                             for n in self.normals}}
 
 
-def elite(scores: Sequence[float], failed: Sequence[bool], share: float) -> list[int]:
-    """The indices of the elite: every failure, else (and at least) the ``share`` with the highest score."""
+def elite(scores: Sequence[float], failed: Sequence[bool], share: float, least: int = 1) -> list[int]:
+    """The indices of the elite: every failure, else (and at least) the ``share`` with the highest score, and
+    never fewer than ``least`` (a normal fit to two episodes is no fit)."""
     order = sorted(range(len(scores)), key=lambda i: (not failed[i], -scores[i], i))
-    count = max(1, math.ceil(share * len(scores)), sum(bool(f) for f in failed))
+    count = max(1, least, math.ceil(share * len(scores)), sum(bool(f) for f in failed))
     return order[:count]

@@ -36,6 +36,15 @@ if TYPE_CHECKING:
 METHODS = ("crude", "importance")
 #: episodes between checkpoints of episodes.csv
 BATCH = 25
+#: the cross-entropy refit's defaults: at least this many elite episodes (on latency_braking a 10-episode pilot's
+#: 2-episode elite pulled the braking onto 4.5 +- 0.3 m/s^2 and the estimate's ESS to 6 of 40, docs/estimation.md),
+#: and the new fit's weight against the proposal before (1: the fit alone; Rubinstein and Kroese's smoothing,
+#: 0.4-0.9, slowed the toy of tests/test_estimation.py too much to be the default). Estimates started before 0.26
+#: read as 1 and 1.0: the refit alone, as they ran
+ELITE_MIN, SMOOTHING = 5, 1.0
+BEFORE_SMOOTHING = {"elite_min": 1, "smoothing": 1.0, "tilt": None}
+#: settings crude Monte Carlo does not use (a crude estimate resumes whatever they say)
+IMPORTANCE_ONLY = ("elite", "elite_min", "smoothing", "tilt", "defensive", "pilot")
 
 
 @dataclass(frozen=True)
@@ -51,6 +60,9 @@ class EstimateSpec:
     pilot: float = 0.5  # importance: the share of the episodes the pilot stages take, split evenly
     defensive: float = 0.2  # importance: the nominal model's share of the proposal
     elite: float = 0.2  # importance: the share of a stage that refits the proposal
+    elite_min: int = ELITE_MIN  # importance: the fewest episodes that refit it
+    smoothing: float = SMOOTHING  # importance: the refit's weight against the proposal before (1: the fit alone)
+    tilt: tuple[str, ...] | None = None  # importance: the start variables the proposal tilts (None: every one)
     catalog_seed: int = 0
     nominal: tuple[StartRange, ...] | None = None  # None: default_starts of the member's ODD
     weights: str | None = None  # the member's system with these detector weights (a hardened one); None: its own
@@ -69,6 +81,12 @@ class EstimateSpec:
                                  "weights unbounded where the proposal misses a failure region)")
         if not 0.0 < self.elite <= 1.0:
             raise UserInputError(f"--elite = {self.elite}; allowed: a share in (0, 1]")
+        if self.elite_min < 1:
+            raise UserInputError(f"--elite-min = {self.elite_min}; allowed: an integer >= 1")
+        if not 0.0 < self.smoothing <= 1.0:
+            raise UserInputError(f"--smoothing = {self.smoothing}; allowed: a weight in (0, 1] (1: the refit alone)")
+        if self.tilt is not None and (not self.tilt or len(set(self.tilt)) != len(self.tilt)):
+            raise UserInputError(f"--tilt = {','.join(self.tilt)}; allowed: start variables without repeats")
         if not 0.0 <= self.pilot < 1.0:
             raise UserInputError(f"--pilot = {self.pilot}; allowed: a share in [0, 1) (the last stage needs episodes)")
         if self.method == "importance" and self.stages > 1 and min(self.stage_sizes) < 1:
@@ -78,6 +96,7 @@ class EstimateSpec:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["nominal"] = None if self.nominal is None else {r.name: r.to_json() for r in self.nominal}
+        d["tilt"] = None if self.tilt is None else list(self.tilt)
         return d
 
     @property
@@ -133,12 +152,13 @@ def proposal_for(stage: int, rows: Sequence[dict[str, Any]], spec: EstimateSpec,
                  ) -> StartProposal:
     """The proposal of ``stage``: the broad one, refit after each earlier stage on its elite (the estimating
     stage's widened by ``WIDEN_FINAL``)."""
-    proposal = StartProposal.broad(nominal, spec.defensive)
+    proposal = StartProposal.broad(nominal, spec.defensive, spec.tilt)
     for s in range(stage):
         done = [r for r in rows if int(r["stage"]) == s]
-        picked = elite([float(r["score"]) for r in done], [bool(r["failed"]) for r in done], spec.elite)
+        picked = elite([float(r["score"]) for r in done], [bool(r["failed"]) for r in done], spec.elite,
+                       spec.elite_min)
         starts = [start_of(done[i], nominal) for i in picked]
-        proposal = proposal.refit(starts, [math.exp(float(done[i]["log_weight"])) for i in picked])
+        proposal = proposal.refit(starts, [math.exp(float(done[i]["log_weight"])) for i in picked], spec.smoothing)
     return proposal.widened(WIDEN_FINAL) if 0 < stage == spec.estimating_stage else proposal
 
 
@@ -254,8 +274,9 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
             # started reads as its default
             crude = spec.method == "crude" and found.get("method") == "crude"
             output_folder.check_same_settings(
-                "estimate", out, found, spec.to_json(), may_change=("episodes",) if crude else (),
-                defaults={f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING})
+                "estimate", out, found, spec.to_json(), may_change=("episodes", *IMPORTANCE_ONLY) if crude else (),
+                defaults={**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING},
+                          **BEFORE_SMOOTHING})
         else:
             output_folder.replace(out, "estimate")
             catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
@@ -271,6 +292,10 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
                 raise UserInputError(f"member '{spec.member}': no knob is held within an episode, so the proposal "
                                      "has no start to tilt (estimate needs natural dynamics)")
             nominal = nominal_model(spec, probe)
+            unknown = sorted(set(spec.tilt or ()) - {r.name for r in nominal.starts})
+            if unknown:
+                raise UserInputError(f"--tilt names {unknown}; allowed: this member's start variables "
+                                     f"{[r.name for r in nominal.starts]}")
         finally:
             probe.close()
         rows = [r for r in read_rows(out / "episodes.csv") if r["index"] < spec.episodes] if resume else []
