@@ -62,9 +62,15 @@ def test_importance_sampling_is_unbiased_on_a_toy_with_a_known_answer() -> None:
 
 
 def test_cross_entropy_moves_the_proposal_onto_the_failure_region() -> None:
+    last_failures = []
+    for seed in range(10):
+        _, seed_rows = toy_estimate(seed)
+        last = [r for r in seed_rows if r["stage"] == 3]
+        assert len(last) == 60
+        last_failures.append(sum(r["failed"] for r in last))
+    # nominal draws: 0.9 % fail, 0.6 of 60; the adapted proposal over ten times that in most runs
+    assert np.median(last_failures) >= 7, last_failures
     est, rows = toy_estimate(0)
-    last = [r for r in rows if r["stage"] == 3]
-    assert len(last) == 60 and sum(r["failed"] for r in last) >= 10  # nominal draws: 0.9 % fail, 0.6 of 60
     spec = EstimateSpec(member="glare_blind", method="importance", episodes=120, seed=0)
     from genesis_rl.estimation.run import proposal_for
 
