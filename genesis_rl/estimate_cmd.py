@@ -32,7 +32,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     spec = EstimateSpec(member=args.member, method=args.method, episodes=args.episodes, seed=args.seed,
                         steps=args.steps, stages=args.stages if args.method == "importance" else 1,
                         defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal,
-                        elite_min=args.elite_min, smoothing=args.smoothing,
+                        elite_min=args.elite_min, smoothing=args.smoothing, score=args.score,
                         tilt=tuple(t for t in args.tilt.split(",") if t) if args.tilt else None,
                         weights=args.weights)
     result = run_estimate(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
@@ -79,6 +79,9 @@ def add_estimate_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tilt", default=None,
                    help="importance: the start variables the proposal tilts, comma-separated (e.g. "
                         "lead_brake_onset_s,lead_brake_decel); the rest keep the nominal model (default: every one)")
+    p.add_argument("--score", default="danger", choices=["danger", "reward"],
+                   help="importance: what ranks the episodes that did not fail: danger, the largest inverse "
+                        "time-to-collision to the lead (default), or reward, the episode's summed reward (before 0.26)")
     p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's)")
     p.add_argument("--nominal", default=None,
                    help="a TOML file of start ranges replacing the default nominal model (docs/estimation.md)")

@@ -33,6 +33,7 @@ def toy_play(tasks):
         score = -(max(0.0, alt - 10) / 90 + max(0.0, abs(bear) - 30) / 180)
         yield {"index": t.index, "scene": t.scene, "episode_seed": t.episode_seed,
                **{f"start_{k}": v for k, v in t.start.items()}, "heading": 0.0, "steps": 10, "score": score,
+               "danger": score,
                "in_odd_steps": 10, "failed": failed, "fail_step": 3 if failed else None,
                "cluster": "toy" if failed else None}
 
@@ -358,3 +359,20 @@ def test_the_elite_is_never_fewer_than_its_least() -> None:
         EstimateSpec("low_sun", "importance", 10, elite_min=0)
     with pytest.raises(UserInputError, match="--smoothing"):
         EstimateSpec("low_sun", "importance", 10, smoothing=0.0)
+
+
+def test_danger_is_the_largest_inverse_time_to_collision() -> None:
+    from types import SimpleNamespace
+
+    from genesis_rl.estimation.episodes import DANGER_CAP, danger
+
+    def step(ego: float, gap: float, lead: float, collided: bool = False, present: bool = True):
+        return SimpleNamespace(ego=SimpleNamespace(speed=ego), collision=SimpleNamespace(collided=collided),
+                               lead=SimpleNamespace(present=present, true_distance=gap, speed=lead))
+
+    # closing at 5 m/s on 20 m, then at 8 m/s on 10 m: 0.8 a second; an opening gap and no lead count nothing
+    assert danger([step(20, 20, 15), step(18, 10, 10), step(10, 5, 12), step(30, float("nan"), float("nan"),
+                                                                         present=False)]) == pytest.approx(0.8)
+    assert danger([step(10, 30, 12)]) == 0.0
+    assert danger([step(10, 30, 9), step(9, 0.0, 0.0, collided=True)]) == DANGER_CAP
+    assert danger([step(10, 0.01, 0.0)]) == DANGER_CAP  # a gap of a centimetre closing at 10 m/s: capped

@@ -3,6 +3,8 @@ results are the same whatever the number of workers); the worker says whether it
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -16,6 +18,7 @@ from genesis_rl.estimation.nominal import BEARING, BRAKE_DECEL, BRAKE_ONSET, EVE
 from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
 from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.odd.domain import IN_ODD
+from genesis_rl.step_record import StepRecord
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,27 @@ def braking_action(env: GenesisEnv, start: dict[str, float], step: int) -> float
     return float(np.clip((target - now) / limit, -1.0, 1.0)) if limit > 0 else 0.0
 
 
+#: the danger score's cap [1/s]: a contact (gap 0) or a gap closing ten times a second counts as the same
+DANGER_CAP = 10.0
+
+
+def danger(records: Sequence[StepRecord]) -> float:
+    """How near the episode came to hitting its lead: the largest inverse time-to-collision over its steps,
+    closing speed over gap [1/s] (0 when the gap never closed; a contact counts as the cap). Cross-entropy
+    ranks episodes that did not fail by it: a near miss scores high whatever the rest of the episode did, where
+    the summed reward mostly measures the scene (docs/estimation.md)."""
+    worst = 0.0
+    for r in records:
+        if r.collision.collided:
+            return DANGER_CAP
+        lead = r.lead
+        if lead.present and math.isfinite(lead.true_distance) and math.isfinite(lead.speed):
+            closing = r.ego.speed - lead.speed
+            if closing > 0:
+                worst = max(worst, min(DANGER_CAP, closing / max(lead.true_distance, 0.1)))
+    return worst
+
+
 def play(env: GenesisEnv, task: EpisodeTask, steps: int) -> dict[str, Any]:
     """Play ``task`` for ``steps`` steps with the nominal step actions; the row that describes it."""
     env.reset(options={"scene": task.scene, "episode_seed": task.episode_seed})
@@ -77,6 +101,7 @@ def play(env: GenesisEnv, task: EpisodeTask, steps: int) -> dict[str, Any]:
     row: dict[str, Any] = {"index": task.index, "scene": task.scene, "episode_seed": task.episode_seed,
                            **{f"start_{k}": round(v, 6) for k, v in task.start.items()},
                            "heading": round(heading, 3), "steps": len(records), "score": round(score, 6),
+                           "danger": round(danger(records), 6),
                            "in_odd_steps": sum(r.odd_status in IN_ODD for r in records),
                            "failed": hit is not None, "fail_step": hit, "cluster": None}
     if hit is not None:

@@ -47,9 +47,14 @@ ELITE_MIN, SMOOTHING = 5, 1.0
 #: first pilot's two failures, braking at 3.8-4.0 m/s^2 from 0.1-0.9 s, were outweighed by a late gentle
 #: braking that scored high, and the proposal moved to 1.7 m/s^2 at 10 s, where nothing fails)
 POOL_MIN = 2
-BEFORE_SMOOTHING = {"elite_min": 1, "smoothing": 1.0, "tilt": None, "pool_failures": False}
+#: what ranks a stage's episodes that did not fail, and the column that holds it: ``danger``, the largest inverse
+#: time-to-collision to the lead (episodes.danger), or ``reward``, the episode's summed reward (before 0.26: on
+#: latency_braking it ranked a gentle braking late in the episode above hard ones that nearly hit, and a pilot
+#: without a failure sent the proposal where nothing fails)
+SCORES = {"danger": "danger", "reward": "score"}
+BEFORE_SMOOTHING = {"elite_min": 1, "smoothing": 1.0, "tilt": None, "pool_failures": False, "score": "reward"}
 #: settings crude Monte Carlo does not use (a crude estimate resumes whatever they say)
-IMPORTANCE_ONLY = ("elite", "elite_min", "smoothing", "tilt", "defensive", "pilot", "pool_failures")
+IMPORTANCE_ONLY = ("elite", "elite_min", "smoothing", "tilt", "defensive", "pilot", "pool_failures", "score")
 
 
 @dataclass(frozen=True)
@@ -69,6 +74,7 @@ class EstimateSpec:
     smoothing: float = SMOOTHING  # importance: the refit's weight against the proposal before (1: the fit alone)
     tilt: tuple[str, ...] | None = None  # importance: the start variables the proposal tilts (None: every one)
     pool_failures: bool = True  # importance: refit on every failure so far once there are POOL_MIN (else: scores)
+    score: str = "danger"  # importance: what ranks the episodes that did not fail (SCORES)
     catalog_seed: int = 0
     nominal: tuple[StartRange, ...] | None = None  # None: default_starts of the member's ODD
     weights: str | None = None  # the member's system with these detector weights (a hardened one); None: its own
@@ -91,6 +97,8 @@ class EstimateSpec:
             raise UserInputError(f"--elite-min = {self.elite_min}; allowed: an integer >= 1")
         if not 0.0 < self.smoothing <= 1.0:
             raise UserInputError(f"--smoothing = {self.smoothing}; allowed: a weight in (0, 1] (1: the refit alone)")
+        if self.score not in SCORES:
+            raise UserInputError(f"--score = '{self.score}'; allowed: {', '.join(SCORES)}")
         if self.tilt is not None and (not self.tilt or len(set(self.tilt)) != len(self.tilt)):
             raise UserInputError(f"--tilt = {','.join(self.tilt)}; allowed: start variables without repeats")
         if not 0.0 <= self.pilot < 1.0:
@@ -167,8 +175,8 @@ def proposal_for(stage: int, rows: Sequence[dict[str, Any]], spec: EstimateSpec,
             picked_rows = pooled
         else:
             done = [r for r in rows if int(r["stage"]) == s]
-            picked = elite([float(r["score"]) for r in done], [bool(r["failed"]) for r in done], spec.elite,
-                           spec.elite_min)
+            picked = elite([float(r[SCORES[spec.score]]) for r in done], [bool(r["failed"]) for r in done],
+                           spec.elite, spec.elite_min)
             picked_rows = [done[i] for i in picked]
         starts = [start_of(r, nominal) for r in picked_rows]
         proposal = proposal.refit(starts, [math.exp(float(r["log_weight"])) for r in picked_rows], spec.smoothing)
@@ -230,7 +238,8 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
 
 def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> None:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    names = list(dict.fromkeys(k for r in rows for k in r))  # rows of an estimate from before a column: blank
+    w = csv.DictWriter(buf, fieldnames=names, restval="", lineterminator="\n")
     w.writeheader()
     w.writerows(rows)
     atomic_write(path, lambda p: p.write_text(buf.getvalue(), encoding="utf-8"))
