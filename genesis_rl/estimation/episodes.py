@@ -46,11 +46,11 @@ def start_weather(env: GenesisEnv, start: dict[str, float], heading_deg: float) 
     return Weather(values)
 
 
-def braking_action(env: GenesisEnv, start: dict[str, float], step: int) -> float:
-    """The ``lead_decel`` action of ``step`` that plays the drawn braking event: hold 0 until the onset, then
-    move toward the event's deceleration as fast as the knob's natural rate allows (a deterministic function of
-    the event and the knob's value, so the likelihood ratio of an episode is its start's alone)."""
-    i = env.mapper.knobs.index("lead_decel")
+def braking_action(env: GenesisEnv, start: dict[str, float], step: int, i: int) -> float:
+    """The ``lead_decel`` action (the mapper's knob ``i``) of ``step`` that plays the drawn braking event: hold 0
+    until the onset, then move toward the event's deceleration as fast as the knob's natural rate allows (a
+    deterministic function of the event and the knob's value, so the likelihood ratio of an episode is its
+    start's alone)."""
     now = float(env.weather["lead_decel"])
     target = start[BRAKE_DECEL] if (step + 1) * env.dt >= start[BRAKE_ONSET] else 0.0
     limit = float(env.mapper.max_delta[i])
@@ -91,7 +91,7 @@ def play(env: GenesisEnv, task: EpisodeTask, steps: int) -> dict[str, Any]:
     brake_index = env.mapper.knobs.index("lead_decel") if event else -1
     for k, a in enumerate(actions):
         if event:
-            a[brake_index] = braking_action(env, task.start, k)
+            a[brake_index] = braking_action(env, task.start, k, brake_index)
         _, reward, terminated, truncated, _ = env.step(a)
         score += float(reward)
         if terminated or truncated:

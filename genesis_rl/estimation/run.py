@@ -52,7 +52,8 @@ POOL_MIN = 2
 #: latency_braking it ranked a gentle braking late in the episode above hard ones that nearly hit, and a pilot
 #: without a failure sent the proposal where nothing fails)
 SCORES = {"danger": "danger", "reward": "score"}
-BEFORE_SMOOTHING = {"elite_min": 1, "smoothing": 1.0, "tilt": None, "pool_failures": False, "score": "reward"}
+#: what the settings added in 0.26 meant for an estimate started before them (its refit ran this way)
+SETTINGS_BEFORE_0_26 = {"elite_min": 1, "smoothing": 1.0, "tilt": None, "pool_failures": False, "score": "reward"}
 #: settings crude Monte Carlo does not use (a crude estimate resumes whatever they say)
 IMPORTANCE_ONLY = ("elite", "elite_min", "smoothing", "tilt", "defensive", "pilot", "pool_failures", "score")
 
@@ -298,7 +299,7 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
             output_folder.check_same_settings(
                 "estimate", out, found, spec.to_json(), may_change=("episodes", *IMPORTANCE_ONLY) if crude else (),
                 defaults={**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING},
-                          **BEFORE_SMOOTHING})
+                          **SETTINGS_BEFORE_0_26})
         else:
             output_folder.replace(out, "estimate")
             catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,

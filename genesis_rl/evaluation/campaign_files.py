@@ -114,12 +114,13 @@ def read_episode_row(path: Path) -> dict[str, Any]:
     return row
 
 
-#: the fields of an actor event (``sim.interface.ActorEvent.as_dict``) and what each must hold
-_EVENT_FIELDS: dict[str, tuple[str, Any]] = {
-    "kind": ("a string", lambda v: isinstance(v, str)),
-    "vehicle_id": ("an integer", lambda v: _is_int(v)),
-    "onset_s": ("a number", lambda v: _is_number(v)),
-    **{k: ("a number or null", lambda v: v is None or _is_number(v))
+#: the fields of an actor event (``sim.interface.ActorEvent.as_dict``): what each must hold, and whether every
+#: event has it
+_EVENT_FIELDS: dict[str, tuple[str, Any, bool]] = {
+    "kind": ("a string", lambda v: isinstance(v, str), True),
+    "vehicle_id": ("an integer", lambda v: _is_int(v), True),  # lambdas: the helpers are defined below
+    "onset_s": ("a number", lambda v: _is_number(v), True),
+    **{k: ("a number or null", lambda v: v is None or _is_number(v), False)
        for k in ("perceivable_s", "ttc_s", "gap_m", "closing_m_s", "perceived_ttc_s")},
 }
 
@@ -134,8 +135,7 @@ def _check_actor_events(path: Path, events: Any) -> None:
     for i, e in enumerate(events):
         if not isinstance(e, dict):
             raise _damaged(path, f"field 'actor_events[{i}]' = {e!r}; expected an object")
-        for name, (expected, ok) in _EVENT_FIELDS.items():
-            required = name in ("kind", "vehicle_id", "onset_s")
+        for name, (expected, ok, required) in _EVENT_FIELDS.items():
             if (required and name not in e) or (name in e and not ok(e[name])):
                 raise _damaged(path, f"field 'actor_events[{i}].{name}' = {e.get(name, '(missing)')!r}; "
                                      f"expected {expected}")
