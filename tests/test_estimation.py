@@ -212,6 +212,10 @@ def test_a_real_estimate_is_the_same_with_one_or_two_workers_and_resumes(tmp_pat
     assert main([*args, "--out", str(tmp_path / "one"), "--resume"]) == 0
     assert (tmp_path / "one" / "episodes.csv").read_text() == one
     assert (tmp_path / "one" / "estimate.png").stat().st_size > 10_000
+    # a typo in --tilt is refused before --force replaces anything: the estimate there stays as it was
+    before = {p.name: p.read_bytes() for p in (tmp_path / "one").iterdir()}
+    assert main([*args, "--tilt", "sun_altitude", "--force", "--out", str(tmp_path / "one")]) == 2
+    assert {p.name: p.read_bytes() for p in (tmp_path / "one").iterdir()} == before
 
 
 @pytest.mark.xdist_group("estimate")
@@ -376,3 +380,4 @@ def test_danger_is_the_largest_inverse_time_to_collision() -> None:
     assert danger([step(10, 30, 12)]) == 0.0
     assert danger([step(10, 30, 9), step(9, 0.0, 0.0, collided=True)]) == DANGER_CAP
     assert danger([step(10, 0.01, 0.0)]) == DANGER_CAP  # a gap of a centimetre closing at 10 m/s: capped
+

@@ -14,6 +14,8 @@ import csv
 import io
 import math
 import multiprocessing as mp
+import shutil
+import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
@@ -274,6 +276,27 @@ class _Pool:
             self._pool.join()
 
 
+def probe_member(spec: EstimateSpec, catalog: Path) -> tuple[NominalModel, int, float]:
+    """The member's nominal model, scene count and step length, read off an env on ``catalog``; refuses a member
+    without held knobs and a ``--tilt`` that names no start variable of it."""
+    from genesis_rl.config import from_mapping
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+
+    probe = GenesisEnv(from_mapping(EnvConfig, env_config(spec, catalog), "env"))
+    try:
+        if not probe.held_knobs:
+            raise UserInputError(f"member '{spec.member}': no knob is held within an episode, so the proposal "
+                                 "has no start to tilt (estimate needs natural dynamics)")
+        nominal = nominal_model(spec, probe)
+        unknown = sorted(set(spec.tilt or ()) - {r.name for r in nominal.starts})
+        if unknown:
+            raise UserInputError(f"--tilt names {unknown}; allowed: this member's start variables "
+                                 f"{[r.name for r in nominal.starts]}")
+        return nominal, len(probe.catalog.scenes), probe.dt
+    finally:
+        probe.close()
+
+
 def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool = False, resume: bool = False,
                  progress: bool = True) -> dict[str, Any]:
     """Play every episode not yet on disk, then write ``estimate.json`` and ``estimate.png``; the result."""
@@ -281,8 +304,6 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
 
     from genesis_rl import __version__
     from genesis_rl.backends import catalog_or_generate
-    from genesis_rl.config import from_mapping
-    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
     from genesis_rl.lite.scenes import DEFAULT_COUNTS
     from genesis_rl.zoo.members import zoo_member
 
@@ -300,27 +321,21 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
                 "estimate", out, found, spec.to_json(), may_change=("episodes", *IMPORTANCE_ONLY) if crude else (),
                 defaults={**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING},
                           **SETTINGS_BEFORE_0_26})
+            nominal, n_scenes, dt = probe_member(spec, out / "catalog.json")
         else:
-            output_folder.replace(out, "estimate")
-            catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
-                                traffic=member.traffic).save(out / "catalog.json")
+            catalog = catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
+                                          traffic=member.traffic)
+            # the member and the settings are checked on a catalog outside --out, so that a refusal (a bad --tilt
+            # name, a member without held knobs) leaves an estimate already there as it was, --force or not
+            with tempfile.TemporaryDirectory(prefix="genesis-rl-estimate-") as tmp:
+                catalog.save(Path(tmp) / "catalog.json")
+                nominal, n_scenes, dt = probe_member(spec, Path(tmp) / "catalog.json")
+                output_folder.replace(out, "estimate")
+                shutil.copyfile(Path(tmp) / "catalog.json", out / "catalog.json")
         # unfinished until the end (a resumed one too: its spec may have gone on to more episodes)
         atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
                                                   "spec": spec.to_json(), "done": False}, indent=1)
         env_cfg = env_config(spec, out / "catalog.json")
-        probe = GenesisEnv(from_mapping(EnvConfig, env_cfg, "env"))
-        try:
-            held, n_scenes, dt = probe.held_knobs, len(probe.catalog.scenes), probe.dt
-            if not held:
-                raise UserInputError(f"member '{spec.member}': no knob is held within an episode, so the proposal "
-                                     "has no start to tilt (estimate needs natural dynamics)")
-            nominal = nominal_model(spec, probe)
-            unknown = sorted(set(spec.tilt or ()) - {r.name for r in nominal.starts})
-            if unknown:
-                raise UserInputError(f"--tilt names {unknown}; allowed: this member's start variables "
-                                     f"{[r.name for r in nominal.starts]}")
-        finally:
-            probe.close()
         rows = [r for r in read_rows(out / "episodes.csv") if r["index"] < spec.episodes] if resume else []
         steps = steps_of(spec)
         bar = tqdm(total=spec.episodes, initial=len(rows), desc=f"estimate {spec.member} ({spec.method})",
