@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import platform
 import time
+from collections.abc import Callable
 
 from genesis_rl.knobs import Weather
 from genesis_rl.lite.backend import LiteBackend, LiteSimulation
@@ -234,3 +235,41 @@ def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...]
             r["ray_overhead_seconds_per_episode"] = round((r["seconds"] - local[r["workers"]]) * r["workers"] / scenes,
                                                           2)
     return out
+
+
+def bench_catalog(scenes: int = 1200, repeats: int = 5) -> dict:
+    """CPU seconds (the best of ``repeats``) to save a catalog, read its JSON, check it against the schema and load
+    it with the backend's checks, for the free-flow highway and the mixed urban traffic of ``scenes`` scenes.
+    Every env pays the load once (each campaign worker and training env), the estimate and the campaign
+    runner the save. CPU time, not wall time, so that other work on the machine moves it less."""
+    import tempfile
+    from functools import partial
+    from pathlib import Path
+
+    from genesis_rl.backends import catalog_or_generate, load_catalog
+    from genesis_rl.io_utils import read_json
+    from genesis_rl.scenes.catalog import parse_catalog
+
+    def _parse_file(path: Path) -> object:
+        return parse_catalog(read_json(path))
+
+    def best(fn: Callable[[], object]) -> float:
+        times = []
+        for _ in range(repeats):
+            start = time.process_time()
+            fn()
+            times.append(time.process_time() - start)
+        return round(min(times), 3)
+
+    out: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="genesis-rl-bench-") as tmp:
+        for name, map_name, traffic in (("highway_free_flow", "highway", "free_flow"), ("urban", "urban", "mixed")):
+            catalog = catalog_or_generate(None, map_name, scenes, 0, traffic=traffic)
+            path = Path(tmp) / f"{name}.json"
+            out[name] = {"scenes": scenes, "vehicles": sum(len(s.vehicles) for s in catalog.scenes),
+                         "save_s": best(partial(catalog.save, path)),
+                         "read_json_s": best(partial(read_json, path)),
+                         "parse_s": best(partial(_parse_file, path)),
+                         "load_s": best(partial(load_catalog, path)),
+                         "bytes": path.stat().st_size}
+    return {"what": "catalog", "cpu_seconds_best_of": repeats, **out}

@@ -288,6 +288,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "catalog":
+        from genesis_rl.bench import bench_catalog
+
+        scenes = 1200 if args.scenes is None else args.scenes
+        if not 1 <= scenes <= 5000:
+            raise UserInputError(f"--scenes = {scenes} must be in 1..5000")
+        print(json.dumps(bench_catalog(scenes=scenes), indent=2))
+        return 0
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
                                                        "campaign": 256}[args.what]
     least = 2 if args.what == "train" else 1  # a PPO update needs two steps
@@ -300,15 +308,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from genesis_rl.bench import bench_campaign, bench_sim, bench_system, bench_train
 
     if args.what == "campaign":
+        scenes = 8 if args.scenes is None else args.scenes
         executors = tuple(t.strip() for t in (args.executors or "local,ray").split(","))
         bad = [e for e in executors if e not in ("local", "ray")]  # an empty item (ray,,local) is a typo too
         if bad or not executors or len(set(executors)) < len(executors):
             raise UserInputError(f"--executors {args.executors!r}; allowed: a comma list of local, ray (each once, "
                                  "no empty items)")
         counts = limits.count_list(args.workers, "--workers", limits.WORKERS)  # 1,,2 is refused
-        if not 1 <= args.scenes <= 500:
-            raise UserInputError(f"--scenes = {args.scenes} must be in 1..500")
-        print(json.dumps(bench_campaign(scenes=args.scenes, steps=steps, executors=executors, workers=counts,
+        if not 1 <= scenes <= 500:
+            raise UserInputError(f"--scenes = {scenes} must be in 1..500")
+        print(json.dumps(bench_campaign(scenes=scenes, steps=steps, executors=executors, workers=counts,
                                         system=args.system), indent=2))
         return 0
     if args.what == "train":
@@ -490,16 +499,19 @@ def build_parser() -> argparse.ArgumentParser:
     add_export_command(sub)
 
     bench = sub.add_parser("bench", help="benchmarks; prints JSON")
-    bench.add_argument("what", choices=["sim", "system", "train", "campaign"],
+    bench.add_argument("what", choices=["sim", "system", "train", "campaign", "catalog"],
                        help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "
                             "train: the real trainer for --updates PPO updates: rollout steps/s, seconds per "
                             "update, projected paper-schedule time; "
-                            "campaign: episodes/minute per executor and worker count")
+                            "campaign: episodes/minute per executor and worker count; catalog: seconds to save, "
+                            "parse and load a scene catalog (every env pays the load)")
     bench.add_argument("--executors", default=None,
                        help="bench campaign: comma list of local, ray (default both); bench train: local or ray "
                             "(where the envs run, default local)")
     bench.add_argument("--workers", default="1,2", help="bench campaign: comma list of worker counts")
-    bench.add_argument("--scenes", type=int, default=8, help="bench campaign: episodes per run (highway scenes)")
+    bench.add_argument("--scenes", type=int, default=None,
+                       help="bench campaign: episodes per run (highway scenes, default 8); bench catalog: scenes per "
+                            "catalog (default 1200, as the estimate's free-flow highway catalog)")
     bench.add_argument("--steps", type=int, default=None,
                        help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, "
                             "2048)")

@@ -60,6 +60,12 @@ def number(value: Any, field: str, low: float, high: float, unit: str = "", *, i
     """Check that ``value`` (of ``field``, e.g. ``env.camera_width`` or ``--carla-timeout``) is a number of the
     right type, finite and within ``[low, high]`` ``unit``; return it as ``int`` or ``float``. The message
     reads ``env.obs_history = 0 must be in 1..16 steps (an integer)``."""
+    # the common case first, before any message is built: a catalog checks a million numbers on load
+    kind_of = type(value)
+    if kind_of is float and not integer and low <= value <= high and math.isfinite(value):
+        return value
+    if kind_of is int and low <= value <= high:
+        return value if integer else float(value)
     unit_s = f" {unit}" if unit else ""
     kind = "an integer" if integer else "a finite number"
     allowed = f"must be in {fmt(low)}..{fmt(high)}{unit_s} ({kind}" + (f"; {note})" if note else ")")

@@ -12,7 +12,7 @@ lite vehicle on its lane, no two overlapping at the start) is checked by that ba
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -81,7 +81,7 @@ class Catalog:
                     "map": sc.map,
                     "seed": sc.seed,
                     "signal_offset": sc.signal_offset,
-                    "vehicles": [asdict(v) for v in sc.vehicles],
+                    "vehicles": [_vehicle_json(v) for v in sc.vehicles],
                 }
                 for sc in self.scenes
             ],
@@ -95,6 +95,18 @@ class Catalog:
             raise UserInputError(f"scene index {index} is out of range; "
                                  f"the catalog has scenes 0..{len(self.scenes) - 1}")
         return self.scenes[index]
+
+
+_VEHICLE_FIELDS = tuple(f.name for f in fields(VehicleSpec))
+
+
+def _vehicle_json(v: VehicleSpec) -> dict[str, Any]:
+    """``dataclasses.asdict(v)``, the same keys in the same order, without its recursive deep copy (with it a
+    36,000-vehicle catalog took 2.5x as long to save): the only mutable field, the autopilot, is copied by hand."""
+    out = {name: getattr(v, name) for name in _VEHICLE_FIELDS}
+    out["color"] = list(v.color)
+    out["autopilot"] = None if v.autopilot is None else dict(v.autopilot)
+    return out
 
 
 _TYPE_NAMES = {str: "a string", int: "an integer", list: "a list", dict: "an object", float: "a number"}
