@@ -177,3 +177,26 @@ def test_in_free_flow_nobody_starts_between_the_ego_and_its_lead_or_tailgating()
                 if behind.role == "other" or ahead.role == "other":
                     gap = ahead.s - behind.s - (MAKES[ahead.make].length + MAKES[behind.make].length) / 2
                     assert gap >= 2.0 + FREE_FLOW_TIME_GAP * behind.speed - 1e-9
+
+
+def test_a_catalog_saves_what_asdict_gave_and_bench_catalog_times_it(tmp_path, capsys):
+    """The field-by-field serialiser writes exactly what ``dataclasses.asdict`` did (the same keys, order and
+    values, the autopilot a copy), and ``genesis-rl bench catalog`` reports every stage."""
+    from dataclasses import asdict
+
+    from genesis_rl.cli import main
+    from genesis_rl.scenes.catalog import _vehicle_json
+
+    catalog = generate_catalog("urban", 3, seed=4)
+    for scene in catalog.scenes:
+        for v in scene.vehicles:
+            got = _vehicle_json(v)
+            assert json.dumps(got) == json.dumps(asdict(v)) and list(got) == list(asdict(v))
+            if v.autopilot is not None:
+                assert got["autopilot"] is not v.autopilot  # a copy: editing the JSON leaves the scene as it was
+    assert main(["bench", "catalog", "--scenes", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for name in ("highway_free_flow", "urban"):
+        assert out[name]["vehicles"] == 60 and out[name]["bytes"] > 10_000
+        assert all(out[name][k] >= 0 for k in ("save_s", "read_json_s", "parse_s", "load_s"))
+    assert main(["bench", "catalog", "--scenes", "0"]) == 2
