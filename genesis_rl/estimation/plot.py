@@ -26,7 +26,9 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
                     label="95 % interval")
     ax.plot(n, [r["probability"] for r in run], color="tab:blue", label="estimate")
     est = result["estimate"]
-    pilots = int(result.get("episodes_spent", n[-1] if n else 0)) - (n[-1] if n else 0)
+    # the estimate's own count: the running curve is sampled every n // 100 episodes, so its last point may
+    # fall short of it (a crude estimate of 1,350 was labelled "after 11 pilot episodes")
+    pilots = int(result.get("episodes_spent", est["episodes"])) - int(est["episodes"])
     ax.set_xlabel("episodes" + (f" of the estimating stage (after {pilots} pilot episodes)" if pilots > 0 else ""))
     ax.set_ylabel("failure probability per episode")
     ax.set_title(f"{est['method']}: {est['probability']:.2e} [{est['ci95'][0]:.2e}, {est['ci95'][1]:.2e}]",
