@@ -31,11 +31,15 @@ def toy_play(tasks):
         coin = np.random.default_rng(list(t.action_seed)).uniform() < 0.5
         failed = bool(alt < 10 and abs(bear) < 30 and coin)
         score = -(max(0.0, alt - 10) / 90 + max(0.0, abs(bear) - 30) / 180)
-        yield {"index": t.index, "scene": t.scene, "episode_seed": t.episode_seed,
-               **{f"start_{k}": v for k, v in t.start.items()}, "heading": 0.0, "steps": 10, "score": score,
-               "danger": score,
-               "in_odd_steps": 10, "failed": failed, "fail_step": 3 if failed else None,
-               "cluster": "toy" if failed else None}
+        yield toy_row(t, failed, score, "toy")
+
+
+def toy_row(t, failed: bool, danger: float, cluster: str) -> dict:
+    """The row a played episode writes (episodes.play's), for a toy whose episodes are 10 steps inside the ODD."""
+    return {"index": t.index, "scene": t.scene, "episode_seed": t.episode_seed,
+            **{f"start_{k}": v for k, v in t.start.items()}, "heading": 0.0, "steps": 10, "score": danger,
+            "danger": danger, "in_odd_steps": 10, "failed": failed, "fail_step": 3 if failed else None,
+            "cluster": cluster if failed else None}
 
 
 def toy_estimate(seed: int, method: str = "importance", episodes: int = 120) -> tuple[estimator.Estimate, list]:
@@ -399,10 +403,7 @@ def test_importance_sampling_is_unbiased_where_a_rare_braking_decides_the_failur
             coin = np.random.default_rng(list(t.action_seed)).uniform() < 0.75
             failed = bool(t.start[BRAKE_DECEL] >= 2.5 and t.start[BRAKE_ONSET] <= 6.0 and coin)
             danger = t.start[BRAKE_DECEL] / 6.0 - t.start[BRAKE_ONSET] / 12.8
-            yield {"index": t.index, "scene": t.scene, "episode_seed": t.episode_seed,
-                   **{f"start_{k}": v for k, v in t.start.items()}, "heading": 0.0, "steps": 10, "score": danger,
-                   "danger": danger, "in_odd_steps": 10, "failed": failed, "fail_step": 3 if failed else None,
-                   "cluster": "braking" if failed else None}
+            yield toy_row(t, failed, danger, "braking")
 
     values, covered = [], 0
     for seed in range(60):
