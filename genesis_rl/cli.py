@@ -99,11 +99,14 @@ def _cmd_reactivity(args: argparse.Namespace) -> int:
     from genesis_rl.evaluation.reactivity import measure_campaign
     from genesis_rl.output_paths import output_file
 
+    if args.workers < 1:
+        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
+    limits.WORKERS.check(args.workers, "--workers")
     out = output_file(args.out if args.out else Path(args.campaign) / f"reactivity_{args.policy}.json", args.force,
                       inputs=[args.campaign], products=[r"reactivity_[\w.-]*\.json"])
     t0 = time.perf_counter()
     result = measure_campaign(args.campaign, args.policy, args.scenes, not args.no_other_seeds,
-                              progress=not args.quiet)
+                              progress=not args.quiet, workers=args.workers)
     data = {"campaign": str(args.campaign), "policy": args.policy, **result.to_json(),
             "seconds": round(time.perf_counter() - t0, 1)}
     out.write_json(data, indent=2)
@@ -384,6 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
     rx.add_argument("--scenes", type=int, default=None, help="the campaign's first N scenes (default: all)")
     rx.add_argument("--no-other-seeds", action="store_true", help="skip the same-scene, other-seed comparison "
                     "(halves the cost: 2 episodes a scene instead of 4)")
+    rx.add_argument("--workers", type=int, default=1, help="parallel processes, one episode "
+                    "each at a time (default: 1); the result is the same for any number")
     rx.add_argument("--out", default=None, help="output JSON (default: CAMPAIGN/reactivity_POLICY.json)")
     rx.add_argument("--force", action="store_true", help="overwrite an existing output")
     rx.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -107,3 +107,41 @@ def test_reactivity_command_on_a_campaign(tmp_path) -> None:
         assert r.returncode == 2 and message in r.stderr
     r = subprocess.run([*run, "reactivity", "--campaign", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and "is not a campaign folder" in r.stderr
+    r = subprocess.run([*run, "reactivity", "--campaign", str(camp), "--workers", "0"], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 2 and "--workers = 0; allowed: an integer >= 1" in r.stderr
+
+
+@pytest.mark.render
+def test_reactivity_on_two_workers_is_the_same_measurement(tmp_path) -> None:
+    """A pool plays the two rounds in parallel; every row, and so every gap, is what one process measures."""
+    import json
+    import subprocess
+    import sys
+
+    camp = tmp_path / "camp"
+    run = [sys.executable, "-m", "genesis_rl"]
+    r = subprocess.run([*run, "evaluate", "--policies", "random", "--map", "highway", "--scenes", "3", "--steps",
+                        "30", "--seed", "4", "--out", str(camp), "--quiet"], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"w{workers}.json"
+        r = subprocess.run([*run, "reactivity", "--campaign", str(camp), "--policy", "random", "--workers", workers,
+                            "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        rows[workers] = json.loads(out.read_text())
+    assert len(rows["1"]["rows"]) == 6 and rows["1"]["rows"] == rows["2"]["rows"]
+    assert rows["1"]["gaps"] == rows["2"]["gaps"]
+    # random weather reacts to nothing, yet its gap is not zero on every scene: the rows carry real episodes
+    assert any(row["closed"] != row["open"] for row in rows["1"]["rows"])
+
+
+def test_a_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
+    """multiprocessing restarts a worker whose initializer raises, forever; the pool hands the error to the
+    first episode instead, so the command stops with it."""
+    from genesis_rl.evaluation.reactivity import PoolPlayer
+
+    with PoolPlayer({"env": "not a table"}, str(tmp_path), "random", 2) as pool, pytest.raises(Exception):
+        pool.closed([(0, 1)])

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -125,37 +126,156 @@ class ReactivityResult:
         return {"seed": self.seed, "gaps": self.summary(), "rows": [asdict(r) for r in self.rows]}
 
 
+class Player(Protocol):
+    """Plays a measurement's episodes, in the order asked (here, or on a pool of workers)."""
+
+    def closed(self, jobs: Sequence[tuple[int, int]]) -> list[tuple[EpisodeScore, np.ndarray]]: ...
+
+    def open(self, jobs: Sequence[tuple[np.ndarray, int, int]]) -> list[EpisodeScore]: ...
+
+
+@dataclass
+class LocalPlayer:
+    """This process plays every episode on ``env`` with ``policy``."""
+
+    env: Any
+    policy: ActingPolicy
+    metrics: Metrics
+    bar: Any = None
+
+    def closed(self, jobs: Sequence[tuple[int, int]]) -> list[tuple[EpisodeScore, np.ndarray]]:
+        return [self._tick(play_closed(self.env, self.policy, s, e, self.metrics)) for s, e in jobs]
+
+    def open(self, jobs: Sequence[tuple[np.ndarray, int, int]]) -> list[EpisodeScore]:
+        return [self._tick(play_open(self.env, a, s, e, self.metrics)) for a, s, e in jobs]
+
+    def _tick(self, x: Any) -> Any:
+        if self.bar is not None:
+            self.bar.update()
+        return x
+
+
 def measure(env: Any, policy: ActingPolicy, scenes: Sequence[int], episode_seeds: Sequence[int],
             other_seeds: Sequence[int] | None = None, seed: int = 0, progress: bool = False,
             metrics: Metrics = METRICS) -> ReactivityResult:
     """The reactivity gaps of ``policy`` on ``scenes`` (at least 2) with their campaign ``episode_seeds``;
     ``other_seeds`` (one per scene) adds the other-seed comparison. 2 episodes per scene, 4 with other seeds.
     ``metrics``: name -> function of an episode's step records (default :data:`METRICS`)."""
-    scenes, episode_seeds = list(scenes), list(episode_seeds)
+    _check(scenes, episode_seeds)
+    bar = tqdm(total=len(scenes) * (4 if other_seeds is not None else 2), desc="reactivity", unit="episode",
+               disable=not progress)
+    try:
+        return measure_with(LocalPlayer(env, policy, metrics, bar), scenes, episode_seeds, other_seeds, seed,
+                            tuple(metrics))
+    finally:
+        bar.close()
+
+
+def _check(scenes: Sequence[int], episode_seeds: Sequence[int]) -> None:
     if len(scenes) < 2 or len(scenes) != len(episode_seeds):
         raise ValueError("reactivity needs >= 2 scenes, each with its episode seed")
+
+
+def measure_with(player: Player, scenes: Sequence[int], episode_seeds: Sequence[int],
+                 other_seeds: Sequence[int] | None, seed: int, metrics: tuple[str, ...]) -> ReactivityResult:
+    """The measurement in two rounds, each a batch of independent episodes (so a pool can play a round in
+    parallel): every closed-loop episode, then every open-loop one, which needs the closed-loop actions. An
+    episode is fixed by its scene and episode seed, so the rows are the same however the rounds are played."""
+    scenes, episode_seeds = [int(s) for s in scenes], [int(e) for e in episode_seeds]
+    _check(scenes, episode_seeds)
     n = len(scenes)
-    total = n * (4 if other_seeds is not None else 2)
-    bar = tqdm(total=total, desc="reactivity", unit="episode", disable=not progress)
-    closed: list[tuple[EpisodeScore, np.ndarray]] = []
-    for i in range(n):
-        closed.append(play_closed(env, policy, scenes[i], episode_seeds[i], metrics))
-        bar.update()
-    rows: list[PairRow] = []
-    for i in range(n):
-        j = (i + 1) % n
-        rows.append(PairRow("other_scene", scenes[i], episode_seeds[i], scenes[j], episode_seeds[j], closed[i][0],
-                             play_open(env, closed[j][1], scenes[i], episode_seeds[i], metrics)))
-        bar.update()
-    if other_seeds is not None:
-        for i in range(n):
-            score, _ = play_closed(env, policy, scenes[i], int(other_seeds[i]), metrics)
-            bar.update()
-            rows.append(PairRow("other_seed", scenes[i], int(other_seeds[i]), scenes[i], episode_seeds[i], score,
-                                play_open(env, closed[i][1], scenes[i], int(other_seeds[i]), metrics)))
-            bar.update()
-    bar.close()
-    return ReactivityResult(rows, seed, tuple(metrics))
+    others = [int(o) for o in other_seeds] if other_seeds is not None else []
+    closed = player.closed([*zip(scenes, episode_seeds), *zip(scenes, others)])
+    mine, on_other_seed = closed[:n], closed[n:]
+    donor = [(i + 1) % n for i in range(n)]
+    opens = player.open([(mine[donor[i]][1], scenes[i], episode_seeds[i]) for i in range(n)]
+                        + [(mine[i][1], scenes[i], others[i]) for i in range(len(others))])
+    rows = [PairRow("other_scene", scenes[i], episode_seeds[i], scenes[donor[i]], episode_seeds[donor[i]],
+                    mine[i][0], opens[i]) for i in range(n)]
+    rows += [PairRow("other_seed", scenes[i], others[i], scenes[i], episode_seeds[i], on_other_seed[i][0],
+                     opens[n + i]) for i in range(len(others))]
+    return ReactivityResult(rows, seed, metrics)
+
+
+# -- a pool of workers, each with its own env and policy (the default metrics: lambdas do not pickle) ------
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(spec_json: dict[str, Any], folder: str, policy_name: str, plugins: Sequence[str]) -> None:
+    """Build this worker's env and policy. A failure is kept and raised by the worker's first episode: a pool
+    whose initializer raises would start new workers forever, and the parent would wait without an error."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the pool
+    try:
+        import torch
+
+        from genesis_rl.adversaries import resolve_policy
+        from genesis_rl.evaluation.campaign_spec import CampaignSpec
+        from genesis_rl.evaluation.episodes import CampaignRunner
+        from genesis_rl.plugins import import_modules
+
+        import_modules(plugins, checked=False)  # what the parent imported, through its gate
+        torch.set_num_threads(1)
+        spec = CampaignSpec.from_json(spec_json)
+        env = CampaignRunner(spec, Path(folder)).env
+        _WORKER.update(env=env, policy=resolve_policy(policy_name)(spec.policy_context(env.mapper.action_dim)))
+    except Exception as err:  # noqa: BLE001 - handed to the parent by the first task
+        _WORKER["error"] = err
+
+
+def _worker() -> tuple[Any, ActingPolicy]:
+    if "error" in _WORKER:
+        raise _WORKER["error"]
+    return _WORKER["env"], _WORKER["policy"]
+
+
+def _closed_task(job: tuple[int, int]) -> tuple[EpisodeScore, np.ndarray]:
+    env, policy = _worker()
+    return play_closed(env, policy, job[0], job[1])
+
+
+def _open_task(job: tuple[np.ndarray, int, int]) -> EpisodeScore:
+    env, _ = _worker()
+    return play_open(env, job[0], job[1], job[2])
+
+
+@dataclass
+class PoolPlayer:
+    """``workers`` spawned processes play each round, in order (``imap``), with the campaign's env."""
+
+    spec_json: dict[str, Any]
+    folder: str
+    policy_name: str
+    workers: int
+    plugins: tuple[str, ...] = ()
+    bar: Any = None
+
+    def __enter__(self) -> PoolPlayer:
+        import multiprocessing as mp
+
+        self._pool = mp.get_context("spawn").Pool(self.workers, initializer=_init_worker,
+                                                  initargs=(self.spec_json, self.folder, self.policy_name,
+                                                            self.plugins))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._pool.terminate()
+        self._pool.join()
+
+    def closed(self, jobs: Sequence[tuple[int, int]]) -> list[tuple[EpisodeScore, np.ndarray]]:
+        return self._round(_closed_task, jobs)
+
+    def open(self, jobs: Sequence[tuple[np.ndarray, int, int]]) -> list[EpisodeScore]:
+        return self._round(_open_task, jobs)
+
+    def _round(self, fn: Callable[[Any], Any], jobs: Sequence[Any]) -> list[Any]:
+        out = []
+        for x in self._pool.imap(fn, jobs):
+            out.append(x)
+            if self.bar is not None:
+                self.bar.update()
+        return out
 
 
 def other_seed(campaign_seed: int, scene: int) -> int:
@@ -165,11 +285,10 @@ def other_seed(campaign_seed: int, scene: int) -> int:
 
 
 def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, with_other_seeds: bool = True,
-                     progress: bool = True) -> ReactivityResult:
+                     progress: bool = True, workers: int = 1) -> ReactivityResult:
     """The reactivity gaps of a campaign's step policy (``agent``, ``constant``, ``random``, or a user's) on
-    the campaign's scenes and episode seeds (its first ``scenes`` of them), in the campaign's env."""
-    from pathlib import Path
-
+    the campaign's scenes and episode seeds (its first ``scenes`` of them), in the campaign's env; with
+    ``workers`` > 1 on a pool of processes (the same rows)."""
     from genesis_rl.adversaries import StepPolicy, resolve_policy
     from genesis_rl.errors import UserInputError
     from genesis_rl.evaluation.campaign_files import read_campaign_meta
@@ -191,12 +310,22 @@ def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, w
     if cls.needs_agent and not spec.agent:  # reactivity has no --agent: the campaign names the agent
         raise UserInputError(f"--policy '{policy_name}': campaign '{folder}' was evaluated without an agent; "
                              "choose a campaign made with `genesis-rl evaluate --agent runs/NAME`")
+    idx = [int(s) for s, _ in pairs]
+    seeds = [int(e) for _, e in pairs]
+    others = [other_seed(spec.seed, s) for s in idx] if with_other_seeds else None
+    if workers > 1:
+        from genesis_rl.evaluation.worker import plugin_modules
+
+        bar = tqdm(total=len(idx) * (4 if others is not None else 2), desc="reactivity", unit="episode",
+                   disable=not progress)
+        try:
+            with PoolPlayer(saved["spec"], str(folder), policy_name, workers, tuple(plugin_modules()), bar) as pool:
+                return measure_with(pool, idx, seeds, others, spec.seed, tuple(METRICS))
+        finally:
+            bar.close()
     runner = CampaignRunner(spec, folder)
     try:
         policy = cls(spec.policy_context(runner.env.mapper.action_dim))
-        idx = [int(s) for s, _ in pairs]
-        seeds = [int(e) for _, e in pairs]
-        others = [other_seed(spec.seed, s) for s in idx] if with_other_seeds else None
         return measure(runner.env, policy, idx, seeds, others, seed=spec.seed, progress=progress)
     finally:
         runner.close()
