@@ -143,5 +143,5 @@ def test_a_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
     first episode instead, so the command stops with it."""
     from genesis_rl.evaluation.reactivity import PoolPlayer
 
-    with PoolPlayer({"env": "not a table"}, str(tmp_path), "random", 2) as pool, pytest.raises(Exception):
+    with PoolPlayer({"env": "not a table"}, str(tmp_path), "random", 2) as pool, pytest.raises(KeyError):
         pool.closed([(0, 1)])

@@ -185,7 +185,8 @@ def measure_with(player: Player, scenes: Sequence[int], episode_seeds: Sequence[
     _check(scenes, episode_seeds)
     n = len(scenes)
     others = [int(o) for o in other_seeds] if other_seeds is not None else []
-    closed = player.closed([*zip(scenes, episode_seeds), *zip(scenes, others)])
+    closed = player.closed([*zip(scenes, episode_seeds, strict=True),
+                            *zip(scenes if others else [], others, strict=True)])
     mine, on_other_seed = closed[:n], closed[n:]
     donor = [(i + 1) % n for i in range(n)]
     opens = player.open([(mine[donor[i]][1], scenes[i], episode_seeds[i]) for i in range(n)]
