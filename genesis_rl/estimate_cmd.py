@@ -34,7 +34,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
                         defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal,
                         elite_min=args.elite_min, smoothing=args.smoothing, score=args.score,
                         tilt=tuple(t for t in args.tilt.split(",") if t) if args.tilt else None,
-                        weights=args.weights)
+                        weights=args.weights, estimate_from=args.estimate_from)
     result = run_estimate(spec, Path(args.out), workers=args.workers, force=args.force, resume=args.resume,
                           progress=not args.quiet)
     est = result["estimate"]
@@ -63,8 +63,8 @@ def add_estimate_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stages", type=int, default=4,
                    help="importance: stages; all but the last adapt the proposal by cross-entropy (default 4)")
     p.add_argument("--pilot", type=float, default=0.5,
-                   help="importance: the share of the episodes the pilot stages take to adapt the proposal; the "
-                        "last stage's episodes make the estimate (default 0.5)")
+                   help="importance: the share of the episodes the pilot stages take to adapt the proposal "
+                        "(default 0.5; see --estimate-from)")
     p.add_argument("--defensive", type=float, default=0.2,
                    help="importance: the share of nominal starts in every proposal (default 0.2; bounds each "
                         "weight by 1/share)")
@@ -82,6 +82,11 @@ def add_estimate_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--score", default="danger", choices=["danger", "reward"],
                    help="importance: what ranks the episodes that did not fail: danger, the largest inverse "
                         "time-to-collision to the lead (default), or reward, the episode's summed reward (before 0.26)")
+    p.add_argument("--estimate-from", default="last", choices=["last", "adapted"],
+                   help="importance: which stages' episodes make the estimate: last, the last stage alone "
+                        "(default), or adapted, every stage after the first (broad) pilot, pooled with fixed "
+                        "weights (unbiased; better where the failure is an event's tail, docs/estimation.md); "
+                        "a resumed estimate may change it (the same episodes, read again)")
     p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's)")
     p.add_argument("--nominal", default=None,
                    help="a TOML file of start ranges replacing the default nominal model (docs/estimation.md)")

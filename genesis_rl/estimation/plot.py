@@ -29,7 +29,7 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
     # the estimate's own count: the running curve is sampled every n // 100 episodes, so its last point may
     # fall short of it (a crude estimate of 1,350 was labelled "after 11 pilot episodes")
     pilots = int(result.get("episodes_spent", est["episodes"])) - int(est["episodes"])
-    ax.set_xlabel("episodes" + (f" of the estimating stage (after {pilots} pilot episodes)" if pilots > 0 else ""))
+    ax.set_xlabel("episodes" + (f" in the estimate (after {pilots} pilot episode{'s' if pilots > 1 else ''})" if pilots > 0 else ""))
     ax.set_ylabel("failure probability per episode")
     ax.set_title(f"{est['method']}: {est['probability']:.2e} [{est['ci95'][0]:.2e}, {est['ci95'][1]:.2e}]",
                  fontsize=10)
@@ -52,7 +52,7 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
         bx.scatter(x[failed], y[failed], marker="x", color="tab:red", s=40, label="in-ODD failure")
         if last > 0:
             bar = fig.colorbar(sc, ax=bx, ticks=range(last + 1))
-            bar.set_label(f"stage ({last}: the estimating one)")
+            bar.set_label(f"stage (0: the broad pilot; {last}: the last)")
         bx.set_xlabel(f"start {x_name}")
         bx.set_ylabel(f"start {y_name}" if y_name else "episode")
         bx.set_title(f"{len(rows)} episodes, {int(failed.sum())} failed", fontsize=10)
