@@ -83,7 +83,8 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.matrix import run_benchmark
 
     board = run_benchmark(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
-                          executor=executor, progress=not args.quiet, estimates=_estimates(args.estimate))
+                          executor=executor, progress=not args.quiet, estimates=_estimates(args.estimate),
+                          parallel=args.parallel)
     short = {m: {p: {k: c[k] for k in ("falsification_rate", "triggered", "median_steps_to_failure",
                                         "distinct_in_odd_failures", "false_alarm_candidates")}
                  for p, c in cells.items()} for m, cells in board["cells"].items()}
@@ -128,7 +129,11 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
                     help="a tiny matrix that runs in about a minute (low_sun and oracle_highway, sunny and random, "
                          "2 trials of one 48-step scene)")
     bm.add_argument("--list", action="store_true", help="list the zoo's members and the adversaries, and exit")
-    bm.add_argument("--workers", type=int, default=1, help="parallel episodes")
+    bm.add_argument("--workers", type=int, default=1, help="parallel processes (or Ray actors)")
+    bm.add_argument("--parallel", choices=("auto", "campaigns", "episodes"), default="auto",
+                    help="how the workers share the matrix: campaigns (whole campaigns side by side, one process "
+                         "each), episodes (one campaign at a time, its episodes spread), or auto (default: campaigns "
+                         "on local processes with at least two campaigns a worker to run); the same figures")
     bm.add_argument("--executor", choices=("local", "ray"), default="local", help="where the episodes run")
     bm.add_argument("--ray-address", default=None, help="a running Ray cluster (implies --executor ray)")
     bm.add_argument("--resume", action="store_true", help="continue the benchmark in --out where it stopped")

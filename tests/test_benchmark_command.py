@@ -125,6 +125,23 @@ def test_an_interrupted_benchmark_resumes_to_the_same_leaderboard(blind_benchmar
     assert figures(cut) == figures(out)
 
 
+def test_campaigns_side_by_side_give_the_same_leaderboard(blind_benchmark, tmp_path):
+    """--parallel campaigns: each campaign in a process of its own, two at a time, to the same figures."""
+    from genesis_rl.benchmark.matrix import parallel_mode
+
+    spec, out = blind_benchmark
+    run_benchmark(spec, tmp_path / "side", workers=2, parallel="campaigns", progress=False)
+
+    def figures(folder: Path) -> dict:
+        return json.loads((folder / "leaderboard.json").read_text())
+
+    assert figures(tmp_path / "side") == figures(out)
+    assert parallel_mode("auto", 2, None, 4) == "campaigns" and parallel_mode("auto", 2, None, 3) == "episodes"
+    assert parallel_mode("auto", 1, None, 8) == "episodes" and parallel_mode("auto", 2, object(), 8) == "episodes"
+    with pytest.raises(UserInputError, match="--parallel = 'threads'; allowed: auto, campaigns, episodes"):
+        parallel_mode("threads", 2, None, 4)
+
+
 def test_under_natural_dynamics_the_sun_is_held_and_only_the_start_sets_it(tmp_path):
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
     from genesis_rl.zoo.members import zoo_member

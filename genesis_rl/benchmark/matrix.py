@@ -219,10 +219,32 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
     run_campaign(campaign, folder, workers=workers, resume=started, progress=False, executor=executor)
 
 
+#: how a benchmark's workers share its matrix: ``episodes`` (each campaign in turn, its episodes over the
+#: workers), ``campaigns`` (whole campaigns side by side, one process each: benchmark.parallel), or ``auto``
+PARALLEL = ("auto", "campaigns", "episodes")
+
+
+def parallel_mode(parallel: str, workers: int, executor: Any, campaigns: int) -> str:
+    """``auto``: campaigns side by side when the workers are local processes and there are at least two
+    campaigns a worker to run (fewer leave a worker idle at the end for longer than a campaign's set-up
+    costs); episodes otherwise, and always on Ray, whose actors already outlive a campaign's set-up."""
+    if parallel not in PARALLEL:
+        raise UserInputError(f"--parallel = '{parallel}'; allowed: {', '.join(PARALLEL)}")
+    if workers <= 1 or campaigns <= 1:
+        return "episodes"
+    if parallel == "campaigns" and executor is not None:
+        raise UserInputError("--parallel campaigns runs local processes; with --executor ray the episodes are "
+                             "spread (--parallel episodes or auto)")
+    if parallel == "auto":
+        return "campaigns" if executor is None and campaigns >= 2 * workers else "episodes"
+    return parallel
+
+
 def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume: bool = False,
                   workers: int = 1, executor: Any = None, progress: bool = True,
-                  estimates: Mapping[str, Path] | None = None) -> dict[str, Any]:
+                  estimates: Mapping[str, Path] | None = None, parallel: str = "auto") -> dict[str, Any]:
     """Run every (member, trial) campaign not yet finished, then write the leaderboard; returns it.
+    ``parallel``: how ``workers`` share the matrix (:func:`parallel_mode`); the figures are the same either way.
     ``estimates``: per member, a finished ``genesis-rl estimate`` folder whose rate the page shows beside the
     failures found (read first: a wrong one is refused before any episode runs)."""
     from genesis_rl import __version__
@@ -248,16 +270,21 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                                                    "spec": spec.to_json()}, indent=1)
         cells: list[tuple[str, int, str | None]] = [
             (m, t, run) for m in spec.members for t in range(spec.trials) for run in (None, *spec.agents.get(m, ()))]
-        bar = tqdm(total=len(cells), desc="benchmark", unit="campaign", disable=not progress)
-        for member, trial, run in cells:
-            bar.set_postfix_str(f"{member} trial {trial}" + (f" {agent_label(run)}" if run else ""))
-            if run is None:
-                run_campaign_once(campaign_spec(spec, member, trial), campaign_folder(out, member, trial),
-                                  workers=workers, executor=executor)
-            else:
-                run_campaign_once(campaign_spec(spec, member, trial, (run, agent_envs[member, run])),
-                                  agent_campaign_folder(out, member, trial, run), workers=workers, executor=executor)
-            bar.update()
+        jobs = [(campaign_spec(spec, m, t, None if run is None else (run, agent_envs[m, run])),
+                 campaign_folder(out, m, t) if run is None else agent_campaign_folder(out, m, t, run))
+                for m, t, run in cells]
+        bar = tqdm(total=len(jobs), desc="benchmark", unit="campaign", disable=not progress)
+        todo = [(c, f) for c, f in jobs if not (f / "summary.json").exists()]
+        bar.update(len(jobs) - len(todo))
+        if parallel_mode(parallel, workers, executor, len(todo)) == "campaigns":
+            from genesis_rl.benchmark.parallel import run_side_by_side
+
+            run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
+        else:
+            for campaign, folder in todo:
+                bar.set_postfix_str(str(folder.relative_to(out / "campaigns")))
+                run_campaign_once(campaign, folder, workers=workers, executor=executor)
+                bar.update()
         bar.close()
         board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members},
                             {m: {agent_label(r): [agent_campaign_folder(out, m, t, r) for t in range(spec.trials)]

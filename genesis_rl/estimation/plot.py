@@ -29,7 +29,8 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
     # the estimate's own count: the running curve is sampled every n // 100 episodes, so its last point may
     # fall short of it (a crude estimate of 1,350 was labelled "after 11 pilot episodes")
     pilots = int(result.get("episodes_spent", est["episodes"])) - int(est["episodes"])
-    ax.set_xlabel("episodes" + (f" in the estimate (after {pilots} pilot episode{'s' if pilots > 1 else ''})" if pilots > 0 else ""))
+    after = f" in the estimate (after {pilots} pilot episode{'s' if pilots > 1 else ''})" if pilots > 0 else ""
+    ax.set_xlabel("episodes" + after)
     ax.set_ylabel("failure probability per episode")
     ax.set_title(f"{est['method']}: {est['probability']:.2e} [{est['ci95'][0]:.2e}, {est['ci95'][1]:.2e}]",
                  fontsize=10)

@@ -1,0 +1,57 @@
+"""The matrix's campaigns side by side: ``workers`` spawned processes, each running whole campaigns one episode
+at a time, instead of each campaign spreading its episodes over the workers.
+
+Why: a campaign's set-up (its catalog, a renderer and a detector in every worker) is paid again for each
+campaign, and a campaign's last episodes leave workers idle while the slowest finishes. With many short
+campaigns (a benchmark's members x trials) that bound the episode-level scaling to 1.3-1.65x on 2 workers
+(docs/zoo.md). Each campaign is still the same campaign (its episodes are seeded by their tasks), so the
+leaderboard is the same either way.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import signal
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from genesis_rl.evaluation.campaign_spec import CampaignSpec
+
+#: a campaign job: its spec (as JSON, which pickles plainly) and its folder
+Job = tuple[dict[str, Any], str]
+
+
+def _init(plugins: Sequence[str]) -> None:
+    """Ctrl-C, which a terminal sends to every process, is the parent's: it terminates the pool, and a
+    half-run campaign resumes from its finished episodes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from genesis_rl.plugins import import_modules
+
+    import_modules(plugins, checked=False)  # what the parent imported, through its gate
+
+
+def _run(job: Job) -> str:
+    from genesis_rl.benchmark.matrix import run_campaign_once
+
+    spec_json, folder = job
+    run_campaign_once(CampaignSpec.from_json(spec_json), Path(folder), workers=1)
+    return folder
+
+
+def run_side_by_side(jobs: Sequence[tuple[CampaignSpec, Path]], workers: int,
+                     on_done: Callable[[Path], None] = lambda folder: None) -> None:
+    """Run every campaign of ``jobs`` on ``workers`` processes, each campaign in one process; ``on_done`` sees
+    each folder as its campaign finishes (in any order)."""
+    from genesis_rl.evaluation.worker import plugin_modules
+
+    payload = [(spec.to_json(), str(folder)) for spec, folder in jobs]
+    pool = mp.get_context("spawn").Pool(min(workers, len(payload)), initializer=_init,
+                                        initargs=(tuple(plugin_modules()),), maxtasksperchild=None)
+    try:
+        for folder in pool.imap_unordered(_run, payload):
+            on_done(Path(folder))
+        pool.close()
+    finally:
+        pool.terminate()
+        pool.join()
