@@ -227,7 +227,8 @@ PARALLEL = ("auto", "campaigns", "episodes")
 def parallel_mode(parallel: str, workers: int, executor: Any, campaigns: int) -> str:
     """``auto``: campaigns side by side when the workers are local processes and there are at least two
     campaigns a worker to run (fewer leave a worker idle at the end for longer than a campaign's set-up
-    costs); episodes otherwise, and always on Ray, whose actors already outlive a campaign's set-up."""
+    costs); episodes otherwise. On Ray always episodes: its actors send each episode's files back to the driver,
+    so a cluster needs no shared folder, and a whole campaign on one node would need one (not built)."""
     if parallel not in PARALLEL:
         raise UserInputError(f"--parallel = '{parallel}'; allowed: {', '.join(PARALLEL)}")
     if workers <= 1 or campaigns <= 1:
