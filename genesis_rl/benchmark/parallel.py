@@ -51,7 +51,9 @@ def run_side_by_side(jobs: Sequence[tuple[CampaignSpec, Path]], workers: int,
     try:
         for folder in pool.imap_unordered(_run, payload):
             on_done(Path(folder))
-        pool.close()
-    finally:
-        pool.terminate()
+    except BaseException:
+        pool.terminate()  # Ctrl-C or a campaign's error: the rest stop; a half-run campaign resumes
         pool.join()
+        raise
+    pool.close()  # the workers exit on their own, releasing what they hold (terminate leaks a semaphore)
+    pool.join()
