@@ -142,6 +142,36 @@ def test_campaigns_side_by_side_give_the_same_leaderboard(blind_benchmark, tmp_p
         parallel_mode("threads", 2, None, 4)
 
 
+def test_campaigns_beside_ray_are_refused_before_the_folder_is_touched(blind_benchmark, tmp_path):
+    spec, out = blind_benchmark
+    kept = tmp_path / "kept"
+    shutil.copytree(out, kept)
+    before = sorted(p.relative_to(kept) for p in kept.rglob("*"))
+    with pytest.raises(UserInputError, match="--parallel campaigns runs local processes"):
+        run_benchmark(spec, kept, force=True, workers=2, executor=object(), parallel="campaigns", progress=False)
+    assert sorted(p.relative_to(kept) for p in kept.rglob("*")) == before
+
+
+def test_a_campaign_process_that_cannot_start_raises_instead_of_hanging():
+    """A plug-in that does not import in the spawned process is raised by its first campaign (a pool whose
+    initializer raises would start new processes forever)."""
+    import signal
+
+    from genesis_rl.benchmark import parallel
+
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        parallel._init(("genesis_rl_no_such_plugin_module",))
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    try:
+        assert parallel._FAILED
+        with pytest.raises(UserInputError, match="genesis_rl_no_such_plugin_module"):
+            parallel._run(({}, "unused"))
+    finally:
+        parallel._FAILED.clear()
+
+
 def test_under_natural_dynamics_the_sun_is_held_and_only_the_start_sets_it(tmp_path):
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
     from genesis_rl.zoo.members import zoo_member

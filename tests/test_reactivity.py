@@ -77,6 +77,8 @@ def test_a_reactive_policy_has_a_positive_gap(env) -> None:
 def test_measure_needs_two_scenes_with_seeds() -> None:
     with pytest.raises(ValueError, match=">= 2 scenes"):
         measure(None, Constant(), [0], [1])
+    with pytest.raises(ValueError, match="one per scene"):
+        measure(None, Constant(), [0, 1], [1, 2], other_seeds=[])
 
 
 @pytest.mark.render

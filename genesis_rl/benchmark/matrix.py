@@ -28,6 +28,7 @@ from genesis_rl import limits, output_folder
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.io_utils import atomic_write_json
+from genesis_rl.signals import set_resume_hint
 from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
 
 SCHEMA = "genesis-rl/benchmark"
@@ -204,6 +205,11 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
     output_folder.check_same_settings("benchmark", out, found, wanted, may_change=("agents",))
 
 
+def finished(folder: Path) -> bool:
+    """Whether the campaign in ``folder`` ran to its end (its spec and its summary are written)."""
+    return (folder / "campaign.json").exists() and (folder / "summary.json").exists()
+
+
 def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1, executor: Any = None) -> None:
     """Run ``campaign`` into ``folder`` unless it finished there: a half-run one resumes from its finished
     episodes, and a folder left before the campaign wrote its spec (ours) starts again. The benchmark's trials
@@ -211,7 +217,7 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
     from genesis_rl.evaluation.campaign import run_campaign
 
     started = (folder / "campaign.json").exists()
-    if started and (folder / "summary.json").exists():
+    if finished(folder):
         return
     if folder.exists() and not started:
         shutil.rmtree(folder)
@@ -224,18 +230,23 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
 PARALLEL = ("auto", "campaigns", "episodes")
 
 
+def check_parallel(parallel: str, executor: Any) -> None:
+    """Refuse a ``--parallel`` that is not one of PARALLEL, or ``campaigns`` beside Ray, whatever is left to run."""
+    if parallel not in PARALLEL:
+        raise UserInputError(f"--parallel = '{parallel}'; allowed: {', '.join(PARALLEL)}")
+    if parallel == "campaigns" and executor is not None:
+        raise UserInputError("--parallel campaigns runs local processes; with --executor ray the episodes are "
+                             "spread (--parallel episodes or auto)")
+
+
 def parallel_mode(parallel: str, workers: int, executor: Any, campaigns: int) -> str:
     """``auto``: campaigns side by side when the workers are local processes and there are at least two
     campaigns a worker to run (fewer leave a worker idle at the end for longer than a campaign's set-up
     costs); episodes otherwise. On Ray always episodes: its actors send each episode's files back to the driver,
     so a cluster needs no shared folder, and a whole campaign on one node would need one (not built)."""
-    if parallel not in PARALLEL:
-        raise UserInputError(f"--parallel = '{parallel}'; allowed: {', '.join(PARALLEL)}")
+    check_parallel(parallel, executor)
     if workers <= 1 or campaigns <= 1:
         return "episodes"
-    if parallel == "campaigns" and executor is not None:
-        raise UserInputError("--parallel campaigns runs local processes; with --executor ray the episodes are "
-                             "spread (--parallel episodes or auto)")
     if parallel == "auto":
         return "campaigns" if executor is None and campaigns >= 2 * workers else "episodes"
     return parallel
@@ -255,6 +266,7 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
+    check_parallel(parallel, executor)  # before the folder is touched
     # each agent's env, once: a run trained elsewhere is refused before the folder is touched
     agent_envs = {(m, r): agent_env(m, r) for m, runs in spec.agents.items() for r in runs}
     unknown = sorted(set(estimates or {}) - set(spec.members))
@@ -275,12 +287,17 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                  campaign_folder(out, m, t) if run is None else agent_campaign_folder(out, m, t, run))
                 for m, t, run in cells]
         bar = tqdm(total=len(jobs), desc="benchmark", unit="campaign", disable=not progress)
-        todo = [(c, f) for c, f in jobs if not (f / "summary.json").exists()]
+        todo = [(c, f) for c, f in jobs if not finished(f)]
         bar.update(len(jobs) - len(todo))
         if parallel_mode(parallel, workers, executor, len(todo)) == "campaigns":
             from genesis_rl.benchmark.parallel import run_side_by_side
 
-            run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
+            try:
+                run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
+            except KeyboardInterrupt as err:
+                set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and a half-run one its finished "
+                                     "episodes; the same command with --resume runs the rest")
+                raise
         else:
             for campaign, folder in todo:
                 bar.set_postfix_str(str(folder.relative_to(out / "campaigns")))

@@ -22,18 +22,27 @@ from genesis_rl.evaluation.campaign_spec import CampaignSpec
 Job = tuple[dict[str, Any], str]
 
 
+_FAILED: list[BaseException] = []
+
+
 def _init(plugins: Sequence[str]) -> None:
     """Ctrl-C, which a terminal sends to every process, is the parent's: it terminates the pool, and a
-    half-run campaign resumes from its finished episodes."""
+    half-run campaign resumes from its finished episodes. A failure here is raised by the process's first
+    campaign: a pool whose initializer raises starts new processes forever, and the parent would wait."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from genesis_rl.plugins import import_modules
+    try:
+        from genesis_rl.plugins import import_modules
 
-    import_modules(plugins, checked=False)  # what the parent imported, through its gate
+        import_modules(plugins, checked=False)  # what the parent imported, through its gate
+    except Exception as err:  # noqa: BLE001 - handed to the parent by the first campaign
+        _FAILED.append(err)
 
 
 def _run(job: Job) -> str:
     from genesis_rl.benchmark.matrix import run_campaign_once
 
+    if _FAILED:
+        raise _FAILED[0]
     spec_json, folder = job
     run_campaign_once(CampaignSpec.from_json(spec_json), Path(folder), workers=1)
     return folder

@@ -161,7 +161,7 @@ def measure(env: Any, policy: ActingPolicy, scenes: Sequence[int], episode_seeds
     """The reactivity gaps of ``policy`` on ``scenes`` (at least 2) with their campaign ``episode_seeds``;
     ``other_seeds`` (one per scene) adds the other-seed comparison. 2 episodes per scene, 4 with other seeds.
     ``metrics``: name -> function of an episode's step records (default :data:`METRICS`)."""
-    _check(scenes, episode_seeds)
+    _check(scenes, episode_seeds, other_seeds)
     bar = tqdm(total=len(scenes) * (4 if other_seeds is not None else 2), desc="reactivity", unit="episode",
                disable=not progress)
     try:
@@ -171,9 +171,11 @@ def measure(env: Any, policy: ActingPolicy, scenes: Sequence[int], episode_seeds
         bar.close()
 
 
-def _check(scenes: Sequence[int], episode_seeds: Sequence[int]) -> None:
+def _check(scenes: Sequence[int], episode_seeds: Sequence[int], other_seeds: Sequence[int] | None = None) -> None:
     if len(scenes) < 2 or len(scenes) != len(episode_seeds):
         raise ValueError("reactivity needs >= 2 scenes, each with its episode seed")
+    if other_seeds is not None and len(other_seeds) != len(scenes):
+        raise ValueError("reactivity's other seeds: one per scene")
 
 
 def measure_with(player: Player, scenes: Sequence[int], episode_seeds: Sequence[int],
@@ -182,7 +184,7 @@ def measure_with(player: Player, scenes: Sequence[int], episode_seeds: Sequence[
     parallel): every closed-loop episode, then every open-loop one, which needs the closed-loop actions. An
     episode is fixed by its scene and episode seed, so the rows are the same however the rounds are played."""
     scenes, episode_seeds = [int(s) for s in scenes], [int(e) for e in episode_seeds]
-    _check(scenes, episode_seeds)
+    _check(scenes, episode_seeds, other_seeds)
     n = len(scenes)
     others = [int(o) for o in other_seeds] if other_seeds is not None else []
     closed = player.closed([*zip(scenes, episode_seeds, strict=True),
@@ -320,7 +322,9 @@ def measure_campaign(folder: Any, policy_name: str, scenes: int | None = None, w
         bar = tqdm(total=len(idx) * (4 if others is not None else 2), desc="reactivity", unit="episode",
                    disable=not progress)
         try:
-            with PoolPlayer(saved["spec"], str(folder), policy_name, workers, tuple(plugin_modules()), bar) as pool:
+            most = len(idx) * (2 if others is not None else 1)  # the larger round's episodes: no idle env
+            with PoolPlayer(saved["spec"], str(folder), policy_name, min(workers, most), tuple(plugin_modules()),
+                            bar) as pool:
                 return measure_with(pool, idx, seeds, others, spec.seed, tuple(METRICS))
         finally:
             bar.close()
