@@ -16,7 +16,6 @@ from its finished episodes, so the figures are those of an uninterrupted run.
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import Any
 from tqdm import tqdm
 
 from genesis_rl import limits, output_folder
+from genesis_rl.benchmark.campaign_once import finished, run_campaign_once
 from genesis_rl.errors import UserInputError
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.io_utils import atomic_write_json
@@ -203,26 +203,6 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
         raise UserInputError(f"--resume: benchmark '{out}' has agents {dropped} that --agent leaves out; name "
                              "them again, or start again with --force")
     output_folder.check_same_settings("benchmark", out, found, wanted, may_change=("agents",))
-
-
-def finished(folder: Path) -> bool:
-    """Whether the campaign in ``folder`` ran to its end (its spec and its summary are written)."""
-    return (folder / "campaign.json").exists() and (folder / "summary.json").exists()
-
-
-def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1, executor: Any = None) -> None:
-    """Run ``campaign`` into ``folder`` unless it finished there: a half-run one resumes from its finished
-    episodes, and a folder left before the campaign wrote its spec (ours) starts again. The benchmark's trials
-    and the zoo sweep's values are each one such campaign."""
-    from genesis_rl.evaluation.campaign import run_campaign
-
-    started = (folder / "campaign.json").exists()
-    if finished(folder):
-        return
-    if folder.exists() and not started:
-        shutil.rmtree(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    run_campaign(campaign, folder, workers=workers, resume=started, progress=False, executor=executor)
 
 
 #: how a benchmark's workers share its matrix: ``episodes`` (each campaign in turn, its episodes over the

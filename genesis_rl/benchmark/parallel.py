@@ -39,7 +39,7 @@ def _init(plugins: Sequence[str]) -> None:
 
 
 def _run(job: Job) -> str:
-    from genesis_rl.benchmark.matrix import run_campaign_once
+    from genesis_rl.benchmark.campaign_once import run_campaign_once
 
     if _FAILED:
         raise _FAILED[0]

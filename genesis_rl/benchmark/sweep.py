@@ -134,7 +134,7 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
     from tqdm import tqdm
 
     from genesis_rl import __version__
-    from genesis_rl.benchmark.matrix import run_campaign_once
+    from genesis_rl.benchmark.campaign_once import run_campaign_once
     from genesis_rl.benchmark.metrics import falsifier_metrics
     from genesis_rl.evaluation.campaign_spec import CampaignSpec
     from genesis_rl.odd.domain import load_odd
