@@ -147,3 +147,15 @@ def test_a_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
 
     with PoolPlayer({"env": "not a table"}, str(tmp_path), "random", 2) as pool, pytest.raises(KeyError):
         pool.closed([(0, 1)])
+
+
+def test_a_campaign_pool_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
+    """The campaign's episode pool (evaluation/executors.py) has the same guard: a plug-in that does not import
+    in a spawned worker stops the campaign with its error."""
+    from genesis_rl.distributed.settings import ExecutorSettings
+    from genesis_rl.errors import UserInputError
+    from genesis_rl.evaluation.executors import WorkerSetup, run_tasks
+
+    setup = WorkerSetup({}, tmp_path, ("genesis_rl_no_such_plugin_module",))
+    with pytest.raises(UserInputError, match="genesis_rl_no_such_plugin_module"):
+        list(run_tasks([("random", 0, 1), ("random", 1, 2)], setup, ExecutorSettings(workers=2)))

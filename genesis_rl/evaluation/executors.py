@@ -72,7 +72,19 @@ def _pool_init(setup: WorkerSetup, next_slot: Any, servers: list[dict[str, Any]]
     with next_slot.get_lock():
         slot = next_slot.value
         next_slot.value += 1
-    init_worker(setup.spec_json, str(setup.folder), 1, setup.plugins, servers[slot])
+    try:
+        init_worker(setup.spec_json, str(setup.folder), 1, setup.plugins, servers[slot])
+    except Exception as err:  # noqa: BLE001 - a pool whose initializer raises restarts it forever: the
+        _INIT_FAILED.append(err)  # process's first episode raises it instead, and the campaign stops with it
+
+
+_INIT_FAILED: list[BaseException] = []
+
+
+def _pool_task(task: Task) -> dict[str, Any]:
+    if _INIT_FAILED:
+        raise _INIT_FAILED[0]
+    return run_task(task)
 
 
 def _run_pool(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettings) -> Iterator[dict[str, Any]]:
@@ -80,7 +92,7 @@ def _run_pool(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSetti
     n = min(settings.workers, len(tasks))
     servers = [settings.server(i) for i in range(n)]
     with ctx.Pool(n, initializer=_pool_init, initargs=(setup, ctx.Value("i", 0), servers)) as pool:
-        yield from pool.imap_unordered(run_task, tasks)
+        yield from pool.imap_unordered(_pool_task, tasks)
 
 
 # -- Ray ------------------------------------------------------------------------------------------------
