@@ -155,21 +155,12 @@ def test_campaigns_beside_ray_are_refused_before_the_folder_is_touched(blind_ben
 def test_a_campaign_process_that_cannot_start_raises_instead_of_hanging():
     """A plug-in that does not import in the spawned process is raised by its first campaign (a pool whose
     initializer raises would start new processes forever)."""
-    import signal
-
     from genesis_rl.benchmark import parallel
+    from genesis_rl.distributed.spawn_pool import SpawnPool
 
-    handler = signal.getsignal(signal.SIGINT)
-    try:
-        parallel._init(("genesis_rl_no_such_plugin_module",))
-    finally:
-        signal.signal(signal.SIGINT, handler)
-    try:
-        assert parallel._FAILED
-        with pytest.raises(UserInputError, match="genesis_rl_no_such_plugin_module"):
-            parallel._run(({}, "unused"))
-    finally:
-        parallel._FAILED.clear()
+    with SpawnPool(2, parallel._init, (("genesis_rl_no_such_plugin_module",),)) as pool, \
+            pytest.raises(UserInputError, match="genesis_rl_no_such_plugin_module"):
+        list(pool.imap_unordered(parallel._run, [({}, "unused")]))
 
 
 def test_under_natural_dynamics_the_sun_is_held_and_only_the_start_sets_it(tmp_path):

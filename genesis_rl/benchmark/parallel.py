@@ -10,39 +10,28 @@ leaderboard is the same either way.
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import signal
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.distributed.spawn_pool import SpawnPool
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 
 #: a campaign job: its spec (as JSON, which pickles plainly) and its folder
 Job = tuple[dict[str, Any], str]
 
 
-_FAILED: list[BaseException] = []
-
-
 def _init(plugins: Sequence[str]) -> None:
-    """Ctrl-C, which a terminal sends to every process, is the parent's: it terminates the pool, and a
-    half-run campaign resumes from its finished episodes. A failure here is raised by the process's first
-    campaign: a pool whose initializer raises starts new processes forever, and the parent would wait."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        from genesis_rl.plugins import import_modules
+    """Import the plug-ins the parent had imported, through its gate (a failure reaches the parent through
+    the process's first campaign: SpawnPool)."""
+    from genesis_rl.plugins import import_modules
 
-        import_modules(plugins, checked=False)  # what the parent imported, through its gate
-    except Exception as err:  # noqa: BLE001 - handed to the parent by the first campaign
-        _FAILED.append(err)
+    import_modules(plugins, checked=False)
 
 
 def _run(job: Job) -> str:
     from genesis_rl.benchmark.campaign_once import run_campaign_once
 
-    if _FAILED:
-        raise _FAILED[0]
     spec_json, folder = job
     run_campaign_once(CampaignSpec.from_json(spec_json), Path(folder), workers=1)
     return folder
@@ -55,14 +44,11 @@ def run_side_by_side(jobs: Sequence[tuple[CampaignSpec, Path]], workers: int,
     from genesis_rl.evaluation.worker import plugin_modules
 
     payload = [(spec.to_json(), str(folder)) for spec, folder in jobs]
-    pool = mp.get_context("spawn").Pool(min(workers, len(payload)), initializer=_init,
-                                        initargs=(tuple(plugin_modules()),), maxtasksperchild=None)
+    pool = SpawnPool(min(workers, len(payload)), _init, (tuple(plugin_modules()),))
     try:
         for folder in pool.imap_unordered(_run, payload):
             on_done(Path(folder))
     except BaseException:
         pool.terminate()  # Ctrl-C or a campaign's error: the rest stop; a half-run campaign resumes
-        pool.join()
         raise
-    pool.close()  # the workers exit on their own, releasing what they hold (terminate leaks a semaphore)
-    pool.join()
+    pool.close()

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import shutil
-import signal
 import sys
 import tempfile
 import time
@@ -30,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.distributed.settings import ExecutorSettings
+from genesis_rl.distributed.spawn_pool import SpawnPool
 from genesis_rl.evaluation.campaign_folder import Task
 from genesis_rl.evaluation.worker import close_worker, init_worker, run_task
 from genesis_rl.io_utils import atomic_write
@@ -65,34 +65,20 @@ def _run_here(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSetti
 
 
 def _pool_init(setup: WorkerSetup, next_slot: Any, servers: list[dict[str, Any]]) -> None:
-    """A pool process takes the next worker slot, and with it its CARLA server. Ctrl-C, which a terminal sends
-    to every process of the command, is the parent's to handle: it stops the pool (SIGTERM), and a worker
-    finishes the file it is writing first (``signals.deferred_signals``), without a traceback of its own."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    """A pool process takes the next worker slot, and with it its CARLA server. Ctrl-C is the parent's to
+    handle (``SpawnPool``): it stops the pool (SIGTERM), and a worker finishes the file it is writing first
+    (``signals.deferred_signals``), without a traceback of its own."""
     with next_slot.get_lock():
         slot = next_slot.value
         next_slot.value += 1
-    try:
-        init_worker(setup.spec_json, str(setup.folder), 1, setup.plugins, servers[slot])
-    except Exception as err:  # noqa: BLE001 - a pool whose initializer raises restarts it forever: the
-        _INIT_FAILED.append(err)  # process's first episode raises it instead, and the campaign stops with it
-
-
-_INIT_FAILED: list[BaseException] = []
-
-
-def _pool_task(task: Task) -> dict[str, Any]:
-    if _INIT_FAILED:
-        raise _INIT_FAILED[0]
-    return run_task(task)
+    init_worker(setup.spec_json, str(setup.folder), 1, setup.plugins, servers[slot])
 
 
 def _run_pool(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettings) -> Iterator[dict[str, Any]]:
-    ctx = mp.get_context("spawn")
     n = min(settings.workers, len(tasks))
     servers = [settings.server(i) for i in range(n)]
-    with ctx.Pool(n, initializer=_pool_init, initargs=(setup, ctx.Value("i", 0), servers)) as pool:
-        yield from pool.imap_unordered(_pool_task, tasks)
+    with SpawnPool(n, _pool_init, (setup, mp.get_context("spawn").Value("i", 0), servers)) as pool:
+        yield from pool.imap_unordered(run_task, tasks)
 
 
 # -- Ray ------------------------------------------------------------------------------------------------

@@ -205,42 +205,27 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(spec_json: dict[str, Any], folder: str, policy_name: str, plugins: Sequence[str]) -> None:
-    """Build this worker's env and policy. A failure is kept and raised by the worker's first episode: a pool
-    whose initializer raises would start new workers forever, and the parent would wait without an error."""
-    import signal
+    """Build this worker's env and policy (a failure reaches the parent through the first episode: SpawnPool)."""
+    import torch
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the pool
-    try:
-        import torch
+    from genesis_rl.adversaries import resolve_policy
+    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.evaluation.episodes import CampaignRunner
+    from genesis_rl.plugins import import_modules
 
-        from genesis_rl.adversaries import resolve_policy
-        from genesis_rl.evaluation.campaign_spec import CampaignSpec
-        from genesis_rl.evaluation.episodes import CampaignRunner
-        from genesis_rl.plugins import import_modules
-
-        import_modules(plugins, checked=False)  # what the parent imported, through its gate
-        torch.set_num_threads(1)
-        spec = CampaignSpec.from_json(spec_json)
-        env = CampaignRunner(spec, Path(folder)).env
-        _WORKER.update(env=env, policy=resolve_policy(policy_name)(spec.policy_context(env.mapper.action_dim)))
-    except Exception as err:  # noqa: BLE001 - handed to the parent by the first task
-        _WORKER["error"] = err
-
-
-def _worker() -> tuple[Any, ActingPolicy]:
-    if "error" in _WORKER:
-        raise _WORKER["error"]
-    return _WORKER["env"], _WORKER["policy"]
+    import_modules(plugins, checked=False)  # what the parent imported, through its gate
+    torch.set_num_threads(1)
+    spec = CampaignSpec.from_json(spec_json)
+    env = CampaignRunner(spec, Path(folder)).env
+    _WORKER.update(env=env, policy=resolve_policy(policy_name)(spec.policy_context(env.mapper.action_dim)))
 
 
 def _closed_task(job: tuple[int, int]) -> tuple[EpisodeScore, np.ndarray]:
-    env, policy = _worker()
-    return play_closed(env, policy, job[0], job[1])
+    return play_closed(_WORKER["env"], _WORKER["policy"], job[0], job[1])
 
 
 def _open_task(job: tuple[np.ndarray, int, int]) -> EpisodeScore:
-    env, _ = _worker()
-    return play_open(env, job[0], job[1], job[2])
+    return play_open(_WORKER["env"], job[0], job[1], job[2])
 
 
 @dataclass
@@ -255,16 +240,14 @@ class PoolPlayer:
     bar: Any = None
 
     def __enter__(self) -> PoolPlayer:
-        import multiprocessing as mp
+        from genesis_rl.distributed.spawn_pool import SpawnPool
 
-        self._pool = mp.get_context("spawn").Pool(self.workers, initializer=_init_worker,
-                                                  initargs=(self.spec_json, self.folder, self.policy_name,
+        self._pool = SpawnPool(self.workers, _init_worker, (self.spec_json, self.folder, self.policy_name,
                                                             self.plugins))
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._pool.terminate()
-        self._pool.join()
 
     def closed(self, jobs: Sequence[tuple[int, int]]) -> list[tuple[EpisodeScore, np.ndarray]]:
         return self._round(_closed_task, jobs)
