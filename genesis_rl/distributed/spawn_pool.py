@@ -5,7 +5,8 @@ plug-in that does not import, a campaign spec it cannot read) is started again f
 hears why. Here a worker keeps its initializer's error and raises it in its first task, so the error reaches
 the parent through the task's result. Workers ignore Ctrl-C, which a terminal sends to every process of the
 command: it is the parent's to handle (it terminates the pool, and what was written stays resumable).
-The campaign's episode pool, reactivity's pool and the benchmark's side-by-side campaigns all start here.
+The campaign's episode pool, reactivity's pool, the benchmark's side-by-side campaigns and the estimate's
+episodes all start here.
 """
 
 from __future__ import annotations

@@ -13,7 +13,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import multiprocessing as mp
 import shutil
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -24,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from genesis_rl import output_folder
+from genesis_rl.distributed.spawn_pool import SpawnPool
 from genesis_rl.errors import UserInputError
 from genesis_rl.estimation import estimator
 from genesis_rl.estimation.episodes import EpisodeTask, init_worker, run_task
@@ -280,8 +280,7 @@ class _Pool:
 
     def __enter__(self) -> _Pool:
         if self.workers > 1:
-            self._pool = mp.get_context("spawn").Pool(self.workers, initializer=init_worker,
-                                                      initargs=(self.env, self.steps))
+            self._pool = SpawnPool(self.workers, init_worker, (self.env, self.steps))
         else:
             init_worker(self.env, self.steps)
         return self
@@ -295,7 +294,6 @@ class _Pool:
     def __exit__(self, *exc: object) -> None:
         if self.workers > 1:
             self._pool.terminate()
-            self._pool.join()
 
 
 def probe_member(spec: EstimateSpec, catalog: Path) -> tuple[NominalModel, int, float]:
