@@ -132,8 +132,8 @@ def add_benchmark_command(subparsers: argparse._SubParsersAction) -> argparse.Ar
     bm.add_argument("--workers", type=int, default=1, help="parallel processes (or Ray actors)")
     bm.add_argument("--parallel", choices=("auto", "campaigns", "episodes"), default="auto",
                     help="how the workers share the matrix: campaigns (whole campaigns side by side, one process "
-                         "each), episodes (one campaign at a time, its episodes spread), or auto (default: campaigns "
-                         "on local processes with at least two campaigns a worker to run); the same figures")
+                         "or Ray actor each), episodes (one campaign at a time, its episodes spread), or auto "
+                         "(default: campaigns with at least two campaigns a worker to run); the same figures")
     bm.add_argument("--executor", choices=("local", "ray"), default="local", help="where the episodes run")
     bm.add_argument("--ray-address", default=None, help="a running Ray cluster (implies --executor ray)")
     bm.add_argument("--resume", action="store_true", help="continue the benchmark in --out where it stopped")

@@ -137,19 +137,37 @@ def test_campaigns_side_by_side_give_the_same_leaderboard(blind_benchmark, tmp_p
 
     assert figures(tmp_path / "side") == figures(out)
     assert parallel_mode("auto", 2, None, 4) == "campaigns" and parallel_mode("auto", 2, None, 3) == "episodes"
-    assert parallel_mode("auto", 1, None, 8) == "episodes" and parallel_mode("auto", 2, object(), 8) == "episodes"
+    assert parallel_mode("auto", 1, None, 8) == "episodes" and parallel_mode("auto", 2, object(), 8) == "campaigns"
+    # one Ray worker takes campaigns too: Ray and its actor start once for the matrix, not once a campaign
+    assert parallel_mode("auto", 1, object(), 8) == "campaigns"
+    assert parallel_mode("episodes", 1, object(), 8) == "episodes"
     with pytest.raises(UserInputError, match="--parallel = 'threads'; allowed: auto, campaigns, episodes"):
         parallel_mode("threads", 2, None, 4)
 
 
-def test_campaigns_beside_ray_are_refused_before_the_folder_is_touched(blind_benchmark, tmp_path):
+def test_campaigns_on_ray_actors_resume_to_the_same_leaderboard(blind_benchmark, tmp_path):
+    """--executor ray --parallel campaigns: each actor runs whole campaigns in a staging folder and sends the
+    files back; a never-started campaign and a half-run one (whose files travel to the actor) end as the local
+    run's, and the installed summaries name the benchmark's folder, not the actor's."""
+    pytest.importorskip("ray")
+    from genesis_rl.distributed.settings import ExecutorSettings
+
     spec, out = blind_benchmark
-    kept = tmp_path / "kept"
-    shutil.copytree(out, kept)
-    before = sorted(p.relative_to(kept) for p in kept.rglob("*"))
-    with pytest.raises(UserInputError, match="--parallel campaigns runs local processes"):
-        run_benchmark(spec, kept, force=True, workers=2, executor=object(), parallel="campaigns", progress=False)
-    assert sorted(p.relative_to(kept) for p in kept.rglob("*")) == before
+    cut = tmp_path / "cut"
+    shutil.copytree(out, cut)
+    shutil.rmtree(campaign_folder(cut, "oracle_highway", 1))
+    half = campaign_folder(cut, "blind_highway", 1)
+    (half / "summary.json").unlink()
+    kept = sorted((half / "episodes" / "sunny").glob("*.json"))
+    for row in sorted((half / "episodes" / "random").glob("*.json")):
+        row.unlink()
+    run_benchmark(spec, cut, resume=True, workers=2, executor=ExecutorSettings(kind="ray", workers=2),
+                  parallel="campaigns", progress=False)
+    assert json.loads((cut / "leaderboard.json").read_text()) == json.loads((out / "leaderboard.json").read_text())
+    assert json.loads((half / "summary.json").read_text())["campaign"] == str(half)
+    assert [p.read_bytes() for p in kept] == [p.read_bytes() for p in sorted(kept[0].parent.glob("*.json"))]
+    assert not [p for p in (cut / "campaigns").rglob(".*") if p.suffix in (".incoming", ".replaced")]
+    assert json.loads((half / "run_time.json").read_text())["executor"] == "ray (a campaign per actor)"
 
 
 def test_a_campaign_process_that_cannot_start_raises_instead_of_hanging():

@@ -206,29 +206,28 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
 
 
 #: how a benchmark's workers share its matrix: ``episodes`` (each campaign in turn, its episodes over the
-#: workers), ``campaigns`` (whole campaigns side by side, one process each: benchmark.parallel), or ``auto``
+#: workers), ``campaigns`` (whole campaigns side by side, one process or Ray actor each: benchmark.parallel,
+#: benchmark.ray_campaigns), or ``auto``
 PARALLEL = ("auto", "campaigns", "episodes")
 
 
 def check_parallel(parallel: str, executor: Any) -> None:
-    """Refuse a ``--parallel`` that is not one of PARALLEL, or ``campaigns`` beside Ray, whatever is left to run."""
+    """Refuse a ``--parallel`` that is not one of PARALLEL, whatever is left to run."""
     if parallel not in PARALLEL:
         raise UserInputError(f"--parallel = '{parallel}'; allowed: {', '.join(PARALLEL)}")
-    if parallel == "campaigns" and executor is not None:
-        raise UserInputError("--parallel campaigns runs local processes; with --executor ray the episodes are "
-                             "spread (--parallel episodes or auto)")
 
 
 def parallel_mode(parallel: str, workers: int, executor: Any, campaigns: int) -> str:
-    """``auto``: campaigns side by side when the workers are local processes and there are at least two
-    campaigns a worker to run (fewer leave a worker idle at the end for longer than a campaign's set-up
-    costs); episodes otherwise. On Ray always episodes: its actors send each episode's files back to the driver,
-    so a cluster needs no shared folder, and a whole campaign on one node would need one (not built)."""
+    """``auto``: campaigns side by side (local processes or Ray actors, each sending its campaign's files back
+    so that a cluster needs no shared folder) when there are at least two campaigns a worker to run (fewer
+    leave a worker idle at the end for longer than a campaign's set-up costs); episodes otherwise. One local
+    worker runs in this process (episodes); one Ray worker takes campaigns, so that the matrix starts Ray and
+    its actor once, not once a campaign."""
     check_parallel(parallel, executor)
-    if workers <= 1 or campaigns <= 1:
+    if campaigns <= 1 or (workers <= 1 and (executor is None or parallel == "episodes")):
         return "episodes"
     if parallel == "auto":
-        return "campaigns" if executor is None and campaigns >= 2 * workers else "episodes"
+        return "campaigns" if campaigns >= 2 * workers else "episodes"
     return parallel
 
 
@@ -247,6 +246,8 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     if resume and not (out / "benchmark.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
     check_parallel(parallel, executor)  # before the folder is touched
+    if executor is not None:
+        executor.preflight()  # Ray installed and its address answering, before the folder is touched
     # each agent's env, once: a run trained elsewhere is refused before the folder is touched
     agent_envs = {(m, r): agent_env(m, r) for m, runs in spec.agents.items() for r in runs}
     unknown = sorted(set(estimates or {}) - set(spec.members))
@@ -271,9 +272,13 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
         bar.update(len(jobs) - len(todo))
         if parallel_mode(parallel, workers, executor, len(todo)) == "campaigns":
             from genesis_rl.benchmark.parallel import run_side_by_side
+            from genesis_rl.benchmark.ray_campaigns import run_campaigns_on_ray
 
             try:
-                run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
+                if executor is not None:
+                    run_campaigns_on_ray(todo, executor, on_done=lambda folder: bar.update())
+                else:
+                    run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
             except KeyboardInterrupt as err:
                 set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and a half-run one its finished "
                                      "episodes; the same command with --resume runs the rest")

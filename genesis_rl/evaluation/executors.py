@@ -145,14 +145,22 @@ class _Slot:
     failed_starts: int = 0  # actors of this slot in a row that died before they were up
 
 
-class RayEpisodeScheduler:
-    """Hands tasks to actors one at a time and gives a lost actor's episode to another (module docstring)."""
+def _describe_episode(task: Any) -> str:
+    return f"the episode of policy '{task[0]}' on scene {task[1]}"
 
-    def __init__(self, ray: Any, make_actor: Callable[[int], Any], slots: int, tasks: Sequence[Task],
-                 max_losses: int, wait_s: float = REPLACEMENT_WAIT_S) -> None:
+
+class RayEpisodeScheduler:
+    """Hands tasks to actors one at a time and gives a lost actor's task to another (module docstring). A task
+    is an episode here; the benchmark hands whole campaigns to actors the same way (``benchmark.ray_campaigns``),
+    with ``describe`` naming a task and ``unit`` what it is in messages."""
+
+    def __init__(self, ray: Any, make_actor: Callable[[int], Any], slots: int, tasks: Sequence[Any],
+                 max_losses: int, wait_s: float = REPLACEMENT_WAIT_S,
+                 describe: Callable[[Any], str] = _describe_episode, unit: str = "episode") -> None:
         from genesis_rl.distributed.ray_cluster import lost_errors
 
         self.ray, self.make_actor, self.tasks, self.max_losses, self.wait_s = ray, make_actor, tasks, max_losses, wait_s
+        self.describe, self.unit = describe, unit
         self.lost_errors = lost_errors(ray)
         self.queue: deque[int] = deque(range(len(tasks)))
         self.losses: dict[int, int] = {}
@@ -164,7 +172,7 @@ class RayEpisodeScheduler:
         actor = self.make_actor(i)
         return _Slot(i, actor, actor.where.remote(), failed_starts=failed_starts)
 
-    def run(self) -> Iterator[tuple[dict[str, Any], dict[str, bytes]]]:
+    def run(self) -> Iterator[tuple[Any, dict[str, bytes]]]:
         from genesis_rl.distributed.ray_cluster import node_address
 
         stranded_since: float | None = None
@@ -215,9 +223,9 @@ class RayEpisodeScheduler:
                 episodes.append(s.task)
                 self.losses[s.task] = self.losses.get(s.task, 0) + 1
                 if self.losses[s.task] > self.max_losses:
-                    policy, scene = self.tasks[s.task][0], self.tasks[s.task][1]
-                    raise _workers_lost(f"the episode of policy '{policy}' on scene {scene} lost its Ray worker "
-                                        f"{self.losses[s.task]} times (it may kill its worker: {_short(err)})")
+                    raise _workers_lost(f"{self.describe(self.tasks[s.task])} lost its Ray worker "
+                                        f"{self.losses[s.task]} times (it may kill its worker: {_short(err)})",
+                                        self.unit)
             try:
                 self.ray.kill(s.actor)
             except Exception:  # noqa: BLE001 - a dead actor is killed already
@@ -238,13 +246,14 @@ class RayEpisodeScheduler:
             what = f"genesis-rl: lost {where}: {len(victims)} worker(s)"
         else:
             what = f"genesis-rl: a Ray worker on {where} died ({_short(err)})"
-        print(f"{what}; {len(episodes)} episode(s) go back to the queue and run again on the {live} worker(s) "
+        print(f"{what}; {len(episodes)} {self.unit}(s) go back to the queue and run again on the {live} worker(s) "
               f"left or on replacements where the cluster has room", file=sys.stderr, flush=True)
 
     def _stranded(self) -> Exception:
         lost = f" (lost nodes: {', '.join(self.lost_nodes)})" if self.lost_nodes else ""
-        return _workers_lost(f"every Ray worker of the campaign is lost{lost} and no replacement could be placed "
-                             f"within {self.wait_s:g} s; {len(self.queue)} episode(s) are not run")
+        whole = "benchmark" if self.unit == "campaign" else "campaign"
+        return _workers_lost(f"every Ray worker of the {whole} is lost{lost} and no replacement could be placed "
+                             f"within {self.wait_s:g} s; {len(self.queue)} {self.unit}(s) are not run", self.unit)
 
     def close(self) -> None:
         for s in self.slots:
@@ -264,10 +273,11 @@ def _short(err: BaseException) -> str:
     return f"{type(err).__name__}: {first[0][:160]}" if first else type(err).__name__
 
 
-def _workers_lost(reason: str) -> Exception:
+def _workers_lost(reason: str, unit: str = "episode") -> Exception:
     from genesis_rl.distributed.ray_cluster import RayWorkersLost
 
-    return RayWorkersLost(f"{reason}; the finished episodes are kept: continue with genesis-rl evaluate --resume "
+    command = "benchmark" if unit == "campaign" else "evaluate"
+    return RayWorkersLost(f"{reason}; the finished {unit}s are kept: continue with genesis-rl {command} --resume "
                           "(on Ray or locally) once the cluster has room")
 
 
