@@ -156,6 +156,34 @@ def test_an_episode_that_kills_its_worker_every_time_stops_the_campaign(capsys) 
     assert capsys.readouterr().err.count("genesis-rl: a Ray worker on Ray node node1 (10.0.0.1) died") == 2
 
 
+def test_the_benchmarks_campaigns_are_scheduled_and_lost_as_episodes_are(capsys) -> None:
+    """The benchmark hands whole campaigns to actors through the same scheduler: a campaign whose actor is lost
+    runs again on a replacement, and one that kills its worker every time stops the benchmark, naming it and
+    ``benchmark --resume``."""
+    from genesis_rl.benchmark.ray_campaigns import _describe
+    from genesis_rl.distributed.ray_cluster import RayWorkersLost
+    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+
+    jobs = [({}, f"out/campaigns/low_sun/trial_0{k}", {}) for k in range(3)]
+    fake = _FakeRay()
+    made: list[int] = []
+
+    def make(i: int) -> _Actor:
+        made.append(i)  # the first actor dies in its first campaign; its replacement runs every campaign
+        return _Actor(fake, ("node1", "10.0.0.1"), fail=lambda job: len(made) == 1)
+
+    done = list(RayEpisodeScheduler(fake, make, 1, jobs, max_losses=2, describe=_describe, unit="campaign").run())
+    assert len(done) == 3 and made == [0, 0]
+    assert "1 campaign(s) go back to the queue" in capsys.readouterr().err
+
+    def doomed(i: int) -> _Actor:
+        return _Actor(fake, ("node1", "10.0.0.1"), fail=lambda job: job is jobs[1])
+
+    with pytest.raises(RayWorkersLost, match=r"the campaign 'out/campaigns/low_sun/trial_01' lost its Ray worker 3 "
+                       r"times .*finished campaigns are kept: continue with genesis-rl benchmark --resume"):
+        list(RayEpisodeScheduler(fake, doomed, 1, jobs, max_losses=2, describe=_describe, unit="campaign").run())
+
+
 def test_an_actor_that_dies_before_it_is_up_is_replaced_quietly(capsys) -> None:
     from genesis_rl.evaluation.executors import RayEpisodeScheduler
 
