@@ -57,6 +57,7 @@ def test_the_start_step_sets_the_sun_from_the_action_and_the_episode_runs_in_ful
         assert obs[-1] == 0.0 and reward == 0.0 and not (terminated or truncated) and env.records == []
         assert info["start_step"] and info["start"]["sun_altitude_angle"] == pytest.approx(5.0, abs=1e-4)
         assert info["start"]["sun_azimuth_angle"] == pytest.approx(heading % 360, abs=1e-4)  # straight ahead
+        assert info["start"]["sun_bearing"] == pytest.approx(0.0, abs=1e-4)  # training logs it (episodes.csv)
         assert env.episode_start["sun_altitude_angle"] == pytest.approx(5.0, abs=1e-4)
         steps = 0
         while True:
@@ -88,6 +89,49 @@ def test_the_start_step_sets_the_sun_from_the_action_and_the_episode_runs_in_ful
         assert 0.0 <= day.weather["sun_altitude_angle"] < 1.0
     finally:
         day.close()
+
+
+def test_an_absolute_start_action_names_one_altitude_whatever_the_draw_and_the_count_bonus_pays_once():
+    """env.start_action = "absolute": -1..+1 spans the knob's range, so one action is one sun altitude on every
+    episode (relative: 0 keeps the episode's start); env.start_bonus pays start_bonus / sqrt(n) at the
+    first tick, n the starts chosen in the action's cell, and nothing after."""
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+
+    with pytest.raises(UserInputError, match="env.start_action = 'corner'; allowed: relative, absolute"):
+        EnvConfig(start_action="corner")
+    with pytest.raises(UserInputError, match="env.start_bonus needs env.start_head = true"):
+        EnvConfig(start_bonus=10.0)
+    with pytest.raises(UserInputError, match="env.start_bonus_cells = 1 must be an integer in 2..64"):
+        EnvConfig(start_bonus_cells=1)
+    settings = {**env_settings(zoo_member("glare_blind")), "system": "blind", "system_kwargs": {}, "scenes": 3,
+                "episode_steps": 3, "observation": "features", "start_head": True, "start_spread": 1.0,
+                "camera_width": 64, "camera_height": 48}
+    sun = ("sun_altitude_angle", "sun_azimuth_angle")
+    with pytest.raises(UserInputError, match="env.start_bonus_knobs: \\['fog_density'\\] are not held"):
+        GenesisEnv(**{**settings, "episode_steps": 256, "start_bonus": 1.0, "start_bonus_knobs": ("fog_density",)})
+    with pytest.raises(UserInputError, match="env.start_bonus_knobs: \\['lead_decel'\\] are not among env.knobs"):
+        EnvConfig(start_bonus_knobs=("lead_decel",))
+    env = GenesisEnv(**{**settings, "start_action": "absolute", "start_bonus": 40.0, "start_bonus_cells": 4,
+                        "start_bonus_knobs": sun})
+    plain = GenesisEnv(**{**settings, "start_action": "absolute"})
+    try:
+        drawn, ticks = [], []
+        for seed, a_alt, cell_n in ((3, 0.1, 1), (4, 0.1, 2), (5, -0.9, 1), (6, 0.2, 3)):
+            rewards = []
+            for e in (env, plain):
+                e.reset(options={"scene": 1, "episode_seed": seed})
+                drawn.append(e.episode_start["sun_altitude_angle"])
+                e.step(_action(e, sun_altitude_angle=a_alt, sun_azimuth_angle=0.0))
+                assert e.weather["sun_altitude_angle"] == pytest.approx(90.0 * a_alt, abs=1e-4)  # -90 + (a+1)/2 180
+                rewards.append([e.step(_action(e))[1] for _ in range(3)])
+            ticks.append(rewards)
+            bonus = [a - b for a, b in zip(*rewards, strict=True)]
+            assert bonus == pytest.approx([40.0 / cell_n ** 0.5, 0.0, 0.0], abs=1e-9)
+        assert drawn == pytest.approx([75.0] * 8, abs=0.01)  # a relative action of 0.1 would give 76.5 deg
+        assert env.start_counts == {(2, 2): 3, (0, 2): 1}
+    finally:
+        env.close()
+        plain.close()
 
 
 #: SAC with a start head for a few dozen steps on the oracle inside highway_day (oracle_highway's system and ODD),

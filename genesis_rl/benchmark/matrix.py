@@ -118,7 +118,8 @@ def agent_label(run: str) -> str:
 
 #: the env fields of a trained agent's run that a campaign on a member takes from it: what it observes (and
 #: whether its first action chooses the start)
-AGENT_OBSERVATION_KEYS = ("observation", "obs_history", "obs_width", "obs_height", "obs_knobs", "start_head")
+AGENT_OBSERVATION_KEYS = ("observation", "obs_history", "obs_width", "obs_height", "obs_knobs", "start_head",
+                          "start_action")
 #: the env fields a trained agent must share with the member it is benchmarked on (its action space and world)
 AGENT_MATCH_KEYS = ("system", "system_kwargs", "knobs", "dynamics")
 

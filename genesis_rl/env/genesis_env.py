@@ -8,6 +8,7 @@ The observation is the ego camera's RGB frame (downscaled for the policy), optio
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
@@ -65,6 +66,10 @@ ENV_RANGES: dict[str, ranges.Ranged] = {
 OPTIONAL_RANGED = frozenset({"carla_tm_port"})
 
 
+#: how the start head's action names a held knob's start (``EnvConfig.start_action``)
+START_ACTIONS = ("relative", "absolute")
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """Every setting of the environment, with units; defaults are the paper's where it has one."""
@@ -89,6 +94,17 @@ class EnvConfig:
     start_head: bool = False  # the agent's first action of an episode chooses where the held knobs start (the
     #                          sun: its altitude, and its azimuth relative to the ego's heading), as a search
     #                          chooses its start; that step is not simulated. Needs a features observation
+    start_action: str = "relative"  # how the start head's action names a held knob's start: relative (0 keeps
+    #                                 the episode's drawn start, -1/+1 the knob's ends) or absolute (-1..+1 spans
+    #                                 the knob's range whatever the draw: one action, one sun altitude). The
+    #                                 sun's azimuth is its bearing from the ego's heading either way
+    start_bonus: float = 0.0  # training only: a count bonus for the start head, start_bonus / sqrt(n) added to
+    #                           the first tick's reward, n the starts this env chose in the same cell of the
+    #                           held knobs' actions (start_bonus_cells a knob), so that rarely tried starts are
+    #                           tried (exploration aimed at novelty; docs/zoo.md). 0: none
+    start_bonus_cells: int = 8  # cells per held knob's action for start_bonus
+    start_bonus_knobs: tuple[str, ...] = ()  # the held knobs whose cells start_bonus counts (empty: every held
+    #                                          knob; a few, as the sun's two, keep the cells few enough to revisit)
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
     camera_height: int = 240
@@ -150,6 +166,19 @@ class EnvConfig:
             raise UserInputError(f"env.dynamics = '{self.dynamics}' is unknown; allowed: {', '.join(DYNAMICS)}")
         if not 0.0 <= self.start_spread <= 1.0:
             raise UserInputError(f"env.start_spread = {self.start_spread} must be in 0..1 (0: start_weather)")
+        if self.start_action not in START_ACTIONS:
+            raise UserInputError(f"env.start_action = '{self.start_action}'; allowed: {', '.join(START_ACTIONS)}")
+        if not (isinstance(self.start_bonus, int | float) and math.isfinite(self.start_bonus)
+                and 0.0 <= self.start_bonus <= 1e6):
+            raise UserInputError(f"env.start_bonus = {self.start_bonus!r} must be a number in 0..1e6 (0: none)")
+        if self.start_bonus and not self.start_head:
+            raise UserInputError("env.start_bonus needs env.start_head = true (it rewards the start head's choices)")
+        if not (isinstance(self.start_bonus_cells, int) and 2 <= self.start_bonus_cells <= 64):
+            raise UserInputError(f"env.start_bonus_cells = {self.start_bonus_cells!r} must be an integer in 2..64")
+        unknown = [k for k in self.start_bonus_knobs if k not in self.knobs]
+        if unknown:
+            raise UserInputError(f"env.start_bonus_knobs: {unknown} are not among env.knobs; allowed: "
+                                 f"{', '.join(self.knobs)}")
         if self.start_head and self.observation_mode not in FEATURE_OBSERVATIONS:
             raise UserInputError(f"env.start_head = true needs a features observation (env.observation = "
                                  f"{' or '.join(repr(m) for m in FEATURE_OBSERVATIONS)}), not "
@@ -278,10 +307,18 @@ class GenesisEnv(gym.Env):
         self.episode_seed = -1
         #: whether the next step chooses the start (env.start_head: the episode's first action)
         self.choosing_start = False
+        #: env.start_bonus: the starts this env chose, per cell of the held knobs' actions, and the bonus the
+        #: episode's first tick pays
+        self.start_counts: dict[tuple[int, ...], int] = {}
+        self._pending_bonus = 0.0
         if c.start_head and not self.held_knobs:
             raise UserInputError(f"env.start_head = true, but no knob among env.knobs {list(c.knobs)} is held over "
                                  f"an episode of {c.episode_steps} steps under dynamics '{c.dynamics}': there is "
                                  "no start to choose (leave start_head out)")
+        not_held = [k for k in c.start_bonus_knobs if k not in self.held_knobs]
+        if c.start_bonus and not_held:
+            raise UserInputError(f"env.start_bonus_knobs: {not_held} are not held over an episode (the start head "
+                                 f"chooses only the held knobs); allowed: {', '.join(self.held_knobs)}")
 
     # -- observation -------------------------------------------------------------------------------------
     def _observation(self) -> Any:
@@ -328,6 +365,7 @@ class GenesisEnv(gym.Env):
         self.scene_index = idx
         self.episode_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
         self.choosing_start = bool(options.get("start_head", self.config.start_head))
+        self._pending_bonus = 0.0
         if self.choosing_start and not self.config.start_head:
             raise UserInputError("reset option start_head = true needs env.start_head = true (the observation "
                                  "carries the start step's flag only then)")
@@ -363,6 +401,8 @@ class GenesisEnv(gym.Env):
             a, spec, now = float(np.clip(action[i], -1.0, 1.0)), KNOBS[name], values[name]
             if name == "sun_azimuth_angle":
                 values[name] = spec.fit(heading + 180.0 * a)
+            elif self.config.start_action == "absolute":
+                values[name] = spec.low + (a + 1.0) / 2.0 * spec.span
             else:
                 values[name] = now + a * ((now - spec.low) if a < 0 else (spec.high - now))
         proposed = Weather(values)
@@ -458,14 +498,32 @@ class GenesisEnv(gym.Env):
         if self.choosing_start:  # the start step: no tick, no reward; the episode begins from the chosen start
             self.choosing_start = False
             self._begin(self.chosen_start(action))
+            if self.config.start_bonus:
+                self._pending_bonus = self.start_bonus(action)
             start = {k: float(self.weather[k]) for k in self.held_knobs}
+            if "sun_azimuth_angle" in start:  # the sun's bearing from the heading: what the head chose
+                start["sun_bearing"] = (start["sun_azimuth_angle"] - self._loop.heading_deg + 180.0) % 360.0 - 180.0
             return self._observation(), 0.0, False, False, {"start_step": True, "knobs": self._knob_info(),
                                                            "start": start}
         before = self.weather
         proposed = self.mapper.apply(before, action)
         if self.odd is not None and self.config.odd_keep_inside:
             proposed = self.odd.keep_inside(before, proposed, self.conditions_model, self._loop.heading_deg)
-        return self.step_weather(proposed, before)
+        obs, reward, terminated, truncated, info = self.step_weather(proposed, before)
+        if self._pending_bonus:  # the start head's count bonus, paid once at the episode's first tick
+            reward, info["start_bonus"], self._pending_bonus = reward + self._pending_bonus, self._pending_bonus, 0.0
+        return obs, reward, terminated, truncated, info
+
+    def start_bonus(self, action: np.ndarray) -> float:
+        """Count the start ``action`` chose in its cell (``start_bonus_cells`` per counted held knob's action) and
+        return ``start_bonus / sqrt(n)``, n the starts this env has chosen in that cell (this one included)."""
+        c = self.config
+        counted = [i for k, i in zip(self.held_knobs, self.held_indices(), strict=True)
+                   if not c.start_bonus_knobs or k in c.start_bonus_knobs]
+        a = np.clip(np.asarray(action, np.float64).reshape(-1)[counted], -1.0, 1.0)
+        cell = tuple(int(min(c.start_bonus_cells - 1, (x + 1.0) / 2.0 * c.start_bonus_cells)) for x in a)
+        self.start_counts[cell] = n = self.start_counts.get(cell, 0) + 1
+        return float(c.start_bonus) / math.sqrt(n)
 
     def step_weather(self, weather: Weather, before: Weather | None = None
                      ) -> tuple[Any, float, bool, bool, dict[str, Any]]:

@@ -141,7 +141,8 @@ def env_settings_for(agent: str | None, config: str | None, system: str | None,
         elif not Path(weights).is_file():
             raise UserInputError(f"--weights '{weights}' is not a file")
         env["system_kwargs"] = {**env.get("system_kwargs", {}), "weights": str(weights)}
-    for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps", "start_spread"):
+    for key in ("catalog", "scenes", "catalog_seed", "map", "episode_steps", "start_spread", "start_bonus",
+                "start_bonus_cells"):
         env.pop(key, None)  # the campaign decides these (and every test episode starts at start_weather)
     env["terminate_on_collision"] = False  # the protocol drives every episode for its full length
     return env
