@@ -145,3 +145,17 @@ def test_a_non_utf8_config_and_a_failed_start_leave_nothing_behind(tmp_path, cap
     a_file.write_text("x")
     assert main(["train", "--out", str(a_file), "--system", "blind", "--scenes", "2", "--quiet"]) == 2
     assert f"'{a_file}' is a file; expected a folder" in capsys.readouterr().err
+
+
+def test_sacs_updates_take_one_thread_unless_the_config_names_more() -> None:
+    """Two SAC trainings side by side ran 4.4x slower with torch's default two update threads (docs/benchmarks.md):
+    SAC's updates default to one thread, PPO's image minibatches to torch's default, an explicit setting wins."""
+    from dataclasses import replace
+
+    from genesis_rl.training.train import update_threads
+
+    cfg = load_run_config(None)
+    assert cfg.train.algorithm == "ppo" and update_threads(cfg) == 0
+    sac = replace(cfg, train=replace(cfg.train, algorithm="sac"))
+    assert update_threads(sac) == 1
+    assert update_threads(replace(sac, train=replace(sac.train, torch_threads=2))) == 2

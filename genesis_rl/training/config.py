@@ -198,7 +198,7 @@ class TrainConfig:
     envs: int = 1  # parallel environments, each in its own process when > 1
     seed: int = 0  # seeds the envs' scene draws, the policy's initialisation and its sampling
     checkpoint_every: int = 2048  # env steps between checkpoints
-    torch_threads: int = 0  # torch threads in the trainer (0: torch's default)
+    torch_threads: int = 0  # torch threads in the trainer (0: torch's default; one for SAC's updates)
 
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:

@@ -168,6 +168,15 @@ class _Callbacks:
         return TrainingCallback()
 
 
+def update_threads(cfg: RunConfig) -> int:
+    """Torch threads for the learner's updates between rollouts (``RolloutThreads``): ``train.torch_threads``,
+    else one for SAC (a gradient step on 128 feature vectors through a small MLP after every env step: a second
+    OpenMP thread gains nothing there, and its spinning between steps starves the env processes and any other
+    training on the machine; docs/benchmarks.md) and torch's default for PPO (its image minibatches use every
+    core)."""
+    return cfg.train.torch_threads or (1 if cfg.train.algorithm == "sac" else 0)
+
+
 def max_timesteps(cfg: RunConfig) -> int:
     """The steps a run of ``cfg`` ends at: SB3 collects whole rollouts (PPO: ppo.n_steps over all envs; SAC:
     sac.train_freq steps of every env), so total_timesteps rounds up."""
@@ -294,7 +303,7 @@ def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
             cb = _Callbacks.make(out, cfg, done, progress, sums)
             # envs in other processes: this one needs a single thread while they step (training/throughput.py)
             remote_envs = cfg.train.envs > 1 or (scale is not None and scale.kind == "ray")
-            threads = [RolloutThreads(cfg.train.torch_threads)] if remote_envs else []
+            threads = [RolloutThreads(update_threads(cfg))] if remote_envs else []
             try:
                 model.learn(total_timesteps=remaining, callback=[cb, *threads, *extra], reset_num_timesteps=not resume,
                             progress_bar=False)
