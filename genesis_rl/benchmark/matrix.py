@@ -281,8 +281,10 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                 else:
                     run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
             except KeyboardInterrupt as err:
-                set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and a half-run one its finished "
-                                     "episodes; the same command with --resume runs the rest")
+                kept = ("a campaign an actor was running starts again (its episodes were staged on the actor)"
+                        if executor is not None else "a half-run one its finished episodes")
+                set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and {kept}; the same command "
+                                     "with --resume runs the rest")
                 raise
         else:
             for campaign, folder in todo:

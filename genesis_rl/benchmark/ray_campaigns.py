@@ -24,6 +24,7 @@ from typing import Any
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
 from genesis_rl.evaluation.executors import RayEpisodeScheduler, write_files
+from genesis_rl.io_utils import atomic_write_text
 from genesis_rl.signals import deferred_signals
 
 #: a campaign as it travels to an actor: its spec (JSON), its folder on the driver (for messages and the
@@ -97,7 +98,7 @@ def install(folder: Path, files: dict[str, bytes]) -> None:
         times = folder / "run_time.json"
         if times.exists():  # the actor ran it as one local worker; say where it ran
             record = {**json.loads(times.read_text()), "executor": "ray (a campaign per actor)"}
-            times.write_text(json.dumps(record))
+            atomic_write_text(times, json.dumps(record))
         summarize_campaign(folder)
 
 
