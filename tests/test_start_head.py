@@ -101,8 +101,10 @@ def test_an_absolute_start_action_names_one_altitude_whatever_the_draw_and_the_c
         EnvConfig(start_action="corner")
     with pytest.raises(UserInputError, match="env.start_bonus needs env.start_head = true"):
         EnvConfig(start_bonus=10.0)
-    with pytest.raises(UserInputError, match="env.start_bonus_cells = 1 must be an integer in 2..64"):
+    with pytest.raises(UserInputError, match=r"env.start_bonus_cells = 1 must be in 2..64 cells \(an integer\)"):
         EnvConfig(start_bonus_cells=1)
+    with pytest.raises(UserInputError, match=r"env.start_bonus = -1.0 must be in 0..1e\+06 \(a finite number"):
+        EnvConfig(start_bonus=-1.0)
     settings = {**env_settings(zoo_member("glare_blind")), "system": "blind", "system_kwargs": {}, "scenes": 3,
                 "episode_steps": 3, "observation": "features", "start_head": True, "start_spread": 1.0,
                 "camera_width": 64, "camera_height": 48}

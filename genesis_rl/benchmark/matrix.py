@@ -212,7 +212,7 @@ def _check_same_spec(out: Path, spec: BenchmarkSpec) -> None:
 PARALLEL = ("auto", "campaigns", "episodes")
 
 
-def check_parallel(parallel: str, executor: Any) -> None:
+def check_parallel(parallel: str) -> None:
     """Refuse a ``--parallel`` that is not one of PARALLEL, whatever is left to run."""
     if parallel not in PARALLEL:
         raise UserInputError(f"--parallel = '{parallel}'; allowed: {', '.join(PARALLEL)}")
@@ -224,7 +224,7 @@ def parallel_mode(parallel: str, workers: int, executor: Any, campaigns: int) ->
     leave a worker idle at the end for longer than a campaign's set-up costs); episodes otherwise. One local
     worker runs in this process (episodes); one Ray worker takes campaigns, so that the matrix starts Ray and
     its actor once, not once a campaign."""
-    check_parallel(parallel, executor)
+    check_parallel(parallel)
     if campaigns <= 1 or (workers <= 1 and (executor is None or parallel == "episodes")):
         return "episodes"
     if parallel == "auto":
@@ -246,7 +246,7 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():
         raise UserInputError(f"--resume: '{out}' holds no benchmark.json; start it without --resume")
-    check_parallel(parallel, executor)  # before the folder is touched
+    check_parallel(parallel)  # before the folder is touched
     if executor is not None:
         executor.preflight()  # Ray installed and its address answering, before the folder is touched
     # each agent's env, once: a run trained elsewhere is refused before the folder is touched

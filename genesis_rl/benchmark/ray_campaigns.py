@@ -23,7 +23,7 @@ from typing import Any
 
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.evaluation.campaign_spec import CampaignSpec
-from genesis_rl.evaluation.executors import RayEpisodeScheduler, write_files
+from genesis_rl.evaluation.executors import RayEpisodeScheduler, folder_files, write_files
 from genesis_rl.io_utils import atomic_write_text
 from genesis_rl.signals import deferred_signals
 
@@ -36,13 +36,6 @@ DRIVER_WRITES = ("summary.json", "episodes.csv")
 
 def _describe(job: CampaignJob) -> str:
     return f"the campaign '{job[1]}'"
-
-
-def folder_files(folder: Path) -> dict[str, bytes]:
-    """Every file under ``folder`` by relative POSIX path (empty when it does not exist)."""
-    if not folder.is_dir():
-        return {}
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 class CampaignActor:

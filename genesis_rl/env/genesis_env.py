@@ -52,6 +52,8 @@ ENV_RANGES: dict[str, ranges.Ranged] = {
     "scenes": ranges.Ranged(1, 2**31 - 1, "scenes", integer=True),  # and at most limits.SCENES
     "catalog_seed": ranges.SEED,  # numpy refuses negative seeds, with a traceback
     "start_spread": ranges.Ranged(0.0, 1.0, note="0: start_weather"),
+    "start_bonus": ranges.Ranged(0.0, 1e6, note="0: none"),
+    "start_bonus_cells": ranges.Ranged(2, 64, "cells", integer=True),
     "episode_steps": ranges.Ranged(1, 2**31 - 1, "steps", integer=True),  # and at most limits.SIM_STEPS
     "camera_width": ranges.Ranged(16, 4096, "px", integer=True),
     "camera_height": ranges.Ranged(16, 4096, "px", integer=True),
@@ -168,13 +170,6 @@ class EnvConfig:
             raise UserInputError(f"env.start_spread = {self.start_spread} must be in 0..1 (0: start_weather)")
         if self.start_action not in START_ACTIONS:
             raise UserInputError(f"env.start_action = '{self.start_action}'; allowed: {', '.join(START_ACTIONS)}")
-        if not (isinstance(self.start_bonus, int | float) and math.isfinite(self.start_bonus)
-                and 0.0 <= self.start_bonus <= 1e6):
-            raise UserInputError(f"env.start_bonus = {self.start_bonus!r} must be a number in 0..1e6 (0: none)")
-        if self.start_bonus and not self.start_head:
-            raise UserInputError("env.start_bonus needs env.start_head = true (it rewards the start head's choices)")
-        if not (isinstance(self.start_bonus_cells, int) and 2 <= self.start_bonus_cells <= 64):
-            raise UserInputError(f"env.start_bonus_cells = {self.start_bonus_cells!r} must be an integer in 2..64")
         unknown = [k for k in self.start_bonus_knobs if k not in self.knobs]
         if unknown:
             raise UserInputError(f"env.start_bonus_knobs: {unknown} are not among env.knobs; allowed: "
@@ -186,6 +181,8 @@ class EnvConfig:
         for k, rng in ENV_RANGES.items():  # finite, in its physical range (docs/reliability.md)
             if getattr(self, k) is not None or k not in OPTIONAL_RANGED:
                 rng.check(getattr(self, k), f"env.{k}")
+        if self.start_bonus and not self.start_head:
+            raise UserInputError("env.start_bonus needs env.start_head = true (it rewards the start head's choices)")
         start = parse_weather(self.start_weather)
         if self.odd is not None:
             odd = self.load_odd()

@@ -103,11 +103,9 @@ class EpisodeActor:
 
     def run(self, task: Task) -> tuple[dict[str, Any], dict[str, bytes]]:
         row = run_task(task)
-        files: dict[str, bytes] = {}
-        for path in sorted(self.stage.rglob("*")):
-            if path.is_file() and path.name != "catalog.json":
-                files[path.relative_to(self.stage).as_posix()] = path.read_bytes()
-                path.unlink()
+        files = {rel: data for rel, data in folder_files(self.stage).items() if Path(rel).name != "catalog.json"}
+        for rel in files:
+            (self.stage / rel).unlink()
         return row, files
 
     def close(self) -> None:
@@ -117,6 +115,14 @@ class EpisodeActor:
 
 def _bytes_writer(data: bytes) -> Any:
     return lambda path: path.write_bytes(data)
+
+
+def folder_files(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` by relative POSIX path (empty when it does not exist): what a Ray worker
+    sends back, and what ``write_files`` writes."""
+    if not folder.is_dir():
+        return {}
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def write_files(folder: Path, files: dict[str, bytes]) -> None:
