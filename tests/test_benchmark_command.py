@@ -161,8 +161,12 @@ def test_campaigns_on_ray_actors_resume_to_the_same_leaderboard(blind_benchmark,
     kept = sorted((half / "episodes" / "sunny").glob("*.json"))
     for row in sorted((half / "episodes" / "random").glob("*.json")):
         row.unlink()
+    import signal
+
+    before = signal.getsignal(signal.SIGTERM)
     run_benchmark(spec, cut, resume=True, workers=2, executor=ExecutorSettings(kind="ray", workers=2),
                   parallel="campaigns", progress=False)
+    assert signal.getsignal(signal.SIGTERM) is before  # Ray's own handler does not outlive its session
     assert json.loads((cut / "leaderboard.json").read_text()) == json.loads((out / "leaderboard.json").read_text())
     assert json.loads((half / "summary.json").read_text())["campaign"] == str(half)
     assert [p.read_bytes() for p in kept] == [p.read_bytes() for p in sorted(kept[0].parent.glob("*.json"))]

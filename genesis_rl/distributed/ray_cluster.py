@@ -161,6 +161,9 @@ def ray_session(address: str | None, workers: int, per_worker: dict[str, float] 
     cluster must offer ``workers`` times each custom resource of ``per_worker`` (a worker's CARLA server)."""
     ray = require_ray()
     started = False
+    # ray.init puts its own SIGTERM handler (sys.exit) in this process and shutdown leaves it there: a later
+    # command in the same process (tests, a notebook) would lose its Interrupted and its deferred writes
+    handlers = _signal_handlers()
     if not ray.is_initialized():
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
                                   "configure_logging": True, "logging_level": "ERROR"}
@@ -190,3 +193,22 @@ def ray_session(address: str | None, workers: int, per_worker: dict[str, float] 
     finally:
         if started:
             ray.shutdown()
+            _restore_signal_handlers(handlers)
+
+
+def _signal_handlers() -> dict[int, Any]:
+    """SIGINT's and SIGTERM's handlers now (none off the main thread, where they cannot be set)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def _restore_signal_handlers(handlers: dict[int, Any]) -> None:
+    import signal
+
+    for signum, handler in handlers.items():
+        if handler is not None:
+            signal.signal(signum, handler)
