@@ -118,6 +118,7 @@ def test_reactivity_command_on_a_campaign(tmp_path) -> None:
 def test_reactivity_on_two_workers_is_the_same_measurement(tmp_path) -> None:
     """A pool plays the two rounds in parallel; every row, and so every gap, is what one process measures."""
     import json
+    import os
     import subprocess
     import sys
 
@@ -130,8 +131,12 @@ def test_reactivity_on_two_workers_is_the_same_measurement(tmp_path) -> None:
     rows = {}
     for workers in ("1", "2"):
         out = tmp_path / f"w{workers}.json"
+        # the one-worker run plays in the main process at 4 torch threads against the pool's one: kernels that
+        # round differently with the thread count (on AMD EPYC; on Intel the detector's raw outputs) must not
+        # reach the rows, since the system under test pins its own threads
+        env = {**os.environ, "OMP_NUM_THREADS": "4"} if workers == "1" else None
         r = subprocess.run([*run, "reactivity", "--campaign", str(camp), "--policy", "random", "--workers", workers,
-                            "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=600)
+                            "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=600, env=env)
         assert r.returncode == 0, r.stderr[-2000:]
         rows[workers] = json.loads(out.read_text())
     assert len(rows["1"]["rows"]) == 6 and rows["1"]["rows"] == rows["2"]["rows"]

@@ -19,6 +19,7 @@ from genesis_rl.adversaries.base import (
     chooses_start,
     register_policy,
 )
+from genesis_rl.core.threads import pinned_threads
 from genesis_rl.errors import UserInputError
 
 
@@ -33,7 +34,8 @@ class AgentPolicy(StepPolicy):
         self.model = load_agent(context.agent_path)
 
     def act(self, obs: Any) -> np.ndarray:
-        action, _ = self.model.predict(obs, deterministic=True)
+        with pinned_threads():  # the same floats in the main process, a pool worker or a Ray actor
+            action, _ = self.model.predict(obs, deterministic=True)
         return np.asarray(action, np.float32)
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from genesis_rl import ranges
+from genesis_rl.core.threads import INFERENCE_THREADS, pinned_threads
 from genesis_rl.errors import UserInputError
 from genesis_rl.perception.darknet import DarknetYolo, nms
 from genesis_rl.perception.model_store import find_model
@@ -72,6 +73,7 @@ class CocoDetector:
             raise UserInputError(f"classes {list(classes)}: allowed: {', '.join(VEHICLE_CLASSES)}")
         self.class_ids = [VEHICLE_CLASSES[c] for c in classes]
         self.batch_size = max(1, int(batch_size))
+        self.num_threads = INFERENCE_THREADS  # pinned per call: the same floats in every process (core.threads)
         names = paths["coco.names"].read_text(encoding="utf-8").split("\n")
         if [names[i] for i in self.class_ids] != list(classes):
             raise UserInputError(f"{paths['coco.names']}: class ids {self.class_ids} are not {list(classes)}")
@@ -118,7 +120,7 @@ class CocoDetector:
         h, w = a.shape[1:3]
         scale, sw, sh, pw, ph = self.input_shape(w, h)
         out: list[np.ndarray] = []
-        with torch.inference_mode():
+        with torch.inference_mode(), pinned_threads(self.num_threads):
             for start in range(0, len(a), self.batch_size):
                 chunk = a[start:start + self.batch_size]
                 canvas = np.full((len(chunk), ph, pw, 3), 127, np.uint8)

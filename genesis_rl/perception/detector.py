@@ -14,6 +14,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from genesis_rl import ranges
+from genesis_rl.core.threads import INFERENCE_THREADS, pinned_threads
 from genesis_rl.errors import UserInputError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -122,7 +123,9 @@ class VehicleDetector:
 
     ``weights``: a checkpoint from ``genesis-rl detector train`` (default: the shipped one).
     ``score_threshold``: overrides the one chosen on validation data and stored in the checkpoint.
-    ``num_threads``: torch CPU threads (None leaves torch's setting alone).
+    ``num_threads``: torch CPU threads for each forward pass, pinned per call whatever the process's own
+    setting (default ``core.threads.INFERENCE_THREADS``), so a pool worker and the main process compute the
+    same floats.
     """
 
     def __init__(
@@ -157,8 +160,9 @@ class VehicleDetector:
         self.max_detections = int(max_detections)
         self.batch_size = int(batch_size)
         self.metadata: dict = dict(ckpt.get("metadata", {}))
-        if num_threads is not None:
-            torch.set_num_threads(int(num_threads))
+        self.num_threads = INFERENCE_THREADS if num_threads is None else int(num_threads)
+        if self.num_threads < 1:
+            raise UserInputError(f"num_threads = {num_threads}: must be >= 1")
         self._net = _fold_batch_norm(net.eval()).to(memory_format=torch.channels_last)
         #: uint8 -> normalised float32 per channel, one look-up instead of four passes over the frame
         self._input_table = self._net.input_table()
@@ -201,7 +205,7 @@ class VehicleDetector:
         h, w = a.shape[1:3]
         resize = (w, h) != (iw, ih)
         out: list[np.ndarray] = []
-        with torch.inference_mode():
+        with torch.inference_mode(), pinned_threads(self.num_threads):
             for s in range(0, len(a), self.batch_size):
                 chunk = a[s : s + self.batch_size]
                 if resize:

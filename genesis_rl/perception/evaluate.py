@@ -208,6 +208,9 @@ def measure_speed(detector, batch_size: int = 16, batches: int = 10, num_threads
 
     old = torch.get_num_threads()
     torch.set_num_threads(num_threads)
+    pinned = getattr(detector, "num_threads", None)  # a detector that pins its own threads runs at these
+    if pinned is not None:
+        detector.num_threads = num_threads
     try:
         w, h = size or cast("tuple[int, int]", getattr(detector, "input_size", (320, 240)))
         rng = np.random.default_rng(0)
@@ -219,6 +222,8 @@ def measure_speed(detector, batch_size: int = 16, batches: int = 10, num_threads
         dt = time.perf_counter() - t0
     finally:
         torch.set_num_threads(old)
+        if pinned is not None:
+            detector.num_threads = pinned
     return {
         "frames_per_s": round(batch_size * batches / dt, 1), "batch_size": batch_size, "threads": num_threads,
         "input_size": [w, h], "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.core.threads import pinned_threads
 from genesis_rl.errors import UserInputError
 from genesis_rl.sim.interface import SensorFrame
 from genesis_rl.system.builtin import PerceptionDrivenSystem
@@ -86,8 +87,9 @@ class YoloSystem(PerceptionDrivenSystem):
                                 depth=np.zeros((64, 64), np.float32), boxes=[]))
 
     def _boxes(self, frame: SensorFrame) -> np.ndarray:
-        result = self.model.predict(frame.rgb[..., ::-1], imgsz=self.image_size, conf=self.score_threshold,
-                                    classes=list(COCO_VEHICLE_CLASSES), verbose=False)[0]
+        with pinned_threads():  # the same floats in every process (core.threads)
+            result = self.model.predict(frame.rgb[..., ::-1], imgsz=self.image_size, conf=self.score_threshold,
+                                        classes=list(COCO_VEHICLE_CLASSES), verbose=False)[0]
         boxes = result.boxes
         if boxes is None or len(boxes) == 0:
             return np.zeros((0, 5), np.float32)
