@@ -1,3 +1,6 @@
-from genesis_rl.entry import main
+"""``python -m genesis_rl``: the command line. Importing this module runs nothing."""
 
-raise SystemExit(main())
+from genesis_rl.commands.entry import main
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -14,14 +14,14 @@ import time
 import carla
 import numpy as np
 
-from genesis_rl.carla_backend.lanes import lane_key
-from genesis_rl.carla_backend.route import RoutePlanner, route_from_context
-from genesis_rl.lite.maps import load_map
-from genesis_rl.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive
-from genesis_rl.scenes.vehicles import MAKES
+from genesis_rl.sim.carla.lanes import lane_key
+from genesis_rl.sim.carla.route import RoutePlanner, route_from_context
 from genesis_rl.sim.interface import ActorState, CameraConfig, SensorFrame
-from genesis_rl.system.builtin import BlindSystem
-from genesis_rl.system.protocol import EpisodeContext
+from genesis_rl.sim.lite.maps import load_map
+from genesis_rl.sim.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive
+from genesis_rl.sut.system.builtin import BlindSystem
+from genesis_rl.sut.system.protocol import EpisodeContext
+from genesis_rl.world.scenes.vehicles import MAKES
 
 
 def _seconds(fn, repeat: int = 5) -> float:

@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import time
 
-from genesis_rl.drive import run_episode
-from genesis_rl.lite.backend import LiteBackend
-from genesis_rl.lite.scenes import generate_catalog
-from genesis_rl.system.protocol import load_system
-from genesis_rl.zoo import zoo_member
-from genesis_rl.zoo.timing import fog_then_brake
+from genesis_rl.loop.drive import run_episode
+from genesis_rl.sim.lite.backend import LiteBackend
+from genesis_rl.sim.lite.scenes import generate_catalog
+from genesis_rl.sut.system.protocol import load_system
+from genesis_rl.sut.zoo import zoo_member
+from genesis_rl.sut.zoo.timing import fog_then_brake
 
 
 def _onsets(text: str) -> list[float]:

@@ -3,7 +3,7 @@
     python scripts/plot_carla_route.py --map urban --seed 0 --out docs/images/carla_route_urban.png
 
 Grey: the lite lanes. Blue dots: CARLA waypoints every 2 m on the carla.Map built from the export (no server).
-Red: a route planned by genesis_rl.carla_backend.route (junction turns, lane changes in orange), with its stop
+Red: a route planned by genesis_rl.sim.carla.route (junction turns, lane changes in orange), with its stop
 lines (black bars) from the exported traffic lights.
 """
 
@@ -18,9 +18,9 @@ import carla  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from genesis_rl.carla_backend.route import CarlaRoute, RoutePlanner  # noqa: E402
-from genesis_rl.lite.maps import load_map  # noqa: E402
-from genesis_rl.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive  # noqa: E402
+from genesis_rl.sim.carla.route import CarlaRoute, RoutePlanner  # noqa: E402
+from genesis_rl.sim.lite.maps import load_map  # noqa: E402
+from genesis_rl.sim.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive  # noqa: E402
 
 
 def main() -> None:

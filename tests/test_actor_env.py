@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.env.observation import ACTOR_FEATURES, FEATURES, GAP_SCALE, SPEED_SCALE, feature_size
-from genesis_rl.errors import UserInputError
 
 HIGHWAY = dict(map="highway", scenes=8)
 
@@ -107,7 +107,7 @@ def test_features_add_what_a_tester_measures_of_the_actor():
 
 
 def test_a_backend_that_does_not_realise_an_actor_knob_is_refused_naming_the_setting(tmp_path, monkeypatch):
-    from genesis_rl.carla_backend.backend import CarlaBackend
+    from genesis_rl.sim.carla.backend import CarlaBackend
 
     monkeypatch.setattr(CarlaBackend, "actor_knobs", ())
     with pytest.raises(UserInputError, match=r"env.knobs: actor knob\(s\) \['lead_decel'\] are not realised by "
@@ -118,7 +118,7 @@ def test_a_backend_that_does_not_realise_an_actor_knob_is_refused_naming_the_set
 def test_on_carla_the_lead_leaves_the_traffic_manager_brakes_by_target_velocity_and_rejoins():
     """``lead_decel`` on a CARLA server, offline with the client's real command types."""
     carla = pytest.importorskip("carla")
-    from genesis_rl.carla_backend.actor_control import LeadBraking
+    from genesis_rl.sim.carla.actor_control import LeadBraking
     from genesis_rl.sim.interface import LeadInfo
 
     braking = LeadBraking()
@@ -149,9 +149,9 @@ def test_on_carla_the_lead_leaves_the_traffic_manager_brakes_by_target_velocity_
 
 @pytest.mark.render
 def test_a_campaign_turning_the_lead_records_it_and_replays_it(tmp_path):
-    from genesis_rl.evaluation.campaign import run_campaign
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
-    from genesis_rl.evaluation.records import load_record, replay_record
+    from genesis_rl.campaigns.campaign import run_campaign
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.records import load_record, replay_record
 
     env = {"knobs": ["fog_density", "lead_decel"], "dynamics": "natural"}
     spec = CampaignSpec(policies=("constant",), map="highway", scenes=1, seed=0, steps=80, env=env,
@@ -168,7 +168,7 @@ def test_a_campaign_turning_the_lead_records_it_and_replays_it(tmp_path):
 
 def test_a_collision_with_a_lead_the_tester_braked_is_its_own_kind_of_failure():
     """Distinct-failure clustering keeps the actor event: the hit is 'lead braked by the tester'."""
-    from genesis_rl.evaluation.distinct import what_was_hit
+    from genesis_rl.labels.distinct import what_was_hit
 
     env = _env(system="blind", episode_steps=400)
     try:
@@ -188,10 +188,10 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
     pytest.importorskip("carla")
     from types import SimpleNamespace
 
-    from genesis_rl.carla_backend.actor_control import CutIn, LeadBraking, TrafficBehaviour
-    from genesis_rl.carla_backend.backend import CarlaSimulation
-    from genesis_rl.knobs import Weather
+    from genesis_rl.sim.carla.actor_control import CutIn, LeadBraking, TrafficBehaviour
+    from genesis_rl.sim.carla.backend import CarlaSimulation
     from genesis_rl.sim.interface import LeadInfo, VehicleControl
+    from genesis_rl.world.knobs import Weather
 
     calls: list[str] = []
     batches: list[list] = []
@@ -232,7 +232,7 @@ def test_a_carla_tick_sends_the_lead_brake_batch_before_it_ticks():
 def test_a_slow_perception_pipeline_acts_on_detections_a_latency_late():
     """The timing member's system (issue 33): the controller gets each frame's detections 0.3 s (6 steps)
     late, and none at all from dropped frames; the fresh perception is the built-in system's."""
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.sut.system.protocol import load_system
 
     env = _env(system="latency", system_kwargs={"latency_s": 0.3}, knobs=("lead_decel",))
     try:
@@ -267,7 +267,7 @@ def test_the_episode_likelihood_covers_the_lead_braking_with_its_declared_rate()
     sigma = the natural rate: fog 4 %/s, lead_decel 4 m/s^2/s)."""
     import math
 
-    from genesis_rl.odd.dynamics import WeatherModel, natural_rate
+    from genesis_rl.world.odd.dynamics import WeatherModel, natural_rate
 
     assert natural_rate("lead_decel") == 4.0
     model = WeatherModel(("fog_density", "lead_decel"))

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from genesis_rl.actor_knobs import (
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sim.lite.actors import CUT_IN_DURATION, cut_in_offset, cut_in_start_gap, lead_speed
+from genesis_rl.world.actor_knobs import (
     ACTOR_KNOBS,
     ActorKnobSpec,
     TrafficConditions,
@@ -15,9 +17,7 @@ from genesis_rl.actor_knobs import (
     parse_traffic_conditions,
     register_actor_knob,
 )
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import KNOBS
-from genesis_rl.lite.actors import CUT_IN_DURATION, cut_in_offset, cut_in_start_gap, lead_speed
+from genesis_rl.world.knobs import KNOBS
 
 
 def test_tm_names_and_sources_are_declared_and_only_lead_decel_and_the_cut_in_are_turned():
@@ -100,10 +100,10 @@ def test_weather_only_lite_episode_is_bit_identical_with_the_actor_knobs_at_thei
     defaults, moves no vehicle by a single bit against ticking without them; the ego ends where it did on main
     at dc9ed91, before actor knobs. (A hash of every pose, which this test held before, changed with the
     numpy build: numpy 2.4.6 rounds some NPC's trigonometry differently, on main as well.)"""
-    from genesis_rl.knobs import Weather
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
     from genesis_rl.sim.interface import VehicleControl
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
+    from genesis_rl.world.knobs import Weather
 
     scene = generate_catalog("highway", 1, 3).scenes[0]
 
@@ -129,8 +129,8 @@ def test_weather_only_lite_episode_is_bit_identical_with_the_actor_knobs_at_thei
 def test_forced_lead_braking_in_lite_traffic_follows_the_demand(steps_per_s):
     """On a crafted highway scene the ego's leader brakes at CCRb's 6 m/s^2 from 1.025 s: its speed falls
     by 6 m/s^2 after onset (within 1e-9), at two step lengths."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     scene = generate_catalog("highway", 1, 3).scenes[0]
     with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:
@@ -153,7 +153,7 @@ def test_odd_file_traffic_table_is_read_and_bad_values_exit_2(tmp_path):
     import subprocess
     import sys
 
-    from genesis_rl.odd.domain import parse_odd
+    from genesis_rl.world.odd.domain import parse_odd
 
     odd = parse_odd({"name": "hw", "traffic": {"max_lead_decel": 2.0, "min_cut_in_ttc": 1.18}}, "hw.toml")
     assert odd.traffic == TrafficConditions(2.0, 1.18)
@@ -161,8 +161,8 @@ def test_odd_file_traffic_table_is_read_and_bad_values_exit_2(tmp_path):
     assert "traffic" not in parse_odd({"name": "hw"}, "hw.toml").describe()  # as before without a table
     with pytest.raises(UserInputError, match=r"ODD 'hw.toml': traffic.min_cut_in_ttc"):
         parse_odd({"name": "hw", "traffic": {"min_cut_in_ttc": 0.1}}, "hw.toml")
-    code = ("from genesis_rl.errors import UserInputError\n"
-            "from genesis_rl.odd.domain import parse_odd\n"
+    code = ("from genesis_rl.core.errors import UserInputError\n"
+            "from genesis_rl.world.odd.domain import parse_odd\n"
             "try:\n    parse_odd({'name': 'x', 'traffic': {'max_lead_decel': 99}}, 'x.toml')\n"
             "except UserInputError as e:\n    print(e); raise SystemExit(e.exit_code)\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
@@ -172,8 +172,8 @@ def test_odd_file_traffic_table_is_read_and_bad_values_exit_2(tmp_path):
 def test_forced_cut_in_in_lite_traffic_ends_centred_in_the_ego_lane():
     """Vehicle 2 of a seeded highway scene drives 3.5 m beside the ego's lane, 16 m ahead; told to cut in at
     0.5 s it takes the ego's lane and pure pursuit steers it across: 3.5 m to go before, < 0.1 m after 5 s."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     scene = generate_catalog("highway", 1, 3).scenes[0]
     with LiteBackend().create_simulation(scene, seed=0, render=False) as sim:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from genesis_rl.evaluation.actor_summary import cut_in_html, cut_in_markdown, cut_in_summary
+from genesis_rl.labels.actor_summary import cut_in_html, cut_in_markdown, cut_in_summary
 
 
 def _cut(ttc: float, perceived: float | None, closing: float) -> dict:
@@ -49,7 +49,7 @@ def test_the_cut_in_table_appears_only_where_a_policy_made_one():
 
 
 def test_each_cut_in_is_a_point_against_r157s_boundary_and_a_hit_carries_its_blame():
-    from genesis_rl.evaluation.actor_summary import R157_BOUNDARY, cut_in_points, fig_cut_ins, r157_boundary_ttc
+    from genesis_rl.labels.actor_summary import R157_BOUNDARY, cut_in_points, fig_cut_ins, r157_boundary_ttc
 
     hit = {"scene": 628, "actor_events": [_cut(9.9, 9.6, 7.8), {**_cut(1.9, 1.6, 10.0), "vehicle_id": 7}],
            "failure": {"vehicle_id": 7, "hit": "cut in by the tester", "blame": "control"}}

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.system.adaptive import speed_for_sight
-from genesis_rl.system.protocol import load_system
-from genesis_rl.system.visibility import CLEAR_AIR_M, KOSCHMIEDER, estimate_visibility
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.system.adaptive import speed_for_sight
+from genesis_rl.sut.system.protocol import load_system
+from genesis_rl.sut.system.visibility import CLEAR_AIR_M, KOSCHMIEDER, estimate_visibility
 
 
 def _foggy_frame(visibility_m: float, road: float = 60.0, airlight: float = 200.0) -> tuple[np.ndarray, np.ndarray]:
@@ -51,7 +51,7 @@ def test_speed_for_sight_stops_within_it() -> None:
 def test_the_estimate_follows_the_fog_over_its_smoothing() -> None:
     """After a jump from 150 m to 50 m of visibility, a 12 s smoothing still reads more than 100 m two seconds
     later, where 0.5 s reads within 10 % of 50 m; the speed cap follows the estimate."""
-    from genesis_rl.system.adaptive import AdaptiveSystem
+    from genesis_rl.sut.system.adaptive import AdaptiveSystem
 
     class _Context:
         dt = 0.05

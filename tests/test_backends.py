@@ -1,4 +1,4 @@
-"""Backends are declared once (genesis_rl.backends) and a backend from outside the package is named by its
+"""Backends are declared once (genesis_rl.sim.backends) and a backend from outside the package is named by its
 import path, as systems and policies are."""
 
 import json
@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genesis_rl.backends import BACKENDS, backend_class, catalog_from_json, load_catalog, make_backend
-from genesis_rl.cli import build_parser, main
+from genesis_rl.commands.cli import build_parser, main
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
-from genesis_rl.errors import UserInputError
-from genesis_rl.lite.scenes import generate_catalog
+from genesis_rl.sim.backends import BACKENDS, backend_class, catalog_from_json, load_catalog, make_backend
 from genesis_rl.sim.interface import Backend
+from genesis_rl.sim.lite.scenes import generate_catalog
 
 PLUGINS = Path(__file__).parent / "plugins"
 TICKLOG = "ticklog_backend:TickLogBackend"
@@ -45,7 +45,7 @@ def test_help_and_flag_list_the_registry():
     ("unreal", r"env.backend = 'unreal' is unknown; allowed: lite, carla or package.module:Class"),
     ("genesis_rl.no_such_module:X", r"env.backend 'genesis_rl.no_such_module:X': cannot import module 'genesis_rl"),
     ("ticklog_backend:Nope", r"env.backend 'ticklog_backend:Nope': module 'ticklog_backend' has no class 'Nope'"),
-    ("genesis_rl.knobs:KnobSpec", r"class KnobSpec is not a genesis_rl.sim.interface.Backend subclass"),
+    ("genesis_rl.world.knobs:KnobSpec", r"class KnobSpec is not a genesis_rl.sim.interface.Backend subclass"),
     ("carla", r"env.backend = 'carla' needs env.catalog: a catalog made with genesis-rl scenes --backend carla"),
 ])
 def test_bad_backend_settings_are_named(plugins_on_path, spec, message):

@@ -15,11 +15,11 @@ import pytest
 from genesis_rl.benchmark.matrix import BenchmarkSpec, campaign_folder, run_benchmark
 from genesis_rl.benchmark.metrics import falsifier_metrics
 from genesis_rl.benchmark.ranks import chi2_sf, compare_ranks, rank_rows
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
-from genesis_rl.zoo import members as zoo
-from genesis_rl.zoo.members import ZooMember
-from genesis_rl.zoo.trigger import Bound, TriggerRegion
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.zoo import members as zoo
+from genesis_rl.sut.zoo.members import ZooMember
+from genesis_rl.sut.zoo.trigger import Bound, TriggerRegion
 
 #: a test-only weakness whose failures are certain: a system that never sees anything, in clear highway air
 BLIND = ZooMember(name="blind_highway", kind="weakness", summary="test only: the blind system", system="blind",
@@ -187,7 +187,7 @@ def test_a_campaign_process_that_cannot_start_raises_instead_of_hanging():
 
 def test_under_natural_dynamics_the_sun_is_held_and_only_the_start_sets_it(tmp_path):
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
-    from genesis_rl.zoo.members import zoo_member
+    from genesis_rl.sut.zoo.members import zoo_member
 
     low_sun = zoo_member("low_sun")
     env = GenesisEnv(EnvConfig(map="urban", scenes=4, dynamics="natural", odd=str(low_sun.odd_path),
@@ -215,10 +215,10 @@ def test_under_natural_dynamics_the_sun_is_held_and_only_the_start_sets_it(tmp_p
 
 
 def test_a_natural_start_campaign_records_and_replays_the_start_each_policy_chose(tmp_path):
-    from genesis_rl.evaluation.campaign import run_campaign
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
-    from genesis_rl.evaluation.records import load_record, replay_record
-    from genesis_rl.zoo.members import env_settings, zoo_member
+    from genesis_rl.campaigns.campaign import run_campaign
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.records import load_record, replay_record
+    from genesis_rl.sut.zoo.members import env_settings, zoo_member
 
     member = zoo_member("low_sun")
     with pytest.raises(UserInputError, match="campaign option start = 'dawn'; allowed: fixed, natural"):
@@ -335,7 +335,7 @@ def test_the_page_shows_a_members_failure_rate_estimate_beside_its_failures(blin
     assert board["estimates"]["oracle_highway"]["estimate"]["episodes"] == 2
     page = (copy / "leaderboard.html").read_text()
     assert page.count("Failure rate under natural conditions: 0 per 0.4 s episode") == 1
-    from genesis_rl.evaluation.report import build_report
+    from genesis_rl.analysis.report import build_report
 
     report = tmp_path / "report.html"
     build_report(campaign_folder(copy, "oracle_highway", 0), report, estimate=est)

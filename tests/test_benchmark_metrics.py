@@ -13,13 +13,13 @@ import pytest
 
 from genesis_rl.benchmark.metrics import Trial, falsifier_metrics, in_odd_failure_at, policy_metrics, trial_of
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.campaign import run_campaign
-from genesis_rl.evaluation.campaign_spec import CampaignSpec
-from genesis_rl.odd.conditions import Conditions
-from genesis_rl.step_record import CollisionStep, StepRecord, synthetic_step
-from genesis_rl.zoo import EMPTY, Bound, TriggerRegion, ZooMember, env_settings, zoo_member
+from genesis_rl.campaigns.campaign import run_campaign
+from genesis_rl.campaigns.campaign_spec import CampaignSpec
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.zoo import EMPTY, Bound, TriggerRegion, ZooMember, env_settings, zoo_member
+from genesis_rl.world.odd.conditions import Conditions
+from genesis_rl.world.step_record import CollisionStep, StepRecord, synthetic_step
 
 CLEAR = Conditions(3000.0, 0.0, "dry", "day", False)
 
@@ -199,7 +199,7 @@ def test_a_campaign_of_another_system_is_refused_naming_the_field(blind_campaign
 
 def test_a_campaign_spec_carries_its_traffic_and_older_specs_read_the_same() -> None:
     """traffic is written only when not mixed, so a campaign.json of before reads (and resumes) unchanged."""
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
 
     mixed = CampaignSpec(policies=("sunny",))
     assert "traffic" not in mixed.to_json() and CampaignSpec.from_json(mixed.to_json()) == mixed

@@ -10,18 +10,18 @@ import pytest
 
 pytest.importorskip("carla")
 
-from genesis_rl.carla_backend import backend as backend_module  # noqa: E402
-from genesis_rl.carla_backend.actor_control import CutIn, LeadBraking, TrafficBehaviour  # noqa: E402
-from genesis_rl.carla_backend.backend import (  # noqa: E402
+from genesis_rl.sim.carla import backend as backend_module  # noqa: E402
+from genesis_rl.sim.carla.actor_control import CutIn, LeadBraking, TrafficBehaviour  # noqa: E402
+from genesis_rl.sim.carla.backend import (  # noqa: E402
     CAMERA_ATTRIBUTES,
     CarlaBackend,
     CarlaSimulation,
     original_settings,
 )
-from genesis_rl.carla_backend.connection import CarlaServerLost  # noqa: E402
-from genesis_rl.carla_backend.contacts import CONTACT_GAP, ContactTracker  # noqa: E402
-from genesis_rl.knobs import Weather  # noqa: E402
+from genesis_rl.sim.carla.connection import CarlaServerLost  # noqa: E402
+from genesis_rl.sim.carla.contacts import CONTACT_GAP, ContactTracker  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
+from genesis_rl.world.knobs import Weather  # noqa: E402
 
 TIMEOUT = RuntimeError("time-out of 10000ms while waiting for the simulator, make sure the simulator is ready")
 
@@ -189,10 +189,10 @@ def test_train_releases_the_simulator_when_the_first_episode_fails(monkeypatch) 
 def test_carla_port_takes_one_server_per_process() -> None:
     import argparse
 
-    from genesis_rl.backends import add_backend_arguments, servers_text, settings_from_args
-    from genesis_rl.cli_args import add_scale_arguments
+    from genesis_rl.commands.cli_args import add_scale_arguments
+    from genesis_rl.core.errors import UserInputError
     from genesis_rl.distributed.servers import parse_servers, servers_for_workers
-    from genesis_rl.errors import UserInputError
+    from genesis_rl.sim.backends import add_backend_arguments, servers_text, settings_from_args
 
     parser = argparse.ArgumentParser()
     add_backend_arguments(parser)
@@ -214,9 +214,9 @@ def test_carla_port_takes_one_server_per_process() -> None:
 def test_the_controller_gets_the_servers_light_states_and_one_planner_per_map(fake_server) -> None:
     import carla
 
-    from genesis_rl.carla_backend.route import RoutePlanner, route_from_context
-    from genesis_rl.lite.maps import load_map
-    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.sim.carla.route import RoutePlanner, route_from_context
+    from genesis_rl.sim.lite.maps import load_map
+    from genesis_rl.sim.lite.maps.opendrive import to_opendrive
 
     b = CarlaBackend("localhost", 2000)
     sim = object.__new__(CarlaSimulation)
@@ -241,14 +241,14 @@ def test_the_carla_backend_imports_nothing_of_lite() -> None:
     import ast
     from pathlib import Path
 
-    import genesis_rl.carla_backend as pkg
+    import genesis_rl.sim.carla as pkg
 
     found = []
     for path in sorted(Path(pkg.__file__).parent.glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) else []
-            found += [f"{path.name}: {n}" for n in names if n.startswith("genesis_rl.lite")]
+            found += [f"{path.name}: {n}" for n in names if n.startswith("genesis_rl.sim.lite")]
     assert found == []
 
 
@@ -288,8 +288,8 @@ def _bare_simulation(backend, world):
     """A CarlaSimulation with an ego (CARLA id 10) and a lead (id 11), set up by hand on a fake world."""
     import threading
 
-    from genesis_rl.knobs import Weather
     from genesis_rl.sim.interface import VehicleControl
+    from genesis_rl.world.knobs import Weather
 
     sim = object.__new__(CarlaSimulation)
     sim._backend, sim.world, sim._destroyed, sim._step = backend, world, False, 0
@@ -325,7 +325,7 @@ def test_each_run_gets_the_traffic_manager_port_of_its_server(fake_server) -> No
     second failed with CARLA's bind error; the port now follows the server's (PORT + 6000) unless given."""
     import argparse
 
-    from genesis_rl.backends import add_backend_arguments, settings_from_args
+    from genesis_rl.sim.backends import add_backend_arguments, settings_from_args
 
     parser = argparse.ArgumentParser()
     add_backend_arguments(parser)
@@ -351,7 +351,7 @@ def _listening_port():
 
 
 def test_a_traffic_manager_port_taken_on_this_machine_fails_at_once_by_name(fake_server) -> None:
-    from genesis_rl.carla_backend.ports import TrafficManagerPortBusy
+    from genesis_rl.sim.carla.ports import TrafficManagerPortBusy
 
     sock, port = _listening_port()  # another run's traffic manager
     try:
@@ -366,7 +366,7 @@ def test_a_traffic_manager_port_taken_on_this_machine_fails_at_once_by_name(fake
 def test_carlas_bind_error_is_named(fake_server) -> None:
     """When the port is taken between the check and the client's bind, CARLA's raw RuntimeError (which no
     connection check recognised) is turned into the same named error (exit status 2)."""
-    from genesis_rl.carla_backend.ports import TrafficManagerPortBusy
+    from genesis_rl.sim.carla.ports import TrafficManagerPortBusy
 
     b = CarlaBackend("localhost", 2000)
 
@@ -400,11 +400,11 @@ def test_a_catalog_runs_only_on_the_map_it_was_made_on(fake_server) -> None:
 
     import carla
 
-    from genesis_rl.carla_backend.scenes import generate_catalog
-    from genesis_rl.errors import UserInputError
-    from genesis_rl.lite.maps import load_map
-    from genesis_rl.lite.maps.opendrive import to_opendrive
-    from genesis_rl.scenes.catalog import parse_catalog
+    from genesis_rl.core.errors import UserInputError
+    from genesis_rl.sim.carla.scenes import generate_catalog
+    from genesis_rl.sim.lite.maps import load_map
+    from genesis_rl.sim.lite.maps.opendrive import to_opendrive
+    from genesis_rl.world.scenes.catalog import parse_catalog
 
     urban, highway = (to_opendrive(load_map(n)) for n in ("urban", "highway"))
     made = generate_catalog(carla.Map("OpenDriveMap", urban), "OpenDriveMap", 2, seed=0, n_vehicles=3)
@@ -449,9 +449,9 @@ class DrivenWorld(MapWorld):
 def urban_scene():
     import carla
 
-    from genesis_rl.carla_backend.scenes import generate_catalog
-    from genesis_rl.lite.maps import load_map
-    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.sim.carla.scenes import generate_catalog
+    from genesis_rl.sim.lite.maps import load_map
+    from genesis_rl.sim.lite.maps.opendrive import to_opendrive
 
     cmap = carla.Map("OpenDriveMap", to_opendrive(load_map("urban")))
     return cmap, generate_catalog(cmap, "OpenDriveMap", 1, seed=3, n_vehicles=3).scene(0)
@@ -460,7 +460,7 @@ def urban_scene():
 def test_a_server_another_client_ticks_is_refused_before_anything_is_changed(fake_server, urban_scene) -> None:
     """Regression (issue 36): any server in synchronous mode was taken for orphaned; a second run then ticked
     a server that another run drives, reseeded its traffic manager and at close made it asynchronous."""
-    from genesis_rl.carla_backend.backend import ORPHAN_WATCH_S, ServerInUse
+    from genesis_rl.sim.carla.backend import ORPHAN_WATCH_S, ServerInUse
 
     cmap, scene = urban_scene
     b = CarlaBackend("localhost", 2000)
@@ -472,7 +472,7 @@ def test_a_server_another_client_ticks_is_refused_before_anything_is_changed(fak
 
 
 def test_a_server_nobody_ticks_is_taken_over_as_orphaned(fake_server, urban_scene) -> None:
-    from genesis_rl.carla_backend.backend import check_not_driven
+    from genesis_rl.sim.carla.backend import check_not_driven
 
     def timeout():
         raise TIMEOUT
@@ -488,7 +488,7 @@ def test_a_server_nobody_ticks_is_taken_over_as_orphaned(fake_server, urban_scen
 
 
 def _free_tcp_port() -> int:
-    from genesis_rl.carla_backend.ports import free_port
+    from genesis_rl.sim.carla.ports import free_port
 
     return free_port()
 
@@ -498,7 +498,7 @@ def test_a_vehicle_without_a_bounding_box_gets_its_makes_size(fake_server) -> No
     which would drop its ground-truth box and make a lead gap from its centre."""
     import carla
 
-    from genesis_rl.scenes.vehicles import MAKES
+    from genesis_rl.world.scenes.vehicles import MAKES
 
     b = CarlaBackend("localhost", 2000)
     sim = _bare_simulation(b, FakeWorld())

@@ -21,11 +21,11 @@ if not HOST:
                 "to run the CARLA integration tests", allow_module_level=True)
 carla = pytest.importorskip("carla")
 
-from genesis_rl.carla_backend.backend import CarlaBackend  # noqa: E402
-from genesis_rl.carla_backend.scenes import generate_catalog  # noqa: E402
-from genesis_rl.carla_backend.weather import same_weather, to_carla  # noqa: E402
-from genesis_rl.knobs import Weather  # noqa: E402
+from genesis_rl.sim.carla.backend import CarlaBackend  # noqa: E402
+from genesis_rl.sim.carla.scenes import generate_catalog  # noqa: E402
+from genesis_rl.sim.carla.weather import same_weather, to_carla  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig, VehicleControl  # noqa: E402
+from genesis_rl.world.knobs import Weather  # noqa: E402
 
 PORT = int(os.environ.get("CARLA_PORT", "2000"))
 TM_PORT = int(os.environ["CARLA_TM_PORT"]) if os.environ.get("CARLA_TM_PORT") else None  # None: PORT + 6000
@@ -101,7 +101,7 @@ def test_a_second_run_on_a_driven_server_is_refused(backend):
     changes anything (it watches for another client's tick: world.wait_for_tick in synchronous mode)."""
     import threading
 
-    from genesis_rl.carla_backend.backend import ServerInUse
+    from genesis_rl.sim.carla.backend import ServerInUse
 
     _, _, scene = _scene(backend)
     with backend.create_simulation(scene, seed=0, render=False) as sim:
@@ -126,7 +126,7 @@ def test_a_second_run_on_a_driven_server_is_refused(backend):
 
 def test_route_lane_changes_lie_where_the_towns_markings_allow(backend):
     """Checklist 4: lane changes decided per waypoint, on the town's own markings."""
-    from genesis_rl.carla_backend.route import CarlaRoute, RoutePlanner, _change_target
+    from genesis_rl.sim.carla.route import CarlaRoute, RoutePlanner, _change_target
 
     _, carla_map, _ = _scene(backend)
     planner = RoutePlanner(carla_map)

@@ -16,34 +16,34 @@ import pytest
 
 carla = pytest.importorskip("carla")
 
-from genesis_rl.backends import catalog_from_json  # noqa: E402
-from genesis_rl.carla_backend.connection import (  # noqa: E402
+from genesis_rl.core.errors import UserInputError  # noqa: E402
+from genesis_rl.sim.backends import catalog_from_json  # noqa: E402
+from genesis_rl.sim.carla.connection import (  # noqa: E402
     CarlaConnectionError,
     CarlaServerLost,
     guarded,
 )
-from genesis_rl.carla_backend.lanes import lane_from_key, lane_key  # noqa: E402
-from genesis_rl.carla_backend.lead import lane_path, lead_on_path  # noqa: E402
-from genesis_rl.carla_backend.projection import (  # noqa: E402
+from genesis_rl.sim.carla.lanes import lane_from_key, lane_key  # noqa: E402
+from genesis_rl.sim.carla.lead import lane_path, lead_on_path  # noqa: E402
+from genesis_rl.sim.carla.projection import (  # noqa: E402
     box_in_camera,
     ground_truth_box,
     project_box,
     world_to_optical,
 )
-from genesis_rl.carla_backend.scenes import generate_catalog  # noqa: E402
-from genesis_rl.carla_backend.sensors import bgra_to_rgb, decode_depth, encode_depth  # noqa: E402
-from genesis_rl.carla_backend.spawn import BLUEPRINTS, SPAWN_LIFT, plan_scene  # noqa: E402
-from genesis_rl.carla_backend.weather import (  # noqa: E402
+from genesis_rl.sim.carla.scenes import generate_catalog  # noqa: E402
+from genesis_rl.sim.carla.sensors import bgra_to_rgb, decode_depth, encode_depth  # noqa: E402
+from genesis_rl.sim.carla.spawn import BLUEPRINTS, SPAWN_LIFT, plan_scene  # noqa: E402
+from genesis_rl.sim.carla.weather import (  # noqa: E402
     carla_preset,
     carla_preset_names,
     carla_weather_fields,
     from_carla,
     to_carla,
 )
-from genesis_rl.errors import UserInputError  # noqa: E402
-from genesis_rl.knobs import KNOBS, PRESETS, Weather, weather_knob_names  # noqa: E402
-from genesis_rl.scenes.catalog import Scene, VehicleSpec  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
+from genesis_rl.world.knobs import KNOBS, PRESETS, Weather, weather_knob_names  # noqa: E402
+from genesis_rl.world.scenes.catalog import Scene, VehicleSpec  # noqa: E402
 
 # A straight road along +x, 200 m: lanes -1 and -2 drive towards +x (right of the reference line, which is
 # +y in CARLA's left-handed frame: y = 1.75 and 5.25), lane 1 drives towards -x (y = -1.75).
@@ -262,7 +262,7 @@ def _free_port() -> int:
 
 
 def test_no_server_gives_clear_error_after_the_timeout():
-    from genesis_rl.carla_backend.backend import CarlaBackend
+    from genesis_rl.sim.carla.backend import CarlaBackend
 
     port = _free_port()
     t0 = time.monotonic()
@@ -291,7 +291,7 @@ def test_server_lost_mid_episode_is_named():
 
 
 def test_missing_client_names_the_install_command(monkeypatch):
-    from genesis_rl.carla_backend import require_carla
+    from genesis_rl.sim.carla import require_carla
 
     monkeypatch.setitem(sys.modules, "carla", None)  # makes `import carla` raise ImportError
     with pytest.raises(UserInputError, match=r"pip install -e \.\[carla\]"):
@@ -301,7 +301,7 @@ def test_missing_client_names_the_install_command(monkeypatch):
 def test_backend_flags_and_factory():
     import argparse
 
-    from genesis_rl.backends import add_backend_arguments, make_backend
+    from genesis_rl.sim.backends import add_backend_arguments, make_backend
 
     parser = argparse.ArgumentParser()
     add_backend_arguments(parser)

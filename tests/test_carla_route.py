@@ -12,15 +12,15 @@ import pytest
 
 carla = pytest.importorskip("carla")
 
-from genesis_rl.carla_backend.lanes import lane_key  # noqa: E402
-from genesis_rl.carla_backend.route import CarlaRoute, RoutePlanner, route_from_context, speed_limits  # noqa: E402
-from genesis_rl.lite.maps import load_map  # noqa: E402
-from genesis_rl.lite.maps.lane_graph import DS, LANE_WIDTH  # noqa: E402
-from genesis_rl.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive  # noqa: E402
-from genesis_rl.scenes.vehicles import MAKES  # noqa: E402
+from genesis_rl.sim.carla.lanes import lane_key  # noqa: E402
+from genesis_rl.sim.carla.route import CarlaRoute, RoutePlanner, route_from_context, speed_limits  # noqa: E402
 from genesis_rl.sim.interface import ActorState, CameraConfig, SensorFrame  # noqa: E402
-from genesis_rl.system.builtin import BlindSystem, plan_route  # noqa: E402
-from genesis_rl.system.protocol import EpisodeContext  # noqa: E402
+from genesis_rl.sim.lite.maps import load_map  # noqa: E402
+from genesis_rl.sim.lite.maps.lane_graph import DS, LANE_WIDTH  # noqa: E402
+from genesis_rl.sim.lite.maps.opendrive import odr_lane_ids, signal_plan, to_opendrive  # noqa: E402
+from genesis_rl.sut.system.builtin import BlindSystem, plan_route  # noqa: E402
+from genesis_rl.sut.system.protocol import EpisodeContext  # noqa: E402
+from genesis_rl.world.scenes.vehicles import MAKES  # noqa: E402
 
 MAPS = ("urban", "highway")
 EXTRAS = {"plan_route": route_from_context}  # what the CARLA backend hands the system
@@ -211,7 +211,7 @@ def test_map_export_command(tmp_path) -> None:
 
 @pytest.mark.parametrize("spec", ["builtin", "oracle"])
 def test_builtin_systems_reset_and_step_on_a_carla_context(exported, spec) -> None:
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.sut.system.protocol import load_system
 
     lite, _, cmap = exported["highway"]
     road, lane, start = _start(lite, cmap, 12, 50.0)
@@ -230,7 +230,7 @@ def test_builtin_systems_reset_and_step_on_a_carla_context(exported, spec) -> No
 
 
 def test_a_map_without_a_planner_is_refused_by_name(exported) -> None:
-    from genesis_rl.errors import UserInputError
+    from genesis_rl.core.errors import UserInputError
 
     _, _, cmap = exported["urban"]
     context = EpisodeContext("mysim", "urban", cmap, CameraConfig(), 0.05, seed=0)

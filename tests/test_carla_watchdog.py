@@ -10,8 +10,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from genesis_rl.errors import SimulatorLost
-from genesis_rl.lite.backend import LiteBackend, LiteSimulation
+from genesis_rl.core.errors import SimulatorLost
+from genesis_rl.sim.lite.backend import LiteBackend, LiteSimulation
 from genesis_rl.sim.watchdog import SimulatorHung, Watchdog
 
 #: released when the module's tests end, so the stuck threads finish
@@ -85,7 +85,7 @@ class HangingBackend(LiteBackend):
 
 @pytest.fixture(scope="module")
 def catalog(tmp_path_factory) -> str:
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     path = tmp_path_factory.mktemp("cat") / "highway.json"
     generate_catalog("highway", 4, 0).save(path)
@@ -93,7 +93,7 @@ def catalog(tmp_path_factory) -> str:
 
 
 def test_a_campaign_whose_server_hangs_marks_the_episode_lost_and_retries_it(tmp_path, catalog) -> None:
-    from genesis_rl.evaluation.campaign import CampaignSpec, run_campaign
+    from genesis_rl.campaigns.campaign import CampaignSpec, run_campaign
 
     spec = CampaignSpec(policies=("sunny",), catalog=catalog, scenes=1, seed=1, steps=20,
                         env={"system": "blind", "backend": f"{__name__}:HangingBackend"})
@@ -115,9 +115,9 @@ def test_a_carla_tick_that_never_returns_loses_the_episode_and_close_survives(mo
     pytest.importorskip("carla")
     import test_carla_faults as fakes
 
-    from genesis_rl.carla_backend import backend as backend_module
-    from genesis_rl.carla_backend.backend import CarlaBackend
-    from genesis_rl.carla_backend.connection import CarlaServerLost
+    from genesis_rl.sim.carla import backend as backend_module
+    from genesis_rl.sim.carla.backend import CarlaBackend
+    from genesis_rl.sim.carla.connection import CarlaServerLost
 
     clients = []
 

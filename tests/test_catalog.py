@@ -5,11 +5,11 @@ import sys
 import numpy as np
 import pytest
 
-from genesis_rl.backends import catalog_from_json, load_catalog
-from genesis_rl.errors import UserInputError
-from genesis_rl.lite.maps import load_map
-from genesis_rl.lite.scenes import generate_catalog
-from genesis_rl.scenes.vehicles import MAKES
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sim.backends import catalog_from_json, load_catalog
+from genesis_rl.sim.lite.maps import load_map
+from genesis_rl.sim.lite.scenes import generate_catalog
+from genesis_rl.world.scenes.vehicles import MAKES
 
 
 @pytest.mark.parametrize("map_name", ["urban", "highway"])
@@ -128,8 +128,8 @@ def test_free_flow_traffic_cruises_at_speed_and_only_the_knobs_stop_the_lead(tmp
     """free_flow (the timing members' scenes, docs/scenes.md): the ego on a 25 m/s main line at 90-100 % of
     it with room for a whole episode, its lead 1.5-2.0 s ahead cruising a little slower (so a faster ego
     catches up), no one with spontaneous stops; seeded, valid, and the mixed catalogs are untouched."""
-    from genesis_rl.backends import catalog_or_generate
-    from genesis_rl.lite.scenes import FREE_FLOW_RUN_M
+    from genesis_rl.sim.backends import catalog_or_generate
+    from genesis_rl.sim.lite.scenes import FREE_FLOW_RUN_M
 
     road = load_map("highway")
     cat = generate_catalog("highway", 40, 0, traffic="free_flow")
@@ -162,7 +162,7 @@ def test_in_free_flow_nobody_starts_between_the_ego_and_its_lead_or_tailgating()
     """Others keep at least free flow's time gap to whoever is ahead in their lane, so the ego's nearest car
     ahead is the placed lead (a car slipped in 8 m ahead of the ego made a lead braking at 6 m/s^2
     unavoidable for any driver in an early try)."""
-    from genesis_rl.lite.scenes import FREE_FLOW_TIME_GAP
+    from genesis_rl.sim.lite.scenes import FREE_FLOW_TIME_GAP
 
     for sc in generate_catalog("highway", 40, 0, traffic="free_flow").scenes:
         ego, lead = sc.vehicles[0], sc.vehicles[1]
@@ -184,8 +184,8 @@ def test_a_catalog_saves_what_asdict_gave_and_bench_catalog_times_it(tmp_path, c
     values, the autopilot a copy), and ``genesis-rl bench catalog`` reports every stage."""
     from dataclasses import asdict
 
-    from genesis_rl.cli import main
-    from genesis_rl.scenes.catalog import _vehicle_json
+    from genesis_rl.commands.cli import main
+    from genesis_rl.world.scenes.catalog import _vehicle_json
 
     catalog = generate_catalog("urban", 3, seed=4)
     for scene in catalog.scenes:

@@ -32,9 +32,9 @@ def test_render_bad_weather_exits_2_naming_the_field(tmp_path, weather, field):
 
 
 def test_each_observe_returns_the_current_frame_not_the_previous_one():
-    from genesis_rl.knobs import Weather
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
+    from genesis_rl.world.knobs import Weather
 
     scene = generate_catalog("urban", 1, 0).scenes[0]
     backend = LiteBackend()
@@ -49,7 +49,7 @@ def test_each_observe_returns_the_current_frame_not_the_previous_one():
 
 def _main_err(capsys, *args) -> tuple[int, str]:
     """Run the CLI in-process (bad input fails before any rendering); returns (exit status, stderr)."""
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     try:
         rc = main(list(args))
@@ -99,7 +99,7 @@ def test_bad_command_lines_exit_2_with_a_message_and_touch_nothing(tmp_path, cap
 
 
 def test_render_refuses_a_catalog_of_another_backend(tmp_path, capsys):
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     data = generate_catalog("urban", 1, 0).to_json()
     data["backend"] = "carla"

@@ -14,9 +14,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.perception import model_store
-from genesis_rl.perception.darknet import DarknetYolo, nms, parse_cfg
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.perception import model_store
+from genesis_rl.sut.perception.darknet import DarknetYolo, nms, parse_cfg
 
 TINY_CFG = """[net]
 width=64
@@ -159,13 +159,13 @@ def test_the_reader_matches_opencvs_darknet_reader() -> None:
     cv2 = pytest.importorskip("cv2")
     if not hasattr(cv2.dnn, "readNetFromDarknet"):
         pytest.skip("this OpenCV has no darknet reader (OpenCV 5 dropped it)")
-    from genesis_rl.perception.darknet import load_darknet
+    from genesis_rl.sut.perception.darknet import load_darknet
 
     paths = model_store.find_model("coco")
     ours = load_darknet(paths["yolov3-tiny.cfg"], paths["yolov3-tiny.weights"])
     ref = cv2.dnn.readNetFromDarknet(str(paths["yolov3-tiny.cfg"]), str(paths["yolov3-tiny.weights"]))
-    from genesis_rl.perception.dataset import render_dataset
     from genesis_rl.sim.interface import CameraConfig
+    from genesis_rl.sut.perception.dataset import render_dataset
 
     image = render_dataset("highway", 1, 1, 103, 7, "clear", camera=CameraConfig(width=416, height=416),
                            progress=False).images[0]
@@ -188,7 +188,7 @@ def test_the_reader_matches_opencvs_darknet_reader() -> None:
 
 @needs_model
 def test_the_weights_own_anchor_mask_is_restored() -> None:
-    from genesis_rl.perception.coco_detector import weights_cfg
+    from genesis_rl.sut.perception.coco_detector import weights_cfg
 
     shipped = model_store.find_model("coco")["yolov3-tiny.cfg"].read_text()
     fixed = weights_cfg(shipped, "cfg")
@@ -202,10 +202,10 @@ def test_the_weights_own_anchor_mask_is_restored() -> None:
 def test_the_coco_detector_sees_lite_cars_up_close() -> None:
     """On 24 clear-noon highway frames, most unoccluded vehicles within 20 m are found with IoU >= 0.5 (with the
     cfg's mask as shipped, 0,1,2, boxes were ~40 % too small and only 4 % of those at 10-20 m reached 0.5)."""
-    from genesis_rl.perception.coco_detector import CocoDetector
-    from genesis_rl.perception.dataset import render_condition_sets
-    from genesis_rl.perception.evaluate import box_iou
     from genesis_rl.sim.interface import CameraConfig
+    from genesis_rl.sut.perception.coco_detector import CocoDetector
+    from genesis_rl.sut.perception.dataset import render_condition_sets
+    from genesis_rl.sut.perception.evaluate import box_iou
 
     data = render_condition_sets("highway", 24, 1, 103, 7, ("clear",), camera=CameraConfig(width=640, height=480),
                                  progress=False)["clear"]
@@ -225,7 +225,7 @@ def test_the_coco_detector_sees_lite_cars_up_close() -> None:
 
 @needs_model
 def test_detector_eval_scores_the_coco_detector(tmp_path: Path) -> None:
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     out = tmp_path / "eval"
     assert main(["detector", "eval", "--system", "coco", "--frames-per-condition", "2", "--conditions", "clear",

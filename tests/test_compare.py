@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 
-from genesis_rl.cli import main
+from genesis_rl.commands.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_compare_refuses_what_cannot_be_paired(campaigns, tmp_path, capsys) -> N
 
 def test_a_policys_interval_does_not_depend_on_the_order_of_the_series(campaigns, capsys) -> None:
     a, b = campaigns
-    from genesis_rl.evaluation.compare import compare, parse_series
+    from genesis_rl.analysis.compare import compare, parse_series
 
     one = compare([parse_series(f"fog={a}:constant"), parse_series(f"rnd={b}:random")])
     two = compare([parse_series(f"rnd={b}:random"), parse_series(f"fog={a}:constant")])

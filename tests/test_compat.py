@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.evaluation.campaign_files import read_step_records, steps_path
-from genesis_rl.evaluation.summary import summarize_campaign
+from genesis_rl.campaigns.campaign_files import read_step_records, steps_path
+from genesis_rl.campaigns.summary import summarize_campaign
+from genesis_rl.commands.cli import main
 
 FIXTURE = Path(__file__).parent / "data" / "campaign_0.4.0"
 

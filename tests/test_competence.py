@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import pytest
 
-from genesis_rl.drive import run_episode
-from genesis_rl.knobs import Weather
-from genesis_rl.lite.backend import LiteBackend
-from genesis_rl.lite.scenes import generate_catalog
-from genesis_rl.system.protocol import load_system
+from genesis_rl.loop.drive import run_episode
+from genesis_rl.sim.lite.backend import LiteBackend
+from genesis_rl.sim.lite.scenes import generate_catalog
+from genesis_rl.sut.system.protocol import load_system
+from genesis_rl.world.knobs import Weather
 
 pytestmark = [pytest.mark.slow, pytest.mark.render]
 

@@ -12,12 +12,12 @@ import math
 import numpy as np
 import pytest
 
-from genesis_rl.actor_knobs import CUT_IN_PERCEIVE_AFTER_S
-from genesis_rl.evaluation.blame import VISIBILITY_REFERENCE, blame_label, reference_name
-from genesis_rl.evaluation.careful_driver import R157, careful_driver_evidence, event_for_collision
-from genesis_rl.knobs import KNOBS
+from genesis_rl.labels.blame import VISIBILITY_REFERENCE, blame_label, reference_name
+from genesis_rl.labels.careful_driver import R157, careful_driver_evidence, event_for_collision
 from genesis_rl.sim.interface import ActorEvent
-from genesis_rl.step_record import CollisionStep, EgoStep, LeadStep, PerceptionStep, StepRecord
+from genesis_rl.world.actor_knobs import CUT_IN_PERCEIVE_AFTER_S
+from genesis_rl.world.knobs import KNOBS
+from genesis_rl.world.step_record import CollisionStep, EgoStep, LeadStep, PerceptionStep, StepRecord
 
 DT = 0.05
 
@@ -89,7 +89,7 @@ def test_blame_with_a_careful_driver_reference_never_calls_an_avoidable_collisio
 
 
 def test_the_cut_in_is_a_knob_of_the_env_that_lite_realises():
-    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.backend import LiteBackend
 
     spec = KNOBS["cut_in_ttc"]
     assert spec.is_actor and spec.default == 10.0 and (spec.low, spec.high, spec.unit) == (0.4, 10.0, "s")
@@ -98,8 +98,8 @@ def test_the_cut_in_is_a_knob_of_the_env_that_lite_realises():
 
 def _cut_in_on_lite(knob: float, steps: int = 120):
     """Seeded highway scene 3 of 4, the ego on lite's autopilot at up to 16 m/s, the knob held at ``knob``."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     scene = generate_catalog("highway", 4, 3).scenes[3]
     sim = LiteBackend().create_simulation(scene, seed=0, render=False)
@@ -185,7 +185,7 @@ def test_an_unavoidable_cut_in_is_labelled_unavoidable_and_an_avoidable_one_is_t
     way, the neighbour cuts 2 m ahead (0.35 s to collision once perceivable) and the careful driver hits it
     too; in scene 18, the knob lowered to 2.8 s, it cuts in 6 m ahead (2.8 s once perceivable, 2 m/s closing)
     and the careful driver stops short of it."""
-    from genesis_rl.evaluation.distinct import what_was_hit
+    from genesis_rl.labels.distinct import what_was_hit
 
     for scene, lower_steps, unavoidable in ((1, 200, True), (18, 15, False)):
         records, events, hit_at = _blind_cut_in_episode(scene, lower_steps)
@@ -234,8 +234,8 @@ def _prepared_cut_in(relative_speed: float, steps: int = 400, release_at: int | 
     """Seeded highway scene 2 of 8 (its traffic keeps the ego's pace: no gap closes on its own), the ego on
     lite's autopilot at up to 22 m/s, a cut-in asked at R157's 1.64 s with ``relative_speed``; speeds,
     accelerations and lanes of every vehicle per step, and the speed caps the knob set."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     scene = generate_catalog("highway", 8, 3).scenes[2]
     sim = LiteBackend().create_simulation(scene, seed=0, render=False)
@@ -259,7 +259,7 @@ def test_a_neighbour_gets_ready_at_the_relative_speed_asked_so_a_short_cut_in_ca
     """Without ``cut_in_relative_speed`` no gap in this scene closes and no cut-in comes. At 10 m/s the nearest
     neighbour ahead slows (never harder than its comfortable deceleration, never under half its own target
     speed) until its gap closes to R157's 1.64 s, crosses, and then holds the speed it crossed at."""
-    from genesis_rl.actor_knobs import CUT_IN_SPEED_FLOOR
+    from genesis_rl.world.actor_knobs import CUT_IN_SPEED_FLOOR
 
     _, events, *_ = _prepared_cut_in(0.0)
     assert events == []
@@ -300,8 +300,8 @@ def test_a_car_standing_at_an_angle_with_a_corner_in_the_egos_path_is_its_lead()
     """The ego's lead is measured by the other car's turned body: 15 m ahead, its centre 2.4 m to the side, a
     car parallel to the ego is beside its path, the same car turned 0.35 rad toward it (a cut-in halfway) puts
     its front corner in the path."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     sim = LiteBackend().create_simulation(generate_catalog("highway", 4, 3).scenes[0], seed=0, render=False)
     try:
@@ -343,8 +343,8 @@ def test_a_cut_in_stopped_half_across_is_in_the_path_so_the_careful_driver_avoid
 def test_a_lead_braking_while_the_cutter_crosses_does_not_hide_the_cut_ins_perceivable_moment():
     """0.24 marked only the latest event, so a lead braked by the tester during a cut-in left the cut-in
     never perceivable (and its careful driver without a moment to start from)."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     sim = LiteBackend().create_simulation(generate_catalog("highway", 4, 3).scenes[3], seed=0, render=False)
     try:

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.perception.detector import DEFAULT_WEIGHTS, NullDetector, VehicleDetector, load_checkpoint
-from genesis_rl.perception.evaluate import EVAL_CATALOG_SEEDS, EvalProtocol, match_frame, score_dataset
-from genesis_rl.perception.model import (
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS, NullDetector, VehicleDetector, load_checkpoint
+from genesis_rl.sut.perception.evaluate import EVAL_CATALOG_SEEDS, EvalProtocol, match_frame, score_dataset
+from genesis_rl.sut.perception.model import (
     DetectorModelConfig,
     VehicleDetectorNet,
     box_iou,
@@ -137,10 +137,10 @@ def test_protocol_matching() -> None:
 
 
 def test_detector_commands_bad_input(tmp_path) -> None:
-    from genesis_rl.perception.commands import add_detector_commands
+    from genesis_rl.commands.detector import add_parser as add_detector_command
 
     p = argparse.ArgumentParser()
-    add_detector_commands(p.add_subparsers(dest="command"))
+    add_detector_command(p.add_subparsers(dest="command"))
     args = p.parse_args(["detector", "eval", "--maps", "moon", "--out", str(tmp_path)])
     with pytest.raises(UserInputError, match=r"--maps.*allowed: urban, highway"):
         args.func(args)
@@ -156,7 +156,7 @@ def test_detector_commands_bad_input(tmp_path) -> None:
 @pytest.fixture(scope="module")
 def held_out_sets():
     pytest.importorskip("panda3d")
-    from genesis_rl.perception.dataset import render_condition_sets
+    from genesis_rl.sut.perception.dataset import render_condition_sets
 
     return render_condition_sets("urban", 12, 2, EVAL_CATALOG_SEEDS["urban"], seed=11,
                                  conditions=("clear", "fog90", "night"), progress=False)
@@ -209,7 +209,7 @@ def test_detector_rescales_other_frame_sizes(held_out_sets) -> None:
 @pytest.mark.render
 def test_dataset_deterministic_and_saved(tmp_path) -> None:
     pytest.importorskip("panda3d")
-    from genesis_rl.perception.dataset import DetectionDataset, render_dataset
+    from genesis_rl.sut.perception.dataset import DetectionDataset, render_dataset
 
     a = render_dataset("highway", 2, 1, 5, seed=3, condition="low_sun_glare", progress=False)
     b = render_dataset("highway", 2, 1, 5, seed=3, condition="low_sun_glare", progress=False)

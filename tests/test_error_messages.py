@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.perception.detector import DEFAULT_WEIGHTS, VehicleDetector, load_checkpoint
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS, VehicleDetector, load_checkpoint
 
 
 def test_wrong_shape_weights_name_the_mismatched_tensor(tmp_path) -> None:

@@ -10,7 +10,7 @@ from statistics import NormalDist
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.estimation import estimator
 from genesis_rl.estimation.nominal import BEARING, NominalModel, StartRange, check_starts, load_starts
 from genesis_rl.estimation.proposal import StartProposal, TruncatedNormal, elite
@@ -176,10 +176,10 @@ def test_spec_refuses_bad_values_naming_the_flag() -> None:
 
 
 def test_default_nominal_is_what_each_odd_allows() -> None:
-    from genesis_rl.config import from_mapping
+    from genesis_rl.core.config import from_mapping
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
     from genesis_rl.estimation.nominal import default_starts
-    from genesis_rl.zoo.members import env_settings, zoo_member
+    from genesis_rl.sut.zoo.members import env_settings, zoo_member
 
     expected = {"glare_blind": (-90.0, 90.0), "low_sun": (0.0, 90.0), "builtin_highway": (15.0, 90.0)}
     for name, (lo, hi) in expected.items():
@@ -194,7 +194,7 @@ def test_default_nominal_is_what_each_odd_allows() -> None:
 
 
 def test_estimate_command_refuses_bad_input_with_exit_2(tmp_path: Path, capsys) -> None:
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     assert main(["estimate", "--member", "nobody", "--out", str(tmp_path / "o")]) == 2
     assert "nobody" in capsys.readouterr().err
@@ -205,7 +205,7 @@ def test_estimate_command_refuses_bad_input_with_exit_2(tmp_path: Path, capsys) 
 
 @pytest.mark.xdist_group("estimate")
 def test_a_real_estimate_is_the_same_with_one_or_two_workers_and_resumes(tmp_path: Path) -> None:
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     args = ["estimate", "--member", "glare_blind", "--episodes", "4", "--stages", "2", "--steps", "12", "--quiet"]
     assert main([*args, "--out", str(tmp_path / "one")]) == 0
@@ -228,7 +228,7 @@ def test_a_resumed_estimate_may_read_its_episodes_from_other_stages(tmp_path: Pa
     setting that decides the episodes may not change."""
     import json
 
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     args = ["estimate", "--member", "glare_blind", "--episodes", "4", "--stages", "3", "--steps", "12", "--quiet",
             "--out", str(tmp_path)]
@@ -248,7 +248,7 @@ def test_a_resumed_estimate_may_read_its_episodes_from_other_stages(tmp_path: Pa
 def test_crude_monte_carlo_goes_on_to_more_episodes_with_resume(tmp_path: Path) -> None:
     import json
 
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     args = ["estimate", "--member", "low_sun", "--method", "crude", "--steps", "8", "--quiet", "--out", str(tmp_path)]
     assert main([*args, "--episodes", "2"]) == 0
@@ -333,12 +333,12 @@ def test_braking_event_files_are_checked(tmp_path: Path) -> None:
 def test_the_lead_brakes_as_the_drawn_event_says() -> None:
     """latency_braking's default nominal model draws the lead's braking at the start; played, the knob holds 0
     until the onset, then rises at its natural rate (4 m/s^2 a second) to the drawn deceleration."""
-    from genesis_rl.config import from_mapping
+    from genesis_rl.core.config import from_mapping
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
     from genesis_rl.estimation.episodes import EpisodeTask, play
     from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET
     from genesis_rl.estimation.run import nominal_model
-    from genesis_rl.zoo.members import env_settings, zoo_member
+    from genesis_rl.sut.zoo.members import env_settings, zoo_member
 
     env = GenesisEnv(from_mapping(EnvConfig, {**env_settings(zoo_member("latency_braking")), "scenes": 2,
                                               "observation": "features", "episode_steps": 40}, "env"))

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.campaign import CampaignSpec, pick_scenes, run_campaign
-from genesis_rl.evaluation.failure_modes import FailureModeThresholds, classify_timeline
-from genesis_rl.evaluation.stats import bootstrap_mean_ci, paired_comparison
+from genesis_rl.campaigns.campaign import CampaignSpec, pick_scenes, run_campaign
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.stats import bootstrap_mean_ci, paired_comparison
+from genesis_rl.labels.failure_modes import FailureModeThresholds, classify_timeline
 
 DT = 0.05
 
@@ -85,7 +85,7 @@ STEPS = 70
 
 @pytest.fixture(scope="module")
 def catalog(tmp_path_factory) -> str:
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     path = tmp_path_factory.mktemp("cat") / "highway.json"
     generate_catalog("highway", 12, 0).save(path)
@@ -337,7 +337,7 @@ def test_agent_and_search_policies(tmp_path, catalog: str) -> None:
 
 
 def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path, hit: dict) -> None:
-    from genesis_rl.evaluation.summary import summarize_campaign
+    from genesis_rl.campaigns.summary import summarize_campaign
 
     folder = tmp_path / "old"
     shutil.copytree(campaign, folder)
@@ -353,7 +353,7 @@ def test_rows_of_an_older_labeller_are_relabelled(tmp_path, campaign: Path, hit:
 
 def test_an_episode_whose_simulator_dies_is_retried_after_reconnecting(tmp_path, catalog: str) -> None:
     from genesis_rl.adversaries import POLICIES, SunnyPolicy, register_policy
-    from genesis_rl.errors import SimulatorLost
+    from genesis_rl.core.errors import SimulatorLost
 
     class Flaky(SunnyPolicy):
         """Loses the simulator on its first episode, as a CARLA server that dies mid-episode."""

@@ -12,13 +12,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.campaign import CampaignSpec, run_campaign
-from genesis_rl.evaluation.records import load_record, replay_record
-from genesis_rl.evaluation.report import build_report
-from genesis_rl.rules.reward import PaperReward, RewardConfig
-from genesis_rl.rules.rulebook import load_rulebook
-from genesis_rl.step_record import synthetic_step
+from genesis_rl.analysis.report import build_report
+from genesis_rl.campaigns.campaign import CampaignSpec, run_campaign
+from genesis_rl.campaigns.records import load_record, replay_record
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.loop.rules.reward import PaperReward, RewardConfig
+from genesis_rl.loop.rules.rulebook import load_rulebook
+from genesis_rl.world.step_record import synthetic_step
 
 PLUGINS = Path(__file__).parent / "plugins"
 RULEBOOK = """
@@ -117,7 +117,7 @@ def user_knob(plugins_on_path):
     import importlib
     import sys
 
-    from genesis_rl.knobs import KNOB_MODULES, KNOBS
+    from genesis_rl.world.knobs import KNOB_MODULES, KNOBS
 
     module = importlib.import_module("user_knob")
     yield module.LENS_DIRT
@@ -127,8 +127,8 @@ def user_knob(plugins_on_path):
 
 
 def test_a_knob_declared_once_reaches_weather_and_the_contact_sheet(user_knob) -> None:
-    from genesis_rl.knobs import KnobActionMapper, Weather, parse_weather
-    from genesis_rl.render_cmd import sweep_rows
+    from genesis_rl.commands.render import sweep_rows
+    from genesis_rl.world.knobs import KnobActionMapper, Weather, parse_weather
 
     assert Weather.default()["lens_dirt"] == 0.0
     assert parse_weather("lens_dirt=40")["lens_dirt"] == 40.0
@@ -173,7 +173,7 @@ def test_a_user_knob_module_named_in_genesis_rl_plugins_reaches_the_command_line
                                                                                 user_knob, capsys) -> None:
     """``GENESIS_RL_PLUGINS`` imports a user's modules before the command line is read; ``env.plugins`` does
     the same for an env (and for training's env processes, which build their env from the config)."""
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
     from genesis_rl.env.genesis_env import EnvConfig
 
     monkeypatch.setenv("GENESIS_RL_PLUGINS", "user_knob")

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from genesis_rl.lite.render.gt_boxes import MAX_BOX_RANGE, MIN_BOX_PIXELS, SILHOUETTE_FILL, ground_truth_boxes
-from genesis_rl.lite.render.view import camera_axes, camera_pose, outside_view
 from genesis_rl.sim.interface import CameraConfig
+from genesis_rl.sim.lite.render.gt_boxes import MAX_BOX_RANGE, MIN_BOX_PIXELS, SILHOUETTE_FILL, ground_truth_boxes
+from genesis_rl.sim.lite.render.view import camera_axes, camera_pose, outside_view
 
 CAM = CameraConfig(320, 240)  # 90 degrees: focal length 160 px
 CPOS = np.array([0.0, 0.0, 1.5])

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.harden.rounds import seesaw
-from genesis_rl.perception.detector import DEFAULT_WEIGHTS, file_sha256, load_checkpoint
+from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS, file_sha256, load_checkpoint
 
 pytestmark = pytest.mark.xdist_group("harden")
 
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.xdist_group("harden")
 CONFIG = """[env]
 map = "urban"
 system = "builtin"
-odd = "genesis_rl/zoo/odd/urban_day.toml"
+odd = "genesis_rl/sut/zoo/odd/urban_day.toml"
 dynamics = "natural"
 start_weather = "sun_altitude_angle=5,sun_azimuth_angle=0"
 """
@@ -125,7 +125,7 @@ def test_a_resumed_round_gives_the_same_weights(hardened: Path, tmp_path) -> Non
 
 def test_a_wide_retest_added_on_resume_replays_every_rounds_weights_on_the_same_scenes(hardened: Path,
                                                                                          tmp_path) -> None:
-    from genesis_rl.evaluation.summary import load_campaign
+    from genesis_rl.campaigns.summary import load_campaign
 
     copy = tmp_path / "hard"
     shutil.copytree(hardened, copy)
@@ -152,8 +152,8 @@ def test_a_wide_retest_added_on_resume_replays_every_rounds_weights_on_the_same_
 def test_a_stage_run_against_other_weights_is_replaced_not_resumed(attack: Path, tmp_path) -> None:
     """--rounds may grow on resume: the final attack then runs against the new last weights and seed, so a
     campaign of another spec in its folder is replaced (resuming it would mix two systems' episodes)."""
-    from genesis_rl.evaluation.campaign_files import read_campaign_meta
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.campaign_files import read_campaign_meta
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
     from genesis_rl.harden.rounds import _run, attack_spec
 
     base = dataclasses.replace(CampaignSpec.from_json(read_campaign_meta(attack)["spec"]), scenes=1, steps=20)
@@ -187,7 +187,7 @@ def test_a_near_miss_is_replayed_for_its_frames_and_exported_with_labels(hardene
     """Round 1's re-test drove its scene without a collision, closing to a time to collision of 1.27 s: a near miss.
     Its frames are rendered again from the record, the same bytes twice, and exported with the simulator's boxes;
     a record that no longer drives the same episode is refused."""
-    from genesis_rl.evaluation.export import export_dataset
+    from genesis_rl.exports.dataset import export_dataset
     from genesis_rl.harden.near_miss import near_misses, render_frames
 
     test = hardened / "round_1" / "test"
@@ -282,8 +282,8 @@ def test_a_member_of_another_system_or_map_is_refused(attack: Path, tmp_path, ca
 
 def test_a_member_is_matched_by_its_odd_text_not_its_path(attack: Path, tmp_path) -> None:
     """The same ODD file in another checkout is the member's ODD; a changed copy is not."""
-    from genesis_rl.evaluation.campaign_files import read_campaign_meta
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.campaign_files import read_campaign_meta
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
     from genesis_rl.harden.rounds import check_member
 
     base = CampaignSpec.from_json(read_campaign_meta(attack)["spec"])

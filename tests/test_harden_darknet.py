@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.harden.data import original_frames
 from genesis_rl.harden.retrain import RetrainRequest, builtin_hook, check_options
 from genesis_rl.harden.retrain_darknet import (
@@ -22,8 +22,8 @@ from genesis_rl.harden.retrain_darknet import (
     weights_bytes,
     yolo_loss,
 )
-from genesis_rl.perception.coco_detector import CocoDetector, weights_cfg
-from genesis_rl.perception.model_store import find_model
+from genesis_rl.sut.perception.coco_detector import CocoDetector, weights_cfg
+from genesis_rl.sut.perception.model_store import find_model
 
 pytestmark = pytest.mark.xdist_group("harden_darknet")
 
@@ -96,7 +96,7 @@ def test_the_yolo_loss_falls_on_the_frames_it_trains_on(failures: Path) -> None:
 
 
 def test_the_coco_finetune_writes_a_loadable_model_the_same_bytes_twice(failures: Path, tmp_path) -> None:
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.sut.system.protocol import load_system
 
     first = builtin_hook(_request(failures, tmp_path / "a"))  # dispatches to the darknet fine-tune by system
     second = finetune_darknet(_request(failures, tmp_path / "b"))

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl import io_utils
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import io_utils
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -221,7 +221,7 @@ def test_export_and_report_errors_say_what_happened(campaign, tmp_path, capsys, 
 
 
 def test_a_failed_export_leaves_no_partial_folder(campaign, tmp_path, capsys, monkeypatch) -> None:
-    from genesis_rl.evaluation import export
+    from genesis_rl.campaigns import export
 
     frame = tmp_path / "f.jpg"
     frame.write_bytes(b"\xff\xd8\xff")  # a damaged frame: the export fails half-way
@@ -237,7 +237,7 @@ def test_a_failed_export_leaves_no_partial_folder(campaign, tmp_path, capsys, mo
 
 # -- found by the sweep --------------------------------------------------------------------------------
 def test_a_full_disk_while_locking_is_named_and_leaves_no_lock_file(tmp_path, monkeypatch) -> None:
-    from genesis_rl import output_folder
+    from genesis_rl.core.files import output_folder
 
     monkeypatch.setattr(output_folder.os, "pwrite", _raiser(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
     with pytest.raises(UserInputError, match=r"cannot lock output folder '.*out': '.*\.out\.genesis-rl\.lock': No "
@@ -272,8 +272,8 @@ def test_evaluate_steps_that_would_run_for_days_are_refused(tmp_path, capsys) ->
 
 
 def test_a_folder_as_schedule_is_called_a_folder(tmp_path) -> None:
-    from genesis_rl.knobs import parse_weather
-    from genesis_rl.weather_schedule import load_schedule
+    from genesis_rl.world.knobs import parse_weather
+    from genesis_rl.world.weather_schedule import load_schedule
 
     with pytest.raises(UserInputError, match="schedule '.*' is a folder; expected a CSV file"):
         load_schedule(tmp_path, parse_weather("clear_noon"), 5)
@@ -293,7 +293,7 @@ def test_bench_refuses_counts_it_cannot_time(capsys, argv, message) -> None:
 
 
 def test_a_recorded_weather_holding_nan_is_refused() -> None:
-    from genesis_rl.knobs import Weather
+    from genesis_rl.world.knobs import Weather
 
     with pytest.raises(UserInputError, match=r"non-finite knob value\(s\) \{'fog_density': nan\}"):
         Weather.from_recorded({"fog_density": float("nan")})  # replay of a damaged record exited 0

@@ -15,9 +15,12 @@ import pytest
 import genesis_rl
 
 ROOT = Path(genesis_rl.__file__).parent
-SUBPACKAGES = ("sim", "lite", "scenes", "system", "perception", "rules", "env", "evaluation", "training",
-               "carla_backend", "viz", "odd", "distributed", "scenic_scenes", "zoo", "benchmark", "openscenario",
-               "adversaries", "estimation", "harden")
+#: the layers, lowest first: a package imports only from its own layer and those before it (docs/architecture.md)
+LAYERS = (("core",), ("world",), ("sim", "distributed"), ("sut",), ("loop",), ("env", "labels"), ("training",),
+          ("adversaries",), ("campaigns",), ("analysis", "exports"), ("benchmark", "estimation", "harden"),
+          ("commands",))
+SUBPACKAGES = tuple(p for layer in LAYERS for p in layer)
+LEVEL = {p: i for i, layer in enumerate(LAYERS) for p in layer}
 
 
 def _module_name(path: Path) -> str:
@@ -90,7 +93,7 @@ def test_the_subpackage_list_is_complete():
     assert {p.parent.name for p in ROOT.glob("*/__init__.py")} == set(SUBPACKAGES)
 
 
-@pytest.mark.parametrize("module", sorted(set(MODULES) - {"genesis_rl.__main__"}))  # __main__ runs the CLI
+@pytest.mark.parametrize("module", sorted(MODULES))  # __main__ too: importing it runs nothing
 def test_every_module_imports(module):
     importlib.import_module(module)
 
@@ -107,10 +110,40 @@ def test_no_import_loop_between_subpackages():
                 where.setdefault((a, b), f"{module} -> {target}")
     loops = _cycles(graph)
     assert not loops, [(loop, [where[e] for e in where if e[0] in loop and e[1] in loop]) for loop in loops]
-    # the layering this protects: the interfaces import no backend, the scene schema no simulator
-    assert graph["scenes"] == set()
-    assert graph["sim"] <= {"scenes"}
-    assert "lite" not in graph["scenes"] and "system" not in graph["perception"]
+
+
+def test_every_import_points_down_the_layers():
+    """The data flow as the code's own imports draw it: nothing imports a layer above its own, so a reader can
+    start at ``core`` and read upwards, and a change in ``commands`` can never break ``sim``."""
+    upward = []
+    for module, targets in GRAPH.items():
+        a = _subpackage(module)
+        for target in targets:
+            b = _subpackage(target)
+            if a in LEVEL and b in LEVEL and LEVEL[b] > LEVEL[a]:
+                upward.append(f"{module} ({a}) -> {target} ({b})")
+    assert upward == []
+    # the top of the package holds only its face, the command entry and the old-path table
+    assert sorted(p.name for p in ROOT.glob("*.py")) == ["__init__.py", "__main__.py", "compat.py"]
+
+
+def test_the_layer_checker_finds_an_upward_import(monkeypatch):
+    monkeypatch.setitem(GRAPH, "genesis_rl.core.errors", {"genesis_rl.commands.cli"})
+    with pytest.raises(AssertionError, match="core.errors"):
+        test_every_import_points_down_the_layers()
+
+
+def test_no_private_name_is_imported_across_packages():
+    """A leading underscore says "only this package uses it"; importing one from another package hides a
+    dependency the layers should show."""
+    crossing = []
+    for module, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("genesis_rl."):
+                private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                if private and _subpackage(node.module) != _subpackage(module):
+                    crossing.append(f"{module} imports {private} from {node.module}")
+    assert crossing == []
 
 
 def test_no_import_loop_between_modules():

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 import genesis_rl
-from genesis_rl.cli import main
+from genesis_rl.commands.cli import main
 
 #: tests/test_reliability.py's tiny run, longer (10 checkpoints): it is still training after five interruptions
 TINY_RUN = """
@@ -282,7 +282,7 @@ def test_signals_during_a_campaign_leave_it_resumable_to_the_same_summary(tmp_pa
 def test_a_signal_during_a_deferred_write_arrives_after_it_and_a_second_one_at_once() -> None:
     """The first SIGTERM waits for the block's end (the write is whole); a second one during the block goes
     through at once, and a library's wrapping of it (torch's RuntimeError) comes out as Interrupted."""
-    from genesis_rl.signals import Interrupted, deferred_signals, exit_status, interrupts_raise
+    from genesis_rl.core.signals import Interrupted, deferred_signals, exit_status, interrupts_raise
 
     done = []
     with interrupts_raise():

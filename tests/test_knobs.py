@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.world.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 
 
 def test_five_percent_limit_holds_for_any_action():

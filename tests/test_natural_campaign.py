@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.evaluation.campaign_files import read_step_records, steps_path
-from genesis_rl.evaluation.distinct import failure_key
-from genesis_rl.knobs import Weather
-from genesis_rl.odd.conditions import conditions_model
-from genesis_rl.odd.domain import load_odd
+from genesis_rl.campaigns.campaign_files import read_step_records, steps_path
+from genesis_rl.commands.cli import main
+from genesis_rl.labels.distinct import failure_key
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.odd.conditions import conditions_model
+from genesis_rl.world.odd.domain import load_odd
 
 ODD = "configs/odd/highway_day.toml"
 

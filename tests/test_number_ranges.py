@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 #: the sweep: (label, value)
 HOSTILE: list[tuple[str, Any]] = [
@@ -86,13 +86,13 @@ def sweep(fields: Iterable[tuple[str, str, Callable[[Any], Any]]],
 # -- catalogs ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def catalog_json() -> dict:
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     return generate_catalog("highway", 1, 0).to_json()
 
 
 def _catalog_fields(good: dict) -> list[tuple[str, str, Callable[[Any], Any]]]:
-    from genesis_rl.backends import catalog_from_json
+    from genesis_rl.sim.backends import catalog_from_json
 
     def setter(path: list[Any]) -> Callable[[Any], Any]:
         def load(value: Any) -> Any:
@@ -136,7 +136,7 @@ def test_every_catalog_number_is_checked_at_load(catalog_json) -> None:
     (["scenes", 0, "vehicles", 1, "speed"], HUGE_INT, r"vehicles\[1\]\.speed' = 100000000000\.\.\.; expected <="),
 ])
 def test_absurd_catalog_numbers_are_refused_naming_field_unit_and_range(catalog_json, path, value, message) -> None:
-    from genesis_rl.backends import catalog_from_json
+    from genesis_rl.sim.backends import catalog_from_json
 
     data = json.loads(json.dumps(catalog_json))
     target = data
@@ -150,10 +150,10 @@ def test_absurd_catalog_numbers_are_refused_naming_field_unit_and_range(catalog_
 def test_a_catalog_at_the_ends_of_its_ranges_simulates_without_overflow(catalog_json) -> None:
     """The ranges are not only refusals: a scene whose every number sits at an end of its range (70 m/s,
     1e-3 or 15 m/s^2, a day's signal offset) simulates 300 steps with no float overflow or invalid value."""
-    from genesis_rl.backends import catalog_from_json
-    from genesis_rl.lite.maps import load_map
-    from genesis_rl.lite.traffic import AutopilotParams, Traffic
-    from genesis_rl.scenes.catalog import AUTOPILOT_RANGES
+    from genesis_rl.sim.backends import catalog_from_json
+    from genesis_rl.sim.lite.maps import load_map
+    from genesis_rl.sim.lite.traffic import AutopilotParams, Traffic
+    from genesis_rl.world.scenes.catalog import AUTOPILOT_RANGES
 
     for end in (0, 1):
         data = json.loads(json.dumps(catalog_json))
@@ -180,9 +180,9 @@ def test_a_scene_with_only_the_ego_runs(catalog_json) -> None:
     """A structurally valid scene with the ego alone ended in a numpy casting error (the autopilot arrays
     were built as integers); it now simulates like any other (the lite simulation without its camera: the
     error was in the traffic, and rendering one vehicle is what every scene does)."""
-    from genesis_rl.backends import catalog_from_json
-    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.sim.backends import catalog_from_json
     from genesis_rl.sim.interface import VehicleControl
+    from genesis_rl.sim.lite.backend import LiteBackend
 
     data = json.loads(json.dumps(catalog_json))
     data["scenes"][0]["vehicles"] = data["scenes"][0]["vehicles"][:1]
@@ -200,8 +200,8 @@ def test_a_scene_with_only_the_ego_runs(catalog_json) -> None:
 def test_every_rulebook_parameter_is_checked() -> None:
     """A deceleration of 1e-320 made the RSS deficit inf ("damaged" loops); each parameter of the built-in
     rules now has a physical range, and an accepted one keeps every rule term finite."""
-    from genesis_rl.rules.rulebook import build_rulebook
-    from genesis_rl.step_record import synthetic_step
+    from genesis_rl.loop.rules.rulebook import build_rulebook
+    from genesis_rl.world.step_record import synthetic_step
 
     worst = [synthetic_step(ego_speed=70.0, lead_gap=0.01, lead_speed=0.0),
              synthetic_step(ego_speed=70.0, lead_gap=1e-9, lead_speed=0.0, collision=True, collision_speed=70.0)]
@@ -223,7 +223,7 @@ def test_every_rulebook_parameter_is_checked() -> None:
 
 def test_a_plugin_rule_parameter_without_a_range_is_bounded(monkeypatch) -> None:
     """A rule of one's own declares no range: its parameters must be 0 or of a magnitude in 1e-9..1e9."""
-    from genesis_rl.rules import rulebook as rb
+    from genesis_rl.loop.rules import rulebook as rb
 
     class Headway(rb.Rule):
         name = "headway_test"
@@ -241,7 +241,7 @@ def test_a_plugin_rule_parameter_without_a_range_is_bounded(monkeypatch) -> None
 
 
 def test_a_rulebook_file_with_a_subnormal_deceleration_names_file_and_field(tmp_path) -> None:
-    from genesis_rl.rules.rulebook import load_rulebook
+    from genesis_rl.loop.rules.rulebook import load_rulebook
 
     path = tmp_path / "rules.toml"
     path.write_text('[[rules]]\nname = "rss_deficit"\nparams = { decel = 1e-320 }\n')
@@ -252,8 +252,8 @@ def test_a_rulebook_file_with_a_subnormal_deceleration_names_file_and_field(tmp_
 
 def test_every_reward_weight_is_checked() -> None:
     """Reward weights of 1e308 turned the reward into inf (a torch ValueError in training)."""
-    from genesis_rl.config import from_mapping
-    from genesis_rl.rules.reward import PaperReward, RewardConfig
+    from genesis_rl.core.config import from_mapping
+    from genesis_rl.loop.rules.reward import PaperReward, RewardConfig
 
     def field(key: str, rule: str | None = None) -> tuple[str, str, Callable[[Any], Any]]:
         def load(value: Any) -> Any:
@@ -274,7 +274,7 @@ def test_every_reward_weight_is_checked() -> None:
 # -- knobs, env and training configs ---------------------------------------------------------------------------
 def test_the_knob_step_fraction_is_checked() -> None:
     """A step fraction of 1e-320 froze the agent: a knob moved 1e-318 of its range per step."""
-    from genesis_rl.knobs import KnobActionMapper, Weather
+    from genesis_rl.world.knobs import KnobActionMapper, Weather
 
     def sane(name: str, value: Any, mapper: Any) -> str | None:
         before = Weather.default()
@@ -289,7 +289,7 @@ def test_the_knob_step_fraction_is_checked() -> None:
 
 
 def _config_fields(cls: type, section: str, keys: Iterable[str]) -> list[tuple[str, str, Callable[[Any], Any]]]:
-    from genesis_rl.config import from_mapping
+    from genesis_rl.core.config import from_mapping
 
     def field(key: str) -> tuple[str, str, Callable[[Any], Any]]:
         return f"{section}.{key}", f"{section}.{key}", lambda v: from_mapping(cls, {key: v}, section)
@@ -320,7 +320,7 @@ def test_every_training_number_is_checked() -> None:
               *_config_fields(TrainConfig, "train", ["total_timesteps", "envs", "seed", "checkpoint_every",
                                                      "torch_threads"])]
     problems = sweep(fields)
-    from genesis_rl.config import from_mapping
+    from genesis_rl.core.config import from_mapping
 
     for text in ("inf", "auto_inf", "1e308", "auto_1e-320", "nan"):  # SAC's entropy coefficient is a string
         kind, out = _outcome(lambda v: from_mapping(SACConfig, {"ent_coef": v}, "sac"), text)
@@ -350,8 +350,8 @@ def test_a_bad_number_in_a_config_file_names_the_key(tmp_path) -> None:
 
 # -- ODD files -------------------------------------------------------------------------------------------------
 def test_every_odd_bound_is_checked() -> None:
-    from genesis_rl.odd.conditions import conditions_model
-    from genesis_rl.odd.domain import parse_odd
+    from genesis_rl.world.odd.conditions import conditions_model
+    from genesis_rl.world.odd.domain import parse_odd
 
     lite = conditions_model("lite")
 
@@ -370,7 +370,7 @@ def test_every_odd_bound_is_checked() -> None:
 # -- detector weights ------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def checkpoint() -> dict:
-    from genesis_rl.perception.detector import DEFAULT_WEIGHTS, load_checkpoint
+    from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS, load_checkpoint
 
     return load_checkpoint(DEFAULT_WEIGHTS)
 
@@ -387,7 +387,7 @@ def test_damaged_detector_weights_are_refused_naming_the_file(checkpoint, tmp_pa
     """Weights that are all NaN ran with IoU 0 and no word: every result measured a broken detector."""
     import torch
 
-    from genesis_rl.perception.detector import VehicleDetector
+    from genesis_rl.sut.perception.detector import VehicleDetector
 
     state = {k: v.clone() for k, v in checkpoint["state_dict"].items()}
     if poison == "negative_variance":
@@ -403,7 +403,7 @@ def test_damaged_detector_weights_are_refused_naming_the_file(checkpoint, tmp_pa
 
 
 def test_a_detector_checkpoint_s_numbers_are_checked(checkpoint, tmp_path) -> None:
-    from genesis_rl.perception.detector import VehicleDetector
+    from genesis_rl.sut.perception.detector import VehicleDetector
 
     problems = []
     for label, value in HOSTILE:
@@ -424,7 +424,7 @@ def test_a_detector_checkpoint_s_numbers_are_checked(checkpoint, tmp_path) -> No
 # -- command-line flags ----------------------------------------------------------------------------------------
 def test_carla_timeout_and_ports_are_checked_by_the_parser() -> None:
     """--carla-timeout inf became 0 s in the client; --carla-tm-port 70000 was not checked."""
-    from genesis_rl.backends import add_backend_arguments
+    from genesis_rl.sim.backends import add_backend_arguments
 
     parser = argparse.ArgumentParser(exit_on_error=False)
     add_backend_arguments(parser)
@@ -476,7 +476,7 @@ def test_the_cli_refuses_an_absurd_catalog_speed_in_one_line(catalog_json, tmp_p
 def test_a_recorded_weather_is_checked_like_a_typed_one() -> None:
     """Records and telemetry are files too: a knob value of 1e308, -5 %, a bool, a list or a 400-digit
     integer steered the simulator as it was (or raised a TypeError/OverflowError)."""
-    from genesis_rl.knobs import Weather
+    from genesis_rl.world.knobs import Weather
 
     def sane(name: str, value: Any, weather: Any) -> str | None:
         return None if 0.0 <= weather["fog_density"] <= 100.0 else f"fog_density is {weather['fog_density']}"
@@ -491,7 +491,7 @@ def test_a_recorded_weather_is_checked_like_a_typed_one() -> None:
 def test_a_campaign_file_s_seeds_and_steps_are_checked(tmp_path) -> None:
     """campaign.json is shared between people: a negative episode seed reached numpy (a ValueError
     traceback on resume and report), a 400-digit one or 0 steps passed the integer check."""
-    from genesis_rl.evaluation.campaign_files import CAMPAIGN_SCHEMA, CAMPAIGN_VERSION, read_campaign_meta
+    from genesis_rl.campaigns.campaign_files import CAMPAIGN_SCHEMA, CAMPAIGN_VERSION, read_campaign_meta
 
     def load(spec_seed: Any = 0, steps: Any = 512, pair: Any = (3, 17)) -> Any:
         meta = {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION, "spec": {"policies": ["sunny"],
@@ -510,8 +510,8 @@ def test_a_campaign_file_s_seeds_and_steps_are_checked(tmp_path) -> None:
 def test_every_controller_setting_is_checked() -> None:
     """env.system_kwargs.controller (a config file's) reached the built-in system's IDM unchecked: a
     comfort deceleration of 1e-320 or a max_accel of 1e308 drove it to inf."""
-    from genesis_rl.system.controller import ControllerConfig
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.sut.system.controller import ControllerConfig
+    from genesis_rl.sut.system.protocol import load_system
 
     def field(key: str) -> tuple[str, str, Callable[[Any], Any]]:
         return f"controller.{key}", f"controller.{key}", lambda v: load_system("blind", controller={key: v})

@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 import pytest
 
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.env.observation import FEATURES, OBSERVATIONS, feature_size, sb3_policy
-from genesis_rl.errors import UserInputError
 
 STEPS = 6
 
@@ -133,8 +133,8 @@ def test_exploring_starts_spread_within_reach_stay_inside_the_odd_and_replay_fro
     """env.start_spread: each training episode starts at a random weather (drawn from its episode seed) that
     the knobs could reach in an episode, inside the ODD; campaigns drop the setting, so tests start at
     start_weather."""
+    from genesis_rl.campaigns.campaign_spec import env_settings_for
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
-    from genesis_rl.evaluation.campaign_spec import env_settings_for
 
     env = GenesisEnv(system="blind", scenes=2, episode_steps=512, odd="configs/odd/urban_all_day.toml",
                      dynamics="natural", start_spread=1.0, observation="features")

@@ -9,11 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.blame import blame_label, visibility_evidence
-from genesis_rl.evaluation.distinct import clusters, failure_key, natural_summary, rain_band, visibility_band
-from genesis_rl.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather
-from genesis_rl.odd.conditions import (
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.labels.blame import blame_label, visibility_evidence
+from genesis_rl.labels.distinct import clusters, failure_key, natural_summary, rain_band, visibility_band
+from genesis_rl.loop.rules.rulebook import SpeedForVisibilityRule, speed_for_visibility, stopping_distance_m
+from genesis_rl.world.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather
+from genesis_rl.world.odd.conditions import (
     Conditions,
     ConditionsModel,
     conditions_model,
@@ -21,10 +22,9 @@ from genesis_rl.odd.conditions import (
     road_state,
     sun_glare,
 )
-from genesis_rl.odd.domain import ODD, Range, check_start, load_odd, parse_odd
-from genesis_rl.odd.dynamics import NATURAL_RATES, WeatherModel, max_deltas
-from genesis_rl.rules.rulebook import SpeedForVisibilityRule, speed_for_visibility, stopping_distance_m
-from genesis_rl.step_record import PerceptionStep, RecordedBox, StepRecord, synthetic_step
+from genesis_rl.world.odd.domain import ODD, Range, check_start, load_odd, parse_odd
+from genesis_rl.world.odd.dynamics import NATURAL_RATES, WeatherModel, max_deltas
+from genesis_rl.world.step_record import PerceptionStep, RecordedBox, StepRecord, synthetic_step
 
 LITE = conditions_model("lite")
 

@@ -13,18 +13,18 @@ import pytest
 
 pytest.importorskip("scenariogeneration")
 
-from genesis_rl.cli import main  # noqa: E402
-from genesis_rl.knobs import KNOBS, Weather  # noqa: E402
-from genesis_rl.openscenario.environment import (  # noqa: E402
+from genesis_rl.commands.cli import main  # noqa: E402
+from genesis_rl.exports.openscenario.environment import (  # noqa: E402
     MINOR_VERSIONS,
     environment_of,
     expressed_knobs,
     knobs_from_environment,
 )
-from genesis_rl.openscenario.reader import read_scenario  # noqa: E402
-from genesis_rl.openscenario.schema import validate, validate_opendrive, validate_scenario  # noqa: E402
-from genesis_rl.openscenario.trace import EpisodeTrace, VehicleTrack  # noqa: E402
-from genesis_rl.openscenario.writer import polyline_vertices, rear_axle, write_scenario  # noqa: E402
+from genesis_rl.exports.openscenario.reader import read_scenario  # noqa: E402
+from genesis_rl.exports.openscenario.schema import validate, validate_opendrive, validate_scenario  # noqa: E402
+from genesis_rl.exports.openscenario.trace import EpisodeTrace, VehicleTrack  # noqa: E402
+from genesis_rl.exports.openscenario.writer import polyline_vertices, rear_axle, write_scenario  # noqa: E402
+from genesis_rl.world.knobs import KNOBS, Weather  # noqa: E402
 
 DT = 0.05
 
@@ -169,7 +169,7 @@ def test_weather_events_are_written_only_when_the_knobs_change(tmp_path) -> None
 
 
 def test_lite_weather_from_a_parsed_file_follows_the_events(crafted) -> None:
-    from genesis_rl.openscenario.lite_replay import scenario_weathers
+    from genesis_rl.exports.openscenario.lite_replay import scenario_weathers
 
     trace, files = crafted
     start, weathers, sources = scenario_weathers(read_scenario(files[0]), DT, len(trace.schedule))
@@ -183,7 +183,7 @@ def test_lite_weather_from_a_parsed_file_follows_the_events(crafted) -> None:
 
 def test_scripted_vehicles_are_where_the_file_puts_them_after_every_step(crafted) -> None:
     """Row k of a script is the pose after step k + 1 (the trace's sample k + 1), box centre, with its speed."""
-    from genesis_rl.openscenario.lite_replay import _script
+    from genesis_rl.exports.openscenario.lite_replay import _script
 
     trace, files = crafted
     lead = read_scenario(files[0]).vehicle("vehicle_1")
@@ -196,8 +196,8 @@ def test_scripted_vehicles_are_where_the_file_puts_them_after_every_step(crafted
 
 
 def test_a_file_of_another_step_length_is_refused(crafted, tmp_path) -> None:
-    from genesis_rl.errors import UserInputError
-    from genesis_rl.openscenario.lite_replay import scene_of
+    from genesis_rl.core.errors import UserInputError
+    from genesis_rl.exports.openscenario.lite_replay import scene_of
 
     _, files = crafted
     path = tmp_path / "slow.xosc"
@@ -209,8 +209,8 @@ def test_a_file_of_another_step_length_is_refused(crafted, tmp_path) -> None:
 
 @pytest.mark.parametrize("name", ["urban", "highway"])
 def test_the_map_export_validates_against_opendrive_1_7(tmp_path, name: str) -> None:
-    from genesis_rl.lite.maps import load_map
-    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.sim.lite.maps import load_map
+    from genesis_rl.sim.lite.maps.opendrive import to_opendrive
 
     path = tmp_path / f"{name}.xodr"
     path.write_text(to_opendrive(load_map(name)))
@@ -222,8 +222,8 @@ def test_the_map_export_validates_against_opendrive_1_7(tmp_path, name: str) -> 
 # -- a campaign's failure, exported and driven again from the file ----------------------------------------
 @pytest.fixture(scope="module")
 def failing_campaign(tmp_path_factory) -> Path:
-    from genesis_rl.evaluation.campaign import CampaignSpec, run_campaign
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.campaigns.campaign import CampaignSpec, run_campaign
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     catalog = tmp_path_factory.mktemp("cat") / "highway.json"
     generate_catalog("highway", 12, 0).save(catalog)
@@ -255,9 +255,9 @@ def test_export_validates_reads_back_and_reproduces_the_collision(failing_campai
     assert main(["export", str(failing_campaign), "--format", "openscenario", "--out", str(out), "--quiet"]) == 2
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     # the read-back check can fail: a file missing one weather event gives lite the step before's weather
-    from genesis_rl.evaluation.records import load_record
-    from genesis_rl.openscenario.export import roundtrip_errors
-    from genesis_rl.openscenario.trace import trace_record
+    from genesis_rl.campaigns.records import load_record
+    from genesis_rl.exports.openscenario.export import roundtrip_errors
+    from genesis_rl.exports.openscenario.trace import trace_record
 
     record = Path(entry["record"])
     trace, _ = trace_record(load_record(record), record.stem)
@@ -277,8 +277,8 @@ def test_export_validates_reads_back_and_reproduces_the_collision(failing_campai
 def test_a_moved_vehicle_changes_the_replay(failing_campaign: Path, tmp_path) -> None:
     """The lite replay really follows the file: a file whose struck vehicle is moved out of the ego's lane
     no longer collides there."""
-    from genesis_rl.openscenario.export import export_scenarios
-    from genesis_rl.openscenario.lite_replay import drive_scenario
+    from genesis_rl.exports.openscenario.export import export_scenarios
+    from genesis_rl.exports.openscenario.lite_replay import drive_scenario
 
     index = export_scenarios(failing_campaign, tmp_path, check=False, progress=False)
     entry = index["scenarios"][0]

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl import io_utils, output_folder
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import io_utils, output_folder
 
 TINY_RUN = """
 [env]
@@ -150,7 +150,7 @@ def test_a_fifo_is_written_in_place(tmp_path, capsys) -> None:
 
 
 def test_a_fifo_nobody_reads_is_refused_instead_of_hanging(tmp_path, capsys, monkeypatch) -> None:
-    from genesis_rl import output_paths
+    from genesis_rl.core.files import output_paths
 
     monkeypatch.setattr(output_paths, "FIFO_READER_WAIT_S", 0.3)
     fifo = tmp_path / "pipe"

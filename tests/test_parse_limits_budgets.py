@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.carla_backend.connection import check_numbers
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sim.carla.connection import check_numbers
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -66,7 +66,7 @@ def test_deep_records_and_campaign_files_are_one_line(tmp_path, capsys) -> None:
 
 
 def test_brackets_inside_strings_do_not_count_and_the_limit_can_be_raised(monkeypatch) -> None:
-    from genesis_rl import parsing
+    from genesis_rl.core import parsing
 
     assert parsing.json_depth('{"a": [1, {"b": "[[[[{{{{"}], "c": "\\\\", "d": "x\\"[[[["}') == 3
     assert parsing.json_depth(json.dumps({"s": "[" * 500})) == 1
@@ -97,7 +97,7 @@ def test_deep_toml_configs_and_odds_are_one_line(tmp_path, capsys) -> None:
 
 
 def test_toml_depth_counts_headers_keys_and_brackets_but_not_strings() -> None:
-    from genesis_rl import parsing
+    from genesis_rl.core import parsing
 
     assert parsing.toml_depth('a = """ [[[[ """\nb = \'{{{{\'  # [[[[\n') == 2
     assert parsing.toml_depth("[" + ".".join(["t"] * 80) + "]\nx = 1\n") > 64
@@ -155,7 +155,7 @@ def _must_not_start(monkeypatch, module: str, name: str) -> None:
 
 
 def test_corners_steps_1e12_refuses_at_once(tmp_path, capsys, monkeypatch) -> None:
-    _must_not_start(monkeypatch, "genesis_rl.evaluation.corners", "search_corners")
+    _must_not_start(monkeypatch, "genesis_rl.analysis.corners", "search_corners")
     t0 = time.monotonic()
     assert main(["corners", "--steps", "1000000000000", "--out", str(tmp_path / "c.json"), "--quiet"]) == 2
     assert time.monotonic() - t0 < 2
@@ -166,7 +166,7 @@ def test_corners_steps_1e12_refuses_at_once(tmp_path, capsys, monkeypatch) -> No
 
 @pytest.mark.parametrize("policy", ["cmaes", "cem", "mcts"])
 def test_a_search_budget_of_1e9_refuses_at_once(tmp_path, capsys, monkeypatch, policy) -> None:
-    _must_not_start(monkeypatch, "genesis_rl.evaluation.campaign", "run_campaign")
+    _must_not_start(monkeypatch, "genesis_rl.campaigns.campaign", "run_campaign")
     t0 = time.monotonic()
     assert main(["evaluate", "--policies", policy, "--search-budget", "1000000000", "--out",
                  str(tmp_path / "camp"), "--quiet"]) == 2
@@ -187,7 +187,7 @@ def test_a_replay_buffer_of_a_trillion_transitions_is_refused_not_allocated(tmp_
 
 
 def test_a_campaign_file_cannot_set_a_budget_the_command_line_may_not() -> None:
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
 
     with pytest.raises(UserInputError, match="campaign spec.steps = 1,000,000,000,000, over the limit"):
         CampaignSpec(policies=("sunny",), steps=10**12)
@@ -196,19 +196,19 @@ def test_a_campaign_file_cannot_set_a_budget_the_command_line_may_not() -> None:
 
 
 @pytest.mark.parametrize(("argv", "module", "name", "message"), [
-    (["bench", "system", "--frames", "1000000000"], "genesis_rl.bench", "bench_system",
+    (["bench", "system", "--frames", "1000000000"], "genesis_rl.commands.speed", "bench_system",
      "--frames = 1,000,000,000, over the limit of 100,000 frames"),
-    (["bench", "sim", "--frames", "1000000000"], "genesis_rl.bench", "bench_sim",
+    (["bench", "sim", "--frames", "1000000000"], "genesis_rl.commands.speed", "bench_sim",
      "--frames = 1,000,000,000, over the limit of 100,000 frames"),
-    (["bench", "campaign", "--workers", "1,,2"], "genesis_rl.bench", "bench_campaign",
+    (["bench", "campaign", "--workers", "1,,2"], "genesis_rl.commands.speed", "bench_campaign",
      "--workers '1,,2'; allowed: a comma list of integers >= 1"),
-    (["bench", "campaign", "--workers", "1,100000"], "genesis_rl.bench", "bench_campaign",
+    (["bench", "campaign", "--workers", "1,100000"], "genesis_rl.commands.speed", "bench_campaign",
      "--workers '1,100000' needs 100,000 processes, over the limit of 256"),
-    (["evaluate", "--policies", "sunny", "--workers", "100000"], "genesis_rl.evaluation.campaign", "run_campaign",
+    (["evaluate", "--policies", "sunny", "--workers", "100000"], "genesis_rl.campaigns.campaign", "run_campaign",
      "--workers = 100,000, over the limit of 256 processes"),
-    (["detector", "train", "--frames", "1000000000"], "genesis_rl.perception.train", "train_detector",
+    (["detector", "train", "--frames", "1000000000"], "genesis_rl.sut.perception.train", "train_detector",
      "--frames = 1,000,000,000, over the limit of 100,000 frames"),
-    (["detector", "train", "--epochs", "100000000"], "genesis_rl.perception.train", "train_detector",
+    (["detector", "train", "--epochs", "100000000"], "genesis_rl.sut.perception.train", "train_detector",
      "--epochs = 100,000,000, over the limit of 1,000 epochs"),
     (["train", "--episode-steps", "1000000000000"], "genesis_rl.training.train", "train",
      "env.episode_steps = 1,000,000,000,000, over the limit of 100,000"),
@@ -357,7 +357,7 @@ def _fake_carla(conn: socket.socket) -> None:
 
 def test_a_carla_server_passes_the_probe_and_bad_numbers_are_refused(tmp_path, capsys) -> None:
     pytest.importorskip("carla")
-    from genesis_rl.carla_backend.connection import connect
+    from genesis_rl.sim.carla.connection import connect
 
     with _server(_fake_carla) as port:
         assert connect("127.0.0.1", port, 2.0).get_server_version() == "0.9.16"

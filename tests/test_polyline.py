@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from genesis_rl.lite.render.polyline import simplify_indices
+from genesis_rl.sim.lite.render.polyline import simplify_indices
 
 
 def _max_deviation(line: np.ndarray, keep: np.ndarray) -> float:

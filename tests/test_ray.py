@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.cli import main
+from genesis_rl.campaigns.campaign import CampaignSpec, ExecutorSettings, run_campaign
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.distributed.servers import CarlaServer, NodeServer, parse_servers, servers_for_workers
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.campaign import CampaignSpec, ExecutorSettings, run_campaign
 
 ray = pytest.importorskip("ray", reason="scripts/test.sh installs the ray extra; CI runs these")  # see test.sh
 PLUGINS = Path(__file__).parent / "plugins"
@@ -39,7 +39,7 @@ def local_ray(crash_dir):
 
 @pytest.fixture(scope="module")
 def catalog(tmp_path_factory) -> str:
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     path = tmp_path_factory.mktemp("cat") / "highway.json"
     generate_catalog("highway", 12, 0).save(path)

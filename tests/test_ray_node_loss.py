@@ -103,7 +103,7 @@ TASKS = [(policy, scene, scene + 100) for policy in ("sunny", "random") for scen
 
 
 def test_a_lost_nodes_episode_runs_again_on_the_surviving_worker(capsys) -> None:
-    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+    from genesis_rl.campaigns.executors import RayEpisodeScheduler
 
     fake = _FakeRay(dead={"node2"})
     made: list[int] = []
@@ -127,8 +127,8 @@ def test_a_lost_nodes_episode_runs_again_on_the_surviving_worker(capsys) -> None
 
 
 def test_a_campaign_with_no_worker_left_stops_naming_resume() -> None:
+    from genesis_rl.campaigns.executors import RayEpisodeScheduler
     from genesis_rl.distributed.ray_cluster import RayWorkersLost
-    from genesis_rl.evaluation.executors import RayEpisodeScheduler
 
     fake = _FakeRay(dead={"node1", "node2"})
     actors = iter([_Actor(fake, (node, "?"), fail=lambda t: True) for node in ("node1", "node2")])
@@ -143,8 +143,8 @@ def test_a_campaign_with_no_worker_left_stops_naming_resume() -> None:
 
 
 def test_an_episode_that_kills_its_worker_every_time_stops_the_campaign(capsys) -> None:
+    from genesis_rl.campaigns.executors import RayEpisodeScheduler
     from genesis_rl.distributed.ray_cluster import RayWorkersLost
-    from genesis_rl.evaluation.executors import RayEpisodeScheduler
 
     fake = _FakeRay()
 
@@ -161,8 +161,8 @@ def test_the_benchmarks_campaigns_are_scheduled_and_lost_as_episodes_are(capsys)
     runs again on a replacement, and one that kills its worker every time stops the benchmark, naming it and
     ``benchmark --resume``."""
     from genesis_rl.benchmark.ray_campaigns import _describe
+    from genesis_rl.campaigns.executors import RayEpisodeScheduler
     from genesis_rl.distributed.ray_cluster import RayWorkersLost
-    from genesis_rl.evaluation.executors import RayEpisodeScheduler
 
     jobs = [({}, f"out/campaigns/low_sun/trial_0{k}", {}) for k in range(3)]
     fake = _FakeRay()
@@ -185,7 +185,7 @@ def test_the_benchmarks_campaigns_are_scheduled_and_lost_as_episodes_are(capsys)
 
 
 def test_an_actor_that_dies_before_it_is_up_is_replaced_quietly(capsys) -> None:
-    from genesis_rl.evaluation.executors import RayEpisodeScheduler
+    from genesis_rl.campaigns.executors import RayEpisodeScheduler
 
     fake = _FakeRay()
     made: list[int] = []

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from genesis_rl.analysis.reactivity import METRICS, measure
 from genesis_rl.env.observation import FEATURES
-from genesis_rl.evaluation.reactivity import METRICS, measure
 
 CLOSE = 20.0  # [m]
 
@@ -148,7 +148,7 @@ def test_reactivity_on_two_workers_is_the_same_measurement(tmp_path) -> None:
 def test_a_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
     """multiprocessing restarts a worker whose initializer raises, forever; the pool hands the error to the
     first episode instead, so the command stops with it."""
-    from genesis_rl.evaluation.reactivity import PoolPlayer
+    from genesis_rl.analysis.reactivity import PoolPlayer
 
     with PoolPlayer({"env": "not a table"}, str(tmp_path), "random", 2) as pool, pytest.raises(KeyError):
         pool.closed([(0, 1)])
@@ -157,9 +157,9 @@ def test_a_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
 def test_a_campaign_pool_worker_that_cannot_start_raises_instead_of_hanging(tmp_path) -> None:
     """The campaign's episode pool (evaluation/executors.py) has the same guard: a plug-in that does not import
     in a spawned worker stops the campaign with its error."""
+    from genesis_rl.campaigns.executors import WorkerSetup, run_tasks
+    from genesis_rl.core.errors import UserInputError
     from genesis_rl.distributed.settings import ExecutorSettings
-    from genesis_rl.errors import UserInputError
-    from genesis_rl.evaluation.executors import WorkerSetup, run_tasks
 
     setup = WorkerSetup({}, tmp_path, ("genesis_rl_no_such_plugin_module",))
     with pytest.raises(UserInputError, match="genesis_rl_no_such_plugin_module"):

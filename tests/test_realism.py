@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.perception import realism
+from genesis_rl.commands.cli import main
+from genesis_rl.sut.perception import realism
 
 SPEC = realism.RealismSpec(maps=("highway",), sizes=((320, 240),), scenes=6, frames_per_scene=1)
 

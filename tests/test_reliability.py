@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
 
 TINY_RUN = """
 [env]
@@ -180,7 +180,7 @@ def test_drive_and_render_force_overwrite_only_in_their_own_folders(tmp_path, ca
 
 
 def test_folders_of_genesis_rl_0_4_0_are_recognised_by_their_content(tmp_path) -> None:
-    from genesis_rl import output_folder
+    from genesis_rl.core.files import output_folder
 
     def folder(name: str, files: dict[str, str]) -> Path:
         path = tmp_path / name
@@ -213,7 +213,7 @@ def test_folders_of_genesis_rl_0_4_0_are_recognised_by_their_content(tmp_path) -
 _HOLDER = """
 import sys, time
 from pathlib import Path
-from genesis_rl import output_folder
+from genesis_rl.core.files import output_folder
 with output_folder.hold(Path(sys.argv[1])):
     print("held", flush=True)
     time.sleep(float(sys.argv[2]))
@@ -228,7 +228,7 @@ def _start_holder(folder: Path, seconds: float) -> subprocess.Popen:
 
 
 def test_a_second_writer_is_refused_and_a_killed_writers_lock_is_taken_over(tmp_path) -> None:
-    from genesis_rl import output_folder
+    from genesis_rl.core.files import output_folder
 
     folder = tmp_path / "out"
     holder = _start_holder(folder, 60)
@@ -248,7 +248,7 @@ def test_a_second_writer_is_refused_and_a_killed_writers_lock_is_taken_over(tmp_
 
 @pytest.mark.render
 def test_two_evaluate_runs_into_one_folder_do_not_mix(tmp_path) -> None:
-    from genesis_rl import output_folder
+    from genesis_rl.core.files import output_folder
 
     catalog = tmp_path / "cat.json"
     assert main(["scenes", "--map", "highway", "--count", "2", "--out", str(catalog), "--quiet"]) == 0
@@ -312,15 +312,15 @@ def test_ctrl_c_while_the_command_line_imports_is_one_line(monkeypatch, capsys) 
     """The hostile sweep's one traceback: Ctrl-C during the start-up imports (before cli.main's handler)."""
     import sys
 
-    from genesis_rl import entry
+    from genesis_rl.commands import entry
 
-    class Interrupt:  # a meta-path finder that is "interrupted" while genesis_rl.cli imports
+    class Interrupt:  # a meta-path finder that is "interrupted" while genesis_rl.commands.cli imports
         def find_spec(self, name, path=None, target=None):
-            if name == "genesis_rl.cli":
+            if name == "genesis_rl.commands.cli":
                 raise KeyboardInterrupt
             return None
 
-    monkeypatch.delitem(sys.modules, "genesis_rl.cli", raising=False)
+    monkeypatch.delitem(sys.modules, "genesis_rl.commands.cli", raising=False)
     monkeypatch.setattr(sys, "meta_path", [Interrupt(), *sys.meta_path])
     assert entry.main() == 130
     assert capsys.readouterr().err == "interrupted\n"

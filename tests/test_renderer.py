@@ -7,12 +7,12 @@ import pytest
 
 pytest.importorskip("panda3d")
 
-from genesis_rl.knobs import Weather  # noqa: E402
-from genesis_rl.lite.maps import load_map  # noqa: E402
-from genesis_rl.lite.render import labels as L  # noqa: E402
-from genesis_rl.lite.render.panda_renderer import LiteRenderer  # noqa: E402
-from genesis_rl.scenes.vehicles import MAKES  # noqa: E402
 from genesis_rl.sim.interface import CameraConfig  # noqa: E402
+from genesis_rl.sim.lite.maps import load_map  # noqa: E402
+from genesis_rl.sim.lite.render import labels as L  # noqa: E402
+from genesis_rl.sim.lite.render.panda_renderer import LiteRenderer  # noqa: E402
+from genesis_rl.world.knobs import Weather  # noqa: E402
+from genesis_rl.world.scenes.vehicles import MAKES  # noqa: E402
 
 pytestmark = pytest.mark.render
 

@@ -8,10 +8,10 @@ import warnings
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.rules.reward import PaperReward, RewardConfig
-from genesis_rl.rules.rulebook import build_rulebook, default_rulebook, load_rulebook
-from genesis_rl.step_record import synthetic_step
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.loop.rules.reward import PaperReward, RewardConfig
+from genesis_rl.loop.rules.rulebook import build_rulebook, default_rulebook, load_rulebook
+from genesis_rl.world.step_record import synthetic_step
 
 
 def _rec(speed=10.0, gap=float("nan"), lead_speed=float("nan"), collision=False, collision_speed=0.0):
@@ -160,7 +160,8 @@ def test_env_rejects_unknown_settings() -> None:
     ('[[rules]]\nname = 3\n',
      "name = 3; allowed: collision, proximity, rss_deficit, speed_for_visibility or package.module:Class"),
     ('[[rules]]\nname = "no_such_module_xyz:Rule"\n', "cannot import module 'no_such_module_xyz'"),
-    ('[[rules]]\nname = "genesis_rl.knobs:KnobSpec"\n', "class KnobSpec is not a genesis_rl.rules.rulebook.Rule"),
+    ('[[rules]]\nname = "genesis_rl.world.knobs:KnobSpec"\n',
+     "class KnobSpec is not a genesis_rl.loop.rules.rulebook.Rule"),
 ])
 def test_bad_rulebooks_are_refused_naming_the_field(tmp_path, toml: str, message: str) -> None:
     """Issue 21 item 5: NaN, inf and non-positive parameters scored silently before (proximity with distance =

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
 
 TINY_RUN = """
 [env]
@@ -133,7 +133,7 @@ def test_a_resumed_run_re_pins_the_config_it_rewrites(made, tmp_path, capsys) ->
 
 
 def test_a_run_still_being_trained_is_evaluated_with_a_warning_naming_its_checkpoint(made, tmp_path, capsys) -> None:
-    from genesis_rl import output_folder
+    from genesis_rl.core.files import output_folder
 
     run = _copy(made, tmp_path)
     (run / "agent.zip").unlink()  # training has not finished: the last checkpoint is what there is
@@ -240,7 +240,7 @@ def test_a_catalog_of_another_map_is_refused_under_map(made, tmp_path, capsys) -
 
 
 def test_a_campaign_spec_whose_map_is_not_its_catalogs_is_refused(made, tmp_path) -> None:
-    from genesis_rl.evaluation.campaign import CampaignSpec, prepare_campaign
+    from genesis_rl.campaigns.campaign import CampaignSpec, prepare_campaign
 
     spec = CampaignSpec(policies=("sunny",), map="highway", catalog=str(made["urban"]), scenes=1, steps=5,
                         env={"system": "blind"})
@@ -265,8 +265,8 @@ def test_wrong_types_in_a_catalogs_header_are_refused(made, tmp_path, capsys, fi
 
 
 def test_a_negative_scene_index_is_refused() -> None:
-    from genesis_rl.lite.scenes import generate_catalog
-    from genesis_rl.scenes.catalog import parse_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
+    from genesis_rl.world.scenes.catalog import parse_catalog
 
     data = json.loads(json.dumps(generate_catalog("highway", 1, 0).to_json()))
     data["scenes"][0]["index"] = -1
@@ -276,7 +276,7 @@ def test_a_negative_scene_index_is_refused() -> None:
 
 def test_bool_versions_in_campaign_record_and_checkpoint_files_are_refused(made, tmp_path, capsys) -> None:
     """JSON's true equals 1 in Python: every header version is checked for its type as well."""
-    from genesis_rl.evaluation.records import load_record
+    from genesis_rl.campaigns.records import load_record
 
     out = tmp_path / "eval"
     assert main(["evaluate", "--policies", "sunny", "--system", "blind", "--catalog", str(made["highway"]),

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genesis_rl.cli import main
+from genesis_rl.commands.cli import main
 
 PLUGINS = Path(__file__).parent / "plugins"
 
@@ -143,7 +143,7 @@ def test_an_agent_without_its_run_config_loads_only_with_trust_pickle(runs, tmp_
     marker = tmp_path / "ran"
     _poison_zip(loose, marker)
     from genesis_rl.adversaries import load_agent
-    from genesis_rl.errors import UserInputError
+    from genesis_rl.core.errors import UserInputError
 
     with pytest.raises(UserInputError, match=r"no run config.toml beside it .* --trust-pickle .* runs any code"):
         load_agent(loose)
@@ -195,7 +195,7 @@ def _evil_module(tmp_path: Path, monkeypatch, name: str) -> Path:
     marker = tmp_path / f"{name}.ran"
     (tmp_path / f"{name}.py").write_text(
         f"from pathlib import Path\nPath({str(marker)!r}).mkdir()\n"
-        "from genesis_rl.system.builtin import BlindSystem as System\n")
+        "from genesis_rl.sut.system.builtin import BlindSystem as System\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.delitem(sys.modules, name, raising=False)
     return marker
@@ -298,9 +298,9 @@ def test_yolo_weights_a_file_names_are_not_unpickled(tmp_path) -> None:
     campaign or a record is refused unless the command line names it (--weights) or --trust-pickle."""
     import argparse
 
-    from genesis_rl.errors import UserInputError
-    from genesis_rl.system.yolo_adapter import YoloSystem
-    from genesis_rl.trust import check_pickle_file, trusted_for
+    from genesis_rl.core.errors import UserInputError
+    from genesis_rl.core.trust import check_pickle_file, trusted_for
+    from genesis_rl.sut.system.yolo_adapter import YoloSystem
 
     marker = tmp_path / "ran"
     weights = tmp_path / "shared.pt"
@@ -319,7 +319,7 @@ def test_an_agent_naming_a_class_outside_the_allow_list_is_refused(runs, tmp_pat
     fixed list: a file naming another class (here a module that would run code at import) is refused, naming
     --trust-pickle, and nothing is imported."""
     from genesis_rl.adversaries import load_agent
-    from genesis_rl.errors import UserInputError
+    from genesis_rl.core.errors import UserInputError
 
     marker = _evil_module(tmp_path, monkeypatch, "evil_kwargs")
     run = _copy_run(runs["ppo"], tmp_path / "shared")

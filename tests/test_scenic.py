@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("scenic")
 
-from genesis_rl.backends import catalog_from_json  # noqa: E402
-from genesis_rl.lite.maps import load_map  # noqa: E402
-from genesis_rl.lite.scenes import check_catalog  # noqa: E402
-from genesis_rl.scenic_scenes.generator import N_VEHICLES, carla_catalog, lite_catalog  # noqa: E402
+from genesis_rl.sim.backends import catalog_from_json  # noqa: E402
+from genesis_rl.sim.lite.maps import load_map  # noqa: E402
+from genesis_rl.sim.lite.scenes import check_catalog  # noqa: E402
+from genesis_rl.sim.scenic.generator import N_VEHICLES, carla_catalog, lite_catalog  # noqa: E402
 
 
 def _layout_ok(scene, road_map) -> None:
@@ -46,8 +46,8 @@ def test_scenic_lite_catalog_validates_and_is_deterministic() -> None:
 
 def test_scenic_on_a_carla_map_writes_the_carla_schema() -> None:
     carla = pytest.importorskip("carla")
-    from genesis_rl.carla_backend.spawn import plan_scene
-    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.sim.carla.spawn import plan_scene
+    from genesis_rl.sim.lite.maps.opendrive import to_opendrive
 
     cmap = carla.Map("highway", to_opendrive(load_map("highway")))
     cat = carla_catalog(cmap, "highway", 1, seed=0)
@@ -69,7 +69,7 @@ def test_scenes_command_with_the_scenic_generator(tmp_path) -> None:
 def test_the_export_loads_as_a_scenic_road_network(tmp_path) -> None:
     from scenic.domains.driving.roads import Network
 
-    from genesis_rl.lite.maps.opendrive import to_opendrive
+    from genesis_rl.sim.lite.maps.opendrive import to_opendrive
 
     lite = load_map("urban")
     path = tmp_path / "urban.xodr"

@@ -8,7 +8,7 @@ import json
 import pyarrow.parquet as pq
 import pytest
 
-from genesis_rl.cli import main
+from genesis_rl.commands.cli import main
 
 ODD = "configs/odd/highway_day.toml"
 
@@ -34,8 +34,8 @@ def test_cem_keeps_inside_the_odd_and_spends_exactly_its_budget(tmp_path) -> Non
 
 @pytest.mark.render
 def test_corner_search_plays_every_corner_and_ranks_them() -> None:
+    from genesis_rl.analysis.corners import corner_actions, search_corners
     from genesis_rl.env import GenesisEnv
-    from genesis_rl.evaluation.corners import corner_actions, search_corners
 
     held = GenesisEnv(map="highway", scenes=2, dynamics="natural")  # the sun moves 0.1 deg an episode: held
     try:

@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 import shutil
 
-from genesis_rl.cli import main
-from genesis_rl.perception.detector import DEFAULT_WEIGHTS
+from genesis_rl.commands.cli import main
+from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS
 
 
 def test_evaluate_swaps_the_detector_weights_and_records_them(tmp_path, capsys) -> None:

@@ -11,9 +11,9 @@ import json
 import numpy as np
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
-from genesis_rl.zoo.members import ODD_DIR, env_settings, zoo_member
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.zoo.members import ODD_DIR, env_settings, zoo_member
 
 
 def _action(env, **by_knob: float) -> np.ndarray:
@@ -172,10 +172,10 @@ def test_a_trained_head_chooses_its_start_in_natural_campaigns_only(tmp_path, ca
     """Training logs each episode's chosen start and resumes across episodes that began with a start step; in a
     campaign the agent's first deterministic action is its start where policies choose, and not otherwise."""
     from genesis_rl.adversaries.agent import load_agent
-    from genesis_rl.evaluation.campaign import run_campaign
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec, env_settings_for
-    from genesis_rl.evaluation.records import load_record
-    from genesis_rl.knobs import Weather
+    from genesis_rl.campaigns.campaign import run_campaign
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec, env_settings_for
+    from genesis_rl.campaigns.records import load_record
+    from genesis_rl.world.knobs import Weather
 
     run = tmp_path / "head"
     config = tmp_path / "head.toml"
@@ -196,7 +196,7 @@ def test_a_trained_head_chooses_its_start_in_natural_campaigns_only(tmp_path, ca
         assert len(rec["schedule"]) == 8  # the campaign's steps, after the start step
         starts[start] = rec["start_weather"]["sun_altitude_angle"]
         if start == "natural":  # the start the agent's first action names, from the scene's first observation
-            from genesis_rl.config import from_mapping
+            from genesis_rl.core.config import from_mapping
             from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 
             env = GenesisEnv(from_mapping(EnvConfig, {**spec.env, "catalog": str(tmp_path / start / "catalog.json"),

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from genesis_rl.lite.maps import load_map
-from genesis_rl.lite.maps.lane_graph import LANE_WIDTH
-from genesis_rl.lite.render import labels as L
-from genesis_rl.lite.render.mesh import Mesh
-from genesis_rl.lite.render.static_scene import (
+from genesis_rl.sim.lite.maps import load_map
+from genesis_rl.sim.lite.maps.lane_graph import LANE_WIDTH
+from genesis_rl.sim.lite.render import labels as L
+from genesis_rl.sim.lite.render.mesh import Mesh
+from genesis_rl.sim.lite.render.static_scene import (
     FAR_KINDS,
     STATIC_BLOCK_TILES,
     STATIC_LOD_M,

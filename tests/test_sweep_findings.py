@@ -9,9 +9,9 @@ import sys
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
-from genesis_rl.odd.domain import load_odd
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.world.odd.domain import load_odd
 
 
 def test_an_empty_odd_file_is_refused(tmp_path) -> None:
@@ -78,7 +78,7 @@ def test_the_packages_warnings_are_one_line_naming_the_command(tmp_path) -> None
 
 
 def test_an_empty_npz_is_a_damaged_file_not_an_eof_traceback(tmp_path) -> None:
-    from genesis_rl.perception.dataset import DetectionDataset
+    from genesis_rl.sut.perception.dataset import DetectionDataset
 
     empty = tmp_path / "data.npz"
     empty.write_bytes(b"")

@@ -11,12 +11,12 @@ import textwrap
 import numpy as np
 import pytest
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.geometry import frame_iou, iou_matrix
-from genesis_rl.knobs import Weather
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sim.geometry import frame_iou, iou_matrix
 from genesis_rl.sim.interface import GroundTruthBox
-from genesis_rl.system.protocol import load_system
-from genesis_rl.weather_schedule import load_schedule, save_schedule
+from genesis_rl.sut.system.protocol import load_system
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.weather_schedule import load_schedule, save_schedule
 
 
 def _box(vid: int, xyxy, distance=20.0, vis=1.0) -> GroundTruthBox:
@@ -44,8 +44,8 @@ def test_frame_iou_misses_count_zero_and_empty_view_is_one() -> None:
     [
         ("no_colon_here", "not an import path"),
         ("genesis_rl.nonexistent_module:X", "cannot import module"),
-        ("genesis_rl.system.builtin:NoSuchClass", "has no class"),
-        ("genesis_rl.knobs:KnobSpec", "lacks the protocol's methods: reset, step, identity"),
+        ("genesis_rl.sut.system.builtin:NoSuchClass", "has no class"),
+        ("genesis_rl.world.knobs:KnobSpec", "lacks the protocol's methods: reset, step, identity"),
     ],
 )
 def test_load_system_errors_name_the_problem(spec: str, message: str) -> None:
@@ -88,7 +88,7 @@ def test_yolo_adapter_switches_ultralytics_offline_before_importing_it(tmp_path,
 TINY_SYSTEM = textwrap.dedent(
     '''
     from genesis_rl.sim.interface import VehicleControl
-    from genesis_rl.system.protocol import SystemOutput
+    from genesis_rl.sut.system.protocol import SystemOutput
 
 
     class CreepForward:
@@ -109,7 +109,7 @@ TINY_SYSTEM = textwrap.dedent(
 
 @pytest.fixture(scope="module")
 def backend():
-    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.backend import LiteBackend
 
     with LiteBackend() as b:
         yield b
@@ -117,14 +117,14 @@ def backend():
 
 @pytest.fixture(scope="module")
 def highway_scenes():
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     return generate_catalog("highway", 6, seed=0)
 
 
 @pytest.mark.render
 def test_user_system_loaded_by_import_path_drives_an_episode(tmp_path, monkeypatch, backend, highway_scenes) -> None:
-    from genesis_rl.drive import run_episode
+    from genesis_rl.loop.drive import run_episode
 
     (tmp_path / "tiny_user_system.py").write_text(TINY_SYSTEM)
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -141,8 +141,8 @@ def test_user_system_loaded_by_import_path_drives_an_episode(tmp_path, monkeypat
 def test_depth_localisation_within_10_percent_at_30_m(backend, highway_scenes) -> None:
     """Localise every clearly visible vehicle within 30 m from its true box and the depth image; compare
     with the forward distance to the nearest corner of its true footprint (computed from actor states)."""
-    from genesis_rl.lite.collisions import box_corners
-    from genesis_rl.system.localisation import box_depth, localise
+    from genesis_rl.sim.lite.collisions import box_corners
+    from genesis_rl.sut.system.localisation import box_depth, localise
 
     errors = []
     for idx in range(4):
@@ -198,7 +198,7 @@ def _stopping_lead(scene):
 
 @pytest.mark.render
 def test_perception_matters_blind_hits_a_stopped_lead_and_oracle_stops(backend, highway_scenes) -> None:
-    from genesis_rl.drive import run_episode
+    from genesis_rl.loop.drive import run_episode
 
     scene = _stopping_lead(highway_scenes.scene(1))
     clear = lambda _: Weather.default()  # noqa: E731
@@ -212,7 +212,7 @@ def test_perception_matters_blind_hits_a_stopped_lead_and_oracle_stops(backend, 
 
 @pytest.mark.render
 def test_same_seed_same_episode(backend, highway_scenes) -> None:
-    from genesis_rl.drive import run_episode
+    from genesis_rl.loop.drive import run_episode
 
     fog = lambda _: Weather.from_partial({"fog_density": 40.0})  # noqa: E731
     a = run_episode(backend, highway_scenes.scene(2), load_system("oracle"), fog, 60, seed=5)
@@ -222,12 +222,12 @@ def test_same_seed_same_episode(backend, highway_scenes) -> None:
 
 @pytest.mark.render
 def test_drive_never_overwrites_a_result_without_force(tmp_path, capsys) -> None:
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     args = ["drive", "--map", "highway", "--scene", "0", "--system", "blind", "--steps", "3", "--out", str(tmp_path),
             "--quiet"]
     assert main(args) == 0
-    from genesis_rl.output_folder import MARKER
+    from genesis_rl.core.files.output_folder import MARKER
 
     assert {p.name for p in tmp_path.iterdir()} == {"summary.json", "telemetry.parquet", "drive.gif", MARKER}
     assert json.loads((tmp_path / MARKER).read_text())["kind"] == "drive"  # --force may replace it later
@@ -242,7 +242,7 @@ def test_drive_never_overwrites_a_result_without_force(tmp_path, capsys) -> None
 def test_drive_threads_are_checked_and_only_set_for_the_run(tmp_path, capsys) -> None:
     import torch
 
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     before = torch.get_num_threads()
     assert main(["drive", "--threads", "0", "--out", str(tmp_path / "x")]) == 2
@@ -283,7 +283,7 @@ class _FixedRoute:
 def _arc(radius: float, length: float, vertex_every: float) -> np.ndarray:
     """Points every DS metres along a circular arc drawn as a polyline with a vertex every ``vertex_every`` m
     (0: the arc itself), as lite's highway lanes are."""
-    from genesis_rl.lite.maps.lane_graph import DS
+    from genesis_rl.sim.lite.maps.lane_graph import DS
 
     s = np.arange(0.0, length, DS)
     knots = np.arange(0.0, length + vertex_every, vertex_every) if vertex_every else s
@@ -297,7 +297,7 @@ def test_bend_curvature_is_the_roads_not_its_polyline_vertices(vertex_every) -> 
     as a 28 m one before 0.18 (the per-sample heading change smoothed over 2 m), slowing the highway profile
     to 11 m/s on a 25 m/s main line; now it reads within 15 % of 1/100, a smooth arc exactly, and a city
     corner (12 m radius between straights) within 10 %, so the ego still slows for it."""
-    from genesis_rl.system.route import PolylineRoute
+    from genesis_rl.sim.route import PolylineRoute
 
     route = _FixedRoute(_arc(100.0, 200.0, vertex_every))
     kappa = PolylineRoute.curvature_ahead(route, 150.0)  # type: ignore[arg-type]

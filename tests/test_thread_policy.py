@@ -28,7 +28,7 @@ def _frames() -> np.ndarray:
 
 
 def test_detections_are_bit_identical_at_1_2_and_4_process_threads(restore_threads) -> None:
-    from genesis_rl.perception.detector import VehicleDetector
+    from genesis_rl.sut.perception.detector import VehicleDetector
 
     # a threshold this low keeps hundreds of raw scores, so a last-bit difference in the net would show
     det = VehicleDetector(score_threshold=1e-5, max_detections=400)

@@ -3,10 +3,10 @@ import math
 import numpy as np
 import pytest
 
-from genesis_rl.lite.backend import LiteBackend
-from genesis_rl.lite.collisions import box_corners, boxes_overlap
-from genesis_rl.lite.scenes import generate_catalog
 from genesis_rl.sim.interface import VehicleControl
+from genesis_rl.sim.lite.backend import LiteBackend
+from genesis_rl.sim.lite.collisions import box_corners, boxes_overlap
+from genesis_rl.sim.lite.scenes import generate_catalog
 
 
 def _trajectory(scene, seed, steps=512):
@@ -59,7 +59,7 @@ def test_ego_without_braking_hits_the_lead_and_stops(scene):
 
 
 def test_vectorised_collision_check_matches_pairwise_sat():
-    from genesis_rl.lite.collisions import colliding_pairs
+    from genesis_rl.sim.lite.collisions import colliding_pairs
 
     rng = np.random.default_rng(0)
     found = 0
@@ -82,7 +82,7 @@ def test_nearest_lane_point_equals_a_whole_map_scan(name):
     the map, with and without the heading filter."""
     import math
 
-    from genesis_rl.lite.maps import load_map
+    from genesis_rl.sim.lite.maps import load_map
 
     m = load_map(name)
     rng = np.random.default_rng(3)

@@ -7,20 +7,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from genesis_rl.actor_knobs import CUT_IN_PERCEIVE_AFTER_S, pick_cut_in
-from genesis_rl.knobs import KNOBS
+from genesis_rl.world.actor_knobs import CUT_IN_PERCEIVE_AFTER_S, pick_cut_in
+from genesis_rl.world.knobs import KNOBS
 
 
 def _highway_sim(scene_index: int = 0):
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     scene = generate_catalog("highway", 4, 3).scenes[scene_index]
     return LiteBackend().create_simulation(scene, seed=0, render=False)
 
 
 def test_the_tm_knobs_are_knobs_of_the_env_at_harmless_defaults():
-    from genesis_rl.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.backend import LiteBackend
 
     for name in ("vehicle_percentage_speed_difference", "ignore_lights_percentage"):
         spec = KNOBS[name]
@@ -50,9 +50,9 @@ def test_speed_difference_scales_every_npcs_target_speed_and_not_the_egos():
 
 def _red_runs(pct: float, steps: int = 1200) -> tuple[int, int]:
     """(NPCs that entered a junction connector on red, lane entries with a red-runner drawn) on an urban scene."""
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
-    from genesis_rl.lite.traffic import RED
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
+    from genesis_rl.sim.lite.traffic import RED
 
     scene = generate_catalog("urban", 2, 3).scenes[1]
     sim = LiteBackend().create_simulation(scene, seed=0, render=False)
@@ -119,7 +119,7 @@ class _RecordingTM:
 
 
 def test_on_carla_the_cut_in_asks_the_traffic_manager_to_move_the_car_over_and_follows_it():
-    from genesis_rl.carla_backend.actor_control import CutIn, Neighbour
+    from genesis_rl.sim.carla.actor_control import CutIn, Neighbour
 
     tm, cut = _RecordingTM(), CutIn()
     actors = {4: "actor4", 7: "actor7"}
@@ -148,7 +148,7 @@ def test_on_carla_the_cut_in_asks_the_traffic_manager_to_move_the_car_over_and_f
 
 
 def test_on_carla_the_traffic_behaviour_goes_to_the_traffic_manager_for_every_npc_when_it_changes():
-    from genesis_rl.carla_backend.actor_control import TrafficBehaviour
+    from genesis_rl.sim.carla.actor_control import TrafficBehaviour
 
     tm, tb = _RecordingTM(), TrafficBehaviour()
     values = {"vehicle_percentage_speed_difference": 0.0, "ignore_lights_percentage": 0.0}
@@ -160,7 +160,7 @@ def test_on_carla_the_traffic_behaviour_goes_to_the_traffic_manager_for_every_np
 
 
 def test_path_offset_is_the_distance_from_a_polyline():
-    from genesis_rl.carla_backend.lead import path_offset
+    from genesis_rl.sim.carla.lead import path_offset
 
     path = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 10.0]])
     assert path_offset(path, np.array([5.0, 3.5])) == pytest.approx(3.5)
@@ -170,7 +170,7 @@ def test_path_offset_is_the_distance_from_a_polyline():
 
 def test_a_carla_backend_now_realises_the_cut_in_and_the_traffic_knobs():
     pytest.importorskip("carla")
-    from genesis_rl.carla_backend.backend import CarlaBackend
+    from genesis_rl.sim.carla.backend import CarlaBackend
 
     for name in ("lead_decel", "cut_in_ttc", "vehicle_percentage_speed_difference", "ignore_lights_percentage"):
         assert name in CarlaBackend.actor_knobs
@@ -181,7 +181,7 @@ def test_on_carla_a_neighbour_gets_ready_at_the_relative_speed_and_is_let_go_at_
     (km/h, the traffic manager's unit) but not under half its speed limit, the cutter keeps the speed it crosses
     at, and at the knob's default each vehicle held gets the traffic's speed difference back (which clears a
     desired speed in CARLA's TM)."""
-    from genesis_rl.carla_backend.actor_control import CutIn, Neighbour
+    from genesis_rl.sim.carla.actor_control import CutIn, Neighbour
 
     class _Car:
         def __init__(self, name: str) -> None:
@@ -222,8 +222,8 @@ def test_on_carla_a_neighbour_gets_ready_at_the_relative_speed_and_is_let_go_at_
 
 
 def test_the_odd_bounds_the_cut_ins_relative_speed_and_names_the_field(tmp_path):
-    from genesis_rl.actor_knobs import TrafficConditions, parse_traffic_conditions
-    from genesis_rl.errors import UserInputError
+    from genesis_rl.core.errors import UserInputError
+    from genesis_rl.world.actor_knobs import TrafficConditions, parse_traffic_conditions
 
     assert TrafficConditions().max_cut_in_relative_speed == pytest.approx(16.67, abs=0.01)  # R157: 60 km/h
     tc = parse_traffic_conditions({"max_cut_in_relative_speed": 5.0})

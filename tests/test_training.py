@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.training.config import RunConfig, load_run_config
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from genesis_rl.adversaries import EpisodeOutcome, PolicyContext, TreeSearch
-from genesis_rl.cli import main
+from genesis_rl.commands.cli import main
 
 STEPS = 40
 
@@ -127,7 +127,7 @@ def test_random_search_spends_the_searches_budget_with_a_new_draw_each_episode(t
     """random at equal budget: budget episodes a scene, each its own actions and natural start, the best reported,
     the ledger kept; the same seed replays it."""
     args = ["evaluate", "--policies", "random_search", "--map", "urban", "--scenes", "1", "--steps", "20", "--seed",
-            "2", "--search-budget", "3", "--odd", "genesis_rl/zoo/odd/urban_day.toml", "--dynamics", "natural",
+            "2", "--search-budget", "3", "--odd", "genesis_rl/sut/zoo/odd/urban_day.toml", "--dynamics", "natural",
             "--start", "natural", "--quiet", "--no-report"]
     rows = []
     for name in ("a", "b"):

@@ -9,8 +9,8 @@ pytest.importorskip("panda3d")
 
 from panda3d.core import GeomVertexReader, NodePath  # noqa: E402
 
-from genesis_rl.lite.render.vehicle_models import VehicleModel, build_vehicle_model  # noqa: E402
-from genesis_rl.scenes.vehicles import MAKES, PALETTE  # noqa: E402
+from genesis_rl.sim.lite.render.vehicle_models import VehicleModel, build_vehicle_model  # noqa: E402
+from genesis_rl.world.scenes.vehicles import MAKES, PALETTE  # noqa: E402
 
 
 def _vertices(vm: VehicleModel) -> tuple[np.ndarray, np.ndarray]:

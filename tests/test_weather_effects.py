@@ -11,11 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from genesis_rl.knobs import Weather
-from genesis_rl.lite.render import labels as L
-from genesis_rl.lite.render import weather_effects
-from genesis_rl.lite.render.lighting import lighting_for
-from genesis_rl.lite.render.weather_effects import WeatherCompositor, exposure_gain, tone_curve
+from genesis_rl.sim.lite.render import labels as L
+from genesis_rl.sim.lite.render import weather_effects
+from genesis_rl.sim.lite.render.lighting import lighting_for
+from genesis_rl.sim.lite.render.weather_effects import WeatherCompositor, exposure_gain, tone_curve
+from genesis_rl.world.knobs import Weather
 
 W, H, FOV = 160, 120, 90.0
 NEAR = (slice(62, 80), slice(30, 60))  # vehicle at 10 m
@@ -226,7 +226,7 @@ def test_rejects_wrong_shapes() -> None:
 def test_exp_floor_leaves_every_pixel_as_it_was(monkeypatch, partial) -> None:
     """The optical depth is floored at -87 before cv2.exp (OpenCV's fast path, weather_effects._EXP_FLOOR);
     the frame equals the unfloored one bit for bit, in fog thick enough that far pixels pass the floor."""
-    from genesis_rl.lite.render import weather_effects
+    from genesis_rl.sim.lite.render import weather_effects
 
     wx = Weather.from_partial(partial)
     light = lighting_for(wx)

@@ -44,7 +44,7 @@ def _frame():
 
 
 def test_yolo_keeps_vehicle_classes_as_xyxy_score_rows(nets) -> None:
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.sut.system.protocol import load_system
 
     frame = _frame()
     cars = load_system("yolo", weights=nets["car"], image_size=320)._boxes(frame)
@@ -58,7 +58,7 @@ def test_yolo_keeps_vehicle_classes_as_xyxy_score_rows(nets) -> None:
 
 
 def test_yolo_system_drives_a_closed_loop_episode(nets, tmp_path) -> None:
-    from genesis_rl.cli import main
+    from genesis_rl.commands.cli import main
 
     out = tmp_path / "drive"
     rc = main(["drive", "--map", "highway", "--scene", "3", "--weather", "clear_noon", "--steps", "20",

@@ -12,15 +12,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.env.genesis_env import EnvConfig
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import Weather
-from genesis_rl.odd.conditions import Conditions, conditions_model
-from genesis_rl.odd.domain import load_odd
-from genesis_rl.perception.dataset import _typical
-from genesis_rl.step_record import StepRecord, synthetic_step
-from genesis_rl.zoo import EMPTY, ZOO, Bound, TriggerRegion, ZooMember, env_settings, zoo_member
-from genesis_rl.zoo.members import ODD_DIR
+from genesis_rl.sut.perception.dataset import _typical
+from genesis_rl.sut.zoo import EMPTY, ZOO, Bound, TriggerRegion, ZooMember, env_settings, zoo_member
+from genesis_rl.sut.zoo.members import ODD_DIR
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.odd.conditions import Conditions, conditions_model
+from genesis_rl.world.odd.domain import load_odd
+from genesis_rl.world.step_record import StepRecord, synthetic_step
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,9 +119,9 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
 def test_the_glare_blind_member_loads_its_shipped_detector_and_states_an_interior_band() -> None:
     """Its weights ship with the package (reproduced by ``detector train --condition sun_behind``); its region is
     a band of sun altitude that the domain's own bounds (night below, noon above) do not touch."""
-    from genesis_rl.perception.dataset import SUN_BEHIND_HALF_ANGLE_DEG, sample_weather
-    from genesis_rl.system.protocol import load_system
-    from genesis_rl.zoo.members import GLARE_BLIND_WEIGHTS
+    from genesis_rl.sut.perception.dataset import SUN_BEHIND_HALF_ANGLE_DEG, sample_weather
+    from genesis_rl.sut.system.protocol import load_system
+    from genesis_rl.sut.zoo.members import GLARE_BLIND_WEIGHTS
 
     member = zoo_member("glare_blind")
     system = load_system(member.system, **member.system_kwargs)
@@ -182,7 +182,7 @@ def test_the_timing_pair_differs_in_the_latency_alone_and_braking_is_its_trigger
     """latency_braking and its control builtin_braking: the same controller profile, domain, knobs and free-flowing
     traffic; the weakness adds the pipeline's latency, and its region is the lead's hard braking inside the
     domain (4 m/s^2 up to the domain's 6), which only an actor knob brings (free flow: no lead stops on its own)."""
-    from genesis_rl.zoo.members import HIGHWAY_PROFILE, PIPELINE_LATENCY_S
+    from genesis_rl.sut.zoo.members import HIGHWAY_PROFILE, PIPELINE_LATENCY_S
 
     weak, control = zoo_member("latency_braking"), zoo_member("builtin_braking")
     assert (weak.system, control.system) == ("latency", "builtin")
@@ -270,7 +270,7 @@ def test_a_run_naming_the_shipped_weights_from_the_repository_matches_the_member
 
     monkeypatch.chdir(ODD_DIR.parents[2])
     member = zoo_member("glare_blind")
-    relative = {"weights": "genesis_rl/zoo/weights/glare_blind_detector.pt"}
+    relative = {"weights": "genesis_rl/sut/zoo/weights/glare_blind_detector.pt"}
     assert relative != dict(member.system_kwargs)
     assert _same_weights_spelling(relative) == _same_weights_spelling(dict(member.system_kwargs))
     assert _same_weights_spelling({"weights": "other.pt"}) != _same_weights_spelling(dict(member.system_kwargs))

@@ -10,9 +10,9 @@ from dataclasses import replace
 import pytest
 
 from genesis_rl.benchmark.sweep import SweepSpec, in_region, run_sweep, start_weather
-from genesis_rl.cli import main
-from genesis_rl.errors import UserInputError
-from genesis_rl.zoo import Bound, TriggerRegion, zoo_member
+from genesis_rl.commands.cli import main
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.zoo import Bound, TriggerRegion, zoo_member
 
 
 def test_region_membership_and_start_weather_per_value() -> None:
@@ -174,11 +174,11 @@ def test_fog_braking_fails_when_the_lead_brakes_after_the_fog_thickens(member, b
     free-flow scenes, the fog thickening from 150 m toward 50 m of visibility, the lead braking at 6 m/s^2
     either with it or a second later. Only the slow estimate with the later braking fails; measured with
     more scenes and onsets in docs/zoo.md (fog held at 50 m with braking: 0 of 8)."""
-    from genesis_rl.drive import run_episode
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
-    from genesis_rl.system.protocol import load_system
-    from genesis_rl.zoo.timing import fog_then_brake
+    from genesis_rl.loop.drive import run_episode
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
+    from genesis_rl.sut.system.protocol import load_system
+    from genesis_rl.sut.zoo.timing import fog_then_brake
 
     m = zoo_member(member)
     catalog = generate_catalog("highway", 6, 0, traffic=m.traffic)
@@ -199,11 +199,11 @@ def test_the_real_photo_detector_loses_a_braking_lead_in_low_sun(altitude, colli
     seed 0, with its campaign's episode seed. With the sun 5 deg up the COCO detector never finds the braking
     lead in its 76 steps in view and the ego hits it at step 77; with the sun 45 deg up it finds it 15 m ahead
     and stops in time."""
-    from genesis_rl.drive import run_episode
-    from genesis_rl.knobs import parse_weather
-    from genesis_rl.lite.backend import LiteBackend
-    from genesis_rl.lite.scenes import generate_catalog
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.loop.drive import run_episode
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
+    from genesis_rl.sut.system.protocol import load_system
+    from genesis_rl.world.knobs import parse_weather
 
     member = zoo_member("coco_low_sun")
     scene = generate_catalog("highway", 1199, 0).scene(322)  # the sweep's catalog: as a 1199-scene campaign's

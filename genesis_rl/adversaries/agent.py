@@ -19,8 +19,8 @@ from genesis_rl.adversaries.base import (
     chooses_start,
     register_policy,
 )
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.threads import pinned_threads
-from genesis_rl.errors import UserInputError
 
 
 @register_policy

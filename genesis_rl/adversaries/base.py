@@ -26,12 +26,12 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import Weather
-from genesis_rl.odd.domain import IN_ODD
-from genesis_rl.plugins import load_class
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.plugins import load_class
 from genesis_rl.sim.interface import ActorEvent
-from genesis_rl.step_record import StepRecord
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.odd.domain import IN_ODD
+from genesis_rl.world.step_record import StepRecord
 
 POLICIES: dict[str, type[WeatherPolicy]] = {}
 

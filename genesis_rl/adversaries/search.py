@@ -18,7 +18,7 @@ from genesis_rl.adversaries.base import (
     chooses_start,
     register_policy,
 )
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 
 @register_policy
@@ -43,7 +43,7 @@ class CMAESSearch(WeatherPolicy):
         if self.budget < 2 or self.segments < 1:
             raise UserInputError(f"search_budget = {self.budget} must be >= 2 and search_segments = "
                                  f"{self.segments} >= 1")
-        from genesis_rl import limits
+        from genesis_rl.core import limits
 
         limits.SEARCH_BUDGET.check(self.budget, "search_budget")  # also when a campaign.json sets it
 
@@ -137,7 +137,7 @@ class RandomSearch(WeatherPolicy):
         self.budget = int(context.options.get("search_budget", 8))
         if self.budget < 1:
             raise UserInputError(f"search_budget = {self.budget} must be >= 1")
-        from genesis_rl import limits
+        from genesis_rl.core import limits
 
         limits.SEARCH_BUDGET.check(self.budget, "search_budget")
 

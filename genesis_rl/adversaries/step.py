@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from genesis_rl.adversaries.base import EpisodeRunner, PolicyContext, StepPolicy, register_policy
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import Weather
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.world.knobs import Weather
 
 
 @register_policy

@@ -29,7 +29,7 @@ import numpy as np
 
 from genesis_rl.adversaries.base import EpisodeOutcome, EpisodeRunner, PolicyContext, SearchLedger, register_policy
 from genesis_rl.adversaries.search import CMAESSearch
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 #: a segment's action per knob: down at the natural rate, hold, up
 LEVELS = np.array([-1.0, 0.0, 1.0])

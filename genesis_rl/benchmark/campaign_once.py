@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.evaluation.campaign_spec import CampaignSpec
+from genesis_rl.campaigns.campaign_spec import CampaignSpec
 
 
 def finished(folder: Path) -> bool:
@@ -20,7 +20,7 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
     """Run ``campaign`` into ``folder`` unless it finished there: a half-run one resumes from its finished
     episodes, and a folder left before the campaign wrote its spec (ours) starts again. The benchmark's trials
     and the zoo sweep's values are each one such campaign."""
-    from genesis_rl.evaluation.campaign import run_campaign
+    from genesis_rl.campaigns.campaign import run_campaign
 
     started = (folder / "campaign.json").exists()
     if finished(folder):

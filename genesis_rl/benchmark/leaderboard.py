@@ -15,14 +15,14 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.analysis.estimate_files import estimate_line
 from genesis_rl.benchmark.metrics import PolicyMetrics, falsifier_metrics
 from genesis_rl.benchmark.ranks import compare_ranks
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
-from genesis_rl.evaluation.distinct import KEY_FIELDS
-from genesis_rl.evaluation.estimate_files import estimate_line
-from genesis_rl.evaluation.stats import clopper_pearson
-from genesis_rl.io_utils import atomic_write, atomic_write_json
-from genesis_rl.zoo.members import zoo_member
+from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
+from genesis_rl.core.stats import clopper_pearson
+from genesis_rl.labels.distinct import KEY_FIELDS
+from genesis_rl.sut.zoo.members import zoo_member
 
 
 def _mean(values: Sequence[float | None]) -> float | None:
@@ -99,7 +99,7 @@ def _fig_survival(board: dict[str, Any], member: str) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from genesis_rl.evaluation.report import _color, _png
+    from genesis_rl.analysis.report import figure_png_base64, policy_color
 
     fig, ax = plt.subplots(figsize=(5.2, 3.2))
     agents = 0
@@ -109,7 +109,7 @@ def _fig_survival(board: dict[str, Any], member: str) -> str:
         ys = [p[1] for p in pts] + [pts[-1][1]]
         # trained agents dashed, each its own colour, so that they never share one with an adversary
         agent = policy.startswith("agent:")
-        color = AGENT_COLORS[agents % len(AGENT_COLORS)] if agent else _color(policy, k)
+        color = AGENT_COLORS[agents % len(AGENT_COLORS)] if agent else policy_color(policy, k)
         agents += agent
         ax.step(xs, ys, where="post", color=color, ls="--" if agent else "-",
                 label=f"{policy} ({c['falsified']}/{c['episodes']})")
@@ -119,7 +119,7 @@ def _fig_survival(board: dict[str, Any], member: str) -> str:
     ax.set_title(member, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the curves, not over them
-    return _png(fig)
+    return figure_png_base64(fig)
 
 
 #: the trained agents' curves (dashed): colours no adversary of the report's palette uses
@@ -136,12 +136,12 @@ def _fig_ranks(board: dict[str, Any]) -> str | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from genesis_rl.evaluation.report import _color, _png
+    from genesis_rl.analysis.report import figure_png_base64, policy_color
 
     fig, ax = plt.subplots(figsize=(5.2, 1.6 + 0.25 * len(avg)))
     order = sorted(avg, key=lambda p: avg[p])
     for k, p in enumerate(order):
-        ax.plot([avg[p]], [k], "o", color=_color(p, k))
+        ax.plot([avg[p]], [k], "o", color=policy_color(p, k))
         ax.annotate(p, (avg[p], k), xytext=(6, -3), textcoords="offset points", fontsize=8)
     cd = r.get("critical_difference")
     if cd:
@@ -152,13 +152,13 @@ def _fig_ranks(board: dict[str, Any]) -> str | None:
     ax.set_xlim(0.8, len(r["average_rank"]) + 0.7)
     ax.set_xlabel("average rank over the weakness members (1: best)")
     ax.grid(axis="x", alpha=0.3)
-    return _png(fig)
+    return figure_png_base64(fig)
 
 
 def render_page(board: dict[str, Any]) -> str:
     """The leaderboard as one self-contained HTML page."""
     from genesis_rl import __version__
-    from genesis_rl.evaluation.report import CSS
+    from genesis_rl.analysis.report import CSS
 
     spec = board["spec"]
     h = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL benchmark</title><style>{CSS}</style>"

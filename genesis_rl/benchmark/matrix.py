@@ -23,13 +23,14 @@ from typing import Any
 
 from tqdm import tqdm
 
-from genesis_rl import limits, output_folder
 from genesis_rl.benchmark.campaign_once import finished, run_campaign_once
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.campaign_spec import CampaignSpec
-from genesis_rl.io_utils import atomic_write_json
-from genesis_rl.signals import set_resume_hint
-from genesis_rl.zoo.members import ZOO, env_settings, zoo_member
+from genesis_rl.campaigns.campaign_spec import CampaignSpec
+from genesis_rl.core import limits
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import output_folder
+from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.core.signals import set_resume_hint
+from genesis_rl.sut.zoo.members import ZOO, env_settings, zoo_member
 
 SCHEMA = "genesis-rl/benchmark"
 #: a trial count beyond this is refused (each is a campaign per member)
@@ -159,9 +160,9 @@ def agent_env(member: str, run: str) -> dict[str, Any]:
     """The env a trained agent plays ``member`` under: the member's, with what the agent observes taken from its
     run. A run trained on another system, other knobs or other dynamics is refused, naming the field: its
     figures would be reported as the member's."""
+    from genesis_rl.campaigns.campaign_spec import env_settings_for
     from genesis_rl.env.genesis_env import EnvConfig
-    from genesis_rl.evaluation.campaign_spec import env_settings_for
-    from genesis_rl.odd.domain import load_odd
+    from genesis_rl.world.odd.domain import load_odd
 
     m = zoo_member(member)
     trained = env_settings_for(run, None, None)
@@ -187,7 +188,7 @@ def agent_env(member: str, run: str) -> dict[str, Any]:
 
 def _same_weights_spelling(kwargs: Any) -> Any:
     """``system_kwargs`` with its ``weights`` path resolved: a run trained with the shipped weights named from
-    the repository (``genesis_rl/zoo/weights/...``) plays the member that names them by absolute path."""
+    the repository (``genesis_rl/sut/zoo/weights/...``) plays the member that names them by absolute path."""
     if isinstance(kwargs, dict) and isinstance(kwargs.get("weights"), str):
         return {**kwargs, "weights": str(Path(kwargs["weights"]).resolve())}
     return kwargs
@@ -240,8 +241,8 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
     ``estimates``: per member, a finished ``genesis-rl estimate`` folder whose rate the page shows beside the
     failures found (read first: a wrong one is refused before any episode runs)."""
     from genesis_rl import __version__
+    from genesis_rl.analysis.estimate_files import load_estimate
     from genesis_rl.benchmark.leaderboard import leaderboard, write_leaderboard
-    from genesis_rl.evaluation.estimate_files import load_estimate
 
     out = Path(out)
     if resume and not (out / "benchmark.json").exists():

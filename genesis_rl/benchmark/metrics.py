@@ -29,14 +29,14 @@ from typing import Any
 
 from genesis_rl.adversaries.base import in_odd_failure_at
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
-from genesis_rl.errors import UserInputError
-from genesis_rl.evaluation.campaign_files import read_step_records, steps_path
-from genesis_rl.evaluation.distinct import KEY_FIELDS, natural_summary
-from genesis_rl.evaluation.stats import clopper_pearson
-from genesis_rl.odd.domain import IN_ODD, load_odd
-from genesis_rl.step_record import StepRecord
-from genesis_rl.zoo.members import ZooMember, zoo_member
-from genesis_rl.zoo.trigger import TriggerRegion
+from genesis_rl.campaigns.campaign_files import read_step_records, steps_path
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.stats import clopper_pearson
+from genesis_rl.labels.distinct import KEY_FIELDS, natural_summary
+from genesis_rl.sut.zoo.members import ZooMember, zoo_member
+from genesis_rl.sut.zoo.trigger import TriggerRegion
+from genesis_rl.world.odd.domain import IN_ODD, load_odd
+from genesis_rl.world.step_record import StepRecord
 
 
 @dataclass(frozen=True)
@@ -199,7 +199,7 @@ def check_campaign_member(folder: Path, meta: Mapping[str, Any], member: ZooMemb
 def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, PolicyMetrics]:
     """Every policy's figures in the campaign ``folder`` run on ``member`` (a member or its name), over its
     finished episodes."""
-    from genesis_rl.evaluation.summary import load_campaign  # local: the summary's imports are heavy
+    from genesis_rl.campaigns.summary import load_campaign  # local: the summary's imports are heavy
 
     m = zoo_member(member) if isinstance(member, str) else member
     folder = Path(folder)

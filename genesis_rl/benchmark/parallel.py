@@ -14,8 +14,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.distributed.spawn_pool import SpawnPool
-from genesis_rl.evaluation.campaign_spec import CampaignSpec
 
 #: a campaign job: its spec (as JSON, which pickles plainly) and its folder
 Job = tuple[dict[str, Any], str]
@@ -24,7 +24,7 @@ Job = tuple[dict[str, Any], str]
 def _init(plugins: Sequence[str]) -> None:
     """Import the plug-ins the parent had imported, through its gate (a failure reaches the parent through
     the process's first campaign: SpawnPool)."""
-    from genesis_rl.plugins import import_modules
+    from genesis_rl.core.plugins import import_modules
 
     import_modules(plugins, checked=False)
 
@@ -41,7 +41,7 @@ def run_side_by_side(jobs: Sequence[tuple[CampaignSpec, Path]], workers: int,
                      on_done: Callable[[Path], None] = lambda folder: None) -> None:
     """Run every campaign of ``jobs`` on ``workers`` processes, each campaign in one process; ``on_done`` sees
     each folder as its campaign finishes (in any order)."""
-    from genesis_rl.evaluation.worker import plugin_modules
+    from genesis_rl.campaigns.worker import plugin_modules
 
     payload = [(spec.to_json(), str(folder)) for spec, folder in jobs]
     pool = SpawnPool(min(workers, len(payload)), _init, (tuple(plugin_modules()),))

@@ -21,11 +21,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.campaigns.campaign_spec import CampaignSpec
+from genesis_rl.campaigns.executors import RayEpisodeScheduler, folder_files, write_files
+from genesis_rl.core.files.io_utils import atomic_write_text
+from genesis_rl.core.signals import deferred_signals
 from genesis_rl.distributed.settings import ExecutorSettings
-from genesis_rl.evaluation.campaign_spec import CampaignSpec
-from genesis_rl.evaluation.executors import RayEpisodeScheduler, folder_files, write_files
-from genesis_rl.io_utils import atomic_write_text
-from genesis_rl.signals import deferred_signals
 
 #: a campaign as it travels to an actor: its spec (JSON), its folder on the driver (for messages and the
 #: answer), and the files a half-run campaign left there (relative path -> bytes; empty for a new one)
@@ -42,8 +42,8 @@ class CampaignActor:
     """A Ray actor that runs whole campaigns, each in a fresh staging folder, and returns its files."""
 
     def __init__(self, plugins: tuple[str, ...], paths: list[str]) -> None:
+        from genesis_rl.core.plugins import import_modules
         from genesis_rl.distributed.ray_cluster import add_driver_paths
-        from genesis_rl.plugins import import_modules
 
         add_driver_paths(paths)
         import_modules(plugins, checked=False)
@@ -76,7 +76,7 @@ class CampaignActor:
 def install(folder: Path, files: dict[str, bytes]) -> None:
     """A finished campaign's files into ``folder``: written beside it, swapped in whole, then summarised there
     (summary.json, which marks the campaign finished, is written last and names ``folder``)."""
-    from genesis_rl.evaluation.summary import summarize_campaign
+    from genesis_rl.campaigns.summary import summarize_campaign
 
     incoming = folder.with_name(f".{folder.name}.incoming")
     old = folder.with_name(f".{folder.name}.replaced")
@@ -99,8 +99,8 @@ def run_campaigns_on_ray(jobs: Sequence[tuple[CampaignSpec, Path]], settings: Ex
                          on_done: Callable[[Path], None] = lambda folder: None) -> None:
     """Run every campaign of ``jobs`` on ``settings.workers`` Ray actors, a campaign per actor at a time;
     ``on_done`` sees each folder once its campaign is installed (in any order)."""
+    from genesis_rl.campaigns.worker import plugin_modules
     from genesis_rl.distributed.ray_cluster import driver_paths, ray_session
-    from genesis_rl.evaluation.worker import plugin_modules
 
     n = min(settings.workers, len(jobs))
     if n == 0:

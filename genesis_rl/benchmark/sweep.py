@@ -18,15 +18,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from genesis_rl import output_folder
-from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json
-from genesis_rl.knobs import KNOBS
-from genesis_rl.zoo.members import ZooMember, env_settings, zoo_member
-from genesis_rl.zoo.trigger import CONDITION_FLAGS
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import output_folder
+from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.sut.zoo.members import ZooMember, env_settings, zoo_member
+from genesis_rl.sut.zoo.trigger import CONDITION_FLAGS
+from genesis_rl.world.knobs import KNOBS
 
 if TYPE_CHECKING:
-    from genesis_rl.odd.domain import ODD
+    from genesis_rl.world.odd.domain import ODD
 
 SCHEMA = "genesis-rl/zoo-sweep"
 
@@ -90,12 +90,12 @@ def in_region(member: ZooMember, knob: str, value: float, hold: Sequence[tuple[s
     sweep's rows then count the episodes that reached the region instead."""
     if member.trigger.empty or any(b.quantity in CONDITION_FLAGS for b in member.trigger.bounds):
         return None
-    from genesis_rl.knobs import parse_weather
+    from genesis_rl.world.knobs import parse_weather
 
     weather = parse_weather(start_weather(member, knob, value, hold))
     conditions = None
     if any(b.is_condition for b in member.trigger.bounds):
-        from genesis_rl.odd.conditions import conditions_model
+        from genesis_rl.world.odd.conditions import conditions_model
 
         conditions = conditions_model("lite").conditions(weather, None)
     knobs = weather.as_dict()
@@ -120,8 +120,8 @@ def value_folder(out: Path, index: int) -> Path:
 
 def _inside_odd(odd: ODD, member: ZooMember, knob: str, value: float,
                 hold: Sequence[tuple[str, float]] = ()) -> bool:
-    from genesis_rl.knobs import parse_weather
-    from genesis_rl.odd.conditions import conditions_model
+    from genesis_rl.world.knobs import parse_weather
+    from genesis_rl.world.odd.conditions import conditions_model
 
     weather = parse_weather(start_weather(member, knob, value, hold))
     return odd.contains(conditions_model("lite").conditions(weather, None), weather)
@@ -136,8 +136,8 @@ def run_sweep(spec: SweepSpec, out: Path, *, force: bool = False, resume: bool =
     from genesis_rl import __version__
     from genesis_rl.benchmark.campaign_once import run_campaign_once
     from genesis_rl.benchmark.metrics import falsifier_metrics
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
-    from genesis_rl.odd.domain import load_odd
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
+    from genesis_rl.world.odd.domain import load_odd
 
     member = zoo_member(spec.member)
     out = Path(out)
@@ -181,7 +181,7 @@ def _inside_outside(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Failures pooled over the driven values whose start lies inside the region, outside it and all of them (a
     control's: it has no region), and over the episodes that reached the region at some step and those that
     never did, each with its exact interval."""
-    from genesis_rl.evaluation.stats import clopper_pearson
+    from genesis_rl.core.stats import clopper_pearson
 
     def pool(n: int, k: int) -> dict[str, Any]:
         ci = clopper_pearson(k, n)
@@ -207,7 +207,7 @@ def plot_sweep(table: dict[str, Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from genesis_rl.io_utils import atomic_write
+    from genesis_rl.core.files.io_utils import atomic_write
 
     spec, rows = table["spec"], [r for r in table["rows"] if r.get("inside_odd")]
     fig, ax = plt.subplots(figsize=(6.4, 3.6))

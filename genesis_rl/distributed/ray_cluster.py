@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from types import ModuleType
 from typing import Any
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 #: seconds the --ray-address check may take (name lookup, connect, the server's first bytes) before ray.init,
 #: which retries for 20 s and more against an address that does not answer as Ray
@@ -121,7 +121,7 @@ def check_reachable(address: str) -> None:
     hp = _host_port(address)
     if hp is None or address in _checked:
         return
-    from genesis_rl.netprobe import ProbeError, ask
+    from genesis_rl.core.netprobe import ProbeError, ask
 
     fix = "start the cluster's head (ray start --head) or leave --ray-address out for a local Ray"
     try:

@@ -16,8 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from genesis_rl.carla_backend.ports import TM_PORT_OFFSET
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sim.carla.ports import TM_PORT_OFFSET
 
 FORMAT = "HOST:PORT[:TM_PORT],... (e.g. localhost:2000,localhost:3000), or ray[:PORT[:TM_PORT]]"
 #: the Ray resource a node offers per CARLA server it runs

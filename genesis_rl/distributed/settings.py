@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.distributed.servers import CarlaServer
-from genesis_rl.errors import UserInputError
 
 EXECUTORS = ("local", "ray")
 

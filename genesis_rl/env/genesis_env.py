@@ -19,9 +19,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from genesis_rl import limits, ranges
-from genesis_rl.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
-from genesis_rl.drive import ClosedLoop
+from genesis_rl.core import limits, ranges
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.plugins import check_import, gate_held, import_modules
 from genesis_rl.env.observation import (
     FEATURE_OBSERVATIONS,
     NEIGHBOUR_FEATURES,
@@ -31,18 +31,18 @@ from genesis_rl.env.observation import (
     observation_space,
     step_features,
 )
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
-from genesis_rl.odd.conditions import conditions_model
-from genesis_rl.odd.domain import ODD, check_start, load_odd
-from genesis_rl.odd.dynamics import DYNAMICS, WeatherModel, max_deltas
-from genesis_rl.plugins import check_import, gate_held, import_modules
-from genesis_rl.rules.reward import PaperReward, RewardConfig
-from genesis_rl.rules.rulebook import Rulebook, check_rulebook_imports, rulebook_for
+from genesis_rl.loop.drive import ClosedLoop
+from genesis_rl.loop.frames import annotate_frame
+from genesis_rl.loop.rules.reward import PaperReward, RewardConfig
+from genesis_rl.loop.rules.rulebook import Rulebook, check_rulebook_imports, rulebook_for
+from genesis_rl.sim.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, ActorEvent, CameraConfig, ConnectionSettings, Simulation
-from genesis_rl.step_record import StepRecord
-from genesis_rl.system.protocol import BUILTIN_SYSTEMS, load_system
-from genesis_rl.viz.frames import annotate_frame
+from genesis_rl.sut.system.protocol import BUILTIN_SYSTEMS, load_system
+from genesis_rl.world.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
+from genesis_rl.world.odd.conditions import conditions_model
+from genesis_rl.world.odd.domain import ODD, check_start, load_odd
+from genesis_rl.world.odd.dynamics import DYNAMICS, WeatherModel, max_deltas
+from genesis_rl.world.step_record import StepRecord
 
 ENV_ID = "genesis_rl/Weather-v0"
 
@@ -119,7 +119,7 @@ class EnvConfig:
     #                              speed_for_visibility when an ODD is declared
     reward: RewardConfig = field(default_factory=RewardConfig)
     terminate_on_collision: bool = False  # the paper runs every episode for its full length
-    backend: str = "lite"  # simulator: a name in genesis_rl.backends.BACKENDS (lite, carla) or package.module:Class
+    backend: str = "lite"  # simulator: a name in genesis_rl.sim.backends.BACKENDS (lite, carla) or package.module:Class
     carla_host: str = "localhost"
     carla_port: int = 2000  # RPC port
     carla_tm_port: int | None = None  # traffic manager port; None: carla_port + 6000 (one per run)

@@ -32,9 +32,9 @@ from collections import deque
 import numpy as np
 from gymnasium import spaces
 
-from genesis_rl.knobs import KNOBS, Weather
 from genesis_rl.sim.interface import LeadInfo
-from genesis_rl.system.protocol import SystemOutput
+from genesis_rl.sut.system.protocol import SystemOutput
+from genesis_rl.world.knobs import KNOBS, Weather
 
 OBSERVATIONS = ("image", "image+knobs", "features", "image+features")
 #: the modes that carry the feature vector (and so the start step's flag, ``env.start_head``)

@@ -12,13 +12,13 @@ import numpy as np
 import torch
 
 from genesis_rl.adversaries.base import in_odd_failure_at
-from genesis_rl.config import from_mapping
+from genesis_rl.core.config import from_mapping
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.estimation.nominal import BEARING, BRAKE_DECEL, BRAKE_ONSET, EVENTS
-from genesis_rl.evaluation.distinct import rain_band, visibility_band, what_was_hit
-from genesis_rl.knobs import KNOBS, Weather
-from genesis_rl.odd.domain import IN_ODD
-from genesis_rl.step_record import StepRecord
+from genesis_rl.labels.distinct import rain_band, visibility_band, what_was_hit
+from genesis_rl.world.knobs import KNOBS, Weather
+from genesis_rl.world.odd.domain import IN_ODD
+from genesis_rl.world.step_record import StepRecord
 
 
 @dataclass(frozen=True)

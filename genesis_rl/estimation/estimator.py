@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.evaluation.stats import clopper_pearson
+from genesis_rl.core.stats import clopper_pearson
 
 Z95 = 1.959963984540054
 #: warn when the effective sample size falls below this share of the episodes

@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from genesis_rl.actor_knobs import ACTOR_KNOBS, TrafficConditions
-from genesis_rl.errors import UserInputError
-from genesis_rl.knobs import KNOBS, Weather
-from genesis_rl.odd.conditions import ConditionsModel
-from genesis_rl.odd.domain import ODD
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.world.actor_knobs import ACTOR_KNOBS, TrafficConditions
+from genesis_rl.world.knobs import KNOBS, Weather
+from genesis_rl.world.odd.conditions import ConditionsModel
+from genesis_rl.world.odd.domain import ODD
 
 #: the sun's azimuth is drawn as its bearing from the ego's heading at the episode's start [deg]
 BEARING = "sun_bearing"

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from genesis_rl.core.files.io_utils import atomic_write
 from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET, NominalModel
-from genesis_rl.io_utils import atomic_write
 
 
 def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, Any], nominal: NominalModel) -> None:

@@ -22,15 +22,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from genesis_rl import output_folder
+from genesis_rl.analysis.estimate_files import SCHEMA
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import output_folder
+from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
 from genesis_rl.distributed.spawn_pool import SpawnPool
-from genesis_rl.errors import UserInputError
 from genesis_rl.estimation import estimator
 from genesis_rl.estimation.episodes import EpisodeTask, init_worker, run_task
 from genesis_rl.estimation.nominal import NominalModel, StartRange, check_starts, default_starts
 from genesis_rl.estimation.proposal import WIDEN_FINAL, StartProposal, elite
-from genesis_rl.evaluation.estimate_files import SCHEMA
-from genesis_rl.io_utils import atomic_write, atomic_write_json
 
 if TYPE_CHECKING:
     from genesis_rl.env.genesis_env import GenesisEnv
@@ -154,7 +154,7 @@ class EstimateSpec:
 
 
 def env_config(spec: EstimateSpec, catalog: Path) -> dict[str, Any]:
-    from genesis_rl.zoo.members import env_settings, zoo_member
+    from genesis_rl.sut.zoo.members import env_settings, zoo_member
 
     m = zoo_member(spec.member)
     env = env_settings(m)
@@ -164,7 +164,7 @@ def env_config(spec: EstimateSpec, catalog: Path) -> dict[str, Any]:
 
 
 def steps_of(spec: EstimateSpec) -> int:
-    from genesis_rl.zoo.members import zoo_member
+    from genesis_rl.sut.zoo.members import zoo_member
 
     return spec.steps or int(zoo_member(spec.member).env.get("episode_steps", 512))
 
@@ -299,7 +299,7 @@ class _Pool:
 def probe_member(spec: EstimateSpec, catalog: Path) -> tuple[NominalModel, int, float]:
     """The member's nominal model, scene count and step length, read off an env on ``catalog``; refuses a member
     without held knobs and a ``--tilt`` that names no start variable of it."""
-    from genesis_rl.config import from_mapping
+    from genesis_rl.core.config import from_mapping
     from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 
     probe = GenesisEnv(from_mapping(EnvConfig, env_config(spec, catalog), "env"))
@@ -323,9 +323,9 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
     from tqdm import tqdm
 
     from genesis_rl import __version__
-    from genesis_rl.backends import catalog_or_generate
-    from genesis_rl.lite.scenes import DEFAULT_COUNTS
-    from genesis_rl.zoo.members import zoo_member
+    from genesis_rl.sim.backends import catalog_or_generate
+    from genesis_rl.sim.lite.scenes import DEFAULT_COUNTS
+    from genesis_rl.sut.zoo.members import zoo_member
 
     member = zoo_member(spec.member)
     out = Path(out)

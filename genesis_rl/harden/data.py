@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.perception.dataset import BOX_COLUMNS, DetectionDataset
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.sut.perception.dataset import BOX_COLUMNS, DetectionDataset
 
 #: the detector's input size: frames of another size are resized (their boxes scaled)
 FRAME_SIZE = (320, 240)
@@ -27,7 +27,7 @@ def export_frames(export: Path, size: tuple[int, int] = FRAME_SIZE) -> Detection
     so the training rule (``train._split_boxes``) treats it as ignore whatever its size."""
     from PIL import Image
 
-    from genesis_rl.knobs import KNOBS, Weather
+    from genesis_rl.world.knobs import KNOBS, Weather
 
     meta_path = Path(export) / "metadata.jsonl"
     if not meta_path.is_file():
@@ -64,7 +64,7 @@ def export_frames(export: Path, size: tuple[int, int] = FRAME_SIZE) -> Detection
 
 
 def empty_dataset(size: tuple[int, int] = FRAME_SIZE) -> DetectionDataset:
-    from genesis_rl.knobs import KNOBS
+    from genesis_rl.world.knobs import KNOBS
 
     return DetectionDataset(np.zeros((0, size[1], size[0], 3), np.uint8), np.zeros((0, len(BOX_COLUMNS)), np.float32),
                             np.zeros((0, len(KNOBS)), np.float32), {})
@@ -90,8 +90,8 @@ def original_frames(train_config: dict[str, Any], frames: int, cache: Path | Non
     """The first ``frames`` frames of the detector's own training (or, ``split="val"``, validation) data, rendered
     from the recipe its checkpoint records (map, weather condition, catalog seed, seed); kept in ``cache`` (an
     ``.npz``) when given."""
-    from genesis_rl.perception.dataset import render_dataset
     from genesis_rl.sim.interface import CameraConfig
+    from genesis_rl.sut.perception.dataset import render_dataset
 
     fps = int(train_config.get("frames_per_scene", 4))
     seed_key, seed_default = ("train_catalog_seed", 100) if split == "train" else ("val_catalog_seed", 101)

@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 Config = TypeVar("Config")
 

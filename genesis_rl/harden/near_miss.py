@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 #: in-ODD step labels (a failure's ``odd_status``): the closest approach must be inside the ODD or on its boundary
 IN_ODD = ("inside", "boundary")
@@ -42,8 +42,8 @@ def closest_approach(rows: Sequence[Mapping[str, Any]]) -> tuple[int, float] | N
 def near_misses(folder: Path, ttc_s: float) -> dict[tuple[str, int], dict[str, float]]:
     """The campaign's in-ODD near misses: (policy, scene) -> {step, ttc, gap, ego_speed} at the closest approach of
     each collision-free episode whose time to collision fell to ``ttc_s`` or below (0: none are looked for)."""
-    from genesis_rl.evaluation.campaign_files import read_steps, steps_path
-    from genesis_rl.evaluation.summary import load_campaign
+    from genesis_rl.campaigns.campaign_files import read_steps, steps_path
+    from genesis_rl.campaigns.summary import load_campaign
 
     if ttc_s <= 0:
         return {}
@@ -74,8 +74,8 @@ def render_frames(folder: Path, misses: Mapping[tuple[str, int], Mapping[str, fl
     collisions and proximity violations only)."""
     from tqdm import tqdm
 
-    from genesis_rl.evaluation.episodes import _write_jpeg
-    from genesis_rl.evaluation.records import load_record, replay_record
+    from genesis_rl.campaigns.episodes import write_jpeg
+    from genesis_rl.campaigns.records import load_record, replay_record
 
     written: list[str] = []
     departed: list[str] = []
@@ -99,7 +99,7 @@ def render_frames(folder: Path, misses: Mapping[tuple[str, int], Mapping[str, fl
             continue
         for rec_step, rgb in zip(replay["records"], replay["frames"], strict=True):
             if step - frames_before <= rec_step.step <= step and (step - rec_step.step) % stride == 0:
-                _write_jpeg(out / "frames" / policy / f"scene_{scene:04d}" / f"step_{rec_step.step:04d}.jpg", rgb)
+                write_jpeg(out / "frames" / policy / f"scene_{scene:04d}" / f"step_{rec_step.step:04d}.jpg", rgb)
         written.append(name)
     if departed and not written:
         raise UserInputError(f"no near miss of '{folder}' replayed as the campaign recorded it "

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.io_utils import atomic_write, atomic_write_text
+from genesis_rl.core.files.io_utils import atomic_write, atomic_write_text
 
 
 def _rate(test: Mapping[str, Any] | None) -> str:
@@ -124,7 +124,7 @@ def plot(path: Path, result: Mapping[str, Any]) -> None:
 
 def write_page(folder: Path, result: Mapping[str, Any]) -> None:
     """``harden.png`` and ``harden.html`` into ``folder``."""
-    from genesis_rl.evaluation.report import CSS
+    from genesis_rl.analysis.report import CSS
 
     plot(folder / "harden.png", result)
     spec = result["spec"]

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.harden.loop import finetune_config, relative_to, train_epochs
 
 #: the systems whose weights are genesis-rl detector checkpoints (the built-in fine-tune retrains them)
@@ -90,7 +90,7 @@ def load_hook(name: str) -> Hook:
     line names, as every plug-in's)."""
     if name == BUILTIN_HOOK:
         return builtin_hook
-    from genesis_rl.plugins import load_function
+    from genesis_rl.core.plugins import load_function
 
     module_name, sep, func_name = name.partition(":")
     if not sep or not module_name or not func_name:
@@ -128,8 +128,8 @@ def check_options(options: dict[str, Any], system: str | None = None) -> None:
 
 def base_train_config(weights: Path) -> dict[str, Any]:
     """The recipe a checkpoint records (``metadata.train_config``); the defaults for one that records none."""
-    from genesis_rl.perception.detector import load_checkpoint
-    from genesis_rl.perception.train import DetectorTrainConfig
+    from genesis_rl.sut.perception.detector import load_checkpoint
+    from genesis_rl.sut.perception.train import DetectorTrainConfig
 
     recorded = dict(load_checkpoint(weights).get("metadata", {}).get("train_config") or {})
     known = {f.name for f in dataclasses.fields(DetectorTrainConfig)}
@@ -142,18 +142,18 @@ def _repick_threshold(net: Any, ckpt: dict[str, Any], recipe: dict[str, Any], tr
     fine-tuning on failure frames shifts the scores, so the threshold picked for the old weights no longer sits
     at the same operating point. Both thresholds' validation figures are returned for the record."""
     from genesis_rl.harden.data import original_frames
-    from genesis_rl.perception.train import THRESHOLD_GRID, _predict, _r, pick_threshold
+    from genesis_rl.sut.perception.train import THRESHOLD_GRID, pick_threshold, predict_boxes, round_for_json
 
     val = original_frames(recipe, cfg.validation_frames, request.work / "validation_data.npz", request.progress,
                           split="val")
-    best, by_t = pick_threshold(_predict(net, val, train_cfg, THRESHOLD_GRID[0]), val)
+    best, by_t = pick_threshold(predict_boxes(net, val, train_cfg, THRESHOLD_GRID[0]), val)
     old = float(ckpt["score_threshold"])
     nearest_old = min(THRESHOLD_GRID, key=lambda t: abs(t - old))
     best, nearest_old = float(best), float(nearest_old)  # numpy scalars would not load with weights_only
-    record = {"frames": len(val), "threshold": best, "precision": _r(by_t[best].precision),
-              "recall": _r(by_t[best].recall), "at_old_threshold": {
-                  "threshold": nearest_old, "precision": _r(by_t[nearest_old].precision),
-                  "recall": _r(by_t[nearest_old].recall)}}
+    record = {"frames": len(val), "threshold": best, "precision": round_for_json(by_t[best].precision),
+              "recall": round_for_json(by_t[best].recall), "at_old_threshold": {
+                  "threshold": nearest_old, "precision": round_for_json(by_t[nearest_old].precision),
+                  "recall": round_for_json(by_t[nearest_old].recall)}}
     return float(best), record
 
 
@@ -191,11 +191,17 @@ def finetune_detector(request: RetrainRequest) -> Path:
     import torch
 
     import genesis_rl
+    from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
-    from genesis_rl.io_utils import atomic_write, atomic_write_json
-    from genesis_rl.perception.detector import file_sha256, load_checkpoint
-    from genesis_rl.perception.model import DetectorModelConfig, VehicleDetectorNet
-    from genesis_rl.perception.train import METRICS_NAME, WEIGHTS_NAME, DetectorTrainConfig, _batch, detector_loss
+    from genesis_rl.sut.perception.detector import file_sha256, load_checkpoint
+    from genesis_rl.sut.perception.model import DetectorModelConfig, VehicleDetectorNet
+    from genesis_rl.sut.perception.train import (
+        METRICS_NAME,
+        WEIGHTS_NAME,
+        DetectorTrainConfig,
+        detector_loss,
+        training_batch,
+    )
 
     if request.system not in CHECKPOINT_SYSTEMS:
         raise UserInputError(f"--retrain builtin fine-tunes genesis-rl detector checkpoints (systems "
@@ -230,7 +236,7 @@ def finetune_detector(request: RetrainRequest) -> Path:
     t0 = time.perf_counter()
 
     def batch_loss(idx: np.ndarray) -> Any:
-        x, t = _batch(data, idx, train_cfg, rng)
+        x, t = training_batch(data, idx, train_cfg, rng)
         out = net(x)
         loss, _ = detector_loss(out, t, train_cfg)
         if teacher is not None:

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
 
 #: positives among lite's boxes: tall enough for a photo detector's stride-16 head, and mostly visible
 MIN_HEIGHT = 8.0  # [px of the 320x240 frame]
@@ -228,11 +228,11 @@ def finetune_darknet(request: Any) -> Path:
     import torch
 
     import genesis_rl
+    from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json, atomic_write_text
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
     from genesis_rl.harden.loop import finetune_config, relative_to, train_epochs
-    from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
-    from genesis_rl.perception.coco_detector import CocoDetector
-    from genesis_rl.perception.model_store import file_sha256
+    from genesis_rl.sut.perception.coco_detector import CocoDetector
+    from genesis_rl.sut.perception.model_store import file_sha256
 
     cfg = finetune_config(DarknetFinetuneConfig, request.options, "the coco system's fine-tune")
     kwargs = dict(request.system_kwargs)
@@ -280,7 +280,7 @@ def finetune_darknet(request: Any) -> Path:
     net.eval()
     out = request.out
     out.mkdir(parents=True, exist_ok=True)
-    from genesis_rl.perception.coco_detector import weights_cfg
+    from genesis_rl.sut.perception.coco_detector import weights_cfg
 
     cfg_src = base_dir / CFG_NAME
     atomic_write_text(out / CFG_NAME, folded_cfg(weights_cfg(cfg_src.read_text(encoding="utf-8"), str(cfg_src))))

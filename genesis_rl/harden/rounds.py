@@ -26,11 +26,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from genesis_rl import output_folder
-from genesis_rl.errors import UserInputError
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import output_folder
+from genesis_rl.core.files.io_utils import atomic_write_json, read_json
 from genesis_rl.harden.loop import relative_to  # round.json stores paths inside the harden folder relative to it
 from genesis_rl.harden.near_miss import IN_ODD, near_misses  # IN_ODD: failures and near misses alike
-from genesis_rl.io_utils import atomic_write_json, read_json
 
 SCHEMA = "genesis-rl/harden"
 #: what a setting added after 0.22.0 meant for a hardening whose harden.json predates it (``--resume``)
@@ -113,11 +113,11 @@ def start_weights(env: Mapping[str, Any]) -> Path:
     if given:
         return Path(given)
     if env.get("system", "builtin") in ("builtin", "latency", "adaptive"):
-        from genesis_rl.perception.detector import DEFAULT_WEIGHTS
+        from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS
 
         return DEFAULT_WEIGHTS
     if env.get("system") == "coco":  # the model store's darknet folder
-        from genesis_rl.perception.model_store import find_model
+        from genesis_rl.sut.perception.model_store import find_model
 
         return find_model("coco")["yolov3-tiny.weights"].parent
     raise UserInputError(f"campaign system '{env.get('system')}' names no weights (system_kwargs.weights); "
@@ -147,8 +147,8 @@ def check_test_catalog(base: Any, spec: HardenSpec) -> None:
     if spec.test_catalog is None:
         test_catalog_seed(base, spec)
         return
-    from genesis_rl.evaluation.campaign_spec import campaign_map
-    from genesis_rl.scenes.catalog import read_catalog
+    from genesis_rl.campaigns.campaign_spec import campaign_map
+    from genesis_rl.world.scenes.catalog import read_catalog
 
     if spec.test_catalog_seed is not None:
         raise UserInputError("--test-catalog and --test-catalog-seed both name the held-out scenes; pass one")
@@ -176,10 +176,10 @@ def test_catalog_seed(base: Any, spec: HardenSpec) -> int:
 def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None:
     """Play ``campaign_spec`` into ``folder``, or resume it there. A campaign of another spec in ``folder`` is
     replaced: a resume that added rounds moves the final attack to other weights and seed."""
-    from genesis_rl.evaluation.campaign import run_campaign
-    from genesis_rl.evaluation.campaign_files import read_campaign_meta
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
-    from genesis_rl.io_utils import remove_tree
+    from genesis_rl.campaigns.campaign import run_campaign
+    from genesis_rl.campaigns.campaign_files import read_campaign_meta
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
+    from genesis_rl.core.files.io_utils import remove_tree
 
     if (folder / "campaign.json").is_file():
         recorded = CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).to_json()
@@ -193,13 +193,13 @@ def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None
 def in_odd_failures(folder: Path) -> dict[str, Any]:
     """The campaign's in-ODD failures: the episodes, their count and rate (exact 95 % CI) over every episode of
     every policy, the distinct ones, and the (policy, scene) -> impact step of each."""
-    from genesis_rl.evaluation.distinct import _failure_of, clusters
-    from genesis_rl.evaluation.stats import clopper_pearson
-    from genesis_rl.evaluation.summary import load_campaign
+    from genesis_rl.campaigns.summary import load_campaign
+    from genesis_rl.core.stats import clopper_pearson
+    from genesis_rl.labels.distinct import clusters, failure_of
 
     _, rows = load_campaign(folder)
     episodes = sum(len(eps) for eps in rows.values())
-    failures = [_failure_of(r, p) for p, eps in rows.items() for r in eps
+    failures = [failure_of(r, p) for p, eps in rows.items() for r in eps
                 if r.get("failure") and r["failure"].get("odd_status") in IN_ODD]
     if episodes and not any("odd" in r for eps in rows.values() for r in eps):
         raise UserInputError(f"campaign '{folder}' has no ODD labels (run it with an ODD, e.g. a zoo member's "
@@ -220,8 +220,8 @@ def clear_day(system: str, system_kwargs: Mapping[str, Any], map_name: str, fram
               progress: bool) -> dict[str, Any] | None:
     """The system's detector on clear-day frames of its map (``detector eval``'s protocol and held-out scenes);
     None when the system exposes no ``detector``."""
-    from genesis_rl.perception.evaluate import evaluate_detector
-    from genesis_rl.system.protocol import load_system
+    from genesis_rl.sut.perception.evaluate import evaluate_detector
+    from genesis_rl.sut.system.protocol import load_system
 
     detector = getattr(load_system(system, **dict(system_kwargs)), "detector", None)
     if detector is None or not callable(getattr(detector, "detect_batch", None)):
@@ -245,10 +245,10 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                progress: bool = True) -> dict[str, Any]:
     """Play the rounds not yet on disk; write ``harden.json``, ``harden.png`` and ``harden.html``; the result."""
     from genesis_rl import __version__
-    from genesis_rl.evaluation.campaign_files import read_campaign_meta
-    from genesis_rl.evaluation.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.campaign_files import read_campaign_meta
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
     from genesis_rl.harden.retrain import load_hook
-    from genesis_rl.perception.detector import file_sha256
+    from genesis_rl.sut.perception.detector import file_sha256
 
     out = Path(out)
     campaign = Path(spec.campaign)
@@ -330,7 +330,7 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
 
 def check_member(name: str, base: Any) -> None:
     """Refuse a member whose system, map or ODD is not the campaign's (its rate would be of another system)."""
-    from genesis_rl.zoo.members import zoo_member
+    from genesis_rl.sut.zoo.members import zoo_member
 
     m = zoo_member(name)
     env = base.env
@@ -356,7 +356,7 @@ def _estimate(spec: HardenSpec, member: str, weights: Path, folder: Path, worker
     if (folder / "estimate.json").is_file():
         data = read_json(folder / "estimate.json", f"'{folder}'")
         if data.get("spec", {}).get("weights") != est.weights:  # other weights (a resume that added rounds)
-            from genesis_rl.io_utils import remove_tree
+            from genesis_rl.core.files.io_utils import remove_tree
 
             remove_tree(folder)
         elif data.get("done") and data.get("spec", {}).get("episodes") == spec.estimate_episodes:
@@ -367,7 +367,7 @@ def _estimate(spec: HardenSpec, member: str, weights: Path, folder: Path, worker
 
 def _trained_against(run: Path) -> str | None:
     """The weights a final agent was trained against (its config's system_kwargs.weights)."""
-    from genesis_rl.config import read_toml
+    from genesis_rl.core.config import read_toml
 
     if not (run / "config.toml").is_file():
         return None
@@ -378,13 +378,13 @@ def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weigh
                       progress: bool) -> dict[str, Any]:
     """Train an agent by ``config`` against ``weights`` (seed ``spec.seed``), then let it attack them on
     the final attack's scenes."""
-    from genesis_rl.config import read_toml
+    from genesis_rl.core.config import read_toml
     from genesis_rl.training.config import load_run_config
     from genesis_rl.training.train import train
 
     run = out / "final_agent"
     if run.exists() and _trained_against(run) != str(Path(weights).resolve()):
-        from genesis_rl.io_utils import remove_tree
+        from genesis_rl.core.files.io_utils import remove_tree
 
         remove_tree(run)  # trained against other weights (a resume that added rounds)
     if not (run / "train_result.json").is_file():
@@ -464,9 +464,9 @@ def _baseline(spec: HardenSpec, base: Any, folder: Path, system: str, kwargs0: M
 def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0: Mapping[str, Any], weights: Path,
            failure_exports: list[Path], baseline: Mapping[str, Any], hook: Any, workers: int,
            progress: bool) -> dict[str, Any]:
-    from genesis_rl.evaluation.export import export_dataset
+    from genesis_rl.exports.dataset import export_dataset
     from genesis_rl.harden.retrain import RetrainRequest
-    from genesis_rl.perception.detector import file_sha256
+    from genesis_rl.sut.perception.detector import file_sha256
 
     folder = out / f"round_{r}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -525,8 +525,8 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
 def _near_miss_frames(attack: Path, near: Mapping[tuple[str, int], Mapping[str, float]], root: Path, weights: Path,
                       base: Any, progress: bool) -> dict[str, Any]:
     """The near misses' frames, rendered again into ``root`` (once: ``root/near_misses.json`` marks them done)."""
+    from genesis_rl.core.files.io_utils import remove_tree
     from genesis_rl.harden.near_miss import render_frames
-    from genesis_rl.io_utils import remove_tree
 
     done = root / "near_misses.json"
     if done.is_file():

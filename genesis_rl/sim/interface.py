@@ -15,9 +15,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from genesis_rl.knobs import Weather
-from genesis_rl.scenes.catalog import Scene
-from genesis_rl.step_record import RecordedBox
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.scenes.catalog import Scene
+from genesis_rl.world.step_record import RecordedBox
 
 #: Simulation time step in seconds (CARLA synchronous mode with fixed_delta_seconds = 0.05).
 FIXED_DELTA_SECONDS = 0.05
@@ -227,7 +227,7 @@ class Simulation(abc.ABC):
         return []
 
     def context_extras(self) -> dict[str, Any]:
-        """What this backend adds to the system's :class:`~genesis_rl.system.protocol.EpisodeContext`
+        """What this backend adds to the system's :class:`~genesis_rl.sut.system.protocol.EpisodeContext`
         ``extras`` (e.g. CARLA's traffic-light states); nothing by default."""
         return {}
 
@@ -286,7 +286,7 @@ class ConnectionSettings:
 class Backend(abc.ABC):
     """A simulator connection: knows its maps, creates simulations, lives across episodes.
 
-    A backend is named in ``genesis_rl.backends.BACKENDS`` (built in) or by its import path
+    A backend is named in ``genesis_rl.sim.backends.BACKENDS`` (built in) or by its import path
     ``package.module:Class``; the class attributes below are what the rest of the framework asks of it."""
 
     name: str = "abstract"

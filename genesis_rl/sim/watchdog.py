@@ -3,7 +3,7 @@
 A client's own time-out does not cover every wait: CARLA's ``world.tick(timeout)`` can block for ever
 inside the traffic manager's untimed wait (CARLA issue #9172), and then a campaign's retry never fires.
 :class:`Watchdog` runs each call on a daemon thread and stops waiting at its deadline: the call raises
-:class:`SimulatorHung` (a :class:`~genesis_rl.errors.SimulatorLost`, which a campaign retries on a fresh
+:class:`SimulatorHung` (a :class:`~genesis_rl.core.errors.SimulatorLost`, which a campaign retries on a fresh
 connection) and the connection is marked lost: every later call fails at once instead of queueing behind
 the stuck one. Python cannot stop the stuck thread; it holds the client object, so whatever it needs is
 kept alive for the rest of the process (:meth:`Watchdog.abandon`): a client library freed under a thread
@@ -17,7 +17,7 @@ import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from genesis_rl.errors import SimulatorLost
+from genesis_rl.core.errors import SimulatorLost
 
 T = TypeVar("T")
 

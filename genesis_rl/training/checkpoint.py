@@ -28,9 +28,10 @@ from typing import TYPE_CHECKING, Any, SupportsFloat, cast
 import gymnasium as gym
 import numpy as np
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write, atomic_write_json, read_json
-from genesis_rl.signals import deferred_signals
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json, read_json
+from genesis_rl.core.signals import deferred_signals
+from genesis_rl.core.trust import pickle_trusted
 from genesis_rl.training.safe_load import (
     TRUST_HINT,
     load_model,
@@ -40,7 +41,6 @@ from genesis_rl.training.safe_load import (
     write_replay_buffer,
     write_sb3_state,
 )
-from genesis_rl.trust import pickle_trusted
 
 if TYPE_CHECKING:
     from genesis_rl.env.genesis_env import GenesisEnv
@@ -129,7 +129,7 @@ def csv_rows(path: Path) -> int:
     """Data rows of ``episodes.csv`` (0 when it is missing)."""
     if not path.is_file():
         return 0
-    from genesis_rl.parsing import csv_rows as rows_of
+    from genesis_rl.core.parsing import csv_rows as rows_of
 
     return max(0, sum(1 for _ in rows_of(path, "episode log", encoding="utf-8", limit=None)) - 1)
 

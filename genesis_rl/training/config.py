@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from genesis_rl import limits, ranges
-from genesis_rl.config import dump_toml, from_mapping, read_toml, to_mapping
+from genesis_rl.core import limits, ranges
+from genesis_rl.core.config import dump_toml, from_mapping, read_toml, to_mapping
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.env.genesis_env import EnvConfig
-from genesis_rl.errors import UserInputError
 
 _R = ranges.Ranged
 #: a rollout or batch of 2**20 image steps is about 20 GB: beyond that a run cannot fit in memory

@@ -23,8 +23,8 @@ def read_episodes(run: Path) -> list[dict[str, float]]:
                 except (TypeError, ValueError):
                     continue
         except csv.Error as err:  # a cell over the csv module's limit: a damaged or foreign file
-            from genesis_rl.errors import UserInputError
-            from genesis_rl.parsing import csv_error_reason
+            from genesis_rl.core.errors import UserInputError
+            from genesis_rl.core.parsing import csv_error_reason
 
             raise UserInputError(f"episode log '{path}' line {reader.reader.line_num}: {csv_error_reason(err)}"
                                  ) from None
@@ -67,7 +67,7 @@ def plot_learning_curve(run: Path, window: int = 8) -> Any | None:
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("training steps")
         ax.grid(alpha=0.3)
-    from genesis_rl.knobs import KNOBS
+    from genesis_rl.world.knobs import KNOBS
 
     ax = axes[-1]
     for name in knobs:

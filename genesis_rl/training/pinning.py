@@ -38,8 +38,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write_json, read_json
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.io_utils import atomic_write_json, read_json
 
 PINS = "pins"
 #: what a run pins, in the order it is checked (and named in messages)
@@ -72,13 +72,13 @@ def weights_file(env: Mapping[str, Any]) -> Path | None:
     kwargs = env.get("system_kwargs") or {}
     given = kwargs.get("weights") if isinstance(kwargs, Mapping) else None
     if env.get("system") == "coco":  # a model folder: its weights file is what decides the detections
-        from genesis_rl.perception.model_store import model_dir
+        from genesis_rl.sut.perception.model_store import model_dir
 
         return (Path(given) if isinstance(given, str) and given else model_dir("coco")) / "yolov3-tiny.weights"
     if isinstance(given, str) and given:
         return Path(given)
     if env.get("system", "builtin") in ("builtin", "latency"):  # latency: the built-in detector, slowed
-        from genesis_rl.perception.detector import DEFAULT_WEIGHTS
+        from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS
 
         return DEFAULT_WEIGHTS
     return None
@@ -153,7 +153,7 @@ def _pins_of(meta: Mapping[str, Any], path: Path) -> dict[str, dict[str, Any] | 
 def read_run_config(run: Path, what: str) -> dict[str, Any]:
     """The run's ``config.toml`` as TOML tables, refusing an empty one: read as it is, it would be every
     default (the built-in system, not the one the run trained against)."""
-    from genesis_rl.config import read_toml
+    from genesis_rl.core.config import read_toml
 
     path = Path(run) / "config.toml"
     data = read_toml(path, "run config")
@@ -218,7 +218,7 @@ def adopt_pins(run: Path) -> None:
 def writer_pid(folder: Path) -> str | None:
     """The pid of the genesis-rl process writing ``folder`` (holding its ``output_folder`` lock), else None.
     Probes with a shared lock, released at once; never creates the lock file."""
-    from genesis_rl.output_folder import lock_path
+    from genesis_rl.core.files.output_folder import lock_path
 
     path = lock_path(folder)
     try:

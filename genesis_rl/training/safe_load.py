@@ -15,7 +15,7 @@ replay buffer in ``step_N.replay.npz``: plain arrays, read with ``allow_pickle=F
 
 An agent or checkpoint of an older genesis-rl that only loads through pickle (no run config beside it, a
 checkpoint without its ``.sb3.npz``, a ``.replay.pkl`` buffer) is refused unless the command is given
-``--trust-pickle`` (genesis_rl/trust.py).
+``--trust-pickle`` (genesis_rl/core/trust.py).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from genesis_rl.errors import UserInputError
-from genesis_rl.trust import pickle_trusted
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.trust import pickle_trusted
 
 if TYPE_CHECKING:
     from gymnasium import spaces
@@ -161,7 +161,7 @@ def model_spaces(cfg: RunConfig) -> tuple[spaces.Space, spaces.Box]:
     from stable_baselines3.common.vec_env import VecTransposeImage
 
     from genesis_rl.env.observation import actor_feature_names, observation_space
-    from genesis_rl.knobs import KnobActionMapper
+    from genesis_rl.world.knobs import KnobActionMapper
 
     c = cfg.env
     obs = observation_space(c.observation_mode, c.obs_height, c.obs_width, len(c.knobs), c.obs_history,

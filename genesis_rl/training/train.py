@@ -28,17 +28,18 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 from tqdm import tqdm
 
-from genesis_rl import __version__, output_folder
-from genesis_rl.backends import catalog_or_generate
+from genesis_rl import __version__
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files import output_folder
+from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json, atomic_write_text
+from genesis_rl.core.provenance import git_commit
+from genesis_rl.core.signals import deferred_signals, resume_hint, set_resume_hint
 from genesis_rl.distributed.ray_cluster import RayWorkersLost
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.env.observation import sb3_policy
-from genesis_rl.errors import UserInputError
-from genesis_rl.io_utils import atomic_write, atomic_write_json, atomic_write_text
-from genesis_rl.provenance import git_commit
-from genesis_rl.rules.reward import RewardConfig
-from genesis_rl.signals import deferred_signals, resume_hint, set_resume_hint
+from genesis_rl.loop.rules.reward import RewardConfig
+from genesis_rl.sim.backends import catalog_or_generate
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
 from genesis_rl.training.config import RunConfig, check_device_present, load_run_config
 from genesis_rl.training.pinning import adopt_pins, check_run, current_pins, write_pins

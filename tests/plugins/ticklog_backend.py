@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from genesis_rl.knobs import Weather
-from genesis_rl.lite.backend import LiteBackend, LiteSimulation
-from genesis_rl.scenes.catalog import Scene
 from genesis_rl.sim.interface import CameraConfig, TickResult
+from genesis_rl.sim.lite.backend import LiteBackend, LiteSimulation
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.scenes.catalog import Scene
 
 
 @dataclass(frozen=True)

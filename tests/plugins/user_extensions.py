@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from genesis_rl.adversaries import StepPolicy, register_policy
-from genesis_rl.rules.rulebook import Rule
+from genesis_rl.loop.rules.rulebook import Rule
 
 
 class Speeding(Rule):

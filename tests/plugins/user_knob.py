@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from genesis_rl.knobs import KnobSpec, register_knob
+from genesis_rl.world.knobs import KnobSpec, register_knob
 
 
 def dirty_lens(rgb: np.ndarray, depth: np.ndarray, value: float) -> np.ndarray:

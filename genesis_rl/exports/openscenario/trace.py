@@ -1,0 +1,121 @@
+"""An edge-case record, driven again on lite, as what a scenario file needs: every vehicle's path with time.
+
+A record keeps the scene and the weather of every step, not the vehicles' paths (they follow from the scene,
+the seed and the system's controls). :func:`trace_record` replays the record (``replay_record``, so the
+trace is checked to be the recorded episode) and reads every vehicle's pose and speed at the start and after
+every step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from genesis_rl.sim.interface import Simulation
+from genesis_rl.world.knobs import Weather
+from genesis_rl.world.step_record import StepRecord
+
+
+@dataclass(frozen=True)
+class VehicleTrack:
+    """One vehicle's start (lite's lane, arc length and next lane, as the scene gave them) and its pose at
+    every sample of :attr:`EpisodeTrace.times` (x, y, z of its box centre on the road [m]; yaw
+    counter-clockwise from east and pitch nose-up [rad]; speed [m/s])."""
+
+    vehicle_id: int
+    role: str
+    make: str
+    color_name: str
+    length: float
+    width: float
+    height: float
+    lane: int
+    s: float
+    next_lane: int
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    yaw: np.ndarray
+    pitch: np.ndarray
+    speed: np.ndarray
+
+
+@dataclass(frozen=True)
+class EpisodeTrace:
+    """A failing episode as a scenario: vehicles with paths sampled at ``times`` (0 and after every step),
+    the knobs of every step (row k is set before step k + 1, at time k dt) and what went wrong."""
+
+    name: str
+    map: str
+    dt: float
+    times: np.ndarray
+    vehicles: tuple[VehicleTrack, ...]
+    knob_names: tuple[str, ...]
+    schedule: np.ndarray
+    start_weather: dict[str, float]
+    signal_offset: float
+    scene_seed: int
+    episode_seed: int
+    system: dict[str, Any]
+    rulebook: Any
+    camera: tuple[int, int]
+    policy: str
+    scene_index: int
+    violations: dict[str, float]
+    first_collision_step: int | None
+    collision_with: int | None
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1])
+
+
+def first_collision(records: list[StepRecord]) -> tuple[int | None, int | None]:
+    """(step, other vehicle) of the ego's first collision, or (None, None)."""
+    for r in records:
+        if r.collision.collided:
+            return r.step, r.collision.other_id
+    return None, None
+
+
+def trace_record(rec: dict[str, Any], name: str, weights: str | None = None) -> tuple[EpisodeTrace, dict[str, Any]]:
+    """Replay ``rec`` on lite, reading every vehicle's pose at the start and after every step; returns the
+    trace and the replay's result (``reproduced`` says whether the replay is the recorded episode)."""
+    from genesis_rl.campaigns.records import replay_record  # local: torch and the renderer load with it
+
+    samples: list[np.ndarray] = []
+    dt_box: list[float] = []
+
+    def observe(sim: Simulation) -> None:
+        dt_box[:] = [sim.dt]
+        samples.append(np.array([[a.x, a.y, a.z, a.yaw, a.pitch, a.speed] for a in sim.actors()]))
+
+    result = replay_record(rec, weights=weights, keep_frames=False, observer=observe)
+    poses = np.stack(samples)  # (steps + 1, vehicles, 6)
+    scene = rec["scene"]
+    from genesis_rl.world.scenes.vehicles import MAKES
+
+    tracks = []
+    for i, v in enumerate(scene["vehicles"]):
+        m = MAKES[v["make"]]
+        tracks.append(VehicleTrack(
+            vehicle_id=i, role=v["role"], make=v["make"], color_name=v["color_name"], length=m.length,
+            width=m.width, height=m.height, lane=int(v["lane"]), s=float(v["s"]), next_lane=int(v["next_lane"]),
+            x=poses[:, i, 0], y=poses[:, i, 1], z=poses[:, i, 2], yaw=np.unwrap(poses[:, i, 3]),
+            pitch=poses[:, i, 4], speed=poses[:, i, 5]))
+    dt = dt_box[0]
+    step, other = first_collision(result["records"])
+    trace = EpisodeTrace(
+        name=name, map=scene["map"], dt=dt, times=np.round(np.arange(len(poses)) * dt, 9), vehicles=tuple(tracks),
+        knob_names=tuple(rec["knobs"]), schedule=np.asarray(rec["schedule"], dtype=np.float64),
+        start_weather=Weather.from_recorded(rec["start_weather"]).as_dict(),
+        signal_offset=float(scene["signal_offset"]), scene_seed=int(scene["seed"]),
+        episode_seed=int(rec["episode_seed"]), rulebook=rec["rulebook"],
+        system={"spec": rec["system"]["spec"], "kwargs": dict(rec["system"].get("kwargs") or {}),
+                "identity": dict(rec["system"].get("identity") or {})},
+        camera=(int(rec["camera"]["width"]), int(rec["camera"]["height"])), policy=str(rec.get("policy", "")),
+        scene_index=int(scene["index"]), violations=dict(result["violations"]),
+        first_collision_step=step, collision_with=other)
+    return trace, result

@@ -1,1 +1,0 @@
-"""Pictures for people: annotated camera frames, animations, plots."""

@@ -1,6 +1,0 @@
-"""Systems under test with known in-ODD weaknesses, and controls without (issue 33; docs/zoo.md)."""
-
-from genesis_rl.zoo.members import ZOO, ZooMember, env_settings, zoo_member
-from genesis_rl.zoo.trigger import EMPTY, Bound, TriggerRegion
-
-__all__ = ["EMPTY", "ZOO", "Bound", "TriggerRegion", "ZooMember", "env_settings", "zoo_member"]
