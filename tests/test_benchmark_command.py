@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from builders import tiny_run
 
 from genesis_rl.benchmark.matrix import BenchmarkSpec, campaign_folder, run_benchmark
 from genesis_rl.benchmark.metrics import falsifier_metrics
@@ -245,30 +246,8 @@ def test_a_natural_start_campaign_records_and_replays_the_start_each_policy_chos
 
 #: a trained agent for BLIND's env (its system, knobs, dynamics and ODD), trained for a few steps only: the
 #: benchmark's plumbing is under test, not the agent
-TINY_AGENT = """
-[env]
-map = "highway"
-scenes = 3
-system = "blind"
-odd = "{odd}"
-dynamics = "natural"
-episode_steps = 10
-camera_width = 64
-camera_height = 48
-obs_width = 36
-obs_height = 36
-
-[ppo]
-n_steps = 16
-batch_size = 8
-n_epochs = 1
-
-[train]
-total_timesteps = 32
-checkpoint_every = 16
-seed = 1
-torch_threads = 1
-"""
+TINY_AGENT = tiny_run(env={"map": "highway", "odd": "{odd}", "dynamics": "natural"}, ppo={"n_epochs": 1},
+                      train={"total_timesteps": 32, "seed": 1})
 
 
 @pytest.mark.render

@@ -1,7 +1,7 @@
 """Hostile inputs and a hostile machine (issue 21, items 6 and 8, and the sweep's findings): operating-system
 errors are one line naming the path and the cause with exit status 2 and no half-written file; ``report``
 writes elsewhere when its campaign folder is read-only; damaged numbers never reach ``summary.json``; a GPU
-asked for and missing is refused. ``scripts/hostile_sweep_issue21.py`` runs the full sweep (docs/reliability.md)."""
+asked for and missing is refused. ``tests/hostile/sweep_commands.py`` runs the full sweep (docs/reliability.md)."""
 
 from __future__ import annotations
 

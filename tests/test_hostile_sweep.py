@@ -1,4 +1,4 @@
-"""The hostile-input sweep's own oracle (scripts/hostile_sweep.py, issue 38): a sweep that called a crash a pass
+"""The hostile-input sweep's own oracle (tests/hostile/sweep_files.py, issue 38): a sweep that called a crash a pass
 would hide every failure it exists to find, so each outcome is shown on a command known to produce it."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from types import ModuleType
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "hostile_sweep.py"
+SCRIPT = Path(__file__).resolve().parent / "hostile" / "sweep_files.py"
 
 
 @pytest.fixture(scope="module")

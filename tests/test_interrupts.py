@@ -19,33 +19,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from builders import tiny_run
 
 import genesis_rl
 from genesis_rl.commands.cli import main
 
 #: tests/test_reliability.py's tiny run, longer (10 checkpoints): it is still training after five interruptions
-TINY_RUN = """
-[env]
-map = "urban"
-scenes = 3
-system = "blind"
-episode_steps = 10
-camera_width = 64
-camera_height = 48
-obs_width = 36
-obs_height = 36
-
-[ppo]
-n_steps = 16
-batch_size = 8
-n_epochs = 2
-
-[train]
-total_timesteps = 160
-checkpoint_every = 16
-seed = 3
-torch_threads = 1
-"""
+TINY_RUN = tiny_run(train={"total_timesteps": 160})
 
 ROOT = Path(genesis_rl.__file__).resolve().parents[1]  # the package under test, for the child processes
 

@@ -13,29 +13,14 @@ import time
 from pathlib import Path
 
 import pytest
+from builders import tiny_run
 
 from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import io_utils, output_folder
 
-TINY_RUN = """
-[env]
-scenes = 2
-system = "blind"
-episode_steps = 8
-camera_width = 64
-camera_height = 48
-obs_width = 36
-obs_height = 36
-[ppo]
-n_steps = 16
-batch_size = 8
-n_epochs = 1
-[train]
-total_timesteps = 16
-checkpoint_every = 16
-torch_threads = 1
-"""
+TINY_RUN = tiny_run(env={"map": None, "scenes": 2, "episode_steps": 8}, ppo={"n_epochs": 1},
+                    train={"total_timesteps": 16, "seed": None})
 
 
 @pytest.fixture(scope="module")

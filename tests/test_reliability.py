@@ -11,32 +11,12 @@ import time
 from pathlib import Path
 
 import pytest
+from builders import tiny_run
 
 from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
 
-TINY_RUN = """
-[env]
-map = "urban"
-scenes = 3
-system = "blind"
-episode_steps = 10          # episodes cross rollout boundaries: a checkpoint falls mid-episode
-camera_width = 64
-camera_height = 48
-obs_width = 36
-obs_height = 36
-
-[ppo]
-n_steps = 16
-batch_size = 8
-n_epochs = 2
-
-[train]
-total_timesteps = 64
-checkpoint_every = 16
-seed = 3
-torch_threads = 1
-"""
+TINY_RUN = tiny_run()  # 10-step episodes cross rollout boundaries: a checkpoint falls mid-episode
 
 
 def _weights(path: Path) -> dict:

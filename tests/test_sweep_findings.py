@@ -1,4 +1,4 @@
-"""Cases the hostile sweep (scripts/hostile_sweep.py) found after the family fixes were merged (issue 38):
+"""Cases the hostile sweep (tests/hostile/sweep_files.py) found after the family fixes were merged (issue 38):
 each failed before its fix (a traceback, a hang, or an input accepted that would mix or mislead)."""
 
 from __future__ import annotations

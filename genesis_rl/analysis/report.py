@@ -136,7 +136,7 @@ def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[s
     return figure_png_base64(fig)
 
 
-#: how the telemetry plot marks the actor events the tester caused (issue 32)
+#: how the telemetry plot marks the actor events the tester caused
 EVENT_STYLE = {"cut_in": ("#d35400", "cut-in begins"), "lead_braking": ("#2980b9", "lead braked by the tester")}
 
 

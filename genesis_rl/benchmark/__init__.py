@@ -1,2 +1,2 @@
-"""The benchmark with ground truth (issue 33): falsifiers measured on the zoo's members (``genesis_rl.sut.zoo``).
+"""The benchmark with ground truth: falsifiers measured on the zoo's members (``genesis_rl.sut.zoo``).
 It sits above ``evaluation/``: it reads and runs campaigns; campaigns do not know it."""

@@ -1,4 +1,4 @@
-"""``genesis-rl benchmark``: every adversary on every zoo member over repeated trials (issue 33).
+"""``genesis-rl benchmark``: every adversary on every zoo member over repeated trials.
 
 The matrix is members x trials campaigns, each playing every policy on the member's map inside its ODD
 (``zoo.members.env_settings``) with its own seed (``seed + trial``: other scenes, other episode seeds), so a

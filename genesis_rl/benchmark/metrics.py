@@ -16,7 +16,7 @@ the SBST tool competition's distinct failures), for a driving system inside its 
 - on a *control* every in-ODD failure is a false alarm candidate (with its blame and oracle replay, where the
   campaign ran one);
 - *avoidable*: failed trials less those whose reported failure is blamed ``unavoidable`` (the careful driver of
-  the episode's blame reference collides as well): an unavoidable failure is not the system's (issue 32). A
+  the episode's blame reference collides as well): an unavoidable failure is not the system's. A
   search's earlier candidates are not blamed one by one, so its trial counts as its reported episode says.
 """
 

@@ -1,4 +1,4 @@
-"""``genesis-rl benchmark``: the matrix of zoo members x adversaries x trials, and its leaderboard (issue 33).
+"""``genesis-rl benchmark``: the matrix of zoo members x adversaries x trials, and its leaderboard.
 
 A top-level command (as ``export_cmd``): ``benchmark`` runs campaigns through ``evaluation``; the zoo and the
 metrics live in ``zoo`` and ``benchmark``.
@@ -69,6 +69,13 @@ def run(args: argparse.Namespace) -> int:
     if args.search_budget is not None:
         options["search_budget"] = args.search_budget
     if args.smoke:
+        # the smoke matrix is fixed: a matrix flag beside it would be dropped without a word
+        defaults = {"members": None, "policies": "sunny,random,constant,random_search,cmaes,cem,mcts", "agent": None,
+                    "trials": 10, "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None}
+        given = [f"--{k.replace('_', '-')}" for k, v in defaults.items() if getattr(args, k) != v]
+        if given:
+            raise UserInputError(f"--smoke runs its own fixed matrix ({len(SMOKE.members)} members, {SMOKE.trials} "
+                                 f"trials); {', '.join(given)} would be ignored: drop them or drop --smoke")
         spec = SMOKE
     else:
         spec = BenchmarkSpec(

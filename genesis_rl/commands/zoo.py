@@ -1,5 +1,5 @@
 """``genesis-rl zoo``: the systems under test with known weaknesses (``zoo list``) and the sweep that measures a
-member's ground truth, its failure rate inside its trigger region and around it (``zoo sweep``; issue 33)."""
+member's ground truth, its failure rate inside its trigger region and around it (``zoo sweep``)."""
 
 from __future__ import annotations
 

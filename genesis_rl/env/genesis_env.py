@@ -449,7 +449,7 @@ class GenesisEnv(gym.Env):
     def natural_start(self, rng: np.random.Generator, tries: int = 200) -> Weather:
         """A start drawn uniformly over the held knobs' ranges inside the ODD (rejection sampling; the start
         weather when ``tries`` draws all fall outside): the placeholder nominal start distribution (a time of
-        day and a heading, uniform) until a climatological one replaces it (issue 34)."""
+        day and a heading, uniform) until a climatological one replaces it."""
         held = self.held_knobs
         for _ in range(tries):
             values = dict(self.start_weather.values)

@@ -1,4 +1,4 @@
-"""How often would it fail? Failure-rate estimates under a nominal model of the world (issue 34).
+"""How often would it fail? Failure-rate estimates under a nominal model of the world.
 
 Data flow: :mod:`nominal` says what natural driving draws (the start of the knobs that an episode cannot move,
 the per-step weather noise); :mod:`proposal` tilts the start toward failures (a cross-entropy-adapted mixture

@@ -1,4 +1,4 @@
-"""What the actor knobs made happen in a policy's episodes (issue 32): how many cut-ins, how short, how fast.
+"""What the actor knobs made happen in a policy's episodes: how many cut-ins, how short, how fast.
 
 A cut-in's time-to-collision is R157's measure, taken when it became perceivable (``perceived_ttc_s``, 0.25 on;
 a cut-in that never became perceivable has none); campaigns written before 0.25 have only the onset's

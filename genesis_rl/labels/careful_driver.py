@@ -1,4 +1,4 @@
-"""The careful-driver reference (issue 32): could a competent and careful human driver have avoided a collision
+"""The careful-driver reference: could a competent and careful human driver have avoided a collision
 that an actor knob caused (a neighbour cutting in, the lead braking)?
 
 A collision the tester caused with another road user is a failure of the system only when a careful driver in

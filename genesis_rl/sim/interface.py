@@ -234,7 +234,7 @@ class Simulation(abc.ABC):
 
 @dataclass(frozen=True)
 class ActorEvent:
-    """An event an actor knob caused (issue 32), as the careful-driver reference needs it: what happened, to
+    """An event an actor knob caused, as the careful-driver reference needs it: what happened, to
     which vehicle (scene index), when it began [s of episode time] and when a careful driver could first
     perceive it [s] (a cut-in: when the cutter has wandered ``CUT_IN_WANDER_M`` toward the ego's lane; a
     braking lead: the onset, its brake lights come on at once; None: not yet perceivable). ``ttc_s``,

@@ -134,7 +134,7 @@ def check_device_present(section: str, device: str) -> None:
 class SACConfig:
     """Stable-Baselines3 SAC settings (SB3's defaults but a shorter warm-up and a buffer that holds the
     paper's whole budget). SAC's policy is a tanh-squashed Gaussian: its mean never sits beyond the action
-    bounds, and a critic that values each action reuses every step many times (issue 17's item 2)."""
+    bounds, and a critic that values each action reuses every step many times."""
 
     learning_rate: float = 3e-4
     buffer_size: int = 100_000  # transitions kept (40,960 feature transitions take ~25 MB; images ~0.6 GB)

@@ -1,4 +1,4 @@
-"""Actor knobs (issue 32, first slice): other road users' behaviour as named, ranged, rate-limited knobs.
+"""Actor knobs: other road users' behaviour as named, ranged, rate-limited knobs.
 
 Declared like the weather knobs (one :class:`ActorKnobSpec` each, ``register_actor_knob`` for one's own),
 but kept in their own registry so that every existing weather, record and episode stays exactly as it was:
@@ -6,7 +6,7 @@ a weather-only knob set never sees them. Each knob carries its physical unit, it
 (the largest change per simulated second, so the limit holds at any step length) and the source of its
 range; "assumed" marks the values chosen here without a source.
 
-Sources as given in issue 32: UN R157 (cut-in a careful driver handles: relative speed 10..60 km/h ->
+Sources: UN R157 (cut-in a careful driver handles: relative speed 10..60 km/h ->
 time-to-collision 0.48..1.64 s), Euro NCAP CCRb (lead braking at 2 or 6 m/s^2), highD/NGSIM (naturalistic
 braking and accepted gaps), CARLA TrafficManager (per-vehicle parameter names and meanings).
 """

@@ -137,7 +137,7 @@ def _actor_knob(name: str) -> KnobSpec:
     return KnobSpec(a.name, a.low, a.high, a.unit, a.default, description=a.description, lite="traffic")
 
 
-#: Actor knobs that act step by step (issue 32): ``lead_decel`` > 0 makes the vehicle ahead of the ego brake at
+#: Actor knobs that act step by step: ``lead_decel`` > 0 makes the vehicle ahead of the ego brake at
 #: that deceleration for as long as it stays > 0; ``cut_in_ttc`` below its default makes a slower neighbour cut
 #: in ahead of the ego into a gap of that time-to-collision (``cut_in_relative_speed`` > 0: the neighbour slows
 #: to that much below the ego's speed first, so that such a gap comes); two of CARLA TrafficManager's

@@ -1,6 +1,6 @@
 """The step record: what one closed-loop step produced, typed, with units.
 
-It is the unit every later stage shares (DESIGN.md's data flow): ``drive.ClosedLoop`` builds it after each
+It is the unit every later stage shares (docs/architecture.md): ``drive.ClosedLoop`` builds it after each
 tick, the env adds the rulebook's terms and the reward's terms, and rules, the failure-mode labeller,
 campaigns, summaries, reports, exports and replays read its fields by name. Serialisation to the flat
 telemetry columns (Parquet, ``info``-friendly dicts) is one pair of functions, :meth:`StepRecord.to_row` and

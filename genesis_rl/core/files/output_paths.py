@@ -220,6 +220,9 @@ def output_file(given: str | Path, force: bool, *, flag: str = "--out", inputs: 
     if not name:
         raise UserInputError(f"{flag} is empty; give a file path or '-' for standard output")
     path = Path(name)
+    if name.endswith(("/", os.sep)) and not path.is_dir():  # Path() drops the slash: it would become a file
+        raise UserInputError(f"{flag} '{name}' ends in '/', so it names a folder, and none is there; this command "
+                             f"writes one file: give a file name (e.g. {name.rstrip('/' + os.sep) or 'out'}.json)")
     check_inputs(path, inputs, flag=flag, products=products)
     kind = special_kind(path)
     if kind == "FIFO (named pipe)" or (kind == "character device" and os.path.realpath(path) == DISCARD):

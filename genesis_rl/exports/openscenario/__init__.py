@@ -1,4 +1,4 @@
-"""Failures as ASAM OpenSCENARIO scenarios (issue 37; docs/openscenario.md).
+"""Failures as ASAM OpenSCENARIO scenarios (docs/openscenario.md).
 
 Data flow: an edge-case record -> ``trace`` (lite replays it; every vehicle's path) -> ``writer`` (a .xosc
 beside the map's .xodr, through scenariogeneration) -> ``schema`` (ASAM's XSD) -> ``reader`` (the file read

@@ -1,4 +1,4 @@
-"""The actor knobs on a CARLA server (issue 32): ``lead_decel`` by per-actor control, ``cut_in_ttc`` and the
+"""The actor knobs on a CARLA server: ``lead_decel`` by per-actor control, ``cut_in_ttc`` and the
 surrounding traffic's behaviour by the traffic manager's own calls.
 
 CARLA's TrafficManager has no "brake now at X m/s^2" call, so the braking lead leaves the traffic manager

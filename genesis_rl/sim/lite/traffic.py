@@ -120,9 +120,9 @@ class Traffic:
         #: set it with ``drive_ego_on_autopilot``, which also gives the ego a target speed
         self.ego_autopilot = False
         self.time = 0.0
-        #: actor knob (issue 32): (vehicle, deceleration [m/s^2], onset [s of episode time]); None: off
+        #: actor knob: (vehicle, deceleration [m/s^2], onset [s of episode time]); None: off
         self.forced_braking: tuple[int, float, float] | None = None
-        #: actor knob (issue 32): (vehicle, onset [s]): at onset it takes the ego's lane and steers into it
+        #: actor knob: (vehicle, onset [s]): at onset it takes the ego's lane and steers into it
         self.forced_cut_in: tuple[int, float] | None = None
         #: vehicles that follow a given motion instead of their autopilot (an OpenSCENARIO trajectory replayed
         #: on lite): vehicle index -> its script; see ``ScriptedMotion``

@@ -1,4 +1,4 @@
-"""The built-in system with a controller that slows for the visibility it perceives (issue 33's competent
+"""The built-in system with a controller that slows for the visibility it perceives (the benchmark's competent
 controller whose weakness is one of timing).
 
 Each frame it estimates the visibility from its camera (:mod:`genesis_rl.sut.system.visibility`) and caps its cruise

@@ -1,5 +1,5 @@
 """The built-in system behind a slow perception pipeline: its detections reach the controller late, and some
-frames are dropped (issue 33's timing kind of weakness).
+frames are dropped (the timing kind of weakness).
 
 Real perception stacks answer tens to hundreds of milliseconds after the exposure (camera read-out, inference,
 tracking, the bus), and drop frames under load. The controller then acts on where the lead *was*. In steady

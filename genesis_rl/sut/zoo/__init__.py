@@ -1,4 +1,4 @@
-"""Systems under test with known in-ODD weaknesses, and controls without (issue 33; docs/zoo.md)."""
+"""Systems under test with known in-ODD weaknesses, and controls without (docs/zoo.md)."""
 
 from genesis_rl.sut.zoo.members import ZOO, ZooMember, env_settings, zoo_member
 from genesis_rl.sut.zoo.trigger import EMPTY, Bound, TriggerRegion

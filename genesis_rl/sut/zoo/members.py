@@ -1,4 +1,4 @@
-"""The zoo: systems under test whose in-ODD weaknesses are known before any adversary runs (issue 33).
+"""The zoo: systems under test whose in-ODD weaknesses are known before any adversary runs.
 
 An adversary can only be judged against ground truth: a *weakness* member fails inside its ODD in a stated
 trigger region, a *control* has no in-ODD weakness, so whatever an adversary reports on it is a false alarm

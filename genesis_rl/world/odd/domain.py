@@ -67,7 +67,7 @@ class ODD:
     sun_glare_allowed: bool = True
     boundary_margin: float = 0.1
     source: str = ""
-    #: traffic conditions the system is released for (issue 32); None: the file has no [traffic] table
+    #: traffic conditions the system is released for; None: the file has no [traffic] table
     traffic: TrafficConditions | None = None
     #: the sun altitudes the system is released for [deg], checked on the weather; None: no [sun_altitude] table
     sun_altitude: tuple[float, float] | None = None

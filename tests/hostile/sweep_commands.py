@@ -1,4 +1,4 @@
-"""Hostile-input sweep of the ``genesis-rl`` command line (issue 21; issue 38's is scripts/hostile_sweep.py).
+"""Hostile-input sweep of the ``genesis-rl`` command line (issue 21; issue 38's is tests/hostile/sweep_files.py).
 
 Runs each case as a careless user or a damaged disk would produce it, in its own folder, and records the
 command, its exit status, whether a Python traceback appeared, whether a file that existed before it ran was
@@ -11,7 +11,7 @@ a private mount namespace (``unshare -m``); "permission denied" drops root's ove
 (``capsh --drop=cap_dac_override,...``) on a ``chmod 555`` folder; "operation not permitted" is ``chattr +i``.
 Where these are not possible the case is reported as skipped.
 
-    PYTHONPATH=$PWD .venv/bin/python scripts/hostile_sweep_issue21.py --work /tmp/sweep [--only report] [--md out.md]
+    PYTHONPATH=$PWD .venv/bin/python tests/hostile/sweep_commands.py --work /tmp/sweep [--only report] [--md out.md]
 
 Writes ``WORK/results.json`` and prints a Markdown table (``--md`` writes it to a file).
 """

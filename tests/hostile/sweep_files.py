@@ -1,6 +1,6 @@
 """Hostile-input sweep for issue 38 ("Trust nothing a file says"), organised by the issue's six families.
 
-    PYTHONPATH=$PWD .venv/bin/python scripts/hostile_sweep.py --out sweep.json [--family N] [--jobs 2]
+    PYTHONPATH=$PWD .venv/bin/python tests/hostile/sweep_files.py --out sweep.json [--family N] [--jobs 2]
         [--markdown docs/reliability/sweep.md] [--work DIR] [--limit N] [--ids ID,ID] [--all] [--list]
 
 The default set (368 cases, 341 of them new relative to the issue's examples) takes about 10 minutes on two idle
@@ -57,6 +57,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the shared builders
+from builders import tiny_run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
@@ -288,27 +291,7 @@ LATIN1 = "[env]\nmap = \"urban\"\n# caf\xe9\n".encode("latin-1")
 
 
 # -- fixtures --------------------------------------------------------------------------------------------------
-TINY = """[env]
-map = "urban"
-scenes = 3
-system = "blind"
-episode_steps = 10
-camera_width = 64
-camera_height = 48
-obs_width = 36
-obs_height = 36
-
-[ppo]
-n_steps = 16
-batch_size = 8
-n_epochs = 2
-
-[train]
-total_timesteps = 32
-checkpoint_every = 16
-seed = 3
-torch_threads = 1
-"""
+TINY = tiny_run(train={"total_timesteps": 32})
 TINY64 = TINY.replace("total_timesteps = 32", "total_timesteps = 96")
 SAC = """[env]
 map = "urban"
@@ -640,7 +623,7 @@ def _cell(text: str, n: int) -> str:
 
 def markdown(rows: list[dict[str, Any]]) -> str:
     lines = ["# Hostile-input sweep (issue 38)", "",
-             "Made by `scripts/hostile_sweep.py`; one row a case. Outcomes: pass, code-exec, data-loss, abort, "
+             "Made by `tests/hostile/sweep_files.py`; one row a case. Outcomes: pass, code-exec, data-loss, abort, "
              "traceback, timeout, wrong-exit (see the script's docstring). Cases marked * are the issue's own "
              "examples; the others are new.", "",
              "| family | cases | new | " + " | ".join(OUTCOMES) + " |",
