@@ -49,12 +49,19 @@ MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Inte
                "out_of_view": "Hit vehicle out of view"}
 
 
+def _esc(value: object) -> str:
+    """Any value from a campaign's files as HTML text: a shared campaign's strings never become markup."""
+    return html.escape(str(value))
+
+
 def policy_color(policy: str, k: int) -> str:
     return POLICY_COLORS.get(policy, ["#8e44ad", "#16a085", "#d35400", "#2d3436"][k % 4])
 
 
 def figure_png_base64(fig: Any) -> str:
-    import matplotlib.pyplot as plt
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
@@ -69,7 +76,9 @@ def _jpeg(rgb: np.ndarray) -> str:
 
 
 def fig_comparison(summary: dict[str, Any], rulebook: Rulebook) -> str:
-    import matplotlib.pyplot as plt
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
 
     pols = list(summary["policies"])
     # a panel per rule: its name and unit, its description wrapped so that neighbouring titles do not overlap
@@ -98,7 +107,9 @@ KNOB_PLOTS_PER_ROW = 5
 
 
 def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[str]) -> str | None:
-    import matplotlib.pyplot as plt
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
     series: dict[str, np.ndarray] = {}
     for policy, eps in rows.items():
         runs = []
@@ -145,7 +156,9 @@ def fig_telemetry(records: list[StepRecord], failure: dict[str, Any], title: str
     """Speeds, controls, true and perceived gap, and the hit vehicle's detection timeline around the first
     impact; ``proximity_m``: the proximity rule's threshold to draw, when the rulebook has one;
     ``actor_events``: the episode row's actor events, drawn as dashed lines where they began (in the window)."""
-    import matplotlib.pyplot as plt
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
 
     hit = next(i for i, r in enumerate(records) if r.collision.collided)
     lo, hi = max(0, hit - 160), min(len(records), hit + 20)
@@ -305,15 +318,15 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     h: list[str] = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL report</title>"
                     f"<style>{CSS}</style></head><body>"]
     h.append("<h1>GENESIS-RL evaluation report</h1>")
-    h.append(f"<p class=meta>campaign <code>{html.escape(str(folder))}</code> · map <b>{summary['map']}</b> · "
-             f"{summary['scenes']} scenes (seed {spec['seed']}) · {spec['steps']} steps each · agent "
-             f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {meta.get('package_version')} "
-             f"({str(meta.get('git_commit'))[:10]})</p>")
+    h.append(f"<p class=meta>campaign <code>{html.escape(str(folder))}</code> · map <b>{_esc(summary['map'])}</b> · "
+             f"{_esc(summary['scenes'])} scenes (seed {_esc(spec['seed'])}) · {_esc(spec['steps'])} steps each · agent "
+             f"<code>{html.escape(str(spec.get('agent')))}</code> · genesis-rl {_esc(meta.get('package_version'))} "
+             f"({_esc(str(meta.get('git_commit'))[:10])})</p>")
     if rate is not None:
         h.append(f"<p>{html.escape(estimate_line(rate))}</p>")
     if not summary["complete"]:
         missing = {p: v["missing"] for p, v in summary["policies"].items() if v["missing"]}
-        h.append(f"<p class=warn>This campaign is not finished: missing episodes {missing}. Figures use the "
+        h.append(f"<p class=warn>This campaign is not finished: missing episodes {_esc(missing)}. Figures use the "
                  "finished episodes only; <code>genesis-rl evaluate ... --resume</code> completes it.</p>")
 
     # 0. natural edge cases (campaigns from 0.6.0 on)
@@ -349,13 +362,14 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
                 d = c["difference"]
                 cls = "" if not d["n"] else ("good" if d["ci_low"] > 0 else ("bad" if d["ci_high"] < 0 else ""))
                 pv = "–" if c["p_value"] is None else f"{c['p_value']:.3f}"
-                h.append(f"<tr><td class=l>{name}</td><td class=l>{m}</td><td class={cls}>{_fmt_ci(d)}</td>"
+                h.append(f"<tr><td class=l>{_esc(name)}</td><td class=l>{_esc(m)}</td><td class={cls}>{_fmt_ci(d)}</td>"
                          f"<td>{c['wins']}/{c['ties']}/{c['losses']}</td><td>{pv}</td></tr>")
         h.append("</table>")
 
     # 2-3. failure modes
     h.append("<h2>2. Failure modes (paper Fig. 3)</h2>")
-    counts = "".join(f"<tr><td class=l>{p}</td>" + "".join(f"<td>{s['failure_modes'][m]}</td>" for m in FAILURE_MODES)
+    counts = "".join(f"<tr><td class=l>{_esc(p)}</td>"
+                     + "".join(f"<td>{_esc(s['failure_modes'][m])}</td>" for m in FAILURE_MODES)
                      + "</tr>" for p, s in summary["policies"].items())
     h.append("<table><tr><th class=l>policy</th>" + "".join(f"<th>{MODE_TITLES[m]}</th>" for m in FAILURE_MODES)
              + f"</tr>{counts}</table>")
@@ -382,7 +396,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
                      f"<img src='{strip}'>")
         if e.get("record"):
             h.append(f"<p class=meta>Replay: <code>genesis-rl replay {html.escape(str(folder / e['record']))} "
-                     f"--out replay_{p}_{e['scene']}</code></p>")
+                     f"--out replay_{_esc(p)}_{_esc(e['scene'])}</code></p>")
             h.append(_scenario_line(folder, e["record"], scenarios, scenario_index, out))
         h.append("</div>")
     if shown == 0:
@@ -403,7 +417,8 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     # 5. per-scene table
     counted = [r.name for r in rulebook.rules if r.in_total]
     h.append(f"<h2>4. Per scene</h2><p class=meta>{' / '.join(counted)} violation; red: a collision, with its "
-             "failure mode.</p><table><tr><th class=l>scene</th>" + "".join(f"<th>{p}</th>" for p in rows) + "</tr>")
+             "failure mode.</p><table><tr><th class=l>scene</th>" + "".join(f"<th>{_esc(p)}</th>" for p in rows)
+             + "</tr>")
     by_scene = {p: {e["scene"]: e for e in eps} for p, eps in rows.items()}
     for scene, _ in meta["scenes"]:
         cells = []
@@ -412,10 +427,10 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
             if ep is None:
                 cells.append("<td class=meta>missing</td>")
                 continue
-            mode = f"<br><span class=meta>{ep['failure_mode']}</span>" if ep["failure_mode"] else ""
+            mode = f"<br><span class=meta>{_esc(ep['failure_mode'])}</span>" if ep["failure_mode"] else ""
             scores = " / ".join(f"{ep[m]:.1f}" for m in counted)
             cells.append(f"<td class={'hit' if ep['collision_events'] else ''}>{scores}{mode}</td>")
-        h.append(f"<tr><td class=l>{scene}</td>{''.join(cells)}</tr>")
+        h.append(f"<tr><td class=l>{_esc(scene)}</td>{''.join(cells)}</tr>")
     h.append("</table>")
     h.append(f"<h2>Campaign settings</h2><pre>{html.escape(json.dumps(spec, indent=1))}</pre></body></html>")
     try:

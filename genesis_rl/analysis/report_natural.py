@@ -60,7 +60,9 @@ def lead_lines(summary: dict[str, Any]) -> list[str]:
 def fig_odd_coverage(summary: dict[str, Any], rows: dict[str, list[dict[str, Any]]], steps_of: StepsOf,
                      png: Callable[[Any], str], max_points: int = 4000) -> str | None:
     """One panel per policy: its steps in (visibility, ego speed), the ODD bound, the failure boundary."""
-    import matplotlib.pyplot as plt
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
 
     policies = [p for p in rows if summary["policies"][p].get("natural")]
     if not policies:
@@ -175,11 +177,11 @@ def section(folder: Path, summary: dict[str, Any], rows: dict[str, list[dict[str
         rep = c["members"][0]
         strip = frame_strip(c["policy"], rep["scene"], steps_of(c["policy"], rep["scene"]))
         h.append(f"<div class=card><h3>#{i} {html.escape(c['mode'])}, {html.escape(c['blame'])}: "
-                 f"{c['policy']}, scene {rep['scene']}</h3>")
+                 f"{html.escape(str(c['policy']))}, scene {html.escape(str(rep['scene']))}</h3>")
         if strip:
             h.append(f"<img src='{strip}'>")
         if rep.get("record"):
             h.append(f"<p class=meta>Replay: <code>genesis-rl replay {html.escape(str(folder / rep['record']))} "
-                     f"--out replay_{c['policy']}_{rep['scene']}</code></p>")
+                     f"--out replay_{html.escape(str(c['policy']))}_{html.escape(str(rep['scene']))}</code></p>")
         h.append("</div>")
     return h

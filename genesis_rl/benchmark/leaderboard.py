@@ -94,10 +94,9 @@ def write_leaderboard(out: Path, board: dict[str, Any]) -> None:
 
 
 def _fig_survival(board: dict[str, Any], member: str) -> str:
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from genesis_rl.analysis.report import figure_png_base64, policy_color
 
@@ -131,10 +130,9 @@ def _fig_ranks(board: dict[str, Any]) -> str | None:
     avg = {p: v for p, v in r["average_rank"].items() if v is not None}
     if not avg:
         return None
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from genesis_rl.analysis.report import figure_png_base64, policy_color
 

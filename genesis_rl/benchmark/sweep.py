@@ -202,10 +202,9 @@ def _inside_outside(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 def plot_sweep(table: dict[str, Any], path: Path) -> None:
     """Failure rate against the knob's value with exact intervals; the trigger region shaded."""
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from genesis_rl.core.files.io_utils import atomic_write
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from genesis_rl.campaigns.campaign_files import read_campaign_meta, read_episode_row, read_step_records, steps_path
 from genesis_rl.core.files.io_utils import atomic_write_json, atomic_write_text
+from genesis_rl.core.files.spreadsheet import safe_rows
 from genesis_rl.core.stats import bootstrap_mean_ci, paired_comparison
 from genesis_rl.labels.actor_summary import cut_in_markdown, cut_in_summary
 from genesis_rl.labels.distinct import natural_summary
@@ -144,7 +145,7 @@ def write_summary_files(folder: Path, summary: dict[str, Any], rows: dict[str, l
     w = csv.DictWriter(buf, fieldnames=csv_columns(rulebook), extrasaction="ignore")
     w.writeheader()
     for eps in rows.values():
-        w.writerows(eps)
+        w.writerows(safe_rows(eps))  # a shared campaign's text must not run as a spreadsheet formula
     written = []
     for path, text in ((folder / "summary.json", json.dumps(summary, indent=2)),
                        (folder / "episodes.csv", buf.getvalue())):

@@ -105,10 +105,9 @@ def render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, war
 
 
 def _render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, warmup: int) -> dict:
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     sheet = out / f"contact_sheet_{scene.map}.png"
     ensure_writable(sheet, force)

@@ -14,10 +14,9 @@ from genesis_rl.estimation.nominal import BRAKE_DECEL, BRAKE_ONSET, NominalModel
 
 
 def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, Any], nominal: NominalModel) -> None:
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
     run = result["running"]
@@ -47,7 +46,7 @@ def plot_estimate(path: Path, rows: Sequence[dict[str, Any]], result: dict[str, 
         failed = np.array([bool(r["failed"]) for r in rows])
         stage = np.array([int(r["stage"]) for r in rows])
         last = int(stage.max())
-        cmap = matplotlib.colormaps["viridis"].resampled(last + 1)
+        cmap = plt.colormaps["viridis"].resampled(last + 1)
         sc = bx.scatter(x[~failed], y[~failed], c=stage[~failed], s=8, cmap=cmap, alpha=0.6,
                         vmin=-0.5, vmax=last + 0.5)
         bx.scatter(x[failed], y[failed], marker="x", color="tab:red", s=40, label="in-ODD failure")

@@ -26,6 +26,7 @@ from genesis_rl.analysis.estimate_files import SCHEMA
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
 from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
+from genesis_rl.core.files.spreadsheet import safe_rows
 from genesis_rl.distributed.spawn_pool import SpawnPool
 from genesis_rl.estimation import estimator
 from genesis_rl.estimation.episodes import EpisodeTask, init_worker, run_task
@@ -266,7 +267,7 @@ def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> None:
     names = list(dict.fromkeys(k for r in rows for k in r))  # rows of an estimate from before a column: blank
     w = csv.DictWriter(buf, fieldnames=names, restval="", lineterminator="\n")
     w.writeheader()
-    w.writerows(rows)
+    w.writerows(safe_rows(rows))
     atomic_write(path, lambda p: p.write_text(buf.getvalue(), encoding="utf-8"))
 
 

@@ -53,10 +53,9 @@ def retest_rates(result: Mapping[str, Any]) -> list[tuple[int, float, float, flo
 
 
 def plot(path: Path, result: Mapping[str, Any]) -> None:
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
     rows = rates(result)

@@ -151,7 +151,9 @@ def fig_cut_ins(rows: dict[str, list[dict[str, Any]]], colors: dict[str, str]) -
     points = {p: cut_in_points(eps) for p, eps in rows.items()}
     if not any(points.values()):
         return None
-    import matplotlib.pyplot as plt
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     right = max(65.0, max(q["closing_km_h"] for pts in points.values() for q in pts) + 5)

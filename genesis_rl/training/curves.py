@@ -34,10 +34,9 @@ def read_episodes(run: Path) -> list[dict[str, float]]:
 def plot_learning_curve(run: Path, window: int = 8) -> Any | None:
     """A matplotlib figure: episode reward, rule violations and knob means against training steps, each
     with a running mean over ``window`` episodes; None when the run has no finished episode."""
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = read_episodes(run)
     if not rows:

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.bounded_zip import read_members
 from genesis_rl.core.trust import pickle_trusted
 
 if TYPE_CHECKING:
@@ -191,8 +192,8 @@ def _read_zip(path: Path, what: str) -> tuple[dict[str, Any], dict[str, bytes]]:
             if infos["data"].file_size > MAX_DATA_BYTES:
                 raise UserInputError(f"{what}: '{path}': its 'data' is {infos['data'].file_size} bytes; allowed: "
                                      f"up to {MAX_DATA_BYTES}")
-            data = json.loads(archive.read("data").decode("utf-8"))
-            pth = {name: archive.read(name) for name in infos if name.endswith(".pth")}
+            data = json.loads(read_members(archive, ["data"], f"{what}: '{path}'")["data"].decode("utf-8"))
+            pth = read_members(archive, [name for name in infos if name.endswith(".pth")], f"{what}: '{path}'")
     except UserInputError:
         raise
     except (OSError, zipfile.BadZipFile, UnicodeDecodeError, ValueError, RecursionError) as err:

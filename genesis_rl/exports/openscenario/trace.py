@@ -8,6 +8,7 @@ every step.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,6 +81,16 @@ def first_collision(records: list[StepRecord]) -> tuple[int | None, int | None]:
     return None, None
 
 
+#: characters XML 1.0 does not allow (C0 controls but tab, newline and carriage return; surrogates; U+FFFE/FFFF)
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
+
+
+def xml_safe(text: Any) -> str:
+    """``text`` with every character XML cannot hold replaced by U+FFFD: a record's strings reach the .xosc, and
+    one control character would make the file not well-formed (or stop lxml's writer)."""
+    return _NOT_XML.sub("\ufffd", str(text))
+
+
 def trace_record(rec: dict[str, Any], name: str, weights: str | None = None) -> tuple[EpisodeTrace, dict[str, Any]]:
     """Replay ``rec`` on lite, reading every vehicle's pose at the start and after every step; returns the
     trace and the replay's result (``reproduced`` says whether the replay is the recorded episode)."""
@@ -101,21 +112,23 @@ def trace_record(rec: dict[str, Any], name: str, weights: str | None = None) -> 
     for i, v in enumerate(scene["vehicles"]):
         m = MAKES[v["make"]]
         tracks.append(VehicleTrack(
-            vehicle_id=i, role=v["role"], make=v["make"], color_name=v["color_name"], length=m.length,
+            vehicle_id=i, role=xml_safe(v["role"]), make=v["make"], color_name=xml_safe(v["color_name"]),
+            length=m.length,
             width=m.width, height=m.height, lane=int(v["lane"]), s=float(v["s"]), next_lane=int(v["next_lane"]),
             x=poses[:, i, 0], y=poses[:, i, 1], z=poses[:, i, 2], yaw=np.unwrap(poses[:, i, 3]),
             pitch=poses[:, i, 4], speed=poses[:, i, 5]))
     dt = dt_box[0]
     step, other = first_collision(result["records"])
     trace = EpisodeTrace(
-        name=name, map=scene["map"], dt=dt, times=np.round(np.arange(len(poses)) * dt, 9), vehicles=tuple(tracks),
+        name=xml_safe(name), map=xml_safe(scene["map"]), dt=dt, times=np.round(np.arange(len(poses)) * dt, 9),
+        vehicles=tuple(tracks),
         knob_names=tuple(rec["knobs"]), schedule=np.asarray(rec["schedule"], dtype=np.float64),
         start_weather=Weather.from_recorded(rec["start_weather"]).as_dict(),
         signal_offset=float(scene["signal_offset"]), scene_seed=int(scene["seed"]),
         episode_seed=int(rec["episode_seed"]), rulebook=rec["rulebook"],
-        system={"spec": rec["system"]["spec"], "kwargs": dict(rec["system"].get("kwargs") or {}),
+        system={"spec": xml_safe(rec["system"]["spec"]), "kwargs": dict(rec["system"].get("kwargs") or {}),
                 "identity": dict(rec["system"].get("identity") or {})},
-        camera=(int(rec["camera"]["width"]), int(rec["camera"]["height"])), policy=str(rec.get("policy", "")),
+        camera=(int(rec["camera"]["width"]), int(rec["camera"]["height"])), policy=xml_safe(rec.get("policy", "")),
         scene_index=int(scene["index"]), violations=dict(result["violations"]),
         first_collision_step=step, collision_with=other)
     return trace, result

@@ -250,10 +250,9 @@ def detector_report_markdown(rows: Sequence[dict]) -> str:
 
 def plot_detector_report(rows: Sequence[dict], path: Path) -> None:
     """Grouped bars: recall and precision per condition, one panel per map."""
-    import matplotlib
+    from genesis_rl.core.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     maps = list(dict.fromkeys(r["map"] for r in rows))
     conds = list(dict.fromkeys(r["condition"] for r in rows))

@@ -1,0 +1,25 @@
+"""CSV cells that a spreadsheet will not run: a shared campaign's strings reach Excel or LibreOffice as text.
+
+A cell starting with ``=``, ``+``, ``-``, ``@``, a tab or a carriage return is read as a formula by spreadsheet
+tools (``=HYPERLINK(...)``, ``=1+1``). OWASP's advice for CSV injection: prefix such a text cell with a single
+quote, which the tools show as text. Numbers are left alone (a negative number is a number, not a formula).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def safe_cell(value: Any) -> Any:
+    """``value``, or a text cell that starts like a formula with a ``'`` before it."""
+    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+        return "'" + value
+    return value
+
+
+def safe_rows(rows: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Every row with :func:`safe_cell` applied to each value."""
+    return [{k: safe_cell(v) for k, v in row.items()} for row in rows]
