@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import read_json
+from genesis_rl.core.parsing import read_json
 
 #: the schema of ``estimate.json``
 SCHEMA = "genesis-rl/estimate"

@@ -33,7 +33,8 @@ from genesis_rl.analysis.report_natural import section as natural_section
 from genesis_rl.campaigns.campaign_files import read_step_records, read_steps, steps_path
 from genesis_rl.campaigns.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import os_error_message, read_json
+from genesis_rl.core.files.io_utils import os_error_message
+from genesis_rl.core.parsing import read_json
 from genesis_rl.labels.actor_summary import cut_in_html, fig_cut_ins
 from genesis_rl.labels.failure_modes import FAILURE_MODES, detection_timeline
 from genesis_rl.loop.frames import annotate_frame

@@ -40,13 +40,14 @@ from genesis_rl.campaigns.campaign_files import (
 from genesis_rl.campaigns.campaign_spec import CampaignSpec, check_spec, pick_scenes
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
-from genesis_rl.core.files.io_utils import atomic_write_json, ensure_folder_path, read_json
+from genesis_rl.core.files.hashing import file_sha256
+from genesis_rl.core.files.io_utils import atomic_write_json, ensure_folder_path
+from genesis_rl.core.parsing import read_json
 from genesis_rl.core.provenance import git_commit
 from genesis_rl.core.signals import deferred_signals
 from genesis_rl.loop.rules.rulebook import rulebook_for
 from genesis_rl.sim.backends import catalog_or_generate
 from genesis_rl.sim.lite.scenes import DEFAULT_COUNTS
-from genesis_rl.sut.perception.detector import file_sha256
 from genesis_rl.sut.system.protocol import load_system
 from genesis_rl.world.odd.domain import load_odd
 
@@ -101,7 +102,8 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
     else:
         read = [v for k in ("odd", "rulebook", "catalog", "weights")  # files the env reads
                 if isinstance(v := spec.env.get(k), str)]
-        output_folder.check_inputs(folder, [spec.catalog, spec.agent, *read], nested_ok=True)  # RUN/eval: default
+        # RUN/eval is the default folder, inside the run it plays
+        output_folder.check_folder_inputs(folder, [spec.catalog, spec.agent, *read], nested_ok=True)
         output_folder.check_target(folder, "campaign", force, resume_hint=True)
         count = DEFAULT_COUNTS.get(spec.map, 1)
         catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress,

@@ -21,7 +21,8 @@ from tqdm import tqdm
 
 from genesis_rl import __version__
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import atomic_write_json, read_json
+from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.core.parsing import read_json
 from genesis_rl.core.provenance import numeric_platform
 from genesis_rl.loop.drive import ClosedLoop
 from genesis_rl.loop.rules.rulebook import build_rulebook

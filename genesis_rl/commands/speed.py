@@ -258,7 +258,7 @@ def bench_catalog(scenes: int = 1200, repeats: int = 5) -> dict:
     from functools import partial
     from pathlib import Path
 
-    from genesis_rl.core.files.io_utils import read_json
+    from genesis_rl.core.parsing import read_json
     from genesis_rl.sim.backends import load_catalog
     from genesis_rl.world.scenes.catalog import parse_catalog
 

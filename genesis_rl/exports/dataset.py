@@ -56,7 +56,7 @@ def export_dataset(folder: Path, fmt: str, out: Path, force: bool = False,
     (``harden``: near misses rendered again), labelled from the same step data."""
     if fmt not in FORMATS:
         raise UserInputError(f"--format '{fmt}' is unknown; allowed: {', '.join(FORMATS)}")
-    output_folder.check_inputs(out, [folder])  # before reading: export CAMP --out CAMP --force wiped CAMP
+    output_folder.check_folder_inputs(out, [folder])  # before reading: export CAMP --out CAMP --force wiped CAMP
     meta, rows = load_campaign(folder)
     unknown = sorted(set(policies or []) - set(rows))
     if unknown:

@@ -191,9 +191,10 @@ def finetune_detector(request: RetrainRequest) -> Path:
     import torch
 
     import genesis_rl
+    from genesis_rl.core.files.hashing import file_sha256
     from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
-    from genesis_rl.sut.perception.detector import file_sha256, load_checkpoint
+    from genesis_rl.sut.perception.detector import load_checkpoint
     from genesis_rl.sut.perception.model import DetectorModelConfig, VehicleDetectorNet
     from genesis_rl.sut.perception.train import (
         METRICS_NAME,

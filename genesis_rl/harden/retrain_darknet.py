@@ -228,11 +228,11 @@ def finetune_darknet(request: Any) -> Path:
     import torch
 
     import genesis_rl
+    from genesis_rl.core.files.hashing import file_sha256
     from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json, atomic_write_text
     from genesis_rl.harden.data import concat, dataset_sha256, export_frames, original_frames
     from genesis_rl.harden.loop import finetune_config, relative_to, train_epochs
     from genesis_rl.sut.perception.coco_detector import CocoDetector
-    from genesis_rl.sut.perception.model_store import file_sha256
 
     cfg = finetune_config(DarknetFinetuneConfig, request.options, "the coco system's fine-tune")
     kwargs = dict(request.system_kwargs)

@@ -28,7 +28,8 @@ from typing import Any
 
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
-from genesis_rl.core.files.io_utils import atomic_write_json, read_json
+from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.core.parsing import read_json
 from genesis_rl.harden.loop import relative_to  # round.json stores paths inside the harden folder relative to it
 from genesis_rl.harden.near_miss import IN_ODD, near_misses  # IN_ODD: failures and near misses alike
 
@@ -247,12 +248,12 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
     from genesis_rl import __version__
     from genesis_rl.campaigns.campaign_files import read_campaign_meta
     from genesis_rl.campaigns.campaign_spec import CampaignSpec
+    from genesis_rl.core.files.hashing import file_sha256
     from genesis_rl.harden.retrain import load_hook
-    from genesis_rl.sut.perception.detector import file_sha256
 
     out = Path(out)
     campaign = Path(spec.campaign)
-    output_folder.check_inputs(out, [campaign, spec.adversary, spec.test_catalog])
+    output_folder.check_folder_inputs(out, [campaign, spec.adversary, spec.test_catalog])
     base = CampaignSpec.from_json(read_campaign_meta(campaign)["spec"])
     hook = load_hook(spec.retrain)  # a bad name is refused before anything runs
     if spec.adversary is not None:
@@ -464,9 +465,9 @@ def _baseline(spec: HardenSpec, base: Any, folder: Path, system: str, kwargs0: M
 def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0: Mapping[str, Any], weights: Path,
            failure_exports: list[Path], baseline: Mapping[str, Any], hook: Any, workers: int,
            progress: bool) -> dict[str, Any]:
+    from genesis_rl.core.files.hashing import file_sha256
     from genesis_rl.exports.dataset import export_dataset
     from genesis_rl.harden.retrain import RetrainRequest
-    from genesis_rl.sut.perception.detector import file_sha256
 
     folder = out / f"round_{r}"
     folder.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,8 @@ import gymnasium as gym
 import numpy as np
 
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json, read_json
+from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
+from genesis_rl.core.parsing import read_json
 from genesis_rl.core.signals import deferred_signals
 from genesis_rl.core.trust import pickle_trusted
 from genesis_rl.training.safe_load import (

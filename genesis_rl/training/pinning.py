@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import hashlib
 import os
 import re
 import stat
@@ -39,7 +38,9 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import atomic_write_json, read_json
+from genesis_rl.core.files.hashing import regular_file_sha256
+from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.core.parsing import read_json
 
 PINS = "pins"
 #: what a run pins, in the order it is checked (and named in messages)
@@ -51,19 +52,6 @@ _LABELS = {"config.toml": "config.toml", "catalog.json": "catalog.json", "rulebo
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 _warned: set[Path] = set()  # runs whose "unpinned" warning this process has printed
 
-
-def _sha256(path: Path) -> str | None:
-    """The file's sha256; None when it is missing or not a regular file (a FIFO is never opened)."""
-    try:
-        if not stat.S_ISREG(os.stat(path).st_mode):
-            return None
-        h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-        return h.hexdigest()
-    except OSError:
-        return None
 
 
 def weights_file(env: Mapping[str, Any]) -> Path | None:
@@ -98,7 +86,7 @@ def current_pins(run: Path, env: Mapping[str, Any]) -> dict[str, dict[str, str |
     out: dict[str, dict[str, str | None] | None] = {}
     for name, path in _named_files(Path(run), env).items():
         out[name] = None if path is None else {
-            "file": path.name if name in IN_FOLDER else str(path), "sha256": _sha256(path)}
+            "file": path.name if name in IN_FOLDER else str(path), "sha256": regular_file_sha256(path)}
     return out
 
 

@@ -17,7 +17,7 @@ from genesis_rl.core.files.special_files import refuse_special
 from genesis_rl.core.signals import deferred_signals
 
 if TYPE_CHECKING:
-    from genesis_rl.core.limits import Limit
+    pass
 
 
 def ensure_writable(path: Path, force: bool) -> None:
@@ -158,10 +158,3 @@ def read_utf8(path: Path, what: str = "file") -> str:
     except UnicodeDecodeError as err:
         raise UserInputError(f"{what} '{path}' is not UTF-8 text ({err.reason} at byte {err.start})") from None
 
-
-def read_json(path: Path, what: str = "file", limit: Limit | None = None) -> Any:
-    """A JSON file's content; a damaged file, one over ``limit`` (default ``parsing.FILE_MB``) or one nested
-    deeper than ``parsing.NESTING`` is a user error that names it, not a traceback."""
-    from genesis_rl.core import parsing
-
-    return parsing.read_json(path, what, limit or parsing.FILE_MB)

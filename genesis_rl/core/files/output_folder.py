@@ -30,9 +30,9 @@ from genesis_rl.core.files.io_utils import (
     atomic_write_json,
     ensure_folder_path,
     os_error_message,
-    read_json,
     remove_tree,
 )
+from genesis_rl.core.parsing import read_json
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
@@ -90,7 +90,7 @@ _FILE_PATTERNS = {
 
 def _json_object(path: Path) -> dict:
     try:
-        from genesis_rl.core.files.io_utils import read_json
+        from genesis_rl.core.parsing import read_json
 
         data = read_json(path, "marker")
     except (OSError, ValueError):  # a UserInputError (too big, too deep, not JSON) is a ValueError too
@@ -129,7 +129,7 @@ def _entries(folder: Path, shown: int = 4) -> str:
     return ", ".join(names[:shown]) + more
 
 
-def check_inputs(folder: Path, inputs: Sequence[str | Path | None], nested_ok: bool = False,
+def check_folder_inputs(folder: Path, inputs: Sequence[str | Path | None], nested_ok: bool = False,
                  files: Sequence[str] | None = None) -> None:
     """Refuse an output folder that is an input of the same command, holds one, or (unless ``nested_ok``:
     ``evaluate`` writes RUN/eval by default) lies inside one. With ``files`` (drive, render: the folder gets
@@ -295,7 +295,7 @@ def claim(folder: Path, kind: str, force: bool, *, resume: bool = False, files: 
     content check (the command checks what it resumes) and marks a 0.4.0 folder it continues."""
     if kind not in KINDS:
         raise ValueError(f"unknown output kind {kind!r}")
-    check_inputs(folder, inputs, nested_ok, files)
+    check_folder_inputs(folder, inputs, nested_ok, files)
     if resume:
         ensure_folder_path(Path(folder))
     else:

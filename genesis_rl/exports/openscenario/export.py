@@ -25,7 +25,8 @@ import numpy as np
 from tqdm import tqdm
 
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import atomic_write_json, atomic_write_text, read_json
+from genesis_rl.core.files.io_utils import atomic_write_json, atomic_write_text
+from genesis_rl.core.parsing import read_json
 from genesis_rl.exports.openscenario.reader import ParsedScenario, read_scenario
 from genesis_rl.exports.openscenario.schema import validate_opendrive, validate_scenario
 from genesis_rl.exports.openscenario.trace import EpisodeTrace, trace_record
@@ -208,7 +209,7 @@ def export_openscenario(source: Path, out: Path, force: bool = False, version: s
     from genesis_rl.core.files.io_utils import remove_tree
 
     minor_version(version)
-    output_folder.check_inputs(out, [source])
+    output_folder.check_folder_inputs(out, [source])
     failing_records(source, every)  # refuses a source that is neither a record nor a campaign with records/
     with output_folder.claim(out, "export", force, inputs=[source]):
         tmp = out.with_name(f".{out.name}.partial")

@@ -89,7 +89,7 @@ class CocoDetector:
     @property
     def weights_sha256(self) -> str:
         if self._sha256 is None:
-            from genesis_rl.sut.perception.model_store import file_sha256
+            from genesis_rl.core.files.hashing import file_sha256
 
             self._sha256 = file_sha256(self.weights_path)
         return self._sha256

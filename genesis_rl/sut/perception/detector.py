@@ -6,7 +6,6 @@ arrays ``x0, y0, x1, y1, score`` in the frame's pixels, best first.
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -15,6 +14,7 @@ import numpy as np
 
 from genesis_rl.core import ranges
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.hashing import file_sha256  # noqa: F401  (read here by plug-ins before 0.30)
 from genesis_rl.core.threads import INFERENCE_THREADS, pinned_threads
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -70,13 +70,6 @@ class NullDetector:
     def detect_batch(self, rgbs: np.ndarray) -> list[np.ndarray]:
         return [self.detect(r) for r in rgbs]
 
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _first_mismatch(err: Exception) -> str:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.hashing import file_sha256
 
 
 @dataclass(frozen=True)
@@ -67,13 +68,6 @@ def store_root() -> Path:
 def model_dir(name: str, root: Path | None = None) -> Path:
     return (root or store_root()) / name
 
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def install_command(name: str) -> str:

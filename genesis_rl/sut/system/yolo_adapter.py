@@ -98,7 +98,7 @@ class YoloSystem(PerceptionDrivenSystem):
         return np.hstack([xyxy, conf])
 
     def identity(self) -> dict[str, Any]:
-        from genesis_rl.sut.perception.detector import file_sha256
+        from genesis_rl.core.files.hashing import file_sha256
 
         return {**super().identity(), "weights": str(self.weights_path),
                 "weights_sha256": file_sha256(self.weights_path), "score_threshold": self.score_threshold}

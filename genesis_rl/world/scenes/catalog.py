@@ -18,7 +18,8 @@ from typing import Any
 
 from genesis_rl.core import ranges
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files.io_utils import atomic_write_json, read_json
+from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.core.parsing import read_json
 from genesis_rl.world.scenes.vehicles import MAKES
 
 SCHEMA_NAME = "genesis-rl/scene-catalog"
