@@ -51,3 +51,30 @@ def test_bench_is_speed_under_its_old_name(capsys) -> None:
     assert "'bench' is now 'genesis-rl speed'" in captured.err and '"scenes": 2' in captured.out
     assert main(["speed", "catalog", "--scenes", "2"]) == 0
     assert "is now" not in capsys.readouterr().err
+
+
+def test_reactivity_never_writes_onto_the_agent_run_its_campaign_plays(tmp_path, monkeypatch, capsys) -> None:
+    """``reactivity --out RUN/agent.zip --force`` had replaced the agent the campaign plays (exit 0)."""
+    import shutil
+    from pathlib import Path
+
+    shutil.copytree(Path(__file__).parent / "data" / "genesis_rl_0.29.0", tmp_path / "old")
+    monkeypatch.chdir(tmp_path / "old")
+    agent = (tmp_path / "old" / "run" / "agent.zip").read_bytes()
+    for target in ("run/agent.zip", "run/config.toml", "run/catalog.json"):
+        assert main(["reactivity", "--campaign", "camp", "--policy", "agent", "--out", target, "--force",
+                     "--quiet"]) == 2
+        assert "is this command's input" in capsys.readouterr().err
+    assert (tmp_path / "old" / "run" / "agent.zip").read_bytes() == agent
+
+
+def test_corners_never_writes_onto_the_weights_its_config_names(tmp_path, capsys) -> None:
+    from genesis_rl.sut.perception.detector import DEFAULT_WEIGHTS
+
+    weights = tmp_path / "w.pt"
+    weights.write_bytes(DEFAULT_WEIGHTS.read_bytes())
+    config = tmp_path / "c.toml"
+    config.write_text(f'[env]\nsystem = "builtin"\nsystem_kwargs = {{ weights = "{weights}" }}\n')
+    assert main(["corners", "--config", str(config), "--out", str(weights), "--force", "--scenes", "1"]) == 2
+    assert "is this command's input" in capsys.readouterr().err
+    assert weights.read_bytes() == DEFAULT_WEIGHTS.read_bytes()

@@ -43,6 +43,37 @@ def _damaged(path: Path, what: str) -> UserInputError:
 _SEEDS = (0, 2**63 - 1)
 
 
+def env_named_files(env: Any) -> list[str]:
+    """The files an env's settings name (catalog, ODD, rulebook, detector weights, and every string in
+    ``system_kwargs`` that names a file): a command writing onto one of them would destroy what it reads."""
+    if not isinstance(env, dict):
+        return []
+    named = [v for k in ("catalog", "odd", "rulebook", "weights") if isinstance(v := env.get(k), str) and v]
+    kwargs = env.get("system_kwargs")
+    if isinstance(kwargs, dict):
+        named += [v for v in kwargs.values() if isinstance(v, str) and v and Path(v).exists()]
+    return named
+
+
+def campaign_named_files(folder: Path) -> list[str]:
+    """What a campaign reads besides its own folder: its agent run (or .zip), its catalog and the files its
+    env names. An unreadable campaign names nothing (the command reading it will say why)."""
+    try:
+        spec = read_campaign_meta(folder)["spec"]
+    except UserInputError:
+        return []
+    named = [v for v in [spec.get("catalog")] if isinstance(v, str) and v]
+    agent = spec.get("agent")
+    if isinstance(agent, str) and agent:
+        # a run folder: the files the agent is read from (a campaign at RUN/eval lies inside it by design)
+        named += [str(Path(agent) / f) for f in AGENT_RUN_FILES] if Path(agent).is_dir() else [agent]
+    return named + env_named_files(spec.get("env"))
+
+
+#: what playing a run folder's agent reads from it
+AGENT_RUN_FILES = ("agent.zip", "checkpoints/last.zip", "config.toml", "run.json", "catalog.json")
+
+
 def read_campaign_meta(folder: Path) -> dict[str, Any]:
     """``campaign.json``, checked for the fields that summaries, reports, exports and resumption read."""
     folder = Path(folder)

@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserInputError(f"--scenes must be >= 1, got {args.scenes}")
     limits.SCENES.check(args.scenes, "--scenes")
     from genesis_rl.analysis.corners import search_corners
+    from genesis_rl.campaigns.campaign_files import env_named_files
     from genesis_rl.campaigns.campaign_spec import pick_scenes
     from genesis_rl.core.files.output_paths import check_inputs, output_file
     from genesis_rl.env import GenesisEnv
@@ -48,7 +49,9 @@ def run(args: argparse.Namespace) -> int:
     if args.map is not None:
         env_over["map"] = args.map
     cfg = load_run_config(args.config, {"env": env_over})
-    check_inputs(args.out, [cfg.env.catalog, cfg.env.odd, cfg.env.rulebook])  # the files the config names
+    # the files the config names, the system's weights among them
+    check_inputs(args.out, [cfg.env.catalog, cfg.env.odd, cfg.env.rulebook,
+                            *env_named_files({"system_kwargs": cfg.env.system_kwargs})])
     env = GenesisEnv(cfg.env)
     try:
         pairs = pick_scenes(len(env.catalog.scenes), args.scenes, args.seed)

@@ -40,8 +40,11 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
     limits.WORKERS.check(args.workers, "--workers")
+    from genesis_rl.campaigns.campaign_files import campaign_named_files
+
     out = output_file(args.out if args.out else Path(args.campaign) / f"reactivity_{args.policy}.json", args.force,
-                      inputs=[args.campaign], products=[r"reactivity_[\w.-]*\.json"])
+                      inputs=[args.campaign, *campaign_named_files(Path(args.campaign))],
+                      products=[r"reactivity_[\w.-]*\.json"])
     t0 = time.perf_counter()
     result = measure_campaign(args.campaign, args.policy, args.scenes, not args.no_other_seeds,
                               progress=not args.quiet, workers=args.workers)
