@@ -78,3 +78,29 @@ def test_corners_never_writes_onto_the_weights_its_config_names(tmp_path, capsys
     assert main(["corners", "--config", str(config), "--out", str(weights), "--force", "--scenes", "1"]) == 2
     assert "is this command's input" in capsys.readouterr().err
     assert weights.read_bytes() == DEFAULT_WEIGHTS.read_bytes()
+
+
+@pytest.mark.parametrize(("module", "allowed"), [
+    ("genesis_rl.__main__", False), ("genesis_rl.commands.cli", False), ("genesis_rl.benchmark.matrix", False),
+    ("genesis_rl.sut.system.builtin", True), ("genesis_rl.system.builtin", True), ("genesis_rl.loop.rules", True),
+    ("genesis_rl.adversaries.search", True), ("genesis_rl.world.knobs", True), ("evil", False)])
+def test_the_import_gate_admits_the_plugin_layers_only(module: str, allowed: bool) -> None:
+    from genesis_rl.core.plugins import gate, import_allowed
+
+    with gate([]):
+        assert import_allowed(module) is allowed
+
+
+def test_a_record_naming_the_command_line_is_refused_at_the_gate(tmp_path, capsys) -> None:
+    import json
+    import shutil
+    from pathlib import Path
+
+    record = tmp_path / "r.json"
+    shutil.copy(Path(__file__).parent / "data" / "genesis_rl_0.29.0" / "camp" / "records" / "agent_scene_0001.json",
+                record)
+    rec = json.loads(record.read_text())
+    rec["system"]["spec"] = "genesis_rl.__main__:Sys"
+    record.write_text(json.dumps(rec))
+    assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet", "--no-gif"]) == 2
+    assert "genesis_rl.__main__" in capsys.readouterr().err

@@ -47,8 +47,19 @@ def gate_held() -> bool:
     return GATE_VARIABLE in os.environ
 
 
+#: the package's layers that hold what a file may name: systems, rules, policies, backends, knobs, the env
+PLUGIN_LAYERS = ("genesis_rl.world", "genesis_rl.sim", "genesis_rl.sut", "genesis_rl.loop", "genesis_rl.env",
+                 "genesis_rl.labels", "genesis_rl.adversaries")
+
+
 def _own(module: str) -> bool:
-    return module == "genesis_rl" or module.startswith("genesis_rl.")
+    """Whether ``module`` is one of the package's plug-in layers (an old path counts as its new one). Not any
+    ``genesis_rl.*`` module: the command line (``genesis_rl.__main__``, ``genesis_rl.commands``) and the
+    stages above the adversaries are never what a file needs to name."""
+    from genesis_rl.compat import new_path
+
+    module = new_path(module) or module
+    return any(module == layer or module.startswith(layer + ".") for layer in PLUGIN_LAYERS)
 
 
 def import_allowed(module: str) -> bool:
