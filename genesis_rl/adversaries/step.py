@@ -43,7 +43,7 @@ class RandomPolicy(StepPolicy):
 class ConstantPolicy(StepPolicy):
     """The same action every step (``--constant-action``, one value in [-1, 1] per knob; default +1 on every
     knob): an open-loop schedule. +1 on fog, rain and deposits and on the sun's altitude (noon) is the
-    schedule that gives the paper agent's figures (docs/results.md): the reference a reactive agent must beat."""
+    schedule that gives the paper agent's figures (docs/results/): the reference a reactive agent must beat."""
 
     name = "constant"
     description = "the same action every step (--constant-action), an open-loop schedule"

@@ -17,7 +17,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                        description="Play a campaign's step policy closed-loop on its scenes, then its action "
                        "sequences open-loop on the next scene (and on the same scene with another episode seed); "
                        "report the gaps (closed minus open) in return, collisions and collision violation with "
-                       "bootstrap CIs and sign-flip p-values. A fixed schedule has no gap (docs/results.md).")
+                       "bootstrap CIs and sign-flip p-values. A fixed schedule has no gap (docs/results/).")
     p.add_argument("--campaign", required=True, help="campaign folder (genesis-rl evaluate --out)")
     p.add_argument("--policy", default="agent", help="step policy of the campaign: agent (default), constant, "
                    "random, sunny or package.module:Class")

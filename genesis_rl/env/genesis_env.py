@@ -467,7 +467,7 @@ class GenesisEnv(gym.Env):
         turns drawn uniformly within ``start_spread`` of its reach in an episode (its largest change per step
         times the steps) around it, then kept inside the ODD. Why: under natural dynamics a policy that
         starts every episode in clear air never sees dense fog within the paper's budget, so it cannot learn
-        what fog is worth (docs/results.md section 7). Drawn from the episode seed, so a checkpoint's
+        what fog is worth (docs/results/07-reactive-adversary-in-odd.md). Drawn from the episode seed, so a checkpoint's
         episode is rebuilt exactly."""
         c = self.config
         if c.start_spread <= 0:

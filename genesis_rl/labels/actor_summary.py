@@ -17,7 +17,7 @@ import numpy as np
 
 #: UN R157's longest boundary time-to-collision [s] (at 60 km/h of relative speed)
 R157_BOUNDARY_TTC_S = 1.64
-#: a cut-in at or under this time-to-collision [s] is a short one (docs/results.md sections 10 and 11)
+#: a cut-in at or under this time-to-collision [s] is a short one (docs/results/10-other-road-users-blame.md and 11)
 SHORT_CUT_IN_TTC_S = 4.0
 #: UN R157 Annex 4 Appendix 3: relative speed [km/h] -> the shortest cut-in time-to-collision [s] a careful
 #: driver handles

@@ -30,7 +30,7 @@ CUT_IN_TTC_WINDOW = 0.25
 #: cutter has moved this far toward the ego's lane
 CUT_IN_WANDER_M = 0.375
 #: how long [s] after a cut-in's onset a careful driver can perceive it (the cutter has wandered ``CUT_IN_WANDER_M``):
-#: lite's lane change, median of the 38 cut-ins of docs/results.md section 11 (quartiles 0.25 and 0.35 s). A
+#: lite's lane change, median of the 38 cut-ins of docs/results/11-cut-ins-r157.md (quartiles 0.25 and 0.35 s). A
 #: cut-in starts this much before its gap closes to the ``cut_in_ttc`` asked, so that the knob is R157's
 #: time-to-collision, taken at the perceivable moment, not at the onset
 CUT_IN_PERCEIVE_AFTER_S = 0.3
