@@ -88,8 +88,8 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
     assert {m.odd for m in ZOO.values()} == set(shipped)
     for name in shipped:
         load_odd(ODD_DIR / name, model)
-    # the highway weakness's domain is the one docs/results/07-reactive-adversary-in-odd.md measured in; the control's is it with
-    # the sun at least 15 deg up, and nothing else changed
+    # the highway weakness's domain is the one docs/results/07-reactive-adversary-in-odd.md measured in; the
+    # control's is it with the sun at least 15 deg up, and nothing else changed
     ours, theirs = load_odd(ODD_DIR / "highway_day.toml").describe(), load_odd(ROOT / "configs/odd/highway_day.toml")
     assert ours == theirs.describe()
     high = load_odd(ODD_DIR / "highway_high_sun.toml").describe()

@@ -112,7 +112,8 @@ _BUILTIN_HIGHWAY = ZooMember(
     name="builtin_highway", kind="control", system="builtin", odd="highway_high_sun.toml", map="highway",
     summary=("The built-in system on the highway inside highway_high_sun: highway_day with the sun at least 15 "
              "deg up, the light its detector's data held. No adversary found a weather failure of it there under "
-             "natural dynamics in 50 scenes that started at noon (docs/results/06-natural-edge-cases.md and 07-reactive-adversary-in-odd.md). Its one in-ODD "
+             "natural dynamics in 50 scenes that started at noon (docs/results/06-natural-edge-cases.md and "
+             "07-reactive-adversary-in-odd.md). Its one in-ODD "
              "collision there (scene 39) is weather-independent: sunny has it too and the oracle replay crashes "
              "as well. A control: every in-ODD failure an adversary reports on it is a false alarm candidate."),
     trigger=EMPTY,
