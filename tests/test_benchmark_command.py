@@ -69,18 +69,26 @@ def test_bad_benchmark_input_is_refused_naming_the_field(tmp_path):
         run_benchmark(BenchmarkSpec(members=("low_sun",), policies=("sunny",)), damaged, resume=True, progress=False)
 
 
-@pytest.fixture(scope="module")
-def blind_benchmark(tmp_path_factory) -> Iterator[tuple[BenchmarkSpec, Path]]:
-    """blind_highway (a weakness) and oracle_highway (a control), sunny and random, 2 trials of 2 scenes."""
+@pytest.fixture(scope="session")
+def _blind_benchmark_built(tmp_path_factory) -> tuple[BenchmarkSpec, Path]:
+    """blind_highway (a weakness) and oracle_highway (a control), sunny and random, 2 trials of 2 scenes: built
+    once a session (the tests copy what they change)."""
     zoo.ZOO[BLIND.name] = BLIND
     try:  # the registry is shared by the worker's other tests: never leave the test member in it
         spec = BenchmarkSpec(members=("blind_highway", "oracle_highway"), policies=("sunny", "random"), trials=2,
                              scenes=2, steps=120)
         out = tmp_path_factory.mktemp("bench") / "b"
         run_benchmark(spec, out, progress=False)
-        yield spec, out
+        return spec, out
     finally:
         zoo.ZOO.pop(BLIND.name, None)
+
+
+@pytest.fixture
+def blind_benchmark(_blind_benchmark_built, monkeypatch) -> Iterator[tuple[BenchmarkSpec, Path]]:
+    """The built benchmark, with its test member in the zoo for this test only."""
+    monkeypatch.setitem(zoo.ZOO, BLIND.name, BLIND)
+    yield _blind_benchmark_built
 
 
 def test_the_leaderboard_pools_the_campaigns_metrics(blind_benchmark):

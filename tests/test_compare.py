@@ -11,7 +11,7 @@ import pytest
 from genesis_rl.commands.cli import main
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory):
     root = tmp_path_factory.mktemp("compare")
     common = ["--scenes", "3", "--steps", "40", "--seed", "4", "--no-report", "--quiet", "--workers", "1"]

@@ -57,7 +57,7 @@ def held_out(attack: Path) -> list[str]:
     return ["--test-catalog", str(attack.parent / "held_out.json")]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def attack(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("harden")
     (tmp / "low_sun.toml").write_text(CONFIG)
@@ -71,7 +71,7 @@ def attack(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def hardened(attack: Path) -> Path:
     out = attack.parent / "hard"
     assert main(["harden", str(attack), "--out", str(out), *SMALL, *held_out(attack)]) == 0
