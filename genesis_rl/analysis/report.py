@@ -31,6 +31,7 @@ from genesis_rl.adversaries.agent import agent_learning_curve
 from genesis_rl.analysis.estimate_files import check_same_system, estimate_line, load_estimate
 from genesis_rl.analysis.report_natural import section as natural_section
 from genesis_rl.campaigns.campaign_files import read_step_records, read_steps, steps_path
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files.io_utils import os_error_message
@@ -206,7 +207,7 @@ def fig_telemetry(records: list[StepRecord], failure: dict[str, Any], title: str
 
 
 def frame_strip(folder: Path, policy: str, scene: int, records: list[StepRecord], n: int = 6) -> str | None:
-    paths = sorted((folder / "frames" / policy / f"scene_{scene:04d}").glob("step_*.jpg"))
+    paths = sorted(CampaignFolder(folder).frames(policy, scene).glob("step_*.jpg"))
     if not paths:
         return None
     by_step = {r.step: r for r in records}
@@ -294,7 +295,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     from genesis_rl.core.files.output_paths import check_inputs, is_stdout, output_file
 
     folder = Path(folder)
-    given = out if out else folder / "report.html"
+    given = out if out else CampaignFolder(folder).report
     inputs = [folder, estimate]  # the report may not land on what it reads (an estimate's files included)
     check_inputs(given, inputs, products=REPORT_PRODUCTS)  # before "pass --force", which would not help
     if not is_stdout(given) and Path(given).exists() and not Path(given).is_symlink() and not force:

@@ -9,11 +9,12 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
+from genesis_rl.campaigns.layout import CampaignFolder
 
 
 def finished(folder: Path) -> bool:
     """Whether the campaign in ``folder`` ran to its end (its spec and its summary are written)."""
-    return (folder / "campaign.json").exists() and (folder / "summary.json").exists()
+    return CampaignFolder(folder).is_finished()
 
 
 def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1, executor: Any = None) -> None:
@@ -22,7 +23,7 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
     and the zoo sweep's values are each one such campaign."""
     from genesis_rl.campaigns.campaign import run_campaign
 
-    started = (folder / "campaign.json").exists()
+    started = CampaignFolder(folder).is_started()
     if finished(folder):
         return
     if folder.exists() and not started:

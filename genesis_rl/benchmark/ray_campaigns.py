@@ -23,6 +23,7 @@ from typing import Any
 
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.campaigns.executors import RayEpisodeScheduler, folder_files, write_files
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.files.io_utils import atomic_write_text
 from genesis_rl.core.signals import deferred_signals
 from genesis_rl.distributed.settings import ExecutorSettings
@@ -31,7 +32,7 @@ from genesis_rl.distributed.settings import ExecutorSettings
 #: answer), and the files a half-run campaign left there (relative path -> bytes; empty for a new one)
 CampaignJob = tuple[dict[str, Any], str, dict[str, bytes]]
 #: files the driver writes itself once the campaign is installed (they name the folder, or mark it finished)
-DRIVER_WRITES = ("summary.json", "episodes.csv")
+DRIVER_WRITES = (CampaignFolder.SUMMARY, CampaignFolder.EPISODES_CSV)
 
 
 def _describe(job: CampaignJob) -> str:
@@ -88,7 +89,7 @@ def install(folder: Path, files: dict[str, bytes]) -> None:
             os.replace(folder, old)  # a half-run campaign's files, which its actor resumed from
         os.replace(incoming, folder)
         shutil.rmtree(old, ignore_errors=True)
-        times = folder / "run_time.json"
+        times = CampaignFolder(folder).run_time
         if times.exists():  # the actor ran it as one local worker; say where it ran
             record = {**json.loads(times.read_text()), "executor": "ray (a campaign per actor)"}
             atomic_write_text(times, json.dumps(record))

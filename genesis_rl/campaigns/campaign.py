@@ -24,6 +24,7 @@ from genesis_rl.campaigns.campaign_folder import Task, prepare_campaign
 from genesis_rl.campaigns.campaign_spec import CampaignSpec, env_settings_for, pick_scenes, run_folder_of
 from genesis_rl.campaigns.episodes import CampaignRunner, episode_row
 from genesis_rl.campaigns.executors import WorkerSetup, run_tasks
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.summary import summarize_campaign
 from genesis_rl.campaigns.worker import plugin_modules
 from genesis_rl.core.files import output_folder
@@ -57,7 +58,7 @@ def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, 
             bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")
             bar.update()
     except BaseException as err:
-        done = sum(1 for _ in (folder / "episodes").glob("*/*.json"))
+        done = sum(1 for _ in (CampaignFolder(folder).root / CampaignFolder.EPISODES).glob("*/*.json"))
         if not resume and not done:
             # no episode finished (e.g. the agent's env settings are invalid): leave no folder behind that a
             # corrected re-run would need --force to replace
@@ -75,7 +76,7 @@ def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, 
     summary["run_seconds"] = round(time.perf_counter() - t0, 1)
     summary["workers"] = settings.workers
     summary["executor"] = settings.kind
-    atomic_write_text(folder / "run_time.json", json.dumps({"seconds": summary["run_seconds"],
+    atomic_write_text(CampaignFolder(folder).run_time, json.dumps({"seconds": summary["run_seconds"],
                                                            "workers": settings.workers, "executor": settings.kind,
                                                            "episodes_run": len(tasks), "cpus": os.cpu_count()}))
     return summary

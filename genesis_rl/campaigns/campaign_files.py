@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.campaigns.layout import CampaignFolder, episode_name  # noqa: F401  (episode_name: read here)
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.parsing import read_json
 from genesis_rl.world.step_record import StepRecord, from_rows
@@ -23,16 +24,12 @@ REMEDY = ("delete it and run genesis-rl evaluate --resume with the campaign's ar
           "again), or start over with --force")
 
 
-def episode_name(scene: int) -> str:
-    return f"scene_{scene:04d}"
-
-
 def episode_path(folder: Path, policy: str, scene: int) -> Path:
-    return Path(folder) / "episodes" / policy / f"{episode_name(scene)}.json"
+    return CampaignFolder(folder).episode(policy, scene)
 
 
 def steps_path(folder: Path, policy: str, scene: int) -> Path:
-    return Path(folder) / "steps" / policy / f"{episode_name(scene)}.parquet"
+    return CampaignFolder(folder).steps(policy, scene)
 
 
 def _damaged(path: Path, what: str) -> UserInputError:
@@ -77,7 +74,7 @@ AGENT_RUN_FILES = ("agent.zip", "checkpoints/last.zip", "config.toml", "run.json
 def read_campaign_meta(folder: Path) -> dict[str, Any]:
     """``campaign.json``, checked for the fields that summaries, reports, exports and resumption read."""
     folder = Path(folder)
-    path = folder / "campaign.json"
+    path = CampaignFolder(folder).meta
     if not folder.exists():
         raise UserInputError(f"campaign folder '{folder}' does not exist")
     if not folder.is_dir():

@@ -38,6 +38,7 @@ from genesis_rl.campaigns.campaign_files import (
     steps_path,
 )
 from genesis_rl.campaigns.campaign_spec import CampaignSpec, check_spec, pick_scenes
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
 from genesis_rl.core.files.hashing import file_sha256
@@ -78,7 +79,7 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
     """Create (or reopen) the campaign folder; return the tasks still to run."""
     check_spec(spec)
     ensure_folder_path(folder)
-    meta = folder / "campaign.json"
+    meta = CampaignFolder(folder).meta
     identity = campaign_identity(spec)
     if resume:
         if not meta.is_file():
@@ -115,13 +116,13 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         commit = git_commit()
         with deferred_signals():  # the folder with its catalog and campaign.json, so --resume can take it up
             output_folder.replace(folder, "campaign")
-            catalog.save(folder / "catalog.json")
+            catalog.save(CampaignFolder(folder).catalog)
             atomic_write_json(meta, {"schema": CAMPAIGN_SCHEMA, "version": CAMPAIGN_VERSION,
                                      "package_version": __version__, "git_commit": commit, "spec": spec.to_json(),
                                      "scenes": pairs, "identity": identity,
                                      "catalog": {"map": catalog.map, "seed": catalog.seed,
                                                  "scenes": len(catalog.scenes),
-                                                  "sha256": file_sha256(folder / "catalog.json")},
+                                                  "sha256": file_sha256(CampaignFolder(folder).catalog)},
                                      "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=2)
     return [(p, s, e) for p in spec.policies for s, e in pairs if not episode_done(folder, p, s, resume)]
 
@@ -132,7 +133,7 @@ def _check_catalog_pin(folder: Path, saved: Any) -> None:
     pinned = saved.get("sha256") if isinstance(saved, dict) else None
     if pinned is None:
         return
-    path = folder / "catalog.json"
+    path = CampaignFolder(folder).catalog
     found = file_sha256(path) if path.is_file() else None
     if found != pinned:
         raise UserInputError(f"--resume: '{path}' {'changed' if found else 'is missing'} since the campaign began "

@@ -19,6 +19,7 @@ from PIL import Image
 from genesis_rl.adversaries import EpisodeOutcome
 from genesis_rl.campaigns.campaign_files import episode_name, episode_path, steps_path
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.records import make_record, save_record
 from genesis_rl.core.config import from_mapping
 from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
@@ -44,7 +45,7 @@ class CampaignRunner:
 
     def __init__(self, spec: CampaignSpec, folder: Path, env_settings: dict[str, Any] | None = None) -> None:
         # env_settings: this worker's own (e.g. its CARLA server, genesis_rl.distributed.servers)
-        env_cfg = {**spec.env, **(env_settings or {}), "catalog": str(folder / "catalog.json"),
+        env_cfg = {**spec.env, **(env_settings or {}), "catalog": str(CampaignFolder(folder).catalog),
                    "episode_steps": spec.steps}
         self.config = from_mapping(EnvConfig, env_cfg, "env")
         self.env = GenesisEnv(self.config)
@@ -141,11 +142,11 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     if lost:
         row["simulator_lost"] = list(lost)
     for step, rgb in sorted(outcome.frames.items()):
-        write_jpeg(folder / "frames" / policy / name / f"step_{step:04d}.jpg", rgb)
+        write_jpeg(CampaignFolder(folder).frames_dir / policy / name / f"step_{step:04d}.jpg", rgb)
     failed = row["collision_events"] > 0 or any(row["violations"][r.name] > 0 for r in env.rulebook.rules if r.in_total)
     if spec.records == "all" or failed:
         record = make_record(spec, runner, policy, scene, episode_seed, records, row, outcome.start)
-        save_record(folder / "records" / f"{policy}_{name}.json", record)
+        save_record(CampaignFolder(folder).records_dir / f"{policy}_{name}.json", record)
         row["record"] = f"records/{policy}_{name}.json"
     atomic_write_json(episode_path(folder, policy, scene), row, indent=1)  # last: marks it done
     return row

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.campaigns.campaign_files import read_campaign_meta, read_episode_row, read_step_records, steps_path
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.files.io_utils import atomic_write_json, atomic_write_text
 from genesis_rl.core.files.spreadsheet import safe_rows
 from genesis_rl.core.stats import bootstrap_mean_ci, paired_comparison
@@ -52,7 +53,7 @@ def load_campaign(folder: Path) -> tuple[dict[str, Any], dict[str, list[dict[str
     meta = read_campaign_meta(folder)
     rows: dict[str, list[dict[str, Any]]] = {}
     for policy in meta["spec"]["policies"]:
-        files = sorted((folder / "episodes" / policy).glob("scene_*.json"))
+        files = sorted(CampaignFolder(folder).policy_episodes(policy).glob("scene_*.json"))
         rows[policy] = [_current_labels(folder, policy, f) for f in files]
     return meta, rows
 
@@ -147,8 +148,8 @@ def write_summary_files(folder: Path, summary: dict[str, Any], rows: dict[str, l
     for eps in rows.values():
         w.writerows(safe_rows(eps))  # a shared campaign's text must not run as a spreadsheet formula
     written = []
-    for path, text in ((folder / "summary.json", json.dumps(summary, indent=2)),
-                       (folder / "episodes.csv", buf.getvalue())):
+    for path, text in ((CampaignFolder(folder).summary, json.dumps(summary, indent=2)),
+                       (CampaignFolder(folder).episodes_csv, buf.getvalue())):
         if not _holds(path, text):
             atomic_write_text(path, text)
             written.append(path)

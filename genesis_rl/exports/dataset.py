@@ -20,6 +20,7 @@ from typing import Any
 from PIL import Image
 
 from genesis_rl.campaigns.campaign_files import REMEDY, read_steps, steps_path
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.summary import load_campaign
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
@@ -36,7 +37,7 @@ MIN_HEIGHT = 5.0  # [px]
 def _frames(folder: Path) -> list[tuple[str, int, int, Path]]:
     """(policy, scene, step, path) of every kept frame."""
     out = []
-    for path in sorted((folder / "frames").glob("*/scene_*/step_*.jpg")):
+    for path in sorted(CampaignFolder(folder).frames_dir.glob("*/scene_*/step_*.jpg")):
         policy = path.parent.parent.name
         scene = int(path.parent.name.split("_")[1])
         step = int(path.stem.split("_")[1])

@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.errors import UserInputError
 
 #: in-ODD step labels (a failure's ``odd_status``): the closest approach must be inside the ODD or on its boundary
@@ -84,7 +85,7 @@ def render_frames(folder: Path, misses: Mapping[tuple[str, int], Mapping[str, fl
                                       disable=not progress):
         step = int(miss["step"])
         name = f"{policy}_scene_{scene:04d}"
-        path = folder / "records" / f"{name}.json"
+        path = CampaignFolder(folder).records_dir / f"{name}.json"
         if not path.is_file():  # a campaign with records = "failures" writes none for a conflict without proximity
             unrecorded.append(name)
             continue
@@ -99,7 +100,7 @@ def render_frames(folder: Path, misses: Mapping[tuple[str, int], Mapping[str, fl
             continue
         for rec_step, rgb in zip(replay["records"], replay["frames"], strict=True):
             if step - frames_before <= rec_step.step <= step and (step - rec_step.step) % stride == 0:
-                write_jpeg(out / "frames" / policy / f"scene_{scene:04d}" / f"step_{rec_step.step:04d}.jpg", rgb)
+                write_jpeg(CampaignFolder(out).frames(policy, scene) / f"step_{rec_step.step:04d}.jpg", rgb)
         written.append(name)
     if departed and not written:
         raise UserInputError(f"no near miss of '{folder}' replayed as the campaign recorded it "

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
 from genesis_rl.core.files.io_utils import atomic_write_json
@@ -182,12 +183,12 @@ def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None
     from genesis_rl.campaigns.campaign_spec import CampaignSpec
     from genesis_rl.core.files.io_utils import remove_tree
 
-    if (folder / "campaign.json").is_file():
+    if CampaignFolder(folder).meta.is_file():
         recorded = CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).to_json()
         if recorded != campaign_spec.to_json():
             remove_tree(folder)
-    if not (folder / "summary.json").is_file():
-        run_campaign(campaign_spec, folder, workers=workers, resume=(folder / "campaign.json").is_file(),
+    if not CampaignFolder(folder).summary.is_file():
+        run_campaign(campaign_spec, folder, workers=workers, resume=CampaignFolder(folder).meta.is_file(),
                      progress=progress)
 
 

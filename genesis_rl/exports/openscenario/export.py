@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files.io_utils import atomic_write_json, atomic_write_text
 from genesis_rl.core.parsing import read_json
@@ -58,7 +59,7 @@ def failing_records(folder: Path, every: bool = False) -> list[Path]:
     """A campaign's records of failing episodes (``every``: all its records), or the one record file given."""
     if folder.is_file():
         return [folder]
-    records = folder / "records"
+    records = CampaignFolder(folder).records_dir
     if not records.is_dir():
         raise UserInputError(f"'{folder}' is neither a record file nor a campaign folder with records/ "
                              "(campaigns keep a record of every failing episode there)")
