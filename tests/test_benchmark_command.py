@@ -334,3 +334,17 @@ def test_the_page_shows_a_members_failure_rate_estimate_beside_its_failures(blin
     with pytest.raises(UserInputError):  # never onto the estimate it reads, --force or not
         build_report(campaign_folder(copy, "oracle_highway", 0), est / "estimate.json", force=True, estimate=est)
     assert (est / "estimate.json").read_text() == kept
+
+
+def test_resume_refuses_a_finished_trial_whose_campaign_was_edited(blind_benchmark, tmp_path):
+    """An edited spec inside a kept trial (a policy dropped) had been accepted, and the leaderboard silently lost
+    the trial; the resumed benchmark now names the file."""
+    spec, out = blind_benchmark
+    cut = tmp_path / "cut"
+    shutil.copytree(out, cut)
+    edited = campaign_folder(cut, "blind_highway", 1) / "campaign.json"
+    meta = json.loads(edited.read_text())
+    meta["spec"]["policies"] = ["sunny"]
+    edited.write_text(json.dumps(meta))
+    with pytest.raises(UserInputError, match=r"campaign.json' holds other settings than this trial's \(policies\)"):
+        run_benchmark(spec, cut, resume=True, progress=False)

@@ -22,9 +22,11 @@ def run_campaign_once(campaign: CampaignSpec, folder: Path, *, workers: int = 1,
     episodes, and a folder left before the campaign wrote its spec (ours) starts again. The benchmark's trials
     and the zoo sweep's values are each one such campaign."""
     from genesis_rl.campaigns.campaign import run_campaign
+    from genesis_rl.campaigns.campaign_folder import check_finished_campaign
 
     started = CampaignFolder(folder).is_started()
     if finished(folder):
+        check_finished_campaign(campaign, folder)
         return
     if folder.exists() and not started:
         shutil.rmtree(folder)

@@ -24,6 +24,7 @@ from typing import Any
 from tqdm import tqdm
 
 from genesis_rl.benchmark.campaign_once import finished, run_campaign_once
+from genesis_rl.campaigns.campaign_folder import check_finished_campaign
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
@@ -270,6 +271,9 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                  campaign_folder(out, m, t) if run is None else agent_campaign_folder(out, m, t, run))
                 for m, t, run in cells]
         bar = tqdm(total=len(jobs), desc="benchmark", unit="campaign", disable=not progress)
+        for campaign, folder in jobs:  # a kept campaign must be this trial's: an edited one is refused, named
+            if finished(folder):
+                check_finished_campaign(campaign, folder)
         todo = [(c, f) for c, f in jobs if not finished(f)]
         bar.update(len(jobs) - len(todo))
         if parallel_mode(parallel, workers, executor, len(todo)) == "campaigns":

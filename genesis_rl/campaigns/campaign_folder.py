@@ -74,6 +74,26 @@ def campaign_identity(spec: CampaignSpec) -> dict[str, Any]:
     return identity
 
 
+def spec_differences(saved: Any, spec: CampaignSpec) -> list[str]:
+    """The settings in which a campaign.json's ``spec`` differs from ``spec`` (the agent is compared by its
+    file's hash, in the identity, not by how its path was spelled)."""
+    now = json.loads(json.dumps(spec.to_json()))
+    saved = saved if isinstance(saved, dict) else {}
+    return sorted(k for k in now if k != "agent" and saved.get(k) != now[k])
+
+
+def check_finished_campaign(spec: CampaignSpec, folder: Path) -> None:
+    """A finished campaign that a resumed benchmark or sweep keeps must be the one it would run: an edited
+    ``spec`` (a policy dropped, other scenes) would silently change the leaderboard."""
+    from genesis_rl.campaigns.campaign_files import read_campaign_meta
+
+    diff = spec_differences(read_campaign_meta(folder)["spec"], spec)
+    if diff:
+        raise UserInputError(f"--resume: '{CampaignFolder(folder).meta}' holds other settings than this trial's "
+                             f"({', '.join(diff)}): it was edited, or belongs to another run; delete the folder "
+                             f"'{folder}' (it runs again) or start over with --force")
+
+
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,
                      progress: bool = True) -> list[Task]:
     """Create (or reopen) the campaign folder; return the tasks still to run."""
@@ -91,9 +111,7 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         if changed:
             raise UserInputError(f"--resume: {', '.join(changed)} changed since the campaign in '{folder}' began "
                                  "(results would mix); pass --force to start over")
-        now = json.loads(json.dumps(spec.to_json()))
-        # the agent is compared by its file's hash (in the identity above), not by how its path was spelled
-        diff = sorted(k for k in now if k != "agent" and saved.get("spec", {}).get(k) != now[k])
+        diff = spec_differences(saved.get("spec", {}), spec)
         if diff:
             raise UserInputError(f"--resume: the campaign in '{folder}' was run with other settings "
                                  f"({', '.join(diff)}); pass the same arguments, or --force to start over")
