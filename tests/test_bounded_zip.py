@@ -43,3 +43,19 @@ def test_a_directory_that_understates_a_member_stops_at_the_stated_size(tmp_path
     path.write_bytes(bytes(raw))
     with zipfile.ZipFile(path) as z, pytest.raises((UserInputError, zipfile.BadZipFile)):
         read_members(z, ["policy.pth"], "agent a.zip")
+
+
+def test_a_steps_file_claiming_more_rows_than_an_episode_has_is_refused_before_it_is_read(tmp_path) -> None:
+    """A 1.3 MB steps Parquet of 2.1 million rows had made export use 5.9 GB: the footer's count is checked first."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from genesis_rl.campaigns.campaign_files import read_steps
+    from genesis_rl.core import limits
+
+    path = tmp_path / "scene_0000.parquet"
+    pq.write_table(pa.table({"step": pa.array(range(limits.SIM_STEPS.value() + 2))}), path)
+    with pytest.raises(UserInputError, match=r"claims 100,002 step rows; an episode has at most 100,001"):
+        read_steps(path)
+    pq.write_table(pa.table({"step": pa.array(range(71))}), path)
+    assert len(read_steps(path)) == 71

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from genesis_rl.campaigns.layout import CampaignFolder, episode_name  # noqa: F401  (episode_name: read here)
+from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.parsing import read_json
 from genesis_rl.world.step_record import StepRecord, from_rows
@@ -178,6 +179,11 @@ def read_steps(path: Path, columns: list[str] | None = None) -> list[dict[str, A
     if not path.is_file():
         raise UserInputError(f"steps file '{path}' is missing; {REMEDY}")
     try:
+        rows = pq.ParquetFile(path).metadata.num_rows  # the footer's count, read before any row
+        most = limits.SIM_STEPS.value() + 1  # an episode's steps and its start
+        if rows > most:
+            raise _damaged(path, f"it claims {rows:,} step rows; an episode has at most {most:,} "
+                                 f"({limits.SIM_STEPS.variable} raises the limit)")
         if columns is not None:
             present = set(pq.read_schema(path).names)
             columns = [c for c in columns if c in present]
