@@ -65,6 +65,40 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
 }
 
 
+#: inside the folders genesis-rl fills itself, the paths (relative to that folder) of the files it writes there:
+#: ``--force`` names anything else it finds below them and refuses, so a user's notes in RUN/checkpoints/ or an
+#: analysis in CAMPAIGN/records/ are never deleted with the folder
+OWN_FILES: dict[tuple[str, str], str] = {
+    ("run", "checkpoints"): r"step_\d{8}\.(zip|sb3\.npz|state\.json|replay\.npz|replay\.pkl)|last\.(zip|json)",
+    ("run", "tb"): r"(\w+_\d+/)?events\.out\.tfevents\.[^/]+|progress\.csv",
+    ("campaign", "episodes"): r"[^/]+/scene_\d{4}\.json",
+    ("campaign", "steps"): r"[^/]+/scene_\d{4}\.parquet",
+    ("campaign", "frames"): r"[^/]+/scene_\d{4}/step_\d{4}\.jpg",
+    ("campaign", "records"): r"[^/]+_scene_\d{4}\.json",
+    ("export", "images"): r"[^/]+_scene\d{4}_step\d{4}\.jpg",
+    ("export", "labels"): r"[^/]+_scene\d{4}_step\d{4}\.txt",
+    ("export", "scenarios"): r"[^/]+\.(xosc|xodr)",
+}
+
+
+def _foreign_files(folder: Path, kind: str, sub: str) -> list[str]:
+    """The files (and links) below ``folder/sub`` that genesis-rl does not write there, as ``sub/rel``."""
+    pattern = re.compile(OWN_FILES[kind, sub])
+    root = folder / sub
+    out = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        names = filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]
+        for name in names:
+            rel = os.path.relpath(os.path.join(dirpath, name), root).replace(os.sep, "/")
+            temporary = re.fullmatch(r"\.(.+)\.[A-Za-z0-9_]{8}.*", name)  # an atomic write's temporary
+            head = rel.rpartition("/")[0]
+            if pattern.fullmatch(rel) or (temporary and pattern.fullmatch(
+                    (head + "/" if head else "") + temporary.group(1))):
+                continue
+            out.append(f"{sub}/{rel}")
+    return out
+
+
 def _own(kind: str, name: str) -> bool:
     """Whether a top-level entry of a ``kind`` folder is one genesis-rl writes (or a temporary of one)."""
     patterns = OWN_ENTRIES.get(kind, ())
@@ -77,8 +111,12 @@ def foreign_entries(folder: Path, kind: str) -> list[str]:
     in '/'), sorted; empty for other kinds."""
     if kind not in OWN_ENTRIES:
         return []
-    return sorted(p.name + ("/" if p.is_dir() and not p.is_symlink() else "") for p in Path(folder).iterdir()
-                  if not _own(kind, p.name))
+    folder = Path(folder)
+    top = [p.name + ("/" if p.is_dir() and not p.is_symlink() else "") for p in folder.iterdir()
+           if not _own(kind, p.name)]
+    inside = [f for (k, sub) in OWN_FILES if k == kind and (folder / sub).is_dir() and not (folder / sub).is_symlink()
+              for f in _foreign_files(folder, kind, sub)]
+    return sorted(top + inside)
 
 
 #: the files that drive and render write: a marker-less folder holding only these is one of theirs (0.4.0)
