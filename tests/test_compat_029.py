@@ -79,3 +79,16 @@ def test_a_029_record_replays(old: Path, tmp_path: Path) -> None:
     assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet", "--no-gif"]) == 0
     rep = json.loads((tmp_path / "r" / "replay.json").read_text())
     assert rep["reproduced"] and rep["steps"] == 10
+
+
+def test_the_029_campaign_loads_as_typed_data(old: Path) -> None:
+    from genesis_rl.campaigns.loaded import EpisodeRow, load_typed_campaign
+
+    campaign = load_typed_campaign(old / "camp")
+    assert campaign.policies == ("agent", "random") and campaign.package_version == "0.29.0"
+    assert campaign.scenes == ((1, 1121323793), (2, 2103381652)) and campaign.episode_count() == 4
+    row = campaign.episodes["agent"][0]
+    assert isinstance(row, EpisodeRow) and (row.scene, row.episode_seed, row.steps) == (1, 1121323793, 10)
+    assert row["return"] == row.episode_return == 10.0 and not row.collided  # a mapping and typed at once
+    with pytest.raises(TypeError):
+        row.fields["scene"] = 3  # type: ignore[index]  # read-only

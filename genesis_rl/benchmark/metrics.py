@@ -29,7 +29,7 @@ from typing import Any
 
 from genesis_rl.adversaries.base import in_odd_failure_at
 from genesis_rl.benchmark.survival import kaplan_meier, median_time
-from genesis_rl.campaigns.campaign_files import read_step_records, steps_path
+from genesis_rl.campaigns.campaign_files import read_step_records
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.stats import clopper_pearson
 from genesis_rl.labels.distinct import KEY_FIELDS, natural_summary
@@ -199,15 +199,15 @@ def check_campaign_member(folder: Path, meta: Mapping[str, Any], member: ZooMemb
 def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, PolicyMetrics]:
     """Every policy's figures in the campaign ``folder`` run on ``member`` (a member or its name), over its
     finished episodes."""
-    from genesis_rl.campaigns.summary import load_campaign  # local: the summary's imports are heavy
+    from genesis_rl.campaigns.loaded import load_typed_campaign  # local: the summary's imports are heavy
 
     m = zoo_member(member) if isinstance(member, str) else member
     folder = Path(folder)
-    meta, rows = load_campaign(folder)
-    check_campaign_member(folder, meta, m)
+    campaign = load_typed_campaign(folder)
+    check_campaign_member(folder, dict(campaign.meta), m)
     out: dict[str, PolicyMetrics] = {}
-    for policy, eps in rows.items():
-        trials = [trial_of(r["scene"], read_step_records(steps_path(folder, policy, r["scene"])), m.trigger, r)
+    for policy, eps in campaign.episodes.items():
+        trials = [trial_of(r.scene, read_step_records(campaign.folder.steps(policy, r.scene)), m.trigger, r)
                   for r in eps]
         out[policy] = policy_metrics(policy, m, trials, eps)
     return out
