@@ -43,24 +43,24 @@ def closest_approach(rows: Sequence[Mapping[str, Any]]) -> tuple[int, float] | N
 def near_misses(folder: Path, ttc_s: float) -> dict[tuple[str, int], dict[str, float]]:
     """The campaign's in-ODD near misses: (policy, scene) -> {step, ttc, gap, ego_speed} at the closest approach of
     each collision-free episode whose time to collision fell to ``ttc_s`` or below (0: none are looked for)."""
-    from genesis_rl.campaigns.campaign_files import read_steps, steps_path
-    from genesis_rl.campaigns.summary import load_campaign
+    from genesis_rl.campaigns.campaign_files import read_steps
+    from genesis_rl.campaigns.loaded import load_typed_campaign
 
     if ttc_s <= 0:
         return {}
-    _, rows = load_campaign(folder)
+    campaign = load_typed_campaign(folder)
     found: dict[tuple[str, int], dict[str, float]] = {}
-    for policy, episodes in rows.items():
+    for policy, episodes in campaign.episodes.items():
         for ep in episodes:
-            if ep.get("first_collision_step") is not None:  # a failure, not a near miss
+            if ep.collided:  # a failure, not a near miss
                 continue
-            steps = read_steps(steps_path(folder, policy, int(ep["scene"])),
+            steps = read_steps(campaign.folder.steps(policy, ep.scene),
                                columns=["step", "true_lead_distance", "ego_speed", "lead_speed", "odd_status"])
             closest = closest_approach(steps)
             if closest is not None and closest[1] <= ttc_s:
                 row = next(r for r in steps if r["step"] == closest[0])
                 # the gap and speed there: what the replay must reproduce (render_frames)
-                found[(policy, int(ep["scene"]))] = {"step": closest[0], "ttc": round(closest[1], 3),
+                found[(policy, ep.scene)] = {"step": closest[0], "ttc": round(closest[1], 3),
                                                      "gap": float(row["true_lead_distance"]),
                                                      "ego_speed": float(row["ego_speed"])}
     return found

@@ -195,14 +195,15 @@ def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None
 def in_odd_failures(folder: Path) -> dict[str, Any]:
     """The campaign's in-ODD failures: the episodes, their count and rate (exact 95 % CI) over every episode of
     every policy, the distinct ones, and the (policy, scene) -> impact step of each."""
-    from genesis_rl.campaigns.summary import load_campaign
+    from genesis_rl.campaigns.loaded import load_typed_campaign
     from genesis_rl.core.stats import clopper_pearson
     from genesis_rl.labels.distinct import clusters, failure_of
 
-    _, rows = load_campaign(folder)
-    episodes = sum(len(eps) for eps in rows.values())
+    campaign = load_typed_campaign(folder)
+    rows = campaign.episodes
+    episodes = campaign.episode_count()
     failures = [failure_of(r, p) for p, eps in rows.items() for r in eps
-                if r.get("failure") and r["failure"].get("odd_status") in IN_ODD]
+                if r.failure and r.failure.get("odd_status") in IN_ODD]
     if episodes and not any("odd" in r for eps in rows.values() for r in eps):
         raise UserInputError(f"campaign '{folder}' has no ODD labels (run it with an ODD, e.g. a zoo member's "
                              "config): harden takes the in-ODD failures")
