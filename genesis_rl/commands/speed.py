@@ -299,21 +299,21 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "campaign: episodes/minute per executor and worker count; catalog: seconds to save, "
                         "parse and load a scene catalog (every env pays the load)")
     p.add_argument("--executors", default=None,
-                   help="bench campaign: comma list of local, ray (default both); bench train: local or ray "
+                   help="speed campaign: comma list of local, ray (default both); speed train: local or ray "
                         "(where the envs run, default local)")
-    p.add_argument("--workers", default="1,2", help="bench campaign: comma list of worker counts")
+    p.add_argument("--workers", default="1,2", help="speed campaign: comma list of worker counts")
     p.add_argument("--scenes", type=int, default=None,
-                   help="bench campaign: episodes per run (highway scenes, default 8); bench catalog: scenes per "
+                   help="speed campaign: episodes per run (highway scenes, default 8); speed catalog: scenes per "
                         "catalog (default 1200, as the estimate's free-flow highway catalog)")
     p.add_argument("--steps", type=int, default=None,
                    help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, "
                         "2048)")
     p.add_argument("--config", default=None,
-                   help="bench train: the training config (default: the paper's values, configs/paper.toml)")
-    p.add_argument("--envs", type=int, default=2, help="bench train: env processes (default 2)")
-    p.add_argument("--updates", type=int, default=2, help="bench train: PPO updates to time (default 2)")
+                   help="speed train: the training config (default: the paper's values, configs/paper.toml)")
+    p.add_argument("--envs", type=int, default=2, help="speed train: env processes (default 2)")
+    p.add_argument("--updates", type=int, default=2, help="speed train: PPO updates to time (default 2)")
     p.add_argument("--system", default="builtin",
-                   help="system under test for 'bench system' and 'bench train' (default: builtin)")
+                   help="system under test for 'speed system' and 'speed train' (default: builtin)")
     p.add_argument("--frames", type=int, default=100,
                    help="frames to time per resolution (sim) or detector frames (system); default: 100")
     p.add_argument("--no-render", action="store_true", help="physics only")
