@@ -104,3 +104,17 @@ def test_a_record_naming_the_command_line_is_refused_at_the_gate(tmp_path, capsy
     record.write_text(json.dumps(rec))
     assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet", "--no-gif"]) == 2
     assert "genesis_rl.__main__" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["scenes", "--help"]])
+def test_help_and_version_to_a_full_device_say_so(argv) -> None:
+    """argparse swallows the write error: ``--help > /dev/full`` had exited 0 with nothing written."""
+    import os
+    import subprocess
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    with open("/dev/full", "w") as full:
+        r = subprocess.run([sys.executable, "-m", "genesis_rl", *argv], stdout=full, stderr=subprocess.PIPE,
+                           text=True, timeout=60)
+    assert r.returncode == 2 and "could not be written" in r.stderr

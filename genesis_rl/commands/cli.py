@@ -41,8 +41,17 @@ def command_module(name: str) -> Any:
     return importlib.import_module(f"genesis_rl.commands.{name}")
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, except that a help or version text that cannot be written (a full disk, a closed pipe)
+    is an error: argparse itself swallows the OSError and exits 0 with nothing written."""
+
+    def _print_message(self, message: str, file: Any = None) -> None:
+        if message:
+            (file or sys.stderr).write(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="genesis-rl",
         description="GENESIS-RL: find natural edge cases for autonomous driving by turning the weather.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -97,7 +106,12 @@ def _main(argv: list[str] | None, named: list[str]) -> int:
         print(f"genesis-rl: error: {err}", file=sys.stderr)
         return err.exit_code
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except OSError as err:  # --help or --version to a full disk or a closed pipe (Parser above)
+        print(f"genesis-rl: error: the help or version text could not be written ({err.strerror or err})",
+              file=sys.stderr)
+        return UserInputError.exit_code
     named.append(args.command)
     default_format = warnings.formatwarning
     warnings.formatwarning = _one_line_warning(args.command, default_format)
