@@ -118,3 +118,22 @@ def test_help_and_version_to_a_full_device_say_so(argv) -> None:
         r = subprocess.run([sys.executable, "-m", "genesis_rl", *argv], stdout=full, stderr=subprocess.PIPE,
                            text=True, timeout=60)
     assert r.returncode == 2 and "could not be written" in r.stderr
+
+
+def test_a_benchmark_stopped_in_its_first_trial_names_resume(tmp_path, monkeypatch) -> None:
+    """After SIGTERM before a trial's first episode the trial's own hint ("run the command again") had reached
+    the user, and the same command was then refused: the benchmark folder stays, only --resume continues."""
+    from genesis_rl.benchmark import matrix
+    from genesis_rl.core.signals import resume_hint, set_resume_hint
+
+    def stopped(*args, **kwargs):
+        err = KeyboardInterrupt()
+        set_resume_hint(err, "no episode had finished, so 'x' was removed; run the command again")
+        raise err
+
+    monkeypatch.setattr(matrix, "run_campaign_once", stopped)
+    spec = matrix.BenchmarkSpec(members=("low_sun",), policies=("sunny",), trials=1, scenes=1, steps=5)
+    with pytest.raises(KeyboardInterrupt) as caught:
+        matrix.run_benchmark(spec, tmp_path / "b", progress=False)
+    assert "--resume runs the rest" in resume_hint(caught.value)
+    assert (tmp_path / "b" / "benchmark.json").exists()

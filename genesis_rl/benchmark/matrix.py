@@ -292,10 +292,16 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                                      "with --resume runs the rest")
                 raise
         else:
-            for campaign, folder in todo:
-                bar.set_postfix_str(str(folder.relative_to(out / "campaigns")))
-                run_campaign_once(campaign, folder, workers=workers, executor=executor)
-                bar.update()
+            try:
+                for campaign, folder in todo:
+                    bar.set_postfix_str(str(folder.relative_to(out / "campaigns")))
+                    run_campaign_once(campaign, folder, workers=workers, executor=executor)
+                    bar.update()
+            except KeyboardInterrupt as err:  # the trial's own hint ("run the command again") is the campaign's;
+                # the benchmark folder stays, and only --resume continues it
+                set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and a half-run one its finished "
+                                     "episodes; the same command with --resume runs the rest")
+                raise
         bar.close()
         board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members},
                             {m: {agent_label(r): [agent_campaign_folder(out, m, t, r) for t in range(spec.trials)]
