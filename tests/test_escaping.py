@@ -69,8 +69,8 @@ def test_a_hostile_failure_mode_is_escaped_and_no_cell_runs_as_a_formula(camp: P
 def test_safe_cell_leaves_numbers_and_plain_text_alone() -> None:
     from genesis_rl.core.files.spreadsheet import safe_cell
 
-    assert [safe_cell(v) for v in (-1.5, 0, "agent", "-1", "=1+1", "\tx")] == [-1.5, 0, "agent", "'-1", "'=1+1",
-                                                                                 "'\tx"]
+    assert [safe_cell(v) for v in (-1.5, 0, "agent", "-1", "-1e3", "-1+1", "=1+1", "\tx")] == \
+        [-1.5, 0, "agent", "-1", "-1e3", "'-1+1", "'=1+1", "'\tx"]
 
 
 def test_a_control_character_in_a_record_gives_a_well_formed_xosc(camp: Path, tmp_path: Path) -> None:

@@ -221,7 +221,7 @@ def test_export_and_report_errors_say_what_happened(campaign, tmp_path, capsys, 
 
 
 def test_a_failed_export_leaves_no_partial_folder(campaign, tmp_path, capsys, monkeypatch) -> None:
-    from genesis_rl.campaigns import export
+    from genesis_rl.exports import dataset as export
 
     frame = tmp_path / "f.jpg"
     frame.write_bytes(b"\xff\xd8\xff")  # a damaged frame: the export fails half-way

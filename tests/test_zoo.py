@@ -113,7 +113,7 @@ def test_every_shipped_odd_loads_and_is_package_data() -> None:
     assert {k: v for k, v in any_hour.items() if k not in ("name", "description")} == \
         {k: v for k, v in day.items() if k not in ("name", "description", "light")}
     globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["genesis_rl"]
-    assert "zoo/odd/*.toml" in globs and "zoo/weights/*" in globs
+    assert "sut/zoo/odd/*.toml" in globs and "sut/zoo/weights/*" in globs
 
 
 def test_the_glare_blind_member_loads_its_shipped_detector_and_states_an_interior_band() -> None:
@@ -268,7 +268,7 @@ def test_a_run_naming_the_shipped_weights_from_the_repository_matches_the_member
     absolute path: one file, so the benchmark must not refuse the agent over the spelling."""
     from genesis_rl.benchmark.matrix import _same_weights_spelling
 
-    monkeypatch.chdir(ODD_DIR.parents[2])
+    monkeypatch.chdir(ODD_DIR.parents[3])  # the repository: genesis_rl/sut/zoo/odd
     member = zoo_member("glare_blind")
     relative = {"weights": "genesis_rl/sut/zoo/weights/glare_blind_detector.pt"}
     assert relative != dict(member.system_kwargs)

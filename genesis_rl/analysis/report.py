@@ -53,7 +53,7 @@ MODE_TITLES = {"non_detection": "Non-detection", "intermittent_detection": "Inte
 
 def _esc(value: object) -> str:
     """Any value from a campaign's files as HTML text: a shared campaign's strings never become markup."""
-    return html.escape(str(value))
+    return html.escape(str(value), quote=False)  # text, never inside an attribute
 
 
 def policy_color(policy: str, k: int) -> str:

@@ -322,9 +322,14 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.command == "bench":
+    status = _run(args)
+    if args.command == "bench":  # after the figures: a refusal stays one line
         print("genesis-rl: 'bench' is now 'genesis-rl speed' (not to be confused with 'benchmark'); the old name "
               "works until 0.31.0", file=sys.stderr)
+    return status
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.what == "catalog":
 
         scenes = 1200 if args.scenes is None else args.scenes

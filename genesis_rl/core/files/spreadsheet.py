@@ -14,10 +14,19 @@ FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
 
 def safe_cell(value: Any) -> Any:
-    """``value``, or a text cell that starts like a formula with a ``'`` before it."""
-    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+    """``value``, or a text cell that starts like a formula with a ``'`` before it. A number written as text
+    (``-138.6``, as a CSV read back gives it) stays as it is: a spreadsheet reads it as the number."""
+    if isinstance(value, str) and value.startswith(FORMULA_STARTS) and not _is_number(value):
         return "'" + value
     return value
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def safe_rows(rows: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
