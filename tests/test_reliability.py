@@ -170,7 +170,7 @@ def test_folders_of_genesis_rl_0_4_0_are_recognised_by_their_content(tmp_path) -
         return path
 
     run = folder("run", {"config.toml": "", "run.json": '{"package": "genesis-rl"}', "tb/x": ""})
-    camp = folder("camp", {"campaign.json": '{"schema": "genesis-rl/campaign"}', "steps/a": ""})
+    camp = folder("camp", {"campaign.json": '{"schema": "genesis-rl/campaign"}', "steps/sunny/scene_0000.parquet": ""})
     drive = folder("drive", {"summary.json": "{}", "telemetry_scene_0003.parquet": "", "drive_scene_0003.gif": ""})
     render = folder("render", {"rgb.png": "", "contact_sheet_urban.png": ""})
     export = folder("export", {"export.json": "{}", "metadata.jsonl": "", "images/a.jpg": ""})
