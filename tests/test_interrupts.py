@@ -36,8 +36,10 @@ def _ctrl_c_delivered() -> object:
     ``nohup``) with SIGINT ignored, and a Python process that starts so keeps ignoring it, as do its children,
     so these tests failed in a suite started in the background while the code was right."""
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    before_term = signal.signal(signal.SIGTERM, signal.SIG_DFL)  # whatever a test before left (Ray's handler)
     yield
     signal.signal(signal.SIGINT, before)
+    signal.signal(signal.SIGTERM, before_term)
 
 
 def _default_sigint() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 from dataclasses import replace
 from pathlib import Path
 
@@ -31,10 +32,13 @@ def local_ray(crash_dir):
     policy's settings are in the environment before Ray starts, so its workers inherit them."""
     os.environ["GENESIS_RL_TEST_CRASH_DIR"] = str(crash_dir)
     os.environ["GENESIS_RL_TEST_CRASH_SCENE"] = "5"
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     ray.init(num_cpus=2, resources={"carla_server": 2}, include_dashboard=False, log_to_driver=False,
              logging_level="ERROR")
     yield ray
     ray.shutdown()
+    for signum, handler in handlers.items():  # ray.init leaves its sys.exit SIGTERM handler in the process
+        signal.signal(signum, handler)
 
 
 @pytest.fixture(scope="module")
