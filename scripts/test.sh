@@ -14,4 +14,4 @@ echo "[test] ruff"
 echo "[test] mypy"
 .venv/bin/mypy genesis_rl
 echo "[test] pytest (all tests, slow and render ones included; two workers, see tests/conftest.py)"
-.venv/bin/python -m pytest -q -n "${GENESIS_TEST_WORKERS:-2}" --dist loadgroup "$@"
+.venv/bin/python -m pytest -q -n "${GENESIS_TEST_WORKERS:-2}" --dist loadgroup --durations=20 "$@"
