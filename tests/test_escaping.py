@@ -87,3 +87,19 @@ def test_a_control_character_in_a_record_gives_a_well_formed_xosc(camp: Path, tm
         text = f.read_text(encoding="utf-8")
         xml.dom.minidom.parseString(text)  # well-formed, or this raises
         assert "\x01" not in text and "\x1b" not in text and "agent\ufffd\ufffd[31m" in text
+
+
+def test_a_log_axis_is_labelled_with_plain_numbers_when_text_is_not_math() -> None:
+    """With mathtext off, a log axis's default labels showed their source ($\\mathdefault{10^{3}}$) in the
+    report's ODD coverage figure."""
+    from genesis_rl.core.plotting import plain_log_ticks, pyplot
+
+    plt = pyplot()
+    fig, ax = plt.subplots()
+    ax.set_xscale("log")
+    ax.set_xlim(8, 4000)
+    plain_log_ticks(ax.xaxis)
+    fig.canvas.draw()
+    labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+    plt.close(fig)
+    assert {"10", "100", "1000"} <= set(labels) and not any("$" in t for t in labels)

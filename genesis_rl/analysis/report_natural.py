@@ -60,7 +60,7 @@ def lead_lines(summary: dict[str, Any]) -> list[str]:
 def fig_odd_coverage(summary: dict[str, Any], rows: dict[str, list[dict[str, Any]]], steps_of: StepsOf,
                      png: Callable[[Any], str], max_points: int = 4000) -> str | None:
     """One panel per policy: its steps in (visibility, ego speed), the ODD bound, the failure boundary."""
-    from genesis_rl.core.plotting import pyplot
+    from genesis_rl.core.plotting import plain_log_ticks, pyplot
 
     plt = pyplot()
 
@@ -101,6 +101,7 @@ def fig_odd_coverage(summary: dict[str, Any], rows: dict[str, list[dict[str, Any
             ax.scatter([x], [y], s=60, marker="X", color="#c0392b" if inside else "white", edgecolor="#c0392b",
                        zorder=5)
         ax.set_xscale("log")
+        plain_log_ticks(ax.xaxis)  # the log scale's own labels are mathtext, which the package's figures turn off
         ax.set_xlim(8, 4000)
         ax.set_ylim(0, max([12.0, *speed]) * 1.1)
         ax.set_xlabel("visibility [m]")
