@@ -36,20 +36,3 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             if module.startswith(prefix):
                 item.add_marker(pytest.mark.xdist_group(group))
 
-
-@pytest.fixture(autouse=True)
-def _plugin_registries_restored():
-    """What a test registers (a policy, a rule, a knob from tests/plugins) is gone after it: a campaign's spawned
-    workers import every registering module again, so a registration left by one test made a later pool
-    campaign in the same worker fail to import a module that is no longer on the path."""
-    from genesis_rl.adversaries.base import POLICIES
-    from genesis_rl.loop.rules.rulebook import RULES
-    from genesis_rl.world.knobs import KNOB_MODULES, KNOBS
-
-    registries = (POLICIES, RULES, KNOBS, KNOB_MODULES)
-    saved = [dict(r) for r in registries]
-    yield
-    for registry, before in zip(registries, saved, strict=True):
-        if registry != before:
-            registry.clear()
-            registry.update(before)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -97,9 +98,15 @@ def test_a_killed_ray_worker_costs_one_retried_episode(tmp_path, catalog, local_
     monkeypatch.syspath_prepend(str(PLUGINS))
     import crash_once  # noqa: F401 - registers the policy; the workers import it again
 
+    from genesis_rl.adversaries.base import POLICIES
+
     spec = _spec(catalog, policies=("sunny", "crash_once"))
     folder = tmp_path / "crash"
-    summary = run_campaign(spec, folder, progress=False, executor=ExecutorSettings("ray", 2))
+    try:
+        summary = run_campaign(spec, folder, progress=False, executor=ExecutorSettings("ray", 2))
+    finally:  # the policy leaves with this test: a later pool campaign in this worker would import its module
+        POLICIES.pop("crash_once", None)  # again, and tests/plugins is then no longer on the path
+        sys.modules.pop("crash_once", None)
     assert (crash_dir / "crashed_5").is_file()  # the worker did die once
     assert summary["complete"] and summary["policies"]["crash_once"]["episodes"] == 3
     # the retried episode is the episode: crash_once plays sunny weather, so its results are sunny's
