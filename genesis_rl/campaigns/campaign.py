@@ -58,7 +58,7 @@ def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, 
             bar.set_postfix_str(f"{row['policy']} scene {row['scene']} coll={row['collision_events']}")
             bar.update()
     except BaseException as err:
-        done = sum(1 for _ in (CampaignFolder(folder).root / CampaignFolder.EPISODES).glob("*/*.json"))
+        done = sum(1 for _ in CampaignFolder(folder).episodes_dir.glob("*/*.json"))
         if not resume and not done:
             # no episode finished (e.g. the agent's env settings are invalid): leave no folder behind that a
             # corrected re-run would need --force to replace

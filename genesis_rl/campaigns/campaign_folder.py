@@ -31,6 +31,7 @@ from genesis_rl.adversaries import agent_file
 from genesis_rl.campaigns.campaign_files import (
     CAMPAIGN_SCHEMA,
     CAMPAIGN_VERSION,
+    env_named_files,
     episode_name,
     episode_path,
     read_episode_row,
@@ -119,10 +120,9 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         pairs = [tuple(p) for p in saved["scenes"]]
         _check_scene_pairs(folder, saved, spec, pairs)
     else:
-        read = [v for k in ("odd", "rulebook", "catalog", "weights")  # files the env reads
-                if isinstance(v := spec.env.get(k), str)]
         # RUN/eval is the default folder, inside the run it plays
-        output_folder.check_folder_inputs(folder, [spec.catalog, spec.agent, *read], nested_ok=True)
+        output_folder.check_folder_inputs(folder, [spec.catalog, spec.agent, *env_named_files(spec.env)],
+                                          nested_ok=True)
         output_folder.check_target(folder, "campaign", force, resume_hint=True)
         count = DEFAULT_COUNTS.get(spec.map, 1)
         catalog = catalog_or_generate(spec.catalog, spec.map, count, spec.catalog_seed, progress=progress,

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 
 from genesis_rl.adversaries import EpisodeOutcome
-from genesis_rl.campaigns.campaign_files import episode_name, episode_path, steps_path
+from genesis_rl.campaigns.campaign_files import episode_path, steps_path
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.records import make_record, save_record
@@ -131,7 +131,6 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     """Write one episode's files (its row last). ``lost``: why earlier attempts lost the simulator (the row's
     ``simulator_lost``, present only when the episode was retried)."""
     env = runner.env
-    name = episode_name(scene)
     records = outcome.records
     write_telemetry(steps_path(folder, policy, scene), records)
     row = episode_row(policy, scene, episode_seed, outcome, env.rulebook, env.config.knobs)
@@ -141,13 +140,14 @@ def write_episode(folder: Path, spec: CampaignSpec, runner: CampaignRunner, poli
     row["seconds"] = round(seconds, 2)
     if lost:
         row["simulator_lost"] = list(lost)
+    paths = CampaignFolder(folder)
     for step, rgb in sorted(outcome.frames.items()):
-        write_jpeg(CampaignFolder(folder).frames_dir / policy / name / f"step_{step:04d}.jpg", rgb)
+        write_jpeg(paths.frames(policy, scene) / f"step_{step:04d}.jpg", rgb)
     failed = row["collision_events"] > 0 or any(row["violations"][r.name] > 0 for r in env.rulebook.rules if r.in_total)
     if spec.records == "all" or failed:
         record = make_record(spec, runner, policy, scene, episode_seed, records, row, outcome.start)
-        save_record(CampaignFolder(folder).records_dir / f"{policy}_{name}.json", record)
-        row["record"] = f"records/{policy}_{name}.json"
+        save_record(paths.record(policy, scene), record)
+        row["record"] = paths.record(policy, scene).relative_to(paths.root).as_posix()
     atomic_write_json(episode_path(folder, policy, scene), row, indent=1)  # last: marks it done
     return row
 

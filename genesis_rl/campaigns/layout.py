@@ -72,6 +72,10 @@ class CampaignFolder:
         return self.root / self.REPORT
 
     @property
+    def episodes_dir(self) -> Path:
+        return self.root / self.EPISODES
+
+    @property
     def records_dir(self) -> Path:
         return self.root / self.RECORDS
 
@@ -80,10 +84,10 @@ class CampaignFolder:
         return self.root / self.FRAMES
 
     def episode(self, policy: str, scene: int) -> Path:
-        return self.root / self.EPISODES / policy / f"{episode_name(scene)}.json"
+        return self.policy_episodes(policy) / f"{episode_name(scene)}.json"
 
     def policy_episodes(self, policy: str) -> Path:
-        return self.root / self.EPISODES / policy
+        return self.episodes_dir / policy
 
     def steps(self, policy: str, scene: int) -> Path:
         return self.root / self.STEPS / policy / f"{episode_name(scene)}.parquet"

@@ -45,6 +45,12 @@ def _estimates(given: list[str] | None) -> dict[str, Path]:
     return out
 
 
+#: the flags that set the matrix, at their defaults (``--smoke`` refuses any other value: it has its own matrix)
+MATRIX_DEFAULTS: dict[str, object] = {
+    "members": None, "policies": "sunny,random,constant,random_search,cmaes,cem,mcts", "agent": None, "trials": 10,
+    "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None}
+
+
 def run(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.matrix import ADVERSARIES, SMOKE, BenchmarkSpec
     from genesis_rl.sut.zoo.members import ZOO
@@ -70,9 +76,7 @@ def run(args: argparse.Namespace) -> int:
         options["search_budget"] = args.search_budget
     if args.smoke:
         # the smoke matrix is fixed: a matrix flag beside it would be dropped without a word
-        defaults = {"members": None, "policies": "sunny,random,constant,random_search,cmaes,cem,mcts", "agent": None,
-                    "trials": 10, "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None}
-        given = [f"--{k.replace('_', '-')}" for k, v in defaults.items() if getattr(args, k) != v]
+        given = [f"--{k.replace('_', '-')}" for k, v in MATRIX_DEFAULTS.items() if getattr(args, k) != v]
         if given:
             raise UserInputError(f"--smoke runs its own fixed matrix ({len(SMOKE.members)} members, {SMOKE.trials} "
                                  f"trials); {', '.join(given)} would be ignored: drop them or drop --smoke")
@@ -111,26 +115,30 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "falsification rate, reached/triggered, steps to the first in-ODD failure (Kaplan-Meier), "
                     "distinct failures, false alarms on the controls, ranks with Friedman's test (docs/zoo.md).")
     bm.add_argument("--out", default=None, help="benchmark folder")
-    bm.add_argument("--members", default=None, help="comma list of zoo members (default: all; see --list)")
-    bm.add_argument("--policies", default="sunny,random,constant,random_search,cmaes,cem,mcts",
-                    help="comma list of adversaries (default: sunny,random,constant,random_search,cmaes,cem,mcts; "
-                         "random_search is random at the searches' budget)")
-    bm.add_argument("--agent", action="append", metavar="MEMBER=RUN",
+    bm.add_argument("--members", default=MATRIX_DEFAULTS["members"],
+                    help="comma list of zoo members (default: all; see --list)")
+    bm.add_argument("--policies", default=MATRIX_DEFAULTS["policies"],
+                    help=f"comma list of adversaries (default: {MATRIX_DEFAULTS['policies']}; random_search is "
+                         "random at the searches' budget)")
+    bm.add_argument("--agent", action="append", default=MATRIX_DEFAULTS["agent"], metavar="MEMBER=RUN",
                     help="a trained agent (a run folder of genesis-rl train on the member's env) to play on MEMBER "
                          "as the policy agent:RUN, one campaign a trial on the trial's scenes; repeat it (or give a "
                          "comma list) for more training seeds. --resume may add agents to a finished benchmark")
     bm.add_argument("--estimate", action="append", metavar="MEMBER=FOLDER",
                     help="show a genesis-rl estimate folder's failure rate under natural conditions on the member's "
                          "section (repeat per member)")
-    bm.add_argument("--trials", type=int, default=10, help="trials (campaign seeds) per member (default 10)")
-    bm.add_argument("--scenes", type=int, default=5, help="scenes a trial plays per policy (default 5)")
-    bm.add_argument("--seed", type=seed_int, default=0, help="the first trial's seed; trial k uses seed + k")
-    bm.add_argument("--steps", type=int, default=None,
+    bm.add_argument("--trials", type=int, default=MATRIX_DEFAULTS["trials"],
+                    help="trials (campaign seeds) per member (default 10)")
+    bm.add_argument("--scenes", type=int, default=MATRIX_DEFAULTS["scenes"],
+                    help="scenes a trial plays per policy (default 5)")
+    bm.add_argument("--seed", type=seed_int, default=MATRIX_DEFAULTS["seed"],
+                    help="the first trial's seed; trial k uses seed + k")
+    bm.add_argument("--steps", type=int, default=MATRIX_DEFAULTS["steps"],
                     help="steps per episode, the simulator-step budget of a trial (default: each member's own)")
-    bm.add_argument("--start", choices=("natural", "fixed"), default="natural",
+    bm.add_argument("--start", choices=("natural", "fixed"), default=MATRIX_DEFAULTS["start"],
                     help="natural (default): each adversary chooses where the knobs that cannot move within an "
                          "episode start (the sun); fixed: every episode from the start weather")
-    bm.add_argument("--search-budget", type=int, default=None,
+    bm.add_argument("--search-budget", type=int, default=MATRIX_DEFAULTS["search_budget"],
                     help="episodes a search adversary (random_search, cmaes, cem, mcts) may spend per scene")
     bm.add_argument("--smoke", action="store_true",
                     help="a tiny matrix that runs in about a minute (low_sun and oracle_highway, sunny and random, "

@@ -7,10 +7,9 @@ import argparse
 import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
-from PIL import Image
 
 from genesis_rl.commands.cli_args import seed_int
 from genesis_rl.core import limits
@@ -21,18 +20,24 @@ from genesis_rl.sim.backends import (
     catalog_or_generate,
 )
 from genesis_rl.sim.interface import CameraConfig, SensorFrame
-from genesis_rl.sim.lite.backend import LiteBackend
 from genesis_rl.world.knobs import KNOBS, Weather
 from genesis_rl.world.scenes.catalog import Scene
+
+if TYPE_CHECKING:
+    from genesis_rl.sim.lite.backend import LiteBackend
 
 SHOWCASE = ("clear_noon", "dense_fog", "heavy_rain_night", "wet_sunset_glare")
 
 
 def _save_png(path: Path, img: np.ndarray) -> None:
+    from PIL import Image  # local, as cv2 below: `genesis-rl --help` builds every command's parser
+
     atomic_write(path, lambda p: Image.fromarray(img).save(p, format="PNG"))
 
 
 def draw_boxes(frame: SensorFrame) -> np.ndarray:
+    import cv2
+
     img = np.ascontiguousarray(frame.rgb.copy())
     for b in frame.boxes:
         cv2.rectangle(img, (b.x0, b.y0), (b.x1 - 1, b.y1 - 1), (40, 255, 40), 1)
@@ -43,6 +48,8 @@ def draw_boxes(frame: SensorFrame) -> np.ndarray:
 
 def depth_to_png(depth: np.ndarray, max_m: float = 100.0) -> np.ndarray:
     """Log-scaled depth as a colour map (near = bright)."""
+    import cv2
+
     d = np.clip(np.log1p(depth) / np.log1p(max_m), 0, 1)
     return cv2.applyColorMap(((1 - d) * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
 
@@ -70,6 +77,8 @@ def render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, 
 def _render_one(scene: Scene, weather: Weather, camera: CameraConfig, out: Path, force: bool, warmup: int) -> dict:
     for name in RENDER_OUTPUTS:
         ensure_writable(out / name, force)
+    from genesis_rl.sim.lite.backend import LiteBackend  # local: `genesis-rl --help` builds this parser
+
     backend = LiteBackend()
     try:
         frame = _frame(backend, scene, weather, camera, warmup)
@@ -112,6 +121,8 @@ def _render_sweep(scene: Scene, camera: CameraConfig, out: Path, force: bool, wa
     sheet = out / f"contact_sheet_{scene.map}.png"
     ensure_writable(sheet, force)
     rows = sweep_rows()
+    from genesis_rl.sim.lite.backend import LiteBackend  # local: `genesis-rl --help` builds this parser
+
     backend = LiteBackend()
     cols = max(len(r[1]) for r in rows)
     fig, axes = plt.subplots(len(rows), cols, figsize=(cols * 2.6, len(rows) * 2.05))

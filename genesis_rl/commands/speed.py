@@ -22,8 +22,6 @@ from genesis_rl.sim.backends import (
     catalog_or_generate,
 )
 from genesis_rl.sim.interface import CameraConfig, Simulation, VehicleControl
-from genesis_rl.sim.lite.backend import LiteBackend, LiteSimulation
-from genesis_rl.sim.lite.scenes import generate_catalog
 from genesis_rl.world.knobs import Weather
 
 
@@ -35,6 +33,10 @@ def _ticks_per_s(sim: Simulation, steps: int) -> float:
 
 
 def bench_sim(physics_steps: int = 2000, frames: int = 100, render: bool = True) -> dict:
+    # local, as in every command: `genesis-rl --help` builds this module's parser
+    from genesis_rl.sim.lite.backend import LiteBackend, LiteSimulation
+    from genesis_rl.sim.lite.scenes import generate_catalog
+
     scene = generate_catalog("highway", 1, 0).scenes[0]
     backend = LiteBackend()
     out: dict = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
@@ -81,6 +83,8 @@ def bench_system(frames: int = 200, batch: int = 16, steps: int = 200, system: s
     import torch
 
     from genesis_rl.loop.drive import ClosedLoop
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
     from genesis_rl.sut.system.protocol import load_system
 
     out: dict = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
@@ -211,6 +215,7 @@ def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...]
 
     from genesis_rl.campaigns.campaign import CampaignSpec, run_campaign
     from genesis_rl.distributed.settings import ExecutorSettings
+    from genesis_rl.sim.lite.scenes import generate_catalog
 
     out: dict = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "cpu_count": os.cpu_count(),
                  "scenes": scenes, "steps": steps, "system": system, "runs": []}

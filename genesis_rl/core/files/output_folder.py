@@ -81,6 +81,10 @@ OWN_FILES: dict[tuple[str, str], str] = {
 }
 
 
+#: an atomic write's temporary of NAME: ".NAME.XXXXXXXX..." (io_utils.atomic_write)
+_TEMPORARY = re.compile(r"\.(.+)\.[A-Za-z0-9_]{8}.*")
+
+
 def _foreign_files(folder: Path, kind: str, sub: str) -> list[str]:
     """The files (and links) below ``folder/sub`` that genesis-rl does not write there, as ``sub/rel``."""
     pattern = re.compile(OWN_FILES[kind, sub])
@@ -90,7 +94,7 @@ def _foreign_files(folder: Path, kind: str, sub: str) -> list[str]:
         names = filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]
         for name in names:
             rel = os.path.relpath(os.path.join(dirpath, name), root).replace(os.sep, "/")
-            temporary = re.fullmatch(r"\.(.+)\.[A-Za-z0-9_]{8}.*", name)  # an atomic write's temporary
+            temporary = _TEMPORARY.fullmatch(name)
             head = rel.rpartition("/")[0]
             if pattern.fullmatch(rel) or (temporary and pattern.fullmatch(
                     (head + "/" if head else "") + temporary.group(1))):
@@ -102,7 +106,7 @@ def _foreign_files(folder: Path, kind: str, sub: str) -> list[str]:
 def _own(kind: str, name: str) -> bool:
     """Whether a top-level entry of a ``kind`` folder is one genesis-rl writes (or a temporary of one)."""
     patterns = OWN_ENTRIES.get(kind, ())
-    temporary = re.fullmatch(r"\.(.+)\.[A-Za-z0-9_]{8}.*", name)
+    temporary = _TEMPORARY.fullmatch(name)
     return any(re.fullmatch(p, name) or (temporary and re.fullmatch(p, temporary.group(1))) for p in patterns)
 
 
