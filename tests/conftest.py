@@ -12,6 +12,8 @@ thread counts set their own.
 from __future__ import annotations
 
 import os
+import shutil
+from pathlib import Path
 
 import pytest
 
@@ -36,3 +38,16 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             if module.startswith(prefix):
                 item.add_marker(pytest.mark.xdist_group(group))
 
+
+
+#: a run, a campaign and records written by genesis-rl 0.29.0 (tests/data/genesis_rl_0.29.0/README.md)
+V029 = Path(__file__).parent / "data" / "genesis_rl_0.29.0"
+
+
+@pytest.fixture()
+def v029(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A copy of the 0.29.0 run (``run/``) and campaign (``camp/``) to change, the working folder set to it:
+    the campaign names its agent and catalog relative to where it ran."""
+    shutil.copytree(V029, tmp_path / "old")
+    monkeypatch.chdir(tmp_path / "old")
+    return tmp_path / "old"

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import xml.dom.minidom
 from pathlib import Path
 
@@ -14,15 +13,12 @@ import pytest
 
 from genesis_rl.commands.cli import main
 
-FIXTURE = Path(__file__).parent / "data" / "genesis_rl_0.29.0"
 IMG = "<img src=x onerror=alert(1)>"
 
 
 @pytest.fixture()
-def camp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    shutil.copytree(FIXTURE, tmp_path / "old")
-    monkeypatch.chdir(tmp_path / "old")
-    return tmp_path / "old" / "camp"
+def camp(v029: Path) -> Path:
+    return v029 / "camp"
 
 
 def _rename_policy(camp: Path, old: str, new: str) -> None:

@@ -4,7 +4,6 @@ command is refused before anything is deleted."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pytest
@@ -13,13 +12,10 @@ from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files.output_folder import check_target, foreign_entries
 
-FIXTURE = Path(__file__).parent / "data" / "genesis_rl_0.29.0"
-
 
 @pytest.fixture()
-def old(tmp_path: Path) -> Path:
-    shutil.copytree(FIXTURE, tmp_path / "old")
-    return tmp_path / "old"
+def old(v029: Path) -> Path:
+    return v029
 
 
 def test_the_tools_own_files_below_the_top_are_not_foreign(old: Path) -> None:

@@ -53,19 +53,14 @@ def test_bench_is_speed_under_its_old_name(capsys) -> None:
     assert "is now" not in capsys.readouterr().err
 
 
-def test_reactivity_never_writes_onto_the_agent_run_its_campaign_plays(tmp_path, monkeypatch, capsys) -> None:
+def test_reactivity_never_writes_onto_the_agent_run_its_campaign_plays(v029, capsys) -> None:
     """``reactivity --out RUN/agent.zip --force`` had replaced the agent the campaign plays (exit 0)."""
-    import shutil
-    from pathlib import Path
-
-    shutil.copytree(Path(__file__).parent / "data" / "genesis_rl_0.29.0", tmp_path / "old")
-    monkeypatch.chdir(tmp_path / "old")
-    agent = (tmp_path / "old" / "run" / "agent.zip").read_bytes()
+    agent = (v029 / "run" / "agent.zip").read_bytes()
     for target in ("run/agent.zip", "run/config.toml", "run/catalog.json"):
         assert main(["reactivity", "--campaign", "camp", "--policy", "agent", "--out", target, "--force",
                      "--quiet"]) == 2
         assert "is this command's input" in capsys.readouterr().err
-    assert (tmp_path / "old" / "run" / "agent.zip").read_bytes() == agent
+    assert (v029 / "run" / "agent.zip").read_bytes() == agent
 
 
 def test_corners_never_writes_onto_the_weights_its_config_names(tmp_path, capsys) -> None:
@@ -91,14 +86,10 @@ def test_the_import_gate_admits_the_plugin_layers_only(module: str, allowed: boo
         assert import_allowed(module) is allowed
 
 
-def test_a_record_naming_the_command_line_is_refused_at_the_gate(tmp_path, capsys) -> None:
+def test_a_record_naming_the_command_line_is_refused_at_the_gate(v029, tmp_path, capsys) -> None:
     import json
-    import shutil
-    from pathlib import Path
 
-    record = tmp_path / "r.json"
-    shutil.copy(Path(__file__).parent / "data" / "genesis_rl_0.29.0" / "camp" / "records" / "agent_scene_0001.json",
-                record)
+    record = v029 / "camp" / "records" / "agent_scene_0001.json"
     rec = json.loads(record.read_text())
     rec["system"]["spec"] = "genesis_rl.__main__:Sys"
     record.write_text(json.dumps(rec))
