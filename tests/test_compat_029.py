@@ -36,7 +36,8 @@ def test_the_old_class_path_imports_the_moved_module_and_warns_once() -> None:
 
     sys.modules.pop("genesis_rl.system.builtin", None)
     sys.modules.pop("genesis_rl.system", None)
-    _OldPaths._warned -= {"genesis_rl.system.builtin", "genesis_rl.system"}  # warned once a process, maybe by an earlier test
+    # it warns once a process, maybe already for an earlier test
+    _OldPaths._warned -= {"genesis_rl.system.builtin", "genesis_rl.system"}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         old = importlib.import_module("genesis_rl.system.builtin")
