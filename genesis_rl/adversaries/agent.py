@@ -27,6 +27,7 @@ from genesis_rl.core.threads import pinned_threads
 class AgentPolicy(StepPolicy):
     name = "agent"
     needs_agent = True
+    reacts = True
     description = "the trained policy (PPO or SAC), deterministic"
 
     def __init__(self, context: PolicyContext) -> None:

@@ -122,6 +122,16 @@ class EpisodeRunner(Protocol):
     @property
     def held_knobs(self) -> tuple[str, ...]: ...
 
+    @property
+    def knobs(self) -> tuple[str, ...]:
+        """The knobs the action vector turns, in its order."""
+        ...
+
+    @property
+    def last_record(self) -> StepRecord | None:
+        """The latest step's record (None before the first): what a tester watching the drive sees."""
+        ...
+
     def held_indices(self) -> list[int]: ...
 
     def start_from(self, position: Sequence[float]) -> Weather: ...
@@ -159,6 +169,10 @@ class PolicyContext:
 class WeatherPolicy:
     name: ClassVar[str] = ""
     needs_agent: ClassVar[bool] = False
+    #: whether the policy acts on what it observes (a trained agent, a scripted watcher): a benchmark re-runs
+    #: its failures by playing it again in a fresh world; a policy that does not react is judged by the
+    #: schedule it played, replayed there
+    reacts: ClassVar[bool] = False
     description: ClassVar[str] = ""
 
     def __init__(self, context: PolicyContext) -> None:

@@ -67,8 +67,27 @@ class CampaignRunner:
         return self.env.natural_start(rng)
 
     @property
+    def knobs(self) -> tuple[str, ...]:
+        return tuple(self.config.knobs)
+
+    @property
     def has_start_head(self) -> bool:
         return self.config.start_head
+
+    #: the world seed of every episode this runner plays (None: each episode's own seed); set by
+    #: ``in_world`` for the benchmark's re-runs, never seen by a policy
+    world_seed: int | None = None
+
+    def in_world(self, world_seed: int | None) -> CampaignRunner:
+        """This runner with the world's randomness drawn from ``world_seed`` from now on (None: as before)."""
+        self.world_seed = None if world_seed is None else int(world_seed)
+        return self
+
+    @property
+    def last_record(self) -> StepRecord | None:
+        """The latest step's record (None before the first step): what a tester watching the drive sees, the
+        system's detections and the ego's state included; a reactive scripted policy acts on it."""
+        return self.env.records[-1] if self.env.records else None
 
     def run(self, act: Callable[[Any], np.ndarray], scene: int, episode_seed: int,
             start: Weather | None = None, start_head: bool = False) -> EpisodeOutcome:
@@ -76,6 +95,8 @@ class CampaignRunner:
         ``act``'s first action chooses it instead (``GenesisEnv.chosen_start``; the env needs start_head)."""
         env, spec = self.env, self.spec
         options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed, "start_head": start_head}
+        if self.world_seed is not None:
+            options["world_seed"] = self.world_seed
         if start is not None:
             options["weather"] = start
         obs, _ = env.reset(options=options)
@@ -111,7 +132,8 @@ class CampaignRunner:
             self._oracle = GenesisEnv(replace(self.config, system="oracle", system_kwargs={}))
         env = self._oracle
         env.reset(options={"scene": scene, "episode_seed": episode_seed, "start_head": False,
-                           **({"weather": start} if start is not None else {})})
+                           **({"weather": start} if start is not None else {}),
+                           **({"world_seed": self.world_seed} if self.world_seed is not None else {})})
         end = min(len(records), hit_at + 1 + int(round(COUNTERFACTUAL_MARGIN_S / env.dt)))
         for rec in records[:end]:
             env.step_weather(Weather.from_recorded(rec.knobs))

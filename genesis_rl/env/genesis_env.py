@@ -302,6 +302,10 @@ class GenesisEnv(gym.Env):
         self.records: list[StepRecord] = []
         self.scene_index = -1
         self.episode_seed = -1
+        #: the seed of the world's own randomness this episode (traffic behaviour, sensor noise, the system's
+        #: own draws): the episode seed unless ``reset`` was given ``world_seed``, which a benchmark does to
+        #: re-run a failure in a world its adversary never saw
+        self.world_seed = -1
         #: whether the next step chooses the start (env.start_head: the episode's first action)
         self.choosing_start = False
         #: env.start_bonus: the starts this env chose, per cell of the held knobs' actions, and the bonus the
@@ -361,13 +365,15 @@ class GenesisEnv(gym.Env):
             raise UserInputError(f"reset option scene = {idx} is out of range; the catalog has {n} scenes")
         self.scene_index = idx
         self.episode_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
+        self.world_seed = int(options.get("world_seed", self.episode_seed))
         self.choosing_start = bool(options.get("start_head", self.config.start_head))
         self._pending_bonus = 0.0
         if self.choosing_start and not self.config.start_head:
             raise UserInputError("reset option start_head = true needs env.start_head = true (the observation "
                                  "carries the start step's flag only then)")
         self._begin(options.get("weather", self.exploring_start(self.episode_seed)))
-        info = {"scene": idx, "episode_seed": self.episode_seed, "knobs": self._knob_info()}
+        info = {"scene": idx, "episode_seed": self.episode_seed, "world_seed": self.world_seed,
+                "knobs": self._knob_info()}
         return self._observation(), info
 
     def _begin(self, weather: Weather) -> None:
@@ -377,8 +383,8 @@ class GenesisEnv(gym.Env):
         #: the weather this episode started from (records keep it, so a replay starts there too)
         self.episode_start = weather
         scene = self.catalog.scene(self.scene_index)
-        self._sim = self.backend.create_simulation(scene, seed=self.episode_seed, weather=weather, camera=self.camera)
-        self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.episode_seed)
+        self._sim = self.backend.create_simulation(scene, seed=self.world_seed, weather=weather, camera=self.camera)
+        self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.world_seed)
         self._loop.start(weather)
         self._history.reset()
         self.records = []

@@ -96,10 +96,11 @@ BUILTIN_SYSTEMS = {
     "yolo": "genesis_rl.sut.system.yolo_adapter:YoloSystem",
     "coco": "genesis_rl.sut.system.coco:CocoSystem",
     "latency": "genesis_rl.sut.system.latency:LatencySystem",
+    "stall": "genesis_rl.sut.system.stall:StallSystem",
     "adaptive": "genesis_rl.sut.system.adaptive:AdaptiveSystem",
 }
 #: built-in systems that read a weights file (or, for coco, a model folder) given by --weights
-WEIGHTED_SYSTEMS = ("builtin", "yolo", "coco", "latency", "adaptive")
+WEIGHTED_SYSTEMS = ("builtin", "yolo", "coco", "latency", "adaptive", "stall")
 
 
 def load_system(spec: str, **kwargs: Any) -> SystemUnderTest:

@@ -209,6 +209,27 @@ _HIGHWAY_SPEED_FOG = ZooMember(
     env={**_TIMING_ENV, "start_weather": FOG_BRAKING_START},
 )
 
+#: stall_braking's camera: a stutter of STALL_WARNING_S, then a stall of STALL_S, starting once an episode
+#: uniformly in [STALL_EARLIEST_S, STALL_LATEST_S) of its 700 steps (35 s), so that the stall ends inside it [s]
+STALL_S, STALL_WARNING_S, STALL_EARLIEST_S, STALL_LATEST_S = 2.5, 4.0, 4.0, 28.0
+_STALL_STEPS = 700
+
+_STALL_BRAKING = ZooMember(
+    name="stall_braking", kind="weakness", system="stall",
+    system_kwargs={"stall_s": STALL_S, "warning_s": STALL_WARNING_S, "earliest_s": STALL_EARLIEST_S,
+                   "latest_s": STALL_LATEST_S, "controller": dict(HIGHWAY_PROFILE)},
+    odd="highway_braking.toml", map="highway", traffic="free_flow",
+    summary=("A reactive weakness: the built-in system at the highway profile behind a camera whose stream, once an "
+             f"episode at a moment the world's seed draws, stutters for {STALL_WARNING_S:g} s (every other frame "
+             f"a repeat) and then stalls for {STALL_S:g} s (the last frame re-delivered), in free-flowing motorway "
+             "traffic by day (highway_braking). The controller tracks the frozen picture as if the gap held: a lead "
+             "braking hard from the stutter on is slow and close by the stall and is met too late; braking long "
+             "before or after is met in time. Only an adversary that watches the system (its detections repeat in "
+             "the stutter) can time the braking: the moment differs every episode (sut/system/stall.py)."),
+    trigger=TriggerRegion((Bound("lead_decel", 4.0, 8.0), Bound.flag("stale_frames"))),
+    env={**_TIMING_ENV, "episode_steps": _STALL_STEPS},
+)
+
 #: the real-photo member's episodes: a COCO frame costs ~4x the built-in detector's, so half the usual length
 _COCO_STEPS = 256
 
@@ -226,7 +247,8 @@ _COCO_LOW_SUN = ZooMember(
 
 #: every member by name
 ZOO: dict[str, ZooMember] = {m.name: m for m in (_LOW_SUN, _LOW_SUN_HIGHWAY, _LATENCY_BRAKING, _FOG_BRAKING,
-                                                 _HIGHWAY_SPEED_FOG, _COCO_LOW_SUN, _GLARE_BLIND, _BUILTIN_HIGHWAY,
+                                                 _HIGHWAY_SPEED_FOG, _COCO_LOW_SUN, _GLARE_BLIND, _STALL_BRAKING,
+                                                 _BUILTIN_HIGHWAY,
                                                  _ORACLE_HIGHWAY, _BUILTIN_BRAKING, _ADAPTIVE_BRAKING)}
 
 
