@@ -16,6 +16,7 @@ from builders import tiny_run
 from genesis_rl.benchmark.matrix import BenchmarkSpec, campaign_folder, run_benchmark
 from genesis_rl.benchmark.metrics import falsifier_metrics
 from genesis_rl.benchmark.ranks import chi2_sf, compare_ranks, rank_rows
+from genesis_rl.benchmark.reproduce import reproduction_file
 from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.sut.zoo import members as zoo
@@ -76,7 +77,7 @@ def _blind_benchmark_built(tmp_path_factory) -> tuple[BenchmarkSpec, Path]:
     zoo.ZOO[BLIND.name] = BLIND
     try:  # the registry is shared by the worker's other tests: never leave the test member in it
         spec = BenchmarkSpec(members=("blind_highway", "oracle_highway"), policies=("sunny", "random"), trials=2,
-                             scenes=2, steps=120)
+                             scenes=2, steps=120, reruns=2)
         out = tmp_path_factory.mktemp("bench") / "b"
         run_benchmark(spec, out, progress=False)
         return spec, out
@@ -106,8 +107,24 @@ def test_the_leaderboard_pools_the_campaigns_metrics(blind_benchmark):
         assert cell["budget_steps"] == 120
         control = board["cells"]["oracle_highway"][policy]
         assert control["false_alarm_candidates"] == control["falsified"]
-    # the blind system crashes in clear air whatever the weather: sunny falsifies it in some trial
-    assert board["cells"]["blind_highway"]["sunny"]["falsified"] >= 1
+    # the blind system crashes in clear air whatever the weather: sunny falsifies it in some trial, and the crash
+    # reproduces in worlds no adversary saw (fresh traffic and sensor noise)
+    blind = board["cells"]["blind_highway"]["sunny"]
+    assert blind["falsified"] >= 1 and blind["reproduction_rate"] >= 0.5
+    assert blind["confirmed"] == blind["reproducible"] == blind["triggered"] >= 1
+    for member in spec.members:
+        for t in range(2):
+            again = json.loads(reproduction_file(out, member, campaign_folder(out, member, t)).read_text())
+            for policy, scenes in again["policies"].items():
+                row_seeds = {s: json.loads((campaign_folder(out, member, t) / "episodes" / policy /
+                                            f"scene_{int(s):04d}.json").read_text())["episode_seed"] for s in scenes}
+                for scene, entry in scenes.items():  # each reported failure re-run twice, in worlds of its own
+                    assert entry["reruns"] == len(entry["runs"]) == 2
+                    assert all(r["world_seed"] != row_seeds[scene] for r in entry["runs"])
+                    assert entry["reproduced"] == sum(r["reproduced"] for r in entry["runs"])
+        for policy in spec.policies:
+            cell = board["cells"][member][policy]
+            assert cell["confirmed"] <= cell["reported_failures"] <= cell["episodes"]
     assert board["ranks"]["systems"] == ["blind_highway"]
 
 

@@ -28,12 +28,12 @@ def detections_repeat(before: StepRecord | None, now: StepRecord | None) -> bool
     return now.ego.speed > MOVING_SPEED and now.perception.detections == before.perception.detections
 
 
-def lead_index(runner: EpisodeRunner, policy: str) -> int:
+def lead_index(runner: EpisodeRunner) -> int | None:
+    """Where ``lead_decel`` sits in the action vector; None where the env does not turn it: the scripted
+    policies then hold every knob (a benchmark plays every policy on every member; their mechanism is not
+    there)."""
     knobs = list(runner.knobs)
-    if "lead_decel" not in knobs:
-        raise UserInputError(f"policy '{policy}' turns lead_decel, which the env's knobs {knobs} do not hold; "
-                             "play it on a member whose knobs include it (stall_braking)")
-    return knobs.index("lead_decel")
+    return knobs.index("lead_decel") if "lead_decel" in knobs else None
 
 
 @register_policy
@@ -43,7 +43,7 @@ class StallWatcher(StepPolicy):
     description = "scripted: brakes the lead hard as soon as the system's detections repeat (stall_braking's truth)"
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
-        index = lead_index(runner, self.name)
+        index = lead_index(runner)
         state: dict[str, Any] = {"seen": None, "braking": False}
 
         def act(obs: Any) -> np.ndarray:
@@ -52,7 +52,8 @@ class StallWatcher(StepPolicy):
                 state["braking"] = True
             state["seen"] = now
             action = np.zeros(self.context.action_dim, np.float32)
-            action[index] = 1.0 if state["braking"] else 0.0
+            if index is not None:
+                action[index] = 1.0 if state["braking"] else 0.0
             return action
 
         return runner.run(act, scene, episode_seed, None)
@@ -72,13 +73,14 @@ class FixedOnset(StepPolicy):
             raise UserInputError(f"option onset_s = {self.onset_s!r}; allowed: a number of seconds >= 0")
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
-        index = lead_index(runner, self.name)
+        index = lead_index(runner)
 
         def act(obs: Any) -> np.ndarray:
             now = runner.last_record
             t = 0.0 if now is None else now.time_s
             action = np.zeros(self.context.action_dim, np.float32)
-            action[index] = 1.0 if t >= self.onset_s else 0.0
+            if index is not None:
+                action[index] = 1.0 if t >= self.onset_s else 0.0
             return action
 
         return runner.run(act, scene, episode_seed, None)

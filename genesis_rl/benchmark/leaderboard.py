@@ -30,10 +30,16 @@ def _mean(values: Sequence[float | None]) -> float | None:
     return round(sum(known) / len(known), 1) if known else None
 
 
-def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str, Any]:
-    """One policy's figures on one member over its trials (module docstring)."""
+def pooled(policy: str, member: str, per_trial: list[PolicyMetrics], rerun: bool = False) -> dict[str, Any]:
+    """One policy's figures on one member over its trials (module docstring); ``rerun``: the benchmark re-ran
+    reported failures on fresh world seeds (``benchmark.reproduce``), so the primary score asks them to
+    reproduce."""
     trials = [t for m in per_trial for t in m.trials]
     n = len(trials)
+    control = zoo_member(member).kind == "control"
+    confirmed = sum(t.confirmed(control, rerun) for t in trials)
+    confirmed_ci = clopper_pearson(confirmed, n)
+    again = [t for t in trials if t.reruns]
     falsified = sum(t.failed for t in trials)
     ci = clopper_pearson(falsified, n)
     t, s = kaplan_meier([tr.steps_to_failure for tr in trials], [tr.failed for tr in trials])
@@ -41,7 +47,13 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str
     alarms = [a for m in per_trial for a in m.false_alarm_candidates]
     return {
         "policy": policy, "member": member, "kind": zoo_member(member).kind, "trials": len(per_trial),
-        "episodes": n, "falsified": falsified, "avoidable": sum(t.avoidable for t in trials),
+        "episodes": n, "confirmed": confirmed, "confirmed_rate": None if n == 0 else round(confirmed / n, 4),
+        "confirmed_ci": [confirmed_ci["ci_low"], confirmed_ci["ci_high"]], "rerun": rerun,
+        "reported_failures": sum(t.failure_at is not None for t in trials),
+        "reproduction_rate": (round(sum(t.reproduced for t in again) / sum(t.reruns for t in again), 4)
+                              if again else None),
+        "reproducible": sum(t.reproducible for t in trials),
+        "falsified": falsified, "avoidable": sum(t.avoidable for t in trials),
         "falsification_rate": None if n == 0 else round(falsified / n, 4),
         "falsification_ci": [ci["ci_low"], ci["ci_high"]],
         "falsification_rate_per_trial": [m.falsification_rate for m in per_trial],
@@ -58,27 +70,38 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics]) -> dict[str
 
 
 def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]],
-                agent_trials: Mapping[str, Mapping[str, Sequence[Path]]] | None = None) -> dict[str, Any]:
-    """Every (member, policy) pooled over the trials, and the ranks over the weakness members (score: the
-    falsification rate, ties broken by the median steps to the first failure, fewer first). ``spec``: the
+                agent_trials: Mapping[str, Mapping[str, Sequence[Path]]] | None = None,
+                out: Path | None = None) -> dict[str, Any]:
+    """Every (member, policy) pooled over the trials, and the ranks over the weakness members (score: the share
+    of confirmed failures, reproducible, triggered and avoidable, ties broken by the median steps to the first
+    failure, fewer first). ``spec``: the
     benchmark's spec as ``BenchmarkSpec.to_json`` writes it; ``trials``: each member's campaign folders;
+    ``out``: the benchmark folder, whose ``reproductions/`` hold the re-runs (when ``spec['reruns']`` > 0);
     ``agent_trials``: per member, each trained agent's label (``agent:RUN``) and its campaign folders. An agent
     is trained per member, so its cells stand beside the adversaries' and stay out of the rank test, whose
     policies must be the same on every member."""
+    from genesis_rl.benchmark.reproduce import load_reproductions, reproduction_file
+
     members, policies = list(spec["members"]), list(spec["policies"])
+    rerun = bool(spec.get("reruns")) and out is not None
+
+    def again(member: str, folder: Path) -> dict[str, dict[int, tuple[int, int]]]:
+        return load_reproductions(reproduction_file(out, member, folder)) if rerun and out is not None else {}
+
     cells: dict[str, dict[str, Any]] = {}
     for member in members:
         per_policy: dict[str, list[PolicyMetrics]] = {p: [] for p in policies}
         for folder in trials[member]:
-            for policy, metrics in falsifier_metrics(folder, member).items():
+            for policy, metrics in falsifier_metrics(folder, member, again(member, folder)).items():
                 per_policy.setdefault(policy, []).append(metrics)
-        cells[member] = {p: pooled(p, member, per_policy[p]) for p in policies}
+        cells[member] = {p: pooled(p, member, per_policy[p], rerun) for p in policies}
         for label, folders in (agent_trials or {}).get(member, {}).items():
-            cells[member][label] = pooled(label, member, [falsifier_metrics(f, member)["agent"] for f in folders])
+            cells[member][label] = pooled(label, member, [falsifier_metrics(f, member, again(member, f))["agent"]
+                                                          for f in folders], rerun)
     weak = [m for m in members if zoo_member(m).kind == "weakness"]
 
     def score(c: dict[str, Any]) -> float:
-        rate = c["falsification_rate"] or 0.0
+        rate = c["confirmed_rate"] or 0.0
         med = c["median_steps_to_failure"]
         return rate - (0.0 if med is None else med * 1e-9)  # faster breaks a tie in the rate
 
@@ -171,11 +194,14 @@ def render_page(board: dict[str, Any]) -> str:
         if img:
             h.append(f"<img src='{img}'>")
         p = r.get("friedman_p")
-        h.append("<p class=meta>Score on a member: the falsification rate (ties: fewer steps to the first failure). "
-                 + (f"Friedman's test over {len(r['systems'])} members: chi2 = {r['friedman_chi2']}, p = {p}; "
+        h.append("<p class=meta>Score on a member: the share of confirmed failures, triggered, avoidable and "
+                 "reproducible on fresh world seeds (ties: fewer steps to the first failure). "
+                 + (f"Friedman's test over {len(r['systems'])} members (ties corrected): chi2 = {r['friedman_chi2']}, "
+                    f"p = {p}; Iman-Davenport F = {r.get('iman_davenport_f')}, p = {r.get('iman_davenport_p')}; "
                     f"Nemenyi critical difference at 5 %: {r['critical_difference']}." if p is not None else
                     "Friedman's test needs at least 2 weakness members and 2 policies.") + "</p>")
-    head = ["policy", "episodes", "simulator steps a scene", "falsification rate [95 % CI]", "trials with a failure",
+    head = ["policy", "episodes", "simulator steps a scene", "confirmed [95 % CI]", "reproduction rate",
+            "in-ODD collisions, any candidate [95 % CI]", "trials with a failure",
             "avoidable", "reached", "triggered",
             "median steps to first failure", "distinct in-ODD failures", "false-alarm candidates (unconfirmed)"]
     for member in spec["members"]:
@@ -194,13 +220,25 @@ def render_page(board: dict[str, Any]) -> str:
             alarms = f"{c['false_alarm_candidates']} ({c['unconfirmed_false_alarms']})" if m.kind == "control" else "–"
             spend = "–" if c.get("sim_steps_per_scene") is None else f"{c['sim_steps_per_scene']:.0f}"
             avoidable = "–" if c.get("avoidable") is None else f"{c['avoidable']}/{c['falsified']}"
-            cells = [policy, str(c["episodes"]), spend, rate, f"{c['trials_with_a_failure']}/{c['trials']}",
+            clo, chi = c.get("confirmed_ci") or (None, None)
+            confirmed = "–" if c.get("confirmed_rate") is None else \
+                f"{c['confirmed']} = {c['confirmed_rate']:.2f} [{clo:.2f}, {chi:.2f}]"
+            again = "not re-run" if not c.get("rerun") else ("–" if c.get("reproduction_rate") is None else
+                                                            f"{c['reproduction_rate']:.2f}")
+            cells = [policy, str(c["episodes"]), spend, confirmed, again, rate,
+                     f"{c['trials_with_a_failure']}/{c['trials']}",
                      avoidable, str(c["reached"]), str(c["triggered"]), med, str(c["distinct_in_odd_failures"]), alarms]
             h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in cells) + "</tr>")
         h.append("</table>")
         h.append(f"<img src='{_fig_survival(board, member)}'>")
-    h.append("<p class=meta>Simulator steps a scene: what the policy spent on each scene (a search counts every "
-             "candidate episode): adversaries at unequal budgets are compared at unequal cost. "
+    h.append("<p class=meta>Confirmed: the reported episode's in-ODD failure is triggered (on a control: any), not "
+             "blamed unavoidable, and reproduces in at least half of its re-runs on fresh world seeds (traffic, "
+             "sensor noise and the system's own draws that no adversary saw; a policy that does not react replays "
+             "its schedule, one that reacts plays again). Reproduction rate: the share of those re-runs that failed "
+             "again. In-ODD collisions counts a search's every candidate, whether or not it reported it. "
+             "Simulator steps a scene: what the policy spent on each scene (a search counts every "
+             "candidate episode; re-runs are the benchmark's, not the policy's): adversaries at unequal budgets "
+             "are compared at unequal cost. "
              "Avoidable: failed episodes less those blamed unavoidable (the careful driver collides as well; a "
              "search counts as its reported episode). Reached: the episode entered the member's trigger region; "
              "triggered: an in-ODD failure "

@@ -24,6 +24,7 @@ from typing import Any
 from tqdm import tqdm
 
 from genesis_rl.benchmark.campaign_once import finished, run_campaign_once
+from genesis_rl.benchmark.reproduce import DEFAULT_RERUNS, reproduction_file, run_reproductions
 from genesis_rl.campaigns.campaign_folder import check_finished_campaign
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.core import limits
@@ -36,8 +37,10 @@ from genesis_rl.sut.zoo.members import ZOO, env_settings, zoo_member
 SCHEMA = "genesis-rl/benchmark"
 #: a trial count beyond this is refused (each is a campaign per member)
 MAX_TRIALS = 100
+#: re-runs of a reported failure beyond this are refused (each is an episode)
+MAX_RERUNS = 100
 #: the adversaries a benchmark plays; a trained agent needs one training per member, which this command does not do
-ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts")
+ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts", "stall_watcher")
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,9 @@ class BenchmarkSpec:
     #: trained agents by member: each a run folder (one training seed), played as the policy ``agent:RUN``
     #: (RUN the folder's name) in a campaign of its own per trial, on the trial's scenes and seeds
     agents: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    #: re-runs of every reported in-ODD failure on fresh world seeds (``benchmark.reproduce``); 0: none, and the
+    #: primary score then asks no reproduction
+    reruns: int = DEFAULT_RERUNS
 
     def __post_init__(self) -> None:
         for name, values, allowed in (("members", self.members, tuple(ZOO)),
@@ -73,10 +79,11 @@ class BenchmarkSpec:
             if len(set(values)) != len(values):
                 raise UserInputError(f"benchmark {name}: {list(values)} names one twice")
         for name, value, low, high in (("trials", self.trials, 1, MAX_TRIALS), ("scenes", self.scenes, 1, None),
-                                       ("seed", self.seed, 0, 2**31 - 1)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < low or (high and value > high):
+                                       ("seed", self.seed, 0, 2**31 - 1), ("reruns", self.reruns, 0, MAX_RERUNS)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < low or \
+                    (high is not None and value > high):
                 raise UserInputError(f"benchmark {name} = {value!r}; allowed: an integer in {low}.."
-                                     f"{high if high else 'the scene limit'}")
+                                     f"{high if high is not None else 'the scene limit'}")
         limits.SCENES.check(self.scenes, "benchmark scenes")
         labels: list[str] = []
         for member, runs in self.agents.items():
@@ -128,7 +135,7 @@ AGENT_MATCH_KEYS = ("system", "system_kwargs", "knobs", "dynamics")
 
 #: ``--smoke``: the whole pipeline in about a minute on 2 cores (one weakness, one control, two cheap policies)
 SMOKE = BenchmarkSpec(members=("low_sun", "oracle_highway"), policies=("sunny", "random"), trials=2, scenes=1,
-                      steps=48)
+                      steps=48, reruns=2)
 
 
 def member_steps(spec: BenchmarkSpec, member: str) -> int:
@@ -303,9 +310,21 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                                      "episodes; the same command with --resume runs the rest")
                 raise
         bar.close()
+        if spec.reruns:
+            done = [(f, m, t) for (m, t, run), (_, f) in zip(cells, jobs, strict=True)]
+            again = [(f, m, zoo_member(m).trigger, t, reproduction_file(out, m, f)) for f, m, t in done]
+            rbar = tqdm(total=len(again), desc="re-runs on fresh worlds", unit="campaign", disable=not progress)
+            rbar.update(sum(Path(j[4]).is_file() for j in again))
+            try:
+                run_reproductions(again, spec.seed, spec.reruns, workers, on_done=lambda target: rbar.update())
+            except KeyboardInterrupt as err:
+                set_resume_hint(err, f"the campaigns and finished re-runs in '{out}' are kept; the same command with "
+                                     "--resume runs the rest")
+                raise
+            rbar.close()
         board = leaderboard(spec.to_json(), {m: member_trials(spec, out, m) for m in spec.members},
                             {m: {agent_label(r): [agent_campaign_folder(out, m, t, r) for t in range(spec.trials)]
-                                 for r in runs} for m, runs in spec.agents.items()})
+                                 for r in runs} for m, runs in spec.agents.items()}, out=out)
         board["estimates"] = rates
         write_leaderboard(out, board)
     return board

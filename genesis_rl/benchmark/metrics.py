@@ -17,7 +17,12 @@ the SBST tool competition's distinct failures), for a driving system inside its 
   campaign ran one);
 - *avoidable*: failed trials less those whose reported failure is blamed ``unavoidable`` (the careful driver of
   the episode's blame reference collides as well): an unavoidable failure is not the system's. A
-  search's earlier candidates are not blamed one by one, so its trial counts as its reported episode says.
+  search's earlier candidates are not blamed one by one, so its trial counts as its reported episode says;
+- *reproducible*: the reported failure, re-run on fresh world seeds (``benchmark.reproduce``), failed again (and
+  triggered again, on a weakness) in at least half of the re-runs;
+- *confirmed*, the primary score: the reported episode's in-ODD failure is triggered (on a control: any), avoidable
+  and reproducible, all read from that one episode. Raw in-ODD collisions (``failed``, which counts any of a
+  search's candidates) stay a secondary figure.
 """
 
 from __future__ import annotations
@@ -53,6 +58,9 @@ class Trial:
     first_failure_steps: int | None = None
     #: the reported episode's in-ODD failure is blamed ``unavoidable``: the careful driver collides as well
     unavoidable: bool = False
+    #: re-runs of the reported failure on fresh world seeds, and how many of them reproduced it (0, 0: not re-run)
+    reruns: int = 0
+    reproduced: int = 0
 
     @property
     def failed(self) -> bool:
@@ -68,6 +76,17 @@ class Trial:
         return self.reached_at is not None
 
     @property
+    def reproducible(self) -> bool:
+        """Re-run on fresh world seeds, it failed again in at least half of them."""
+        return self.reruns > 0 and 2 * self.reproduced >= self.reruns
+
+    def confirmed(self, control: bool, rerun: bool = True) -> bool:
+        """The primary score: the reported episode's in-ODD failure, triggered (a control: any in-ODD failure),
+        not blamed unavoidable, and reproducible (``rerun`` false: the benchmark did not re-run failures)."""
+        hit = self.failure_at is not None if control else self.triggered
+        return hit and not self.unavoidable and (self.reproducible or not rerun)
+
+    @property
     def triggered(self) -> bool:
         return self.failure_at is not None and self.reached_at is not None and self.failure_at >= self.reached_at
 
@@ -81,10 +100,10 @@ class Trial:
 
 
 def trial_of(scene: int, records: Sequence[StepRecord], region: TriggerRegion,
-             row: Mapping[str, Any] | None = None) -> Trial:
+             row: Mapping[str, Any] | None = None, reproduction: tuple[int, int] = (0, 0)) -> Trial:
     """A scene's trial from its reported episode's steps and, for a search, its row's candidate ledger
     (``adversaries.base.SearchLedger``; campaigns before 0.16.0 have none: their search trials count the
-    reported episode only)."""
+    reported episode only); ``reproduction``: its failure's (re-runs, reproduced)."""
     extra = (row or {}).get("extra") or {}
     failure_at = in_odd_failure_at(records)
     labelled = (row or {}).get("failure") or {}
@@ -92,10 +111,12 @@ def trial_of(scene: int, records: Sequence[StepRecord], region: TriggerRegion,
         labelled.get("blame") == "unavoidable"
     steps, failures = extra.get("candidate_steps"), extra.get("candidate_failures")
     if not (isinstance(steps, list) and isinstance(failures, list) and len(steps) == len(failures) and steps):
-        return Trial(scene, len(records), region.reached(records), failure_at, unavoidable=unavoidable)
+        return Trial(scene, len(records), region.reached(records), failure_at, unavoidable=unavoidable,
+                     reruns=reproduction[0], reproduced=reproduction[1])
     first = next((i for i, f in enumerate(failures) if f is not None), None)
     return Trial(scene, int(sum(steps)), region.reached(records), failure_at,
-                 None if first is None else int(sum(steps[:first]) + failures[first] + 1), unavoidable=unavoidable)
+                 None if first is None else int(sum(steps[:first]) + failures[first] + 1), unavoidable=unavoidable,
+                 reruns=reproduction[0], reproduced=reproduction[1])
 
 
 @dataclass(frozen=True)
@@ -126,7 +147,7 @@ class PolicyMetrics:
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["trials"] = [{**asdict(t), "triggered": t.triggered, "steps_to_failure": t.steps_to_failure,
-                        "avoidable": t.avoidable} for t in self.trials]
+                        "avoidable": t.avoidable, "reproducible": t.reproducible} for t in self.trials]
         d["falsification_ci"] = list(self.falsification_ci)
         d["survival"] = [list(p) for p in self.survival]
         d["clusters"] = list(self.clusters)
@@ -196,9 +217,11 @@ def check_campaign_member(folder: Path, meta: Mapping[str, Any], member: ZooMemb
                                  f"env=env_settings(zoo_member('{member.name}')))")
 
 
-def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, PolicyMetrics]:
+def falsifier_metrics(folder: Path, member: ZooMember | str,
+                      reproductions: Mapping[str, Mapping[int, tuple[int, int]]] | None = None
+                      ) -> dict[str, PolicyMetrics]:
     """Every policy's figures in the campaign ``folder`` run on ``member`` (a member or its name), over its
-    finished episodes."""
+    finished episodes; ``reproductions``: per policy and scene, its failure's (re-runs, reproduced)."""
     from genesis_rl.campaigns.loaded import load_typed_campaign  # local: the summary's imports are heavy
 
     m = zoo_member(member) if isinstance(member, str) else member
@@ -207,7 +230,8 @@ def falsifier_metrics(folder: Path, member: ZooMember | str) -> dict[str, Policy
     check_campaign_member(folder, dict(campaign.meta), m)
     out: dict[str, PolicyMetrics] = {}
     for policy, eps in campaign.episodes.items():
-        trials = [trial_of(r.scene, read_step_records(campaign.folder.steps(policy, r.scene)), m.trigger, r)
-                  for r in eps]
+        again = (reproductions or {}).get(policy, {})
+        trials = [trial_of(r.scene, read_step_records(campaign.folder.steps(policy, r.scene)), m.trigger, r,
+                           again.get(r.scene, (0, 0))) for r in eps]
         out[policy] = policy_metrics(policy, m, trials, eps)
     return out

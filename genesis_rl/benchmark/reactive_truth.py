@@ -65,12 +65,12 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init(member: str, folder: str, seed: int) -> None:
+    import torch
+
     from genesis_rl.campaigns.campaign_spec import CampaignSpec
     from genesis_rl.campaigns.episodes import CampaignRunner
     from genesis_rl.core.threads import INFERENCE_THREADS
     from genesis_rl.sut.zoo.members import env_settings, zoo_member
-
-    import torch
 
     torch.set_num_threads(INFERENCE_THREADS)
     m = zoo_member(member)

@@ -27,7 +27,6 @@ from genesis_rl.sut.system.builtin import BuiltinSystem
 from genesis_rl.sut.system.controller import ControllerConfig
 from genesis_rl.sut.system.protocol import Detection, EpisodeContext, SystemOutput
 
-
 #: stop-and-go ACC: slower than HOLD_SPEED [m/s] behind a lead closer than HOLD_GAP [m], the system brakes to a
 #: standstill and holds it (as such systems do below walking pace), until it sees the gap open
 HOLD_SPEED, HOLD_GAP = 2.0, 15.0
