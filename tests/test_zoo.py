@@ -37,12 +37,12 @@ def _seen(visibilities: list[float]) -> list[StepRecord]:
 
 def test_registry_names_kinds_and_regions() -> None:
     assert list(ZOO) == ["low_sun", "low_sun_highway", "latency_braking", "fog_braking", "highway_speed_fog",
-                         "coco_low_sun", "glare_blind", "builtin_highway", "oracle_highway", "builtin_braking",
-                         "adaptive_braking"]
+                         "coco_low_sun", "glare_blind", "stall_braking", "builtin_highway", "oracle_highway",
+                         "builtin_braking", "adaptive_braking"]
     assert {n: m.kind for n, m in ZOO.items()} == {"low_sun": "weakness", "low_sun_highway": "weakness",
                                                     "latency_braking": "weakness", "fog_braking": "weakness",
                                                     "highway_speed_fog": "weakness", "coco_low_sun": "weakness",
-                                                    "glare_blind": "weakness",
+                                                    "glare_blind": "weakness", "stall_braking": "weakness",
                                                     "builtin_highway": "control", "oracle_highway": "control",
                                                     "builtin_braking": "control", "adaptive_braking": "control"}
     assert zoo_member("fog_braking").trigger.describe() == "4 <= lead_decel < 8 m/s^2 and 50 <= visibility_m < 100 m"
@@ -59,12 +59,17 @@ def test_registry_names_kinds_and_regions() -> None:
     for name in ("builtin_highway", "oracle_highway"):
         assert zoo_member(name).trigger.empty and zoo_member(name).map == "highway"
     assert (zoo_member("oracle_highway").system, zoo_member("builtin_highway").system) == ("oracle", "builtin")
+    # the reactive member: builtin_braking's controller, domain and knobs, behind a stalling camera
+    stall, braking = zoo_member("stall_braking"), zoo_member("builtin_braking")
+    assert stall.system == "stall" and stall.system_kwargs["controller"] == braking.system_kwargs["controller"]
+    assert (stall.odd, stall.traffic, stall.env["knobs"]) == (braking.odd, braking.traffic, braking.env["knobs"])
+    assert stall.trigger.describe() == "4 <= lead_decel < 8 m/s^2 and stale_frames"
 
 
 def test_unknown_member_is_refused_naming_the_members() -> None:
     with pytest.raises(UserInputError, match="zoo member 'nope' is unknown; allowed: low_sun, low_sun_highway, "
                                              "latency_braking, fog_braking, highway_speed_fog, coco_low_sun, "
-                                             "glare_blind, builtin_highway, oracle_highway, "
+                                             "glare_blind, stall_braking, builtin_highway, oracle_highway, "
                                              "builtin_braking, adaptive_braking"):
         zoo_member("nope")
 

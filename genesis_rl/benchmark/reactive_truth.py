@@ -149,3 +149,42 @@ def _collect(pool: ProcessPoolExecutor, tasks: list, bar: tqdm) -> list[Episode]
         out.append(episode)
         bar.update()
     return out
+
+
+def plot_truth(result: dict[str, Any], path: Path) -> None:
+    """Two panels: the tuning scenes' triggered failures at each fixed onset (the search the best schedule came
+    from), and the held-out shares of the reactive policy and the best fixed schedule with their 95 % intervals
+    against the thresholds."""
+    from genesis_rl.core.files.io_utils import atomic_write
+    from genesis_rl.core.plotting import pyplot
+
+    plt = pyplot()
+    fig, (grid, held) = plt.subplots(1, 2, figsize=(9.0, 3.2), gridspec_kw={"width_ratios": [1.6, 1.0]})
+    onsets = [float(t) for t in result["onsets_s"]]
+    counts = [result["tuning_triggered_by_onset"][f"{t:g}"] for t in onsets]
+    per = result["tuning_episodes"] // max(len(onsets), 1)
+    grid.bar(onsets, counts, width=0.8, color="#8c8c8c")
+    grid.bar([result["best_fixed_onset_s"]], [result["tuning_triggered_by_onset"][f"{result['best_fixed_onset_s']:g}"]],
+             width=0.8, color="#d62728", label=f"best: {result['best_fixed_onset_s']:g} s")
+    grid.set_xlabel("fixed onset of the lead's braking [s]")
+    grid.set_ylabel(f"triggered of {per} tuning episodes")
+    grid.set_ylim(0, max(per, 1))
+    grid.legend(fontsize=8)
+    grid.set_title(f"{result['member']}: fixed schedules on tuning worlds", fontsize=9)
+    names = [result["reactive_policy"], f"fixed_onset {result['best_fixed_onset_s']:g} s"]
+    for k, (cell, color) in enumerate(((result["reactive"], "#1f77b4"), (result["best_fixed"], "#d62728"))):
+        lo, hi = cell["ci95"]
+        held.errorbar([k], [cell["share"]], yerr=[[cell["share"] - lo], [hi - cell["share"]]], fmt="o", color=color,
+                      capsize=4)
+        held.annotate(f"{cell['triggered']}/{cell['episodes']}", (k, cell["share"]), xytext=(8, -3),
+                      textcoords="offset points", fontsize=8)
+    held.axhline(REACTIVE_AT_LEAST, color="#1f77b4", ls=":", lw=1)
+    held.axhline(FIXED_AT_MOST, color="#d62728", ls=":", lw=1)
+    held.set_xticks([0, 1], names, fontsize=8)
+    held.set_xlim(-0.5, 1.5)
+    held.set_ylim(-0.02, 1.02)
+    held.set_ylabel("triggered share, held-out worlds")
+    held.set_title(f"{result['held_out_episodes']} held-out scenes and worlds", fontsize=9)
+    fig.tight_layout()
+    atomic_write(Path(path), lambda p: fig.savefig(p, format="png", dpi=110))
+    plt.close(fig)

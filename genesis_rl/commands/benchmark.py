@@ -10,6 +10,7 @@ import argparse
 import json
 from pathlib import Path
 
+from genesis_rl.benchmark.reproduce import DEFAULT_RERUNS
 from genesis_rl.core.errors import UserInputError
 
 
@@ -48,7 +49,7 @@ def _estimates(given: list[str] | None) -> dict[str, Path]:
 #: the flags that set the matrix, at their defaults (``--smoke`` refuses any other value: it has its own matrix)
 MATRIX_DEFAULTS: dict[str, object] = {
     "members": None, "policies": "sunny,random,constant,random_search,cmaes,cem,mcts", "agent": None, "trials": 10,
-    "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None}
+    "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None, "reruns": DEFAULT_RERUNS}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         spec = BenchmarkSpec(
             members=_names(args.members, "--members") if args.members else tuple(ZOO),
             policies=_names(args.policies, "--policies"), trials=args.trials, scenes=args.scenes, seed=args.seed,
-            steps=args.steps, options=options, start=args.start, agents=_agents(args.agent))
+            steps=args.steps, options=options, start=args.start, agents=_agents(args.agent), reruns=args.reruns)
     executor = None
     if args.executor == "ray" or args.ray_address:
         from genesis_rl.distributed.settings import ExecutorSettings
@@ -96,8 +97,9 @@ def run(args: argparse.Namespace) -> int:
     board = run_benchmark(spec, Path(args.out), force=args.force, resume=args.resume, workers=args.workers,
                           executor=executor, progress=not args.quiet, estimates=_estimates(args.estimate),
                           parallel=args.parallel)
-    short = {m: {p: {k: c[k] for k in ("falsification_rate", "triggered", "median_steps_to_failure",
-                                        "distinct_in_odd_failures", "false_alarm_candidates")}
+    short = {m: {p: {k: c[k] for k in ("confirmed_rate", "reproduction_rate", "falsification_rate", "triggered",
+                                        "median_steps_to_failure", "distinct_in_odd_failures",
+                                        "false_alarm_candidates")}
                  for p, c in cells.items()} for m, cells in board["cells"].items()}
     print(json.dumps({"out": args.out, "cells": short, "average_rank": board["ranks"]["average_rank"],
                       "friedman_p": board["ranks"]["friedman_p"]}, indent=2))
@@ -112,8 +114,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "benchmark", help="every adversary on systems whose weaknesses are known (the zoo); a leaderboard",
         description="Run the matrix zoo members x policies x trials (each trial a campaign with its own seed) "
                     "on local processes or Ray, resumable, and write leaderboard.json and leaderboard.html: "
+                    "confirmed failures (triggered, avoidable, reproduced on fresh world seeds: the rank's score), "
                     "falsification rate, reached/triggered, steps to the first in-ODD failure (Kaplan-Meier), "
-                    "distinct failures, false alarms on the controls, ranks with Friedman's test (docs/zoo.md).")
+                    "distinct failures, false alarms on the controls, ranks with Friedman's and Iman-Davenport's "
+                    "tests (docs/zoo.md).")
     bm.add_argument("--out", default=None, help="benchmark folder")
     bm.add_argument("--members", default=MATRIX_DEFAULTS["members"],
                     help="comma list of zoo members (default: all; see --list)")
@@ -140,6 +144,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                          "episode start (the sun); fixed: every episode from the start weather")
     bm.add_argument("--search-budget", type=int, default=MATRIX_DEFAULTS["search_budget"],
                     help="episodes a search adversary (random_search, cmaes, cem, mcts) may spend per scene")
+    bm.add_argument("--reruns", type=int, default=MATRIX_DEFAULTS["reruns"],
+                    help="re-runs of every reported in-ODD failure on fresh world seeds (traffic, sensor noise) that "
+                         "no adversary saw; a failure is confirmed when at least half reproduce it; 0: none "
+                         f"(default {DEFAULT_RERUNS})")
     bm.add_argument("--smoke", action="store_true",
                     help="a tiny matrix that runs in about a minute (low_sun and oracle_highway, sunny and random, "
                          "2 trials of one 48-step scene)")

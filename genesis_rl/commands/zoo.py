@@ -82,6 +82,38 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _truth(args: argparse.Namespace) -> int:
+    from genesis_rl.benchmark.reactive_truth import measure, plot_truth
+    from genesis_rl.core import limits
+    from genesis_rl.core.files.io_utils import atomic_write_json, ensure_writable
+    from genesis_rl.core.files.output_paths import output_file
+
+    for value, flag, low in ((args.tuning, "--tuning", 1), (args.held_out, "--held-out", 1),
+                             (args.workers, "--workers", 1)):
+        if value < low:
+            raise UserInputError(f"{flag} = {value}; allowed: an integer >= {low}")
+    limits.WORKERS.check(args.workers, "--workers")
+    limits.SCENES.check(args.tuning + args.held_out, "--tuning + --held-out")
+    if not args.out.endswith(".json"):
+        raise UserInputError(f"--out '{args.out}': give a .json file (the plot goes beside it, .png)")
+    out = output_file(args.out, args.force)
+    picture = Path(args.out).with_suffix(".png")
+    ensure_writable(picture, args.force)
+    onsets = tuple(float(t) for t in _values(args.onsets)) if args.onsets else ()
+    result = measure(args.member, tuning=args.tuning, held_out=args.held_out, onsets=onsets, seed=args.seed,
+                     workers=args.workers, progress=not args.quiet)
+    assert out.path is not None
+    atomic_write_json(out.path, result, indent=1)
+    plot_truth(result, picture)
+    for name in ("reactive", "best_fixed"):
+        cell = result[name]
+        lo, hi = cell["ci95"]
+        print(f"{name}: {cell['triggered']}/{cell['episodes']} held-out episodes triggered [95 % CI {lo:.2f}-{hi:.2f}]")
+    print(json.dumps({"out": args.out, "best_fixed_onset_s": result["best_fixed_onset_s"],
+                      "passes": result["passes"], "plot": str(picture)}))
+    return 0
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     from genesis_rl.commands.cli_args import seed_int
 
@@ -109,8 +141,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     sw.add_argument("--force", action="store_true", help="replace an existing sweep folder")
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=run)
+    tr = zsub.add_parser(
+        "truth", help="a reactive member's ground truth: its scripted reactive policy against the best fixed schedule",
+        description="On held-out scenes and world seeds, the member's scripted reactive policy (stall_watcher on "
+                    "stall_braking) against the best fixed schedule (the lead braking from one onset), searched "
+                    "over an onset grid on tuning scenes with their own world seeds. The member is reactive when "
+                    "the first triggers it in >= 60 %% of held-out episodes and the second in <= 15 %%. Writes "
+                    "FILE.json and FILE.png (docs/zoo.md).")
+    tr.add_argument("member", help="a reactive zoo member: stall_braking")
+    tr.add_argument("--tuning", type=int, default=4, help="tuning scenes each fixed onset is played on (default 4)")
+    tr.add_argument("--held-out", type=int, default=30, help="held-out scenes both policies play (default 30)")
+    tr.add_argument("--onsets", default=None,
+                    help="comma list of fixed onsets [s] to search (default every second of the episode but "
+                         "its last 4)")
+    tr.add_argument("--seed", type=seed_int, default=0, help="catalog seed and the source of the world seeds")
+    tr.add_argument("--workers", type=int, default=1, help="parallel episodes")
+    tr.add_argument("--out", required=True, help="result file, .json (the plot beside it, .png)")
+    tr.add_argument("--force", action="store_true", help="replace an existing result")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=run)
     return zp
 
 
 def run(args: argparse.Namespace) -> int:
-    return {"list": _list, "sweep": _sweep}[args.zoo_command](args)
+    return {"list": _list, "sweep": _sweep, "truth": _truth}[args.zoo_command](args)
