@@ -2,7 +2,7 @@
 # Set up (if needed), lint, type-check, and run the whole test suite, slow tests included as a second step.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-GENESIS_EXTRAS=dev,carla,ray,scenic,coco,openscenario bash scripts/setup.sh
+GENESIS_EXTRAS=dev,carla,ray,scenic,coco,openscenario,verifai bash scripts/setup.sh
 # the CARLA client has wheels for CPython 3.11 (0.9.16); there its offline tests must run, not skip
 if .venv/bin/python -c "import sys; sys.exit(sys.version_info[:2] != (3, 11))"; then
     .venv/bin/python -c "import carla" || { echo "[test] the carla client did not install" >&2; exit 1; }

@@ -1,6 +1,6 @@
-"""Black-box search adversaries: CMA-ES and the cross-entropy method over piecewise-constant knob schedules,
-``search_budget`` episodes per scene, reporting the worst episode found (the falsifiers of ARCH-COMP and
-VerifAI)."""
+"""Black-box search adversaries: CMA-ES and our cross-entropy method over piecewise-constant knob schedules,
+``search_budget`` episodes per scene, reporting the worst episode found (as ARCH-COMP's falsifiers do;
+VerifAI's own samplers play through ``adversaries.verifai_search``)."""
 
 from __future__ import annotations
 
@@ -93,10 +93,11 @@ class CMAESSearch(WeatherPolicy):
 
 @register_policy
 class CrossEntropySearch(CMAESSearch):
-    """The cross-entropy method, as VerifAI's cross-entropy sampler, over the same piecewise-constant schedules
-    as ``cmaes``: a Gaussian per schedule entry, sampled (clipped to [-1, 1]) a generation at a time; the best
-    quarter of each generation, at least 2 (by the episode's total reward), gives the next mean and spread. It spends
-    exactly ``search_budget`` episodes per scene (the last generation takes what is left) and reports its best.
+    """Our own cross-entropy method (not VerifAI's code: its samplers play as ``verifai_ce`` and the others)
+    over the same piecewise-constant schedules as ``cmaes``: a Gaussian per schedule entry, sampled (clipped to
+    [-1, 1]) a generation at a time; the best quarter of each generation, at least 2 (by the episode's total
+    reward), gives the next mean and spread. It spends exactly ``search_budget`` episodes per scene (the last
+    generation takes what is left) and reports its best.
     """
 
     name = "cem"
