@@ -128,11 +128,10 @@ class VerifaiBayesOpt(VerifaiSearch):
     kind = "bo"
     description = "VerifAI's Bayesian optimisation sampler (verifai 2.2.0, GPyOpt) over cmaes' schedules"
 
-    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
-        try:
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        try:  # refused before any episode runs, not when the matrix reaches it
             import GPyOpt  # noqa: F401
-        except ImportError:
-            raise UserInputError("verifai_bo needs GPyOpt, which VerifAI's Bayesian optimisation sampler calls "
-                                 "and which does not install beside numpy 2 (GPy/GPyOpt 1.x); use verifai_ce or "
-                                 "verifai_mab") from None
-        return super().run_episode(runner, scene, episode_seed)
+        except ImportError as err:
+            raise UserInputError("verifai_bo needs GPyOpt, which VerifAI's Bayesian optimisation sampler calls: pip "
+                                 f"install 'genesis-rl[verifai]' (here: {err})") from None
