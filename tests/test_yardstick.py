@@ -180,3 +180,30 @@ def test_the_world_seed_redraws_traffic_and_sensor_noise_and_defaults_to_the_epi
         assert [d for *_, d in fresh] != [d for *_, d in plain]  # and the camera its noise
     finally:
         env.close()
+
+
+def test_zoo_truth_refuses_a_member_without_a_watcher_and_a_bad_out(tmp_path, capsys):
+    from genesis_rl.commands.cli import main
+
+    assert main(["zoo", "truth", "low_sun", "--out", str(tmp_path / "t.json")]) == 2
+    assert "has no scripted reactive policy; allowed: stall_braking" in capsys.readouterr().err
+    assert main(["zoo", "truth", "stall_braking", "--out", str(tmp_path / "t.csv")]) == 2
+    assert "give a .json file" in capsys.readouterr().err
+    assert main(["zoo", "truth", "stall_braking", "--held-out", "0", "--out", str(tmp_path / "t.json")]) == 2
+    assert "--held-out = 0; allowed: an integer >= 1" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_the_truth_plot_shows_both_policies_against_the_thresholds(tmp_path):
+    from genesis_rl.benchmark.reactive_truth import plot_truth
+
+    cell = {"triggered": 3, "episodes": 10, "share": 0.3, "ci95": [0.07, 0.65]}
+    result = {"member": "stall_braking", "onsets_s": [0.0, 1.0, 2.0], "tuning_episodes": 6, "held_out_episodes": 10,
+              "tuning_triggered_by_onset": {"0": 0, "1": 2, "2": 1}, "best_fixed_onset_s": 1.0,
+              "reactive_policy": "stall_watcher", "reactive": {**cell, "triggered": 8, "share": 0.8,
+                                                               "ci95": [0.44, 0.97]}, "best_fixed": cell}
+    plot_truth(result, tmp_path / "t.png")
+    from PIL import Image
+
+    with Image.open(tmp_path / "t.png") as im:
+        assert im.size[0] > 800 and im.size[1] > 300

@@ -169,6 +169,7 @@ def plot_truth(result: dict[str, Any], path: Path) -> None:
     grid.set_xlabel("fixed onset of the lead's braking [s]")
     grid.set_ylabel(f"triggered of {per} tuning episodes")
     grid.set_ylim(0, max(per, 1))
+    grid.set_yticks(range(max(per, 1) + 1))
     grid.legend(fontsize=8)
     grid.set_title(f"{result['member']}: fixed schedules on tuning worlds", fontsize=9)
     names = [result["reactive_policy"], f"fixed_onset {result['best_fixed_onset_s']:g} s"]
@@ -180,6 +181,10 @@ def plot_truth(result: dict[str, Any], path: Path) -> None:
                       textcoords="offset points", fontsize=8)
     held.axhline(REACTIVE_AT_LEAST, color="#1f77b4", ls=":", lw=1)
     held.axhline(FIXED_AT_MOST, color="#d62728", ls=":", lw=1)
+    held.annotate(f"reactive needs >= {REACTIVE_AT_LEAST:.2f}", (1.45, REACTIVE_AT_LEAST), xytext=(0, 3),
+                  textcoords="offset points", fontsize=7, ha="right", color="#1f77b4")
+    held.annotate(f"fixed must stay <= {FIXED_AT_MOST:.2f}", (1.45, FIXED_AT_MOST), xytext=(0, 3),
+                  textcoords="offset points", fontsize=7, ha="right", color="#d62728")
     held.set_xticks([0, 1], names, fontsize=8)
     held.set_xlim(-0.5, 1.5)
     held.set_ylim(-0.02, 1.02)

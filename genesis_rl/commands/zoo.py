@@ -94,6 +94,11 @@ def _truth(args: argparse.Namespace) -> int:
             raise UserInputError(f"{flag} = {value}; allowed: an integer >= {low}")
     limits.WORKERS.check(args.workers, "--workers")
     limits.SCENES.check(args.tuning + args.held_out, "--tuning + --held-out")
+    from genesis_rl.benchmark.reactive_truth import WATCHERS
+
+    if args.member not in WATCHERS:
+        raise UserInputError(f"zoo member '{args.member}' has no scripted reactive policy; allowed: "
+                             f"{', '.join(WATCHERS)}")
     if not args.out.endswith(".json"):
         raise UserInputError(f"--out '{args.out}': give a .json file (the plot goes beside it, .png)")
     out = output_file(args.out, args.force)

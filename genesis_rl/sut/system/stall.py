@@ -10,11 +10,9 @@ controller the gap holds, so it is met too late; braking long before or after th
 built-in controller at the highway profile brakes in time for the domain's 6 m/s^2; stopped behind a lead it
 holds the brake until it sees the gap open, as stop-and-go ACC does, so a stall at a standstill is harmless).
 
-The stutter's moment is drawn from the episode's world seed (``EpisodeContext.seed``), uniformly in
-[``earliest_s``, ``latest_s``); tracking a vehicle ahead is what loads the pipeline, so the stutter begins at
-the first step from that moment at which the system follows a lead closer than :data:`LOADED_GAP` (on lite's
-curving highway a lead drops out of the ego's lane corridor in bends and comes back). No fixed schedule can know
-the moment; a tester sees it as the system's detections repeating exactly on consecutive steps.
+The stutter's start is drawn from the episode's world seed (``EpisodeContext.seed``), uniformly in
+[``earliest_s``, ``latest_s``), so no fixed schedule can know it; a tester sees it as the system's detections
+repeating exactly on consecutive steps.
 """
 
 from __future__ import annotations
@@ -33,12 +31,10 @@ from genesis_rl.sut.system.protocol import Detection, EpisodeContext, SystemOutp
 #: stop-and-go ACC: slower than HOLD_SPEED [m/s] behind a lead closer than HOLD_GAP [m], the system brakes to a
 #: standstill and holds it (as such systems do below walking pace), until it sees the gap open
 HOLD_SPEED, HOLD_GAP = 2.0, 15.0
-#: the stutter waits for a lead this close [m] (the controller's perceived gap): tracking it loads the pipeline
-LOADED_GAP = 60.0
 
 
 def stall_start(seed: int, earliest_s: float, latest_s: float) -> float:
-    """The moment the episode of world seed ``seed`` may begin to stutter, once loaded [s of episode time]."""
+    """When the episode of world seed ``seed`` begins to stutter [s of episode time]."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x57A11]))
     return float(rng.uniform(earliest_s, latest_s))
 
@@ -55,18 +51,17 @@ class StallSystem(BuiltinSystem):
         self.earliest_s = float(ranges.number(earliest_s, "system earliest_s", 0.0, 600.0, "s"))
         self.latest_s = float(ranges.number(latest_s, "system latest_s", self.earliest_s, 600.0, "s",
                                             note="at least earliest_s"))
-        self.armed_s = 0.0
         self.stutter_s = self.start_s = self.end_s = math.inf
         self._held: list[Detection] = []
-        self._gap: float | None = None
         self._frames = 0
         self._standing_gap: float | None = None
 
     def reset(self, context: EpisodeContext) -> None:
         super().reset(context)
-        self.armed_s = stall_start(context.seed, self.earliest_s, self.latest_s)
-        self.stutter_s = self.start_s = self.end_s = math.inf  # set when the loaded pipeline begins to stutter
-        self._held, self._frames, self._standing_gap, self._gap = [], 0, None, None
+        self.stutter_s = stall_start(context.seed, self.earliest_s, self.latest_s)
+        self.start_s = self.stutter_s + self.warning_s
+        self.end_s = self.start_s + self.stall_s
+        self._held, self._frames, self._standing_gap = [], 0, None
 
     def repeats(self, time_s: float) -> bool:
         """Whether the frame delivered at ``time_s`` is the last one again (the stutter's odd frames, the stall)."""
@@ -75,16 +70,11 @@ class StallSystem(BuiltinSystem):
         return self.stutter_s <= time_s < self.start_s and self._frames % 2 == 1
 
     def step(self, frame: SensorFrame, ego: ActorState, time_s: float) -> SystemOutput:
-        if math.isinf(self.stutter_s) and time_s >= self.armed_s and self._gap is not None and self._gap < LOADED_GAP:
-            self.stutter_s = time_s
-            self.start_s = self.stutter_s + self.warning_s
-            self.end_s = self.start_s + self.stall_s
         # the same frame gives the same boxes: keep them rather than run the detector on a copy
         detections = self._held if self._frames and self.repeats(time_s) else self.perceive(frame)
         self._held = detections
         self._frames += 1
         control, gap = self.controller.step(ego, detections, time_s)
-        self._gap = gap
         return SystemOutput(self._standstill_hold(control, ego, gap), detections, gap, self.controller.status)
 
     def _standstill_hold(self, control: VehicleControl, ego: ActorState, gap: float | None) -> VehicleControl:
