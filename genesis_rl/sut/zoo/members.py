@@ -211,8 +211,8 @@ _HIGHWAY_SPEED_FOG = ZooMember(
 
 #: stall_braking's camera: a stutter of STALL_WARNING_S, then a stall of STALL_S, starting once an episode
 #: uniformly in [STALL_EARLIEST_S, STALL_LATEST_S) of its 700 steps (35 s), so that the stall ends inside it [s]
-STALL_S, STALL_WARNING_S, STALL_EARLIEST_S, STALL_LATEST_S = 2.5, 4.0, 4.0, 20.0
-_STALL_STEPS = 540
+STALL_S, STALL_WARNING_S, STALL_EARLIEST_S, STALL_LATEST_S = 2.5, 4.0, 4.0, 28.0
+_STALL_STEPS = 700
 
 _STALL_BRAKING = ZooMember(
     name="stall_braking", kind="weakness", system="stall",
