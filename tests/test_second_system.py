@@ -26,7 +26,7 @@ def test_weights_for_a_system_without_a_detector_are_refused(tmp_path, capsys) -
     out = tmp_path / "eval"
     assert main(["evaluate", "--policies", "sunny", "--scenes", "1", "--steps", "6", "--system", "oracle",
                  "--weights", str(DEFAULT_WEIGHTS), "--no-report", "--quiet", "--out", str(out)]) == 2
-    refusal = "--weights applies to --system builtin, yolo, coco, latency, adaptive only, not 'oracle'"
+    refusal = "--weights applies to --system builtin, yolo, coco, latency, adaptive, stall only, not 'oracle'"
     assert refusal in capsys.readouterr().err
     assert main(["evaluate", "--policies", "sunny", "--scenes", "1", "--steps", "6",
                  "--weights", str(tmp_path / "missing.pt"), "--no-report", "--quiet", "--out", str(out)]) == 2
