@@ -207,3 +207,21 @@ def test_the_truth_plot_shows_both_policies_against_the_thresholds(tmp_path):
 
     with Image.open(tmp_path / "t.png") as im:
         assert im.size[0] > 800 and im.size[1] > 300
+
+
+def test_a_steps_file_must_hold_as_many_rows_as_its_episode_row_says(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from genesis_rl.campaigns.campaign_files import read_step_records, read_steps
+    from genesis_rl.core.errors import UserInputError
+    from genesis_rl.world.step_record import to_rows
+
+    path = tmp_path / "scene_0001.parquet"
+    rows = to_rows([_record(i, _moving_box(i)) for i in range(3)])
+    pq.write_table(pa.Table.from_pylist(rows), path)
+    assert len(read_step_records(path, 3)) == 3 and len(read_steps(path)) == 3  # no count given: not checked
+    with pytest.raises(UserInputError, match="holds 3 step rows where its episode row says 2 steps"):
+        read_step_records(path, 2)
+    with pytest.raises(UserInputError, match="holds 3 step rows where its episode row says 70 steps"):
+        read_steps(path, columns=["step"], steps=70)

@@ -231,7 +231,7 @@ def falsifier_metrics(folder: Path, member: ZooMember | str,
     out: dict[str, PolicyMetrics] = {}
     for policy, eps in campaign.episodes.items():
         again = (reproductions or {}).get(policy, {})
-        trials = [trial_of(r.scene, read_step_records(campaign.folder.steps(policy, r.scene)), m.trigger, r,
-                           again.get(r.scene, (0, 0))) for r in eps]
+        trials = [trial_of(r.scene, read_step_records(campaign.folder.steps(policy, r.scene), r.steps), m.trigger,
+                           r, again.get(r.scene, (0, 0))) for r in eps]
         out[policy] = policy_metrics(policy, m, trials, eps)
     return out

@@ -69,7 +69,7 @@ def reproduce_campaign(folder: Path, member: str, region: TriggerRegion, trial: 
             per_scene: dict[str, Any] = {}
             for row in rows:
                 path = campaign.folder.steps(policy, row.scene)
-                records = read_step_records(path)
+                records = read_step_records(path, row.steps)
                 if in_odd_failure_at(records) is None:
                     continue
                 seeds = rerun_seeds(seed, member, trial, row.scene, reruns)

@@ -170,8 +170,9 @@ def _check_actor_events(path: Path, events: Any) -> None:
                                      f"expected {expected}")
 
 
-def read_steps(path: Path, columns: list[str] | None = None) -> list[dict[str, Any]]:
-    """An episode's step Parquet as rows (all columns, or ``columns`` that it has)."""
+def read_steps(path: Path, columns: list[str] | None = None, steps: int | None = None) -> list[dict[str, Any]]:
+    """An episode's step Parquet as rows (all columns, or ``columns`` that it has); ``steps``: the step count its
+    episode row states, which the file's rows must equal (checked from the footer, before any row is read)."""
     import pyarrow as pa  # local: start-up cost
     import pyarrow.parquet as pq
 
@@ -184,6 +185,8 @@ def read_steps(path: Path, columns: list[str] | None = None) -> list[dict[str, A
         if rows > most:
             raise _damaged(path, f"it claims {rows:,} step rows; an episode has at most {most:,} "
                                  f"({limits.SIM_STEPS.variable} raises the limit)")
+        if steps is not None and rows != steps:
+            raise _damaged(path, f"it holds {rows:,} step rows where its episode row says {steps:,} steps")
         if columns is not None:
             present = set(pq.read_schema(path).names)
             columns = [c for c in columns if c in present]
@@ -192,9 +195,9 @@ def read_steps(path: Path, columns: list[str] | None = None) -> list[dict[str, A
         raise _damaged(path, f"not a readable Parquet file ({err})") from None
 
 
-def read_step_records(path: Path) -> list[StepRecord]:
-    """An episode's step Parquet as typed step records."""
-    rows = read_steps(path)
+def read_step_records(path: Path, steps: int | None = None) -> list[StepRecord]:
+    """An episode's step Parquet as typed step records (``steps``: as ``read_steps``)."""
+    rows = read_steps(path, steps=steps)
     try:
         return from_rows(rows)
     except (KeyError, TypeError, ValueError) as err:

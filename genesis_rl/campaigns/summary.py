@@ -64,7 +64,7 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     if row.get("labeller_version") == LABELLER_VERSION:
         return row
     if row.get("first_collision_step") is not None:
-        failure = label_collision(read_step_records(steps_path(folder, policy, row["scene"])))
+        failure = label_collision(read_step_records(steps_path(folder, policy, row["scene"]), row.get("steps")))
         if failure and row.get("failure"):  # the blame, conditions and naturalness stay; the mode is relabelled
             failure = {**row["failure"], **failure}
         row.update(failure=failure, failure_mode=failure["mode"] if failure else None)

@@ -55,7 +55,8 @@ def near_misses(folder: Path, ttc_s: float) -> dict[tuple[str, int], dict[str, f
             if ep.collided:  # a failure, not a near miss
                 continue
             steps = read_steps(campaign.folder.steps(policy, ep.scene),
-                               columns=["step", "true_lead_distance", "ego_speed", "lead_speed", "odd_status"])
+                               columns=["step", "true_lead_distance", "ego_speed", "lead_speed", "odd_status"],
+                               steps=ep.steps)
             closest = closest_approach(steps)
             if closest is not None and closest[1] <= ttc_s:
                 row = next(r for r in steps if r["step"] == closest[0])
