@@ -149,8 +149,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                          "no adversary saw; a failure is confirmed when at least half reproduce it; 0: none "
                          f"(default {DEFAULT_RERUNS})")
     bm.add_argument("--smoke", action="store_true",
-                    help="a tiny matrix that runs in about a minute (low_sun and oracle_highway, sunny and random, "
-                         "2 trials of one 48-step scene)")
+                    help="a tiny matrix that runs in about a minute and finds one failure (latency_braking and "
+                         "builtin_braking, sunny and constant, 2 trials of one 160-step scene, 2 re-runs)")
     bm.add_argument("--list", action="store_true", help="list the zoo's members and the adversaries, and exit")
     bm.add_argument("--workers", type=int, default=1, help="parallel processes (or Ray actors)")
     bm.add_argument("--parallel", choices=("auto", "campaigns", "episodes"), default="auto",

@@ -151,7 +151,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="On held-out scenes and world seeds, the member's scripted reactive policy (stall_watcher on "
                     "stall_braking) against the best fixed schedule (the lead braking from one onset), searched "
                     "over an onset grid on tuning scenes with their own world seeds. The member is reactive when "
-                    "the first triggers it in >= 60 %% of held-out episodes and the second in <= 15 %%. Writes "
+                    "the first triggers it in >= 60 % of held-out episodes and the second in <= 15 %. Writes "
                     "FILE.json and FILE.png (docs/zoo.md).")
     tr.add_argument("member", help="a reactive zoo member: stall_braking")
     tr.add_argument("--tuning", type=int, default=4, help="tuning scenes each fixed onset is played on (default 4)")
