@@ -36,7 +36,8 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics], rerun: bool
     reproduce."""
     trials = [t for m in per_trial for t in m.trials]
     n = len(trials)
-    control = zoo_member(member).kind == "control"
+    kind = zoo_member(member).kind
+    control = kind == "control"
     confirmed = sum(t.confirmed(control, rerun) for t in trials)
     confirmed_ci = clopper_pearson(confirmed, n)
     again = [t for t in trials if t.reruns]
@@ -46,7 +47,7 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics], rerun: bool
     keys = {tuple(str(c.get(k)) for k in KEY_FIELDS) for m in per_trial for c in m.clusters}
     alarms = [a for m in per_trial for a in m.false_alarm_candidates]
     return {
-        "policy": policy, "member": member, "kind": zoo_member(member).kind, "trials": len(per_trial),
+        "policy": policy, "member": member, "kind": kind, "trials": len(per_trial),
         "episodes": n, "confirmed": confirmed, "confirmed_rate": None if n == 0 else round(confirmed / n, 4),
         "confirmed_ci": [confirmed_ci["ci_low"], confirmed_ci["ci_high"]], "rerun": rerun,
         "reported_failures": sum(t.failure_at is not None for t in trials),

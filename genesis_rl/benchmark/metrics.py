@@ -80,11 +80,14 @@ class Trial:
         """Re-run on fresh world seeds, it failed again in at least half of them."""
         return self.reruns > 0 and 2 * self.reproduced >= self.reruns
 
+    def hit(self, control: bool) -> bool:
+        """What a member counts: on a weakness a triggered failure, on a control any in-ODD failure."""
+        return self.failure_at is not None if control else self.triggered
+
     def confirmed(self, control: bool, rerun: bool = True) -> bool:
-        """The primary score: the reported episode's in-ODD failure, triggered (a control: any in-ODD failure),
-        not blamed unavoidable, and reproducible (``rerun`` false: the benchmark did not re-run failures)."""
-        hit = self.failure_at is not None if control else self.triggered
-        return hit and not self.unavoidable and (self.reproducible or not rerun)
+        """The primary score: the reported episode's in-ODD failure, hit (``hit``), not blamed unavoidable, and
+        reproducible (``rerun`` false: the benchmark did not re-run failures)."""
+        return self.hit(control) and not self.unavoidable and (self.reproducible or not rerun)
 
     @property
     def triggered(self) -> bool:

@@ -52,6 +52,7 @@ def reproduce_campaign(folder: Path, member: str, region: TriggerRegion, trial: 
     ``region``: passed, not looked up, so that a worker process needs no registry); written to ``target``."""
     from genesis_rl.adversaries import resolve_policy
     from genesis_rl.adversaries.base import in_odd_failure_at
+    from genesis_rl.benchmark.metrics import Trial  # local: this module is imported when the parser is built
     from genesis_rl.campaigns.campaign_files import read_step_records
     from genesis_rl.campaigns.episodes import CampaignRunner
     from genesis_rl.campaigns.loaded import load_typed_campaign
@@ -68,28 +69,25 @@ def reproduce_campaign(folder: Path, member: str, region: TriggerRegion, trial: 
             built = None
             per_scene: dict[str, Any] = {}
             for row in rows:
-                path = campaign.folder.steps(policy, row.scene)
-                records = read_step_records(path, row.steps)
+                records = read_step_records(campaign.folder.steps(policy, row.scene), row.steps)
                 if in_odd_failure_at(records) is None:
                     continue
-                seeds = rerun_seeds(seed, member, trial, row.scene, reruns)
+                if cls.reacts:
+                    if built is None:
+                        built = cls(spec.policy_context(runner.env.mapper.action_dim))
+                else:  # what it reported: its start and every step's knobs, read once for all the re-runs
+                    record = load_record(campaign.folder.root / row.record) if row.record else None
+                    start = Weather.from_recorded(record["start_weather"]) if record else None
+                    schedule = [Weather.from_recorded(r.knobs) for r in records]
                 runs = []
-                for world in seeds:
+                for world in rerun_seeds(seed, member, trial, row.scene, reruns):
                     runner.in_world(world)
-                    if cls.reacts:
-                        if built is None:
-                            built = cls(spec.policy_context(runner.env.mapper.action_dim))
-                        played = built.run_episode(runner, row.scene, row.episode_seed).records
-                    else:
-                        record = load_record(campaign.folder.root / row.record) if row.record else None
-                        start = Weather.from_recorded(record["start_weather"]) if record else None
-                        played = _replay(runner, row.scene, row.episode_seed, start,
-                                         [Weather.from_recorded(r.knobs) for r in records])
+                    played = built.run_episode(runner, row.scene, row.episode_seed).records if built is not None \
+                        else runner.replay(row.scene, row.episode_seed, start, schedule)
                     runner.in_world(None)
-                    failure = in_odd_failure_at(played)
-                    reached = region.reached(played) if not region.empty else None
-                    triggered = failure is not None and (region.empty or (reached is not None and failure >= reached))
-                    runs.append({"world_seed": world, "failure_at": failure, "reproduced": triggered})
+                    again = Trial(row.scene, len(played), region.reached(played), in_odd_failure_at(played))
+                    runs.append({"world_seed": world, "failure_at": again.failure_at,
+                                 "reproduced": again.hit(control=region.empty)})
                 per_scene[str(row.scene)] = {"reruns": len(runs), "reproduced": sum(r["reproduced"] for r in runs),
                                              "runs": runs}
             policies[policy] = per_scene
@@ -99,19 +97,6 @@ def reproduce_campaign(folder: Path, member: str, region: TriggerRegion, trial: 
               "reruns": reruns, "policies": policies}
     atomic_write_json(target, result, indent=1)
     return result
-
-
-def _replay(runner: Any, scene: int, episode_seed: int, start: Any, schedule: Sequence[Any]) -> list[Any]:
-    """The schedule played open loop in the runner's world (``CampaignRunner.in_world``), from ``start``."""
-    env = runner.env
-    options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed, "start_head": False,
-                               "world_seed": runner.world_seed}
-    if start is not None:
-        options["weather"] = start
-    env.reset(options=options)
-    for weather in schedule:
-        env.step_weather(weather)
-    return list(env.records)
 
 
 def load_reproductions(path: Path) -> dict[str, dict[int, tuple[int, int]]]:

@@ -94,12 +94,7 @@ class CampaignRunner:
         """One episode; ``start``: the weather it starts from (None: the env's start weather); ``start_head``:
         ``act``'s first action chooses it instead (``GenesisEnv.chosen_start``; the env needs start_head)."""
         env, spec = self.env, self.spec
-        options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed, "start_head": start_head}
-        if self.world_seed is not None:
-            options["world_seed"] = self.world_seed
-        if start is not None:
-            options["weather"] = start
-        obs, _ = env.reset(options=options)
+        obs, _ = env.reset(options=self._reset_options(scene, episode_seed, start, start_head))
         if start_head:  # the start step: the env begins the episode where the action says
             obs, *_ = env.step(act(obs))
         ring: deque[tuple[int, np.ndarray]] = deque(maxlen=spec.frames_before + 1)
@@ -123,6 +118,25 @@ class CampaignRunner:
                               start=env.episode_start,
                               naturalness=env.weather_model.naturalness(trajectory, env.dt))
 
+    def _reset_options(self, scene: int, episode_seed: int, start: Weather | None,
+                       start_head: bool = False) -> dict[str, Any]:
+        """``GenesisEnv.reset``'s options for an episode of this runner (its world seed, when set)."""
+        options: dict[str, Any] = {"scene": scene, "episode_seed": episode_seed, "start_head": start_head}
+        if self.world_seed is not None:
+            options["world_seed"] = self.world_seed
+        if start is not None:
+            options["weather"] = start
+        return options
+
+    def replay(self, scene: int, episode_seed: int, start: Weather | None,
+               schedule: Sequence[Weather]) -> list[StepRecord]:
+        """A recorded weather trajectory played open loop from ``start`` (no policy acts): how a benchmark judges
+        a schedule in another world (``in_world``)."""
+        self.env.reset(options=self._reset_options(scene, episode_seed, start))
+        for weather in schedule:
+            self.env.step_weather(weather)
+        return list(self.env.records)
+
     def oracle_collides(self, scene: int, episode_seed: int, records: Sequence[StepRecord], hit_at: int,
                         start: Weather | None = None) -> bool:
         """The counterfactual: the same scene, seeds, start and weather trajectory, driven by the ``oracle``
@@ -131,9 +145,7 @@ class CampaignRunner:
         if self._oracle is None:
             self._oracle = GenesisEnv(replace(self.config, system="oracle", system_kwargs={}))
         env = self._oracle
-        env.reset(options={"scene": scene, "episode_seed": episode_seed, "start_head": False,
-                           **({"weather": start} if start is not None else {}),
-                           **({"world_seed": self.world_seed} if self.world_seed is not None else {})})
+        env.reset(options=self._reset_options(scene, episode_seed, start))
         end = min(len(records), hit_at + 1 + int(round(COUNTERFACTUAL_MARGIN_S / env.dt)))
         for rec in records[:end]:
             env.step_weather(Weather.from_recorded(rec.knobs))
