@@ -191,6 +191,10 @@ def test_zoo_truth_refuses_a_member_without_a_watcher_and_a_bad_out(tmp_path, ca
     assert "give a .json file" in capsys.readouterr().err
     assert main(["zoo", "truth", "stall_braking", "--held-out", "0", "--out", str(tmp_path / "t.json")]) == 2
     assert "--held-out = 0; allowed: an integer >= 1" in capsys.readouterr().err
+    assert main(["zoo", "truth", "stall_braking", "--onsets", "2,x", "--out", str(tmp_path / "t.json")]) == 2
+    assert "--onsets '2,x': give a comma list of numbers" in capsys.readouterr().err
+    assert main(["zoo", "truth", "stall_braking", "--onsets", "2,-1", "--out", str(tmp_path / "t.json")]) == 2
+    assert "every onset must be a finite number of seconds >= 0" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing written
 
 

@@ -5,16 +5,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from genesis_rl.core.errors import UserInputError
 
 
-def _values(text: str) -> tuple[float, ...]:
+def _values(text: str, flag: str = "--values") -> tuple[float, ...]:
     try:
         return tuple(float(v) for v in text.split(","))
     except ValueError:
-        raise UserInputError(f"--values '{text}': give a comma list of numbers, e.g. 0,5,10,14,20,40") from None
+        raise UserInputError(f"{flag} '{text}': give a comma list of numbers, e.g. 0,5,10,14,20,40") from None
 
 
 def _hold(text: str | None) -> tuple[tuple[str, float], ...]:
@@ -104,7 +105,9 @@ def _truth(args: argparse.Namespace) -> int:
     out = output_file(args.out, args.force)
     picture = Path(args.out).with_suffix(".png")
     ensure_writable(picture, args.force)
-    onsets = tuple(float(t) for t in _values(args.onsets)) if args.onsets else ()
+    onsets = _values(args.onsets, "--onsets") if args.onsets else ()
+    if not all(math.isfinite(t) and t >= 0.0 for t in onsets):  # before the pool starts, not in a worker
+        raise UserInputError(f"--onsets '{args.onsets}': every onset must be a finite number of seconds >= 0")
     result = measure(args.member, tuning=args.tuning, held_out=args.held_out, onsets=onsets, seed=args.seed,
                      workers=args.workers, progress=not args.quiet)
     assert out.path is not None
