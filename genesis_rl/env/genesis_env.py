@@ -8,6 +8,7 @@ The observation is the ego camera's RGB frame (downscaled for the policy), optio
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -22,6 +23,7 @@ from gymnasium import spaces
 from genesis_rl.core import limits, ranges
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.plugins import check_import, gate_held, import_modules
+from genesis_rl.core.state_copy import copy_state
 from genesis_rl.env.observation import (
     FEATURE_OBSERVATIONS,
     NEIGHBOUR_FEATURES,
@@ -31,6 +33,7 @@ from genesis_rl.env.observation import (
     observation_space,
     step_features,
 )
+from genesis_rl.env.snapshot import EnvSnapshot
 from genesis_rl.loop.drive import ClosedLoop
 from genesis_rl.loop.frames import annotate_frame
 from genesis_rl.loop.rules.reward import PaperReward, RewardConfig
@@ -322,9 +325,10 @@ class GenesisEnv(gym.Env):
                                  f"chooses only the held knobs); allowed: {', '.join(self.held_knobs)}")
 
     # -- observation -------------------------------------------------------------------------------------
-    def _observation(self) -> Any:
+    def _observation(self, push: bool = True) -> Any:
         """The observation after the loop's latest perception (a reset or a step): it pushes that step's
-        features onto the history, so call it once per reset and per step."""
+        features onto the history, so call it once per reset and per step (``push`` False: the observation
+        the history already holds, as ``restore`` returns it)."""
         assert self._loop is not None and self._loop.frame is not None
         c, mode = self.config, self.config.observation_mode
         out: dict[str, Any] = {}
@@ -341,7 +345,7 @@ class GenesisEnv(gym.Env):
             row = step_features(self.weather, tuple(c.knobs), loop.ego.speed, loop.sim.step_count * loop.sim.dt,
                                 loop.output, loop.sim.lead() if self.actor_features else None, self.actor_features,
                                 neighbour)
-            out["features"] = self._history.push(row)
+            out["features"] = self._history.push(row) if push else self._history.vector()
             if c.start_head:  # the start step's flag, once after the stacked rows
                 out["features"] = np.append(out["features"], np.float32(self.choosing_start))
         if mode == "image":
@@ -388,6 +392,44 @@ class GenesisEnv(gym.Env):
         self._loop.start(weather)
         self._history.reset()
         self.records = []
+
+    # -- snapshots -----------------------------------------------------------------------------------------
+    def snapshot(self) -> EnvSnapshot:
+        """The episode as it stands (``env/snapshot.py``): ``restore`` returns to it exactly, so that the same
+        actions from there give the same step records, to the bit, as the uninterrupted run. Backends that
+        cannot save a world (CARLA) refuse with a message that says so."""
+        loop, sim = self._loop, self._sim
+        if loop is None or sim is None or loop.frame is None or loop.output is None:
+            raise RuntimeError("call reset() before snapshot()")
+        world = sim.snapshot()  # first: a backend without snapshots refuses before anything is copied
+        return EnvSnapshot(self.scene_index, self.episode_seed, self.world_seed, sim.step_count, self.weather,
+                           self.episode_start, tuple(self.records), world, copy_state(self.system),
+                           copy.deepcopy(loop.frame), loop.ego, copy.deepcopy(loop.output),
+                           copy.deepcopy(self._history), self.choosing_start, self._pending_bonus)
+
+    def restore(self, snapshot: EnvSnapshot) -> Any:
+        """Return to ``snapshot`` (taken by this env or one with the same config) and give its observation; the
+        env's own generator (which picks the next ``reset``'s scene) is not rewound."""
+        if not isinstance(snapshot, EnvSnapshot):
+            raise TypeError(f"restore takes an EnvSnapshot, not {type(snapshot).__name__}")
+        scene = self.catalog.scene(snapshot.scene_index)
+        if self._sim is None or self.scene_index != snapshot.scene_index:
+            self._close_sim()
+            self._sim = self.backend.create_simulation(scene, seed=snapshot.world_seed, weather=snapshot.weather,
+                                                       camera=self.camera)
+        self._sim.restore(snapshot.world)
+        self.system = copy_state(snapshot.system)
+        self._loop = loop = ClosedLoop(self._sim, self.system, self.backend.name, snapshot.world_seed,
+                                       reset_system=False)
+        loop.frame, loop.ego, loop.output = copy.deepcopy(snapshot.frame), snapshot.ego, copy.deepcopy(snapshot.output)
+        self._sim.apply_ego_control(loop.output.control)
+        self.scene_index, self.episode_seed, self.world_seed = (snapshot.scene_index, snapshot.episode_seed,
+                                                                snapshot.world_seed)
+        self.weather, self.episode_start = snapshot.weather, snapshot.episode_start
+        self.records = list(snapshot.records)
+        self._history = copy.deepcopy(snapshot.history)
+        self.choosing_start, self._pending_bonus = snapshot.choosing_start, snapshot.pending_bonus
+        return self._observation(push=False)
 
     def chosen_start(self, action: np.ndarray) -> Weather:
         """The start a start-head action names. Each held knob's action keeps the episode's start at 0 and

@@ -147,12 +147,15 @@ class ClosedLoop:
     system choose the next control, and returns the step record (collisions are those of this tick).
     """
 
-    def __init__(self, sim: Simulation, system: SystemUnderTest, backend_name: str, seed: int) -> None:
+    def __init__(self, sim: Simulation, system: SystemUnderTest, backend_name: str, seed: int,
+                 reset_system: bool = True) -> None:
+        """``reset_system`` False: the system is already mid-episode (a restored snapshot), not reset."""
         self.sim = sim
         self.system = system
         self.knob_names = list(KNOBS)
         self.conditions_model = conditions_model(backend_name)
-        system.reset(episode_context(sim, backend_name, seed))
+        if reset_system:
+            system.reset(episode_context(sim, backend_name, seed))
         self.frame: SensorFrame | None = None
         self.output: SystemOutput | None = None
 

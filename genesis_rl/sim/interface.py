@@ -15,6 +15,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.world.knobs import Weather
 from genesis_rl.world.scenes.catalog import Scene
 from genesis_rl.world.step_record import RecordedBox
@@ -154,6 +155,10 @@ class LeadInfo:
     speed: float
 
 
+class SnapshotUnsupported(UserInputError):
+    """The backend cannot save and restore a running simulation (``Simulation.snapshot``)."""
+
+
 @dataclass(frozen=True)
 class TickResult:
     step: int
@@ -225,6 +230,21 @@ class Simulation(abc.ABC):
         """The events the actor knobs caused so far in this episode (cut-ins, a lead braking), oldest first;
         none by default (a backend that realises no actor knob)."""
         return []
+
+    #: why this backend cannot snapshot a simulation (shown to whoever asks for one); None: it can
+    snapshot_unsupported: ClassVar[str | None] = (
+        "this backend does not save and restore simulations; use an adversary that replays episodes from their "
+        "start (cmaes, cem, random_search, mcts)")
+
+    def snapshot(self) -> object:
+        """The whole state of this episode's world (traffic, ego, time, weather, random streams), such that
+        ``restore`` and the same controls and weather give the same ticks and frames as the uninterrupted run,
+        to the bit. What the system under test holds is snapshotted by its owner (``GenesisEnv.snapshot``)."""
+        raise SnapshotUnsupported(f"snapshots: {self.snapshot_unsupported}")
+
+    def restore(self, state: object) -> None:
+        """Put the world back where ``snapshot`` found it; the state may be restored any number of times."""
+        raise SnapshotUnsupported(f"snapshots: {self.snapshot_unsupported}")
 
     def context_extras(self) -> dict[str, Any]:
         """What this backend adds to the system's :class:`~genesis_rl.sut.system.protocol.EpisodeContext`

@@ -316,6 +316,12 @@ class CarlaSimulation(Simulation):
     """One episode on a CARLA server. Vehicle ids are indices in ``scene.vehicles`` (the ego is 0); a
     vehicle that could not be spawned (its place taken) is missing from :meth:`actors`."""
 
+    snapshot_unsupported = (
+        "the CARLA backend cannot save and restore a running world: the server's physics, its traffic manager and "
+        "its sensors keep state that CARLA's Python API can neither read nor set (a world is only rebuilt from "
+        "its start). Use an adversary that replays episodes from their start (cmaes, cem, random_search, mcts) "
+        "or run goexplore on the lite backend")
+
     def __init__(self, backend: CarlaBackend, scene: Scene, seed: int, weather: Weather, camera: CameraConfig,
                  render: bool) -> None:
         self._backend = backend

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.state_copy import copy_state
 from genesis_rl.sim.interface import (
     ActorEvent,
     ActorState,
@@ -13,6 +16,7 @@ from genesis_rl.sim.interface import (
     LeadInfo,
     SensorFrame,
     Simulation,
+    SnapshotUnsupported,
     TickResult,
     VehicleControl,
 )
@@ -20,6 +24,19 @@ from genesis_rl.sim.lite.maps import MAP_NAMES, load_map
 from genesis_rl.sim.lite.traffic import AutopilotParams, Traffic
 from genesis_rl.world.knobs import KNOBS, Weather, frame_hooks
 from genesis_rl.world.scenes.catalog import Scene
+
+
+@dataclass(frozen=True)
+class LiteSnapshot:
+    """A lite world at one tick: the traffic (every vehicle, its controller state and random generator), the
+    tick count and the weather of the next frame. The renderer holds no state of its own that a frame depends
+    on (a frame is a function of the poses, the weather, the time and the (world seed, step) noise draw)."""
+
+    scene: tuple[str, int]  # the scene's map and seed: a snapshot is restored into a simulation of that scene
+    world_seed: int
+    step: int
+    traffic: Traffic
+    weather: Weather
 
 
 class LiteSimulation(Simulation):
@@ -71,6 +88,23 @@ class LiteSimulation(Simulation):
 
     def apply_ego_control(self, control: VehicleControl) -> None:
         self.traffic.ego_control = control
+
+    snapshot_unsupported = None
+
+    def snapshot(self) -> LiteSnapshot:
+        return LiteSnapshot((self.scene.map, self.scene.seed), self.seed, self._step,
+                            copy_state(self.traffic, shared=(self.map,)), self._weather)
+
+    def restore(self, state: object) -> None:
+        if not isinstance(state, LiteSnapshot):
+            raise SnapshotUnsupported(f"a lite simulation restores a LiteSnapshot, not {type(state).__name__}")
+        if state.scene != (self.scene.map, self.scene.seed):
+            raise SnapshotUnsupported(f"snapshot of scene {state.scene} restored into scene "
+                                      f"{(self.scene.map, self.scene.seed)}: a snapshot returns to its own scene")
+        self.traffic = copy_state(state.traffic, shared=(self.map,))  # the snapshot stays reusable
+        self._step, self._weather, self.seed = state.step, state.weather, state.world_seed
+        if self._renderer is not None:
+            self._renderer.set_episode_seed(self.seed)
 
     def tick(self) -> TickResult:
         collisions = self.traffic.step(self._step)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -121,6 +122,8 @@ class Tree:
 class RoadMap:
     """Lanes + roads + junctions + scenery of one map, with flat arrays for vectorised look-ups."""
 
+    #: never changed by an episode, so a snapshot of one shares it (``core.state_copy``)
+    SNAPSHOT_SHARED: ClassVar[bool] = True
     name: str
     lanes: list[Lane]
     roads: list[Road]
