@@ -5,6 +5,7 @@
 - ``step``: ``sunny``, ``random`` (natural rates), ``constant`` (an open-loop schedule);
 - ``search``: ``cmaes`` and ``cem`` over piecewise-constant schedules, ``random_search`` (random at their budget);
 - ``tree``: ``mcts``, Adaptive Stress Testing's Monte Carlo tree search over knob changes;
+- ``goexplore``: Go-Explore, an archive of cells returned to from exact snapshots (lite only);
 - ``verifai_search``: ``verifai_ce``, ``verifai_mab``, ``verifai_bo``, VerifAI's own samplers (the ``verifai`` extra);
 - ``scripted``: ``stall_watcher`` and ``fixed_onset``, a reactive member's ground truth (react, or not);
 - ``agent``: the trained policy, and the only module that reads a training run.
@@ -19,6 +20,7 @@ from genesis_rl.adversaries.base import (
     STARTS,
     EpisodeOutcome,
     EpisodeRunner,
+    ExploringRunner,
     PolicyContext,
     StepPolicy,
     WeatherPolicy,
@@ -37,11 +39,13 @@ from genesis_rl.adversaries.agent import (
 )
 from genesis_rl.adversaries.search import CMAESSearch, CrossEntropySearch, RandomSearch
 from genesis_rl.adversaries.tree import TreeSearch
+from genesis_rl.adversaries.goexplore import GoExplore
 from genesis_rl.adversaries.scripted import FixedOnset, StallWatcher
 from genesis_rl.adversaries.verifai_search import VerifaiBandit, VerifaiBayesOpt, VerifaiCrossEntropy
 # isort: on
 
 __all__ = ["AgentPolicy", "CMAESSearch", "ConstantPolicy", "CrossEntropySearch", "EpisodeOutcome", "EpisodeRunner",
+           "ExploringRunner", "GoExplore",
            "FixedOnset", "StallWatcher", "VerifaiBandit", "VerifaiBayesOpt", "VerifaiCrossEntropy",
            "POLICIES", "PolicyContext", "RandomPolicy", "RandomSearch", "STARTS", "StepPolicy", "SunnyPolicy",
            "TreeSearch", "WeatherPolicy", "agent_file", "agent_learning_curve", "checked_run", "chooses_start",

@@ -139,6 +139,33 @@ class EpisodeRunner(Protocol):
     def natural_start(self, rng: np.random.Generator) -> Weather: ...
 
 
+class ExploringRunner(EpisodeRunner, Protocol):
+    """A runner that an explorer drives step by step and returns to saved states (``GenesisEnv.snapshot``):
+    lite can, CARLA refuses with a message that says why."""
+
+    def begin(self, scene: int, episode_seed: int, start: Weather | None = None) -> None:
+        """Start an episode as ``run`` would (same seeds, same world), without playing it."""
+        ...
+
+    def step(self, action: np.ndarray) -> StepRecord:
+        """One step of the episode under ``action``; its record."""
+        ...
+
+    @property
+    def steps_taken(self) -> int:
+        """Steps of the current episode so far."""
+        ...
+
+    @property
+    def heading_deg(self) -> float:
+        """The ego camera's heading now [deg, counter-clockwise from east]."""
+        ...
+
+    def snapshot(self) -> object: ...
+
+    def restore(self, snapshot: object) -> None: ...
+
+
 #: campaign option ``start``: "fixed" (every episode from the env's start weather, as before) or "natural"
 #: (each policy chooses where the knobs that cannot move within an episode start: the sun's position under
 #: natural dynamics; random draws it, constant takes its corner, the searches search it, an agent trained with

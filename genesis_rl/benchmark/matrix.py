@@ -40,8 +40,8 @@ MAX_TRIALS = 100
 #: re-runs of a reported failure beyond this are refused (each is an episode)
 MAX_RERUNS = 100
 #: the adversaries a benchmark plays; a trained agent needs one training per member, which this command does not do
-ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts", "stall_watcher", "verifai_ce",
-               "verifai_mab", "verifai_bo")
+ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts", "goexplore", "stall_watcher",
+               "verifai_ce", "verifai_mab", "verifai_bo")
 
 
 @dataclass(frozen=True)

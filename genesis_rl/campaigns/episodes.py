@@ -118,6 +118,28 @@ class CampaignRunner:
                               start=env.episode_start,
                               naturalness=env.weather_model.naturalness(trajectory, env.dt))
 
+    # -- adversaries.ExploringRunner: an explorer steps the episode itself and returns to saved states ------
+    def begin(self, scene: int, episode_seed: int, start: Weather | None = None) -> None:
+        self.env.reset(options=self._reset_options(scene, episode_seed, start))
+
+    def step(self, action: np.ndarray) -> StepRecord:
+        self.env.step(action)
+        return self.env.records[-1]
+
+    @property
+    def steps_taken(self) -> int:
+        return len(self.env.records)
+
+    @property
+    def heading_deg(self) -> float:
+        return self.env.heading_deg
+
+    def snapshot(self) -> object:
+        return self.env.snapshot()
+
+    def restore(self, snapshot: object) -> None:
+        self.env.restore(snapshot)  # type: ignore[arg-type]
+
     def _reset_options(self, scene: int, episode_seed: int, start: Weather | None,
                        start_head: bool = False) -> dict[str, Any]:
         """``GenesisEnv.reset``'s options for an episode of this runner (its world seed, when set)."""

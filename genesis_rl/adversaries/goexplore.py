@@ -1,0 +1,286 @@
+"""Go-Explore (``goexplore``): remember the states that were hard to reach, return to them exactly, explore on.
+
+Go-Explore (Ecoffet et al., "First return, then explore", Nature 2021) keeps an archive of *cells*, coarse
+descriptions of the states visited, each with the exact state that reached it first (or most dangerously); it
+picks a cell (rarely chosen ones first, promising ones more often), returns to its state and explores from
+there with random actions. Koren et al. ("Finding failures in high-fidelity simulation using adaptive stress
+testing and the backward algorithm", IROS 2020) found failures this way where Monte Carlo tree search and
+deep RL found none. The searches here (``cmaes``, ``cem``, ``mcts``) replay whole episodes from the start;
+returning costs this one nothing (``GenesisEnv.snapshot``: a copy in about a tenth of a step, exact to the bit).
+
+A cell says what a tester would say matters: the sun's bearing from the heading and its altitude (in the
+bands a photographer names: night, twilight, golden hour, low, high), whether it glares, the light, the
+visibility and rain bands, the lead's gap and closing speed and whether the system sees it, each actor knob's
+quarter of its range, and the quarter of the episode. Where the campaign lets policies choose the start
+(``start = "natural"``), new roots are drawn stratified over the held knobs (the sun's bearing in six 60 deg
+sectors, its altitude in the same bands as the cells), so every kind of light is tried once before any twice.
+
+The objective is falsification: the search stops at the first in-ODD collision and reports it. A cell's
+promise is the episode's worst danger so far (the deceleration the ego would need to stop behind its lead,
+over a hard braking's 6 m/s^2). The report is the found action sequence replayed from the episode's start
+through the runner (one more episode, counted in the budget), which both gives the campaign its frames and
+checks that the return was exact; the budget is ``search_budget`` episodes of simulator steps per scene, as the
+searches'. Lite only: CARLA cannot save a world (its refusal says so).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass
+from typing import Any, cast
+
+import numpy as np
+
+from genesis_rl.adversaries.base import (
+    EpisodeOutcome,
+    EpisodeRunner,
+    ExploringRunner,
+    PolicyContext,
+    SearchLedger,
+    WeatherPolicy,
+    chooses_start,
+    in_odd_failure_at,
+    register_policy,
+)
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.world.knobs import KNOBS, Weather
+from genesis_rl.world.odd.domain import IN_ODD
+from genesis_rl.world.step_record import StepRecord
+
+#: the sun's altitude bands [deg]: night, nautical twilight, civil twilight, golden hour, low, mid, high
+ALTITUDE_EDGES = (-12.0, -6.0, 0.0, 6.0, 12.0, 24.0, 48.0)
+#: sectors of the sun's bearing from the heading: ahead, ahead-left/right, beside-behind left/right, behind
+BEARING_SECTORS = 6
+#: visibility bands [m] and rain bands [mm/h] of a cell
+VISIBILITY_EDGES = (50.0, 100.0, 200.0, 500.0, 1000.0)
+RAIN_EDGES = (0.1, 2.5, 7.6)
+#: the lead's gap bands [m] and closing-speed bands [m/s] of a cell
+GAP_EDGES = (5.0, 10.0, 20.0, 40.0, 80.0)
+CLOSING_EDGES = (-1.0, 1.0, 3.0, 6.0)
+#: the deceleration a hard braking demands [m/s^2]: a danger of 1 needs that much to stop behind the lead
+HARD_BRAKING = 6.0
+#: a lead the system misses within this range [m] is promising (about three seconds at urban speed)
+MISS_RANGE_M, MISS_PROMISE = 40.0, 0.5
+#: quarters of the episode and of each actor knob's range
+QUARTERS = 4
+
+
+def _band(value: float, edges: tuple[float, ...]) -> int:
+    return int(np.searchsorted(edges, value, side="right")) if math.isfinite(value) else -1
+
+
+def bearing_sector(azimuth_deg: float, heading_deg: float) -> int:
+    """The sun's sector seen from the heading: 0 straight ahead (within 30 deg), counting counter-clockwise."""
+    bearing = (azimuth_deg - heading_deg) % 360.0
+    return int(((bearing + 180.0 / BEARING_SECTORS) % 360.0) // (360.0 / BEARING_SECTORS))
+
+
+def danger(rec: StepRecord) -> float:
+    """The deceleration the ego would need to stop behind its lead, over a hard braking's (0: none needed or no
+    lead; >= 1: at least a hard braking; a collision: 2), plus ``MISS_PROMISE`` when the system does not see a
+    lead within ``MISS_RANGE_M`` that is in the picture: what it is about to miss."""
+    if rec.collision.collided:
+        return 2.0 + MISS_PROMISE
+    gap, lead_speed = rec.lead.true_distance, rec.lead.speed
+    if not (rec.lead.present and math.isfinite(gap) and math.isfinite(lead_speed)):
+        return 0.0
+    missed = MISS_PROMISE if rec.lead.detected is False and gap < MISS_RANGE_M else 0.0
+    closing = rec.ego.speed - lead_speed
+    if closing <= 0.0:
+        return missed
+    return min(2.0, closing * closing / (2.0 * max(gap, 0.1)) / HARD_BRAKING) + missed
+
+
+def cell_of(rec: StepRecord, heading_deg: float, episode_steps: int, actor_knobs: tuple[str, ...]) -> Hashable:
+    """The archive cell of a step (see the module docstring)."""
+    k, c = rec.knobs, rec.conditions
+    lead = rec.lead
+    closing = rec.ego.speed - lead.speed if lead.present and math.isfinite(lead.speed) else math.nan
+    return (
+        bearing_sector(float(k.get("sun_azimuth_angle", 0.0)), heading_deg),
+        _band(float(k.get("sun_altitude_angle", 90.0)), ALTITUDE_EDGES),
+        None if c is None else (c.sun_glare, c.light, _band(c.visibility_m, VISIBILITY_EDGES),
+                                _band(c.rain_mm_h, RAIN_EDGES), c.road_state),
+        _band(lead.true_distance, GAP_EDGES) if lead.present else -2,
+        _band(closing, CLOSING_EDGES),
+        lead.detected,
+        tuple(min(QUARTERS - 1, int((float(k[n]) - KNOBS[n].low) / KNOBS[n].span * QUARTERS)) for n in actor_knobs),
+        min(QUARTERS - 1, rec.step * QUARTERS // max(episode_steps, 1)),
+    )
+
+
+@dataclass
+class _Entry:
+    """An archived cell: the exact state that reached it, how (the start and the actions from step 0), the
+    danger on the way, and how often it was seen and chosen."""
+
+    snapshot: object
+    start: Weather | None
+    actions: tuple[np.ndarray, ...]
+    danger: float
+    seen: int = 1
+    chosen: int = 0
+
+    def weight(self, episode_steps: int) -> float:
+        """Go-Explore's count-based choice (rarely chosen, rarely seen cells first) plus its promise: the danger
+        so far and how far into the episode it lies (a failure needs time to build)."""
+        return (1.0 / math.sqrt(1.0 + self.chosen) + 0.5 / math.sqrt(self.seen) + self.danger
+                + 0.5 * len(self.actions) / max(episode_steps, 1))
+
+
+@register_policy
+class GoExplore(WeatherPolicy):
+    name = "goexplore"
+    description = ("Go-Explore: an archive of cells (the sun's bearing and altitude, light, visibility, rain, the "
+                   "lead's gap and closing speed, time), returned to from exact snapshots and explored from; "
+                   "stops at the first in-ODD failure; search_budget episodes of steps per scene (lite only)")
+    #: steps explored from a cell before choosing again, and how long a random action is held (Go-Explore's
+    #: sticky actions: a knob turned for a while, not jittered)
+    SEGMENT_STEPS = 48
+    HOLD_STEPS = 12
+    #: the share of explorations that open a new root while start strata are left
+    ROOT_SHARE = 0.3
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        self.budget = int(context.options.get("search_budget", 8))
+        if self.budget < 2:
+            raise UserInputError(f"search_budget = {self.budget} must be >= 2 (goexplore replays what it found "
+                                 "as one more episode)")
+        from genesis_rl.core import limits
+
+        limits.SEARCH_BUDGET.check(self.budget, "search_budget")
+
+    @classmethod
+    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
+        return int(options.get("search_budget", 8))
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        explorer = cast(ExploringRunner, runner)
+        for needed in ("snapshot", "restore", "begin", "step"):
+            if not callable(getattr(runner, needed, None)):
+                raise UserInputError(f"goexplore needs a runner that returns to saved states; "
+                                     f"{type(runner).__name__} has no {needed}()")
+        steps = int(self.context.options.get("steps", 512))
+        rng = np.random.default_rng([self.context.seed, scene, episode_seed, 0x60E])
+        dim = self.context.action_dim
+        actor_knobs = tuple(n for n in runner.knobs if KNOBS[n].is_actor)
+        roots = self._roots(explorer, scene, episode_seed, rng)
+        archive: dict[Hashable, _Entry] = {}
+        ledger = SearchLedger()
+        spent, explore_budget = 0, (self.budget - 1) * steps  # the last episode's steps replay the report
+        found: tuple[Weather | None, tuple[np.ndarray, ...]] | None = None
+        opened = 0
+        while spent < explore_budget and found is None:
+            open_root = not archive or (opened < len(roots) and rng.random() < self.ROOT_SHARE)
+            if open_root:
+                start = roots[opened % len(roots)]
+                opened += 1
+                explorer.begin(scene, episode_seed, start)
+                actions: tuple[np.ndarray, ...] = ()
+                worst = 0.0
+            else:
+                entry = self._choose(archive, steps, rng)
+                entry.chosen += 1
+                explorer.restore(entry.snapshot)
+                start, actions, worst = entry.start, entry.actions, entry.danger
+            records: list[StepRecord] = []
+            action = np.zeros(dim, np.float32)
+            for t in range(min(self.SEGMENT_STEPS, steps - explorer.steps_taken, explore_budget - spent)):
+                if t % self.HOLD_STEPS == 0:
+                    action = rng.uniform(-1.0, 1.0, dim).astype(np.float32)
+                rec = explorer.step(action)
+                records.append(rec)
+                actions = (*actions, action)
+                spent += 1
+                if rec.collision.collided:
+                    if rec.odd_status in IN_ODD:
+                        found = (start, actions)
+                    break  # a crashed ego explores nothing more
+                worst = max(worst, danger(rec))
+                cell = cell_of(rec, explorer.heading_deg, steps, actor_knobs)
+                known = archive.get(cell)
+                if known is None or worst > known.danger or (worst == known.danger and
+                                                             len(actions) < len(known.actions)):
+                    archive[cell] = _Entry(explorer.snapshot(), start, actions, worst,
+                                           seen=1 + (known.seen if known else 0),
+                                           chosen=known.chosen if known else 0)
+                else:
+                    known.seen += 1
+            if records:
+                ledger.add(EpisodeOutcome(records, sim_steps=len(records)), value=-math.inf)
+            elif not open_root:  # the chosen cell lies at the episode's end: nothing to explore from it
+                archive = {c: e for c, e in archive.items() if len(e.actions) < steps}
+                if not archive and opened >= len(roots):
+                    break
+        chain = found or self._most_dangerous(archive)
+        report = runner.run(_replay(chain[1], dim), scene, episode_seed, chain[0]) if chain else \
+            runner.run(_replay((), dim), scene, episode_seed, roots[0])
+        ledger.add(report, value=math.inf)
+        replayed_at = in_odd_failure_at(report.records)
+        return ledger.report(archive_cells=len(archive), roots_opened=min(opened, len(roots)),
+                             found_at_step=None if found is None else len(found[1]) - 1,
+                             replay_exact=None if found is None else replayed_at == len(found[1]) - 1)
+
+    def _roots(self, runner: ExploringRunner, scene: int, episode_seed: int,
+               rng: np.random.Generator) -> list[Weather | None]:
+        """The starts new roots open from: one per stratum of the held knobs, in a seeded order (the start
+        weather alone when the campaign does not let policies choose)."""
+        held = runner.held_knobs
+        if not (chooses_start(self.context.options) and held):
+            return [None]
+        runner.begin(scene, episode_seed, None)
+        heading = runner.heading_deg  # the scene's, before any step: the weather does not turn the ego
+        strata_per_knob = [range(BEARING_SECTORS) if n == "sun_azimuth_angle" else
+                           range(len(ALTITUDE_EDGES) + 1) if n == "sun_altitude_angle" else range(QUARTERS)
+                           for n in held]
+        strata = list(itertools.product(*strata_per_knob))
+        order = rng.permutation(len(strata))
+        starts: list[Weather | None] = []
+        for i in order:
+            position = [self._inside(n, int(s), heading, rng) for n, s in zip(held, strata[i], strict=True)]
+            starts.append(runner.start_from(position))
+        return starts
+
+    @staticmethod
+    def _inside(knob: str, stratum: int, heading: float, rng: np.random.Generator) -> float:
+        """A uniform draw inside ``stratum`` of ``knob``, as the 0..1 position ``start_from`` takes."""
+        spec = KNOBS[knob]
+        if knob == "sun_azimuth_angle":
+            width = 360.0 / BEARING_SECTORS
+            bearing = stratum * width + rng.uniform(-width / 2.0, width / 2.0)
+            value = spec.fit(heading + bearing)
+        elif knob == "sun_altitude_angle":
+            edges = (spec.low, *ALTITUDE_EDGES, spec.high)
+            value = rng.uniform(edges[stratum], edges[stratum + 1])
+        else:
+            value = spec.low + (stratum + rng.uniform()) / QUARTERS * spec.span
+        return (value - spec.low) / spec.span
+
+    @staticmethod
+    def _choose(archive: dict[Hashable, _Entry], steps: int, rng: np.random.Generator) -> _Entry:
+        entries = [e for e in archive.values() if len(e.actions) < steps]
+        weights = np.array([e.weight(steps) for e in entries])
+        return entries[int(rng.choice(len(entries), p=weights / weights.sum()))]
+
+    @staticmethod
+    def _most_dangerous(archive: dict[Hashable, _Entry]) -> tuple[Weather | None, tuple[np.ndarray, ...]] | None:
+        if not archive:
+            return None
+        best = max(archive.values(), key=lambda e: (e.danger, len(e.actions)))
+        return best.start, best.actions
+
+
+def _replay(actions: tuple[np.ndarray, ...], dim: int) -> Callable[[Any], np.ndarray]:
+    """The found actions from the episode's start, then the knobs held (a zero action) to its end."""
+    state = {"t": 0}
+    hold = np.zeros(dim, np.float32)
+
+    def act(obs: Any) -> np.ndarray:
+        t = state["t"]
+        state["t"] += 1
+        return actions[t] if t < len(actions) else hold
+
+    return act
