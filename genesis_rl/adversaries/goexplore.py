@@ -63,6 +63,8 @@ CLOSING_EDGES = (-1.0, 1.0, 3.0, 6.0)
 HARD_BRAKING = 6.0
 #: a lead the system misses within this range [m] is promising (about three seconds at urban speed)
 MISS_RANGE_M, MISS_PROMISE = 40.0, 0.5
+#: how much a cell's danger counts in its choice against its novelty (at most 1.5)
+PROMISE_WEIGHT = 1.0
 #: quarters of the episode and of each actor knob's range
 QUARTERS = 4
 
@@ -120,13 +122,14 @@ class _Entry:
     start: Weather | None
     actions: tuple[np.ndarray, ...]
     danger: float
+    stratum: int  # the start's stratum (``GoExplore._strata``; -1: the start weather)
     seen: int = 1
     chosen: int = 0
 
     def weight(self, episode_steps: int) -> float:
         """Go-Explore's count-based choice (rarely chosen, rarely seen cells first) plus its promise: the danger
         so far and how far into the episode it lies (a failure needs time to build)."""
-        return (1.0 / math.sqrt(1.0 + self.chosen) + 0.5 / math.sqrt(self.seen) + self.danger
+        return (1.0 / math.sqrt(1.0 + self.chosen) + 0.5 / math.sqrt(self.seen) + PROMISE_WEIGHT * self.danger
                 + 0.5 * len(self.actions) / max(episode_steps, 1))
 
 
@@ -140,8 +143,16 @@ class GoExplore(WeatherPolicy):
     #: sticky actions: a knob turned for a while, not jittered)
     SEGMENT_STEPS = 48
     HOLD_STEPS = 12
-    #: the share of explorations that open a new root while start strata are left
-    ROOT_SHARE = 0.3
+    #: the share of held actions that leave the weather as it is: the world mostly stays, and a random turn
+    #: of every knob at once would wash out the very condition a root was opened in
+    KEEP_SHARE = 0.75
+    #: the share of choices that return to the most promising cell rather than draw one
+    EXPLOIT_SHARE = 0.5
+    #: the share of choices of a cell that open a new root in its start's stratum instead of returning to it:
+    #: within one kind of light, one start may fail where another does not (the sun 3 deg up, not 5)
+    REROOT_SHARE = 0.25
+    #: steps a new root is looked at, the weather left as it starts, before the archive's choice takes over
+    LOOK_STEPS = 12
 
     def __init__(self, context: PolicyContext) -> None:
         super().__init__(context)
@@ -167,30 +178,36 @@ class GoExplore(WeatherPolicy):
         rng = np.random.default_rng([self.context.seed, scene, episode_seed, 0x60E])
         dim = self.context.action_dim
         actor_knobs = tuple(n for n in runner.knobs if KNOBS[n].is_actor)
-        roots = self._roots(explorer, scene, episode_seed, rng)
+        strata, draw = self._strata(explorer, scene, episode_seed, rng)
         archive: dict[Hashable, _Entry] = {}
         ledger = SearchLedger()
         spent, explore_budget = 0, (self.budget - 1) * steps  # the last episode's steps replay the report
         found: tuple[Weather | None, tuple[np.ndarray, ...]] | None = None
-        opened = 0
+        opened = rerooted = 0
         while spent < explore_budget and found is None:
-            open_root = not archive or (opened < len(roots) and rng.random() < self.ROOT_SHARE)
-            if open_root:
-                start = roots[opened % len(roots)]
+            stratum: int | None = None
+            length = self.SEGMENT_STEPS
+            if opened < len(strata):  # every stratum first, for a look: each kind of light once
+                stratum, length = strata[opened], self.LOOK_STEPS
                 opened += 1
-                explorer.begin(scene, episode_seed, start)
-                actions: tuple[np.ndarray, ...] = ()
-                worst = 0.0
             else:
                 entry = self._choose(archive, steps, rng)
                 entry.chosen += 1
-                explorer.restore(entry.snapshot)
-                start, actions, worst = entry.start, entry.actions, entry.danger
+                if entry.stratum >= 0 and rng.random() < self.REROOT_SHARE:
+                    stratum = entry.stratum  # a promising kind of light, from another start inside it
+                    rerooted += 1
+                else:
+                    explorer.restore(entry.snapshot)
+                    start, actions, worst, root = entry.start, entry.actions, entry.danger, entry.stratum
+            if stratum is not None:
+                start, actions, worst, root = draw(stratum), (), 0.0, stratum
+                explorer.begin(scene, episode_seed, start)
             records: list[StepRecord] = []
-            action = np.zeros(dim, np.float32)
-            for t in range(min(self.SEGMENT_STEPS, steps - explorer.steps_taken, explore_budget - spent)):
-                if t % self.HOLD_STEPS == 0:
-                    action = rng.uniform(-1.0, 1.0, dim).astype(np.float32)
+            action = np.zeros(dim, np.float32)  # a new root is looked at as it starts
+            for t in range(min(length, steps - explorer.steps_taken, explore_budget - spent)):
+                if t % self.HOLD_STEPS == 0 and stratum is None:  # a knob turned for a while, or left as it is
+                    action = rng.uniform(-1.0, 1.0, dim).astype(np.float32) if rng.random() >= self.KEEP_SHARE \
+                        else np.zeros(dim, np.float32)
                 rec = explorer.step(action)
                 records.append(rec)
                 actions = (*actions, action)
@@ -204,45 +221,44 @@ class GoExplore(WeatherPolicy):
                 known = archive.get(cell)
                 if known is None or worst > known.danger or (worst == known.danger and
                                                              len(actions) < len(known.actions)):
-                    archive[cell] = _Entry(explorer.snapshot(), start, actions, worst,
+                    archive[cell] = _Entry(explorer.snapshot(), start, actions, worst, root,
                                            seen=1 + (known.seen if known else 0),
                                            chosen=known.chosen if known else 0)
                 else:
                     known.seen += 1
             if records:
                 ledger.add(EpisodeOutcome(records, sim_steps=len(records)), value=-math.inf)
-            elif not open_root:  # the chosen cell lies at the episode's end: nothing to explore from it
+            else:  # the chosen cell lies at the episode's end: nothing to explore from it
                 archive = {c: e for c, e in archive.items() if len(e.actions) < steps}
-                if not archive and opened >= len(roots):
+                if not archive:
                     break
-        chain = found or self._most_dangerous(archive)
-        report = runner.run(_replay(chain[1], dim), scene, episode_seed, chain[0]) if chain else \
-            runner.run(_replay((), dim), scene, episode_seed, roots[0])
+        chain = found or self._most_dangerous(archive) or (draw(0), ())
+        report = runner.run(_replay(chain[1], dim), scene, episode_seed, chain[0])
         ledger.add(report, value=math.inf)
         replayed_at = in_odd_failure_at(report.records)
-        return ledger.report(archive_cells=len(archive), roots_opened=min(opened, len(roots)),
+        return ledger.report(archive_cells=len(archive), strata=len(strata), rerooted=rerooted,
                              found_at_step=None if found is None else len(found[1]) - 1,
                              replay_exact=None if found is None else replayed_at == len(found[1]) - 1)
 
-    def _roots(self, runner: ExploringRunner, scene: int, episode_seed: int,
-               rng: np.random.Generator) -> list[Weather | None]:
-        """The starts new roots open from: one per stratum of the held knobs, in a seeded order (the start
-        weather alone when the campaign does not let policies choose)."""
+    def _strata(self, runner: ExploringRunner, scene: int, episode_seed: int, rng: np.random.Generator
+                ) -> tuple[list[int], Callable[[int], Weather | None]]:
+        """The strata new roots open in, in a seeded order (one per cell of the held knobs' starts: the sun's
+        bearing sector and altitude band; one, the start weather, when the campaign does not let policies
+        choose), and a draw of a start inside a stratum."""
         held = runner.held_knobs
         if not (chooses_start(self.context.options) and held):
-            return [None]
+            return [-1], lambda stratum: None
         runner.begin(scene, episode_seed, None)
         heading = runner.heading_deg  # the scene's, before any step: the weather does not turn the ego
-        strata_per_knob = [range(BEARING_SECTORS) if n == "sun_azimuth_angle" else
-                           range(len(ALTITUDE_EDGES) + 1) if n == "sun_altitude_angle" else range(QUARTERS)
-                           for n in held]
-        strata = list(itertools.product(*strata_per_knob))
-        order = rng.permutation(len(strata))
-        starts: list[Weather | None] = []
-        for i in order:
-            position = [self._inside(n, int(s), heading, rng) for n, s in zip(held, strata[i], strict=True)]
-            starts.append(runner.start_from(position))
-        return starts
+        per_knob = [range(BEARING_SECTORS) if n == "sun_azimuth_angle" else
+                    range(len(ALTITUDE_EDGES) + 1) if n == "sun_altitude_angle" else range(QUARTERS) for n in held]
+        cells = list(itertools.product(*per_knob))
+
+        def draw(stratum: int) -> Weather | None:
+            position = [self._inside(n, int(i), heading, rng) for n, i in zip(held, cells[stratum], strict=True)]
+            return runner.start_from(position)
+
+        return [int(i) for i in rng.permutation(len(cells))], draw
 
     @staticmethod
     def _inside(knob: str, stratum: int, heading: float, rng: np.random.Generator) -> float:
@@ -259,9 +275,15 @@ class GoExplore(WeatherPolicy):
             value = spec.low + (stratum + rng.uniform()) / QUARTERS * spec.span
         return (value - spec.low) / spec.span
 
-    @staticmethod
-    def _choose(archive: dict[Hashable, _Entry], steps: int, rng: np.random.Generator) -> _Entry:
+    @classmethod
+    def _choose(cls, archive: dict[Hashable, _Entry], steps: int, rng: np.random.Generator) -> _Entry:
+        """Half the time the most promising cell (the most dangerous, less so each time it is chosen), else a
+        draw weighted by novelty and promise: with a few dozen cells of steady driving, a draw alone would
+        return to the one dangerous cell once in twenty tries."""
         entries = [e for e in archive.values() if len(e.actions) < steps]
+        dangerous = [e for e in entries if e.danger > 0.0]
+        if dangerous and rng.random() < cls.EXPLOIT_SHARE:
+            return max(dangerous, key=lambda e: (e.danger / math.sqrt(1.0 + e.chosen), len(e.actions)))
         weights = np.array([e.weight(steps) for e in entries])
         return entries[int(rng.choice(len(entries), p=weights / weights.sum()))]
 
