@@ -4,6 +4,7 @@ replaying them, stops at the first in-ODD failure, reports it replayed from the 
 from __future__ import annotations
 
 import copy
+import json
 import math
 from types import SimpleNamespace
 
@@ -12,6 +13,7 @@ import pytest
 
 from genesis_rl.adversaries import EpisodeOutcome, GoExplore, PolicyContext
 from genesis_rl.adversaries.goexplore import bearing_sector, danger
+from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.sim.interface import SnapshotUnsupported
 
@@ -149,3 +151,19 @@ def test_a_runner_without_snapshots_is_refused_with_the_backends_reason() -> Non
         policy.run_episode(Carlaish(), scene=0, episode_seed=0)
     with pytest.raises(UserInputError, match="search_budget = 1 must be >= 2"):
         GoExplore(PolicyContext(action_dim=3, seed=0, options={"search_budget": 1}))
+
+
+@pytest.mark.render
+def test_goexplore_on_lite_spends_at_most_its_budget_and_explores_the_same_way_twice(tmp_path) -> None:
+    args = ["evaluate", "--policies", "goexplore", "--map", "urban", "--scenes", "1", "--steps", "20", "--seed", "2",
+            "--search-budget", "4", "--odd", "genesis_rl/sut/zoo/odd/urban_any_hour.toml", "--dynamics", "natural",
+            "--start", "natural", "--quiet", "--no-report"]
+    rows = []
+    for name in ("a", "b"):
+        assert main([*args, "--out", str(tmp_path / name)]) == 0
+        rows.append(json.loads(next((tmp_path / name / "episodes" / "goexplore").glob("*.json")).read_text()))
+    extra = rows[0]["extra"]
+    assert extra["strata"] == 48 and rows[0]["steps"] == 20
+    assert rows[0]["sim_steps"] == sum(extra["candidate_steps"]) <= 4 * 20
+    assert extra["candidate_steps"][-1] == 20  # the report: the chosen chain replayed from the start
+    assert rows[0]["extra"] == rows[1]["extra"] and rows[0]["return"] == rows[1]["return"]

@@ -242,16 +242,16 @@ class GoExplore(WeatherPolicy):
 
     def _strata(self, runner: ExploringRunner, scene: int, episode_seed: int, rng: np.random.Generator
                 ) -> tuple[list[int], Callable[[int], Weather | None]]:
-        """The strata new roots open in, in a seeded order (one per cell of the held knobs' starts: the sun's
-        bearing sector and altitude band; one, the start weather, when the campaign does not let policies
-        choose), and a draw of a start inside a stratum."""
+        """The strata new roots open in, in a seeded order (one per cell of the sun's start: its bearing sector
+        and altitude band, other held knobs drawn anywhere in their range; one, the start weather, when the
+        campaign does not let policies choose), and a draw of a start inside a stratum."""
         held = runner.held_knobs
         if not (chooses_start(self.context.options) and held):
             return [-1], lambda stratum: None
         runner.begin(scene, episode_seed, None)
         heading = runner.heading_deg  # the scene's, before any step: the weather does not turn the ego
         per_knob = [range(BEARING_SECTORS) if n == "sun_azimuth_angle" else
-                    range(len(ALTITUDE_EDGES) + 1) if n == "sun_altitude_angle" else range(QUARTERS) for n in held]
+                    range(len(ALTITUDE_EDGES) + 1) if n == "sun_altitude_angle" else range(1) for n in held]
         cells = list(itertools.product(*per_knob))
 
         def draw(stratum: int) -> Weather | None:
@@ -271,8 +271,8 @@ class GoExplore(WeatherPolicy):
         elif knob == "sun_altitude_angle":
             edges = (spec.low, *ALTITUDE_EDGES, spec.high)
             value = rng.uniform(edges[stratum], edges[stratum + 1])
-        else:
-            value = spec.low + (stratum + rng.uniform()) / QUARTERS * spec.span
+        else:  # another held knob (a short episode holds the slow ones too): anywhere in its range
+            value = spec.low + rng.uniform() * spec.span
         return (value - spec.low) / spec.span
 
     @classmethod
