@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from genesis_rl.adversaries import EpisodeOutcome, GoExplore, PolicyContext
-from genesis_rl.adversaries.goexplore import bearing_sector, danger
+from genesis_rl.adversaries.goexplore import bearing_sector
 from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.loop.rules.danger import danger
 from genesis_rl.sim.interface import SnapshotUnsupported
 
 STEPS = 128

@@ -11,16 +11,23 @@ returning costs this one nothing (``GenesisEnv.snapshot``: a copy in about a ten
 A cell says what a tester would say matters: the sun's bearing from the heading and its altitude (in the
 bands a photographer names: night, twilight, golden hour, low, high), whether it glares, the light, the
 visibility and rain bands, the lead's gap and closing speed and whether the system sees it, each actor knob's
-quarter of its range, and the quarter of the episode. Where the campaign lets policies choose the start
-(``start = "natural"``), new roots are drawn stratified over the held knobs (the sun's bearing in six 60 deg
-sectors, its altitude in the same bands as the cells), so every kind of light is tried once before any twice.
+quarter of its range, and the quarter of the episode.
 
-The objective is falsification: the search stops at the first in-ODD collision and reports it. A cell's
-promise is the episode's worst danger so far (the deceleration the ego would need to stop behind its lead,
-over a hard braking's 6 m/s^2). The report is the found action sequence replayed from the episode's start
-through the runner (one more episode, counted in the budget), which both gives the campaign its frames and
-checks that the return was exact; the budget is ``search_budget`` episodes of simulator steps per scene, as the
-searches'. Lite only: CARLA cannot save a world (its refusal says so).
+One search: where the campaign lets policies choose the start (``start = "natural"``), a root is first opened in
+every stratum of the sun's start (its bearing in six 60 deg sectors, its altitude in the cells' bands) and
+looked at for a few steps, the weather left as it starts, so that every kind of light is seen once. Then each
+turn chooses a cell (half the time the most promising one, less so each time it is chosen; else a draw
+weighted by novelty, promise and depth), returns to its snapshot and explores with held random actions, most
+of them leaving the weather as it is; a quarter of the choices instead open a new root in the chosen cell's
+stratum (one sun 3 deg up fails where 5 deg does not).
+
+The objective is falsification: the search stops at the first in-ODD collision and reports it. A cell's promise
+is the episode's worst danger so far (``loop.rules.danger``: the deceleration the ego would need to stop behind
+its lead, over a hard braking's 6 m/s^2, more when the system misses a lead close ahead). The report is the
+found action sequence replayed from the episode's start through the runner (one more episode, counted in the
+budget), which gives the campaign its frames and checks that the return was exact; without a failure, the most
+dangerous chain is replayed, the weather then held. The budget is ``search_budget`` episodes of simulator steps
+per scene, as the searches'. Lite only: CARLA cannot save a world (its refusal says so).
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ from genesis_rl.adversaries.base import (
     register_policy,
 )
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.loop.rules.danger import danger
 from genesis_rl.world.knobs import KNOBS, Weather
 from genesis_rl.world.odd.domain import IN_ODD
 from genesis_rl.world.step_record import StepRecord
@@ -59,10 +67,6 @@ RAIN_EDGES = (0.1, 2.5, 7.6)
 #: the lead's gap bands [m] and closing-speed bands [m/s] of a cell
 GAP_EDGES = (5.0, 10.0, 20.0, 40.0, 80.0)
 CLOSING_EDGES = (-1.0, 1.0, 3.0, 6.0)
-#: the deceleration a hard braking demands [m/s^2]: a danger of 1 needs that much to stop behind the lead
-HARD_BRAKING = 6.0
-#: a lead the system misses within this range [m] is promising (about three seconds at urban speed)
-MISS_RANGE_M, MISS_PROMISE = 40.0, 0.5
 #: how much a cell's danger counts in its choice against its novelty (at most 1.5)
 PROMISE_WEIGHT = 1.0
 #: quarters of the episode and of each actor knob's range
@@ -77,22 +81,6 @@ def bearing_sector(azimuth_deg: float, heading_deg: float) -> int:
     """The sun's sector seen from the heading: 0 straight ahead (within 30 deg), counting counter-clockwise."""
     bearing = (azimuth_deg - heading_deg) % 360.0
     return int(((bearing + 180.0 / BEARING_SECTORS) % 360.0) // (360.0 / BEARING_SECTORS))
-
-
-def danger(rec: StepRecord) -> float:
-    """The deceleration the ego would need to stop behind its lead, over a hard braking's (0: none needed or no
-    lead; >= 1: at least a hard braking; a collision: 2), plus ``MISS_PROMISE`` when the system does not see a
-    lead within ``MISS_RANGE_M`` that is in the picture: what it is about to miss."""
-    if rec.collision.collided:
-        return 2.0 + MISS_PROMISE
-    gap, lead_speed = rec.lead.true_distance, rec.lead.speed
-    if not (rec.lead.present and math.isfinite(gap) and math.isfinite(lead_speed)):
-        return 0.0
-    missed = MISS_PROMISE if rec.lead.detected is False and gap < MISS_RANGE_M else 0.0
-    closing = rec.ego.speed - lead_speed
-    if closing <= 0.0:
-        return missed
-    return min(2.0, closing * closing / (2.0 * max(gap, 0.1)) / HARD_BRAKING) + missed
 
 
 def cell_of(rec: StepRecord, heading_deg: float, episode_steps: int, actor_knobs: tuple[str, ...]) -> Hashable:
