@@ -36,7 +36,7 @@ from genesis_rl.env.observation import (
 from genesis_rl.env.snapshot import EnvSnapshot
 from genesis_rl.loop.drive import ClosedLoop
 from genesis_rl.loop.frames import annotate_frame
-from genesis_rl.loop.rules.reward import PaperReward, RewardConfig
+from genesis_rl.loop.rules.reward import RewardConfig, make_reward
 from genesis_rl.loop.rules.rulebook import Rulebook, check_rulebook_imports, rulebook_for
 from genesis_rl.sim.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
 from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, ActorEvent, CameraConfig, ConnectionSettings, Simulation
@@ -280,7 +280,7 @@ class GenesisEnv(gym.Env):
         with _setting("env.rulebook"):
             self.rulebook: Rulebook = rulebook_for(c.rulebook, with_odd=c.odd is not None)
         with _setting("env.reward"):
-            self.reward_fn = PaperReward(c.reward, self.rulebook)
+            self.reward_fn = make_reward(c.reward, self.rulebook, c.episode_steps, with_odd=c.odd is not None)
         with _setting("env.catalog" if c.catalog else "env.scenes"):
             self.catalog = catalog_or_generate(c.catalog, c.map, c.scenes, c.catalog_seed, map_field="env.map",
                                                backend=c.backend)
@@ -391,6 +391,7 @@ class GenesisEnv(gym.Env):
         self._loop = ClosedLoop(self._sim, self.system, self.backend.name, self.world_seed)
         self._loop.start(weather)
         self._history.reset()
+        self.reward_fn.reset()
         self.records = []
 
     # -- snapshots -----------------------------------------------------------------------------------------
@@ -405,7 +406,8 @@ class GenesisEnv(gym.Env):
         return EnvSnapshot(self.scene_index, self.episode_seed, self.world_seed, sim.step_count, self.weather,
                            self.episode_start, tuple(self.records), world, copy_state(self.system),
                            copy.deepcopy(loop.frame), loop.ego, copy.deepcopy(loop.output),
-                           copy.deepcopy(self._history), self.choosing_start, self._pending_bonus)
+                           copy.deepcopy(self._history), copy_state(self.reward_fn, shared=(self.rulebook,)),
+                           self.choosing_start, self._pending_bonus)
 
     def restore(self, snapshot: EnvSnapshot) -> Any:
         """Return to ``snapshot`` (taken by this env or one with the same config) and give its observation; the
@@ -428,6 +430,7 @@ class GenesisEnv(gym.Env):
         self.weather, self.episode_start = snapshot.weather, snapshot.episode_start
         self.records = list(snapshot.records)
         self._history = copy.deepcopy(snapshot.history)
+        self.reward_fn = copy_state(snapshot.reward, shared=(self.rulebook,))
         self.choosing_start, self._pending_bonus = snapshot.choosing_start, snapshot.pending_bonus
         return self._observation(push=False)
 
@@ -584,9 +587,10 @@ class GenesisEnv(gym.Env):
         rule_terms = self.rulebook.step_terms(rec)
         surprise = self.weather_model.surprise(before.values, weather.values, self.dt) \
             if self.config.reward.naturalness_weight > 0 else 0.0
-        rec = rec.scored(rule_terms, self.reward_fn.terms(rec.iou, rule_terms, surprise))
+        rec = rec.scored(rule_terms, self.reward_fn.step_terms(rec, rule_terms, surprise))
         self.records.append(rec)
-        terminated = bool(self.config.terminate_on_collision and rec.collision.collided)
+        terminated = bool(self.config.terminate_on_collision and rec.collision.collided) or \
+            self.reward_fn.is_failure(rec)
         truncated = len(self.records) >= self.config.episode_steps
         info = step_info(rec, self._knob_info())
         if terminated or truncated:

@@ -34,5 +34,6 @@ class EnvSnapshot:
     ego: ActorState
     output: SystemOutput
     history: Any  # the observation's feature history (``FeatureHistory``)
+    reward: Any  # the reward's own state (the falsification reward's worst danger so far)
     choosing_start: bool
     pending_bonus: float
