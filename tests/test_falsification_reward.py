@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from genesis_rl.analysis.objectives import ScoredEpisode, falsification_return, separation
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.loop.rules.danger import COLLISION_DANGER
@@ -77,3 +78,21 @@ def test_the_env_ends_at_the_first_in_odd_failure_and_a_snapshot_keeps_the_worst
         assert again == rewards[40:]  # the worst danger so far came back with the snapshot
     finally:
         env.close()
+
+
+def test_separation_is_the_chance_a_failure_outscores_a_non_failure() -> None:
+    def ep(failed: bool, paper: float, falsification: float) -> ScoredEpisode:
+        return ScoredEpisode("c", "p", 0, failed, paper, falsification, 0.0)
+
+    episodes = [ep(True, 169.0, 120.0), ep(False, 127.5, 20.0), ep(False, 300.0, 12.0), ep(True, 300.0, 110.0)]
+    assert separation(episodes, "paper") == pytest.approx((1 + 0 + 1 + 0.5) / 4)
+    assert separation(episodes, "falsification") == 1.0
+    assert separation([ep(True, 1.0, 1.0)], "paper") is None
+
+
+def test_the_falsification_return_of_a_record_stops_at_its_first_in_odd_failure() -> None:
+    records = [_rec(30.0), _rec(0.0, collided=True), _rec(0.0, collided=True)]
+    for r in records:
+        r.rules = {}
+    assert falsification_return(records) == pytest.approx(
+        2 * 10.0 / 3 * np.exp(-1.0) + 10.0 * COLLISION_DANGER + 100.0)
