@@ -2,7 +2,8 @@
 
 ``sim``: physics steps/s (30 vehicles, no rendering) and rendered frames/s; ``system``: detector frames/s and
 closed-loop steps/s; ``train``: the real trainer's rollout steps/s and seconds per update; ``campaign``:
-episodes/minute per executor and worker count; ``catalog``: seconds to save, parse and load a scene catalog.
+episodes/minute per executor and worker count; ``catalog``: seconds to save, parse and load a scene catalog;
+``snapshot``: what an exact snapshot and its restore cost against an env step, per zoo member.
 Each prints JSON with the machine, so that docs/benchmarks.md can name it."""
 
 from __future__ import annotations
@@ -293,16 +294,58 @@ def bench_catalog(scenes: int = 1200, repeats: int = 5) -> dict:
 
 
 
+#: the members ``speed snapshot`` times by default: an urban and a highway weather member, a timing member with a
+#: latency queue, and the real-photo detector's
+SNAPSHOT_MEMBERS = ("low_sun", "glare_blind", "latency_braking", "stall_braking", "coco_low_sun")
+
+
+def bench_snapshot(members: tuple[str, ...] = SNAPSHOT_MEMBERS, steps: int = 200, repeats: int = 50) -> dict:
+    """Per member: milliseconds per env step (render, detect, control, rules), per ``GenesisEnv.snapshot`` and per
+    ``restore`` (the best of ``repeats`` each, mid-episode), and a snapshot's cost in steps: what returning to a
+    state costs Go-Explore against replaying the steps that reached it."""
+    import numpy as np
+
+    from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
+    from genesis_rl.sut.zoo.members import env_settings, zoo_member
+
+    out: dict[str, dict] = {}
+    for name in members:
+        env = GenesisEnv(EnvConfig(**{**env_settings(zoo_member(name)), "scenes": 2, "episode_steps": steps + 1}))
+        try:
+            action = np.zeros(env.mapper.action_dim, np.float32)
+            env.reset(options={"scene": 0, "episode_seed": 0})
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                env.step(action)
+            step_ms = (time.perf_counter() - t0) / steps * 1e3
+            snaps, restores = [], []
+            for _ in range(repeats):
+                a = time.perf_counter()
+                snap = env.snapshot()
+                b = time.perf_counter()
+                env.restore(snap)
+                snaps.append(b - a)
+                restores.append(time.perf_counter() - b)
+            out[name] = {"step_ms": round(step_ms, 2), "snapshot_ms": round(min(snaps) * 1e3, 2),
+                         "restore_ms": round(min(restores) * 1e3, 2),
+                         "snapshot_and_restore_in_steps": round((min(snaps) + min(restores)) * 1e3 / step_ms, 3)}
+        finally:
+            env.close()
+    return {"what": "snapshot", "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "steps_timed": steps, "best_of": repeats, **out}
+
+
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """The ``speed`` command's flags (also answering to its old name, ``bench``)."""
     p = sub.add_parser("speed", aliases=["bench"],
                        help="how fast the simulator, the system, training and campaigns run here; JSON")
-    p.add_argument("what", choices=["sim", "system", "train", "campaign", "catalog"],
+    p.add_argument("what", choices=["sim", "system", "train", "campaign", "catalog", "snapshot"],
                    help="sim: physics steps/s and frames/s; system: detector fps and closed-loop steps/s; "
                         "train: the real trainer for --updates PPO updates: rollout steps/s, seconds per "
                         "update, projected paper-schedule time; "
                         "campaign: episodes/minute per executor and worker count; catalog: seconds to save, "
-                        "parse and load a scene catalog (every env pays the load)")
+                        "parse and load a scene catalog (every env pays the load); snapshot: an exact snapshot's "
+                        "and restore's cost against an env step, per zoo member")
     p.add_argument("--executors", default=None,
                    help="speed campaign: comma list of local, ray (default both); speed train: local or ray "
                         "(where the envs run, default local)")
@@ -312,7 +355,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "catalog (default 1200, as the estimate's free-flow highway catalog)")
     p.add_argument("--steps", type=int, default=None,
                    help="physics steps (sim, 2000), closed-loop steps (system, 200), steps per update (train, "
-                        "2048)")
+                        "2048), env steps timed before the snapshots (snapshot, 200)")
     p.add_argument("--config", default=None,
                    help="speed train: the training config (default: the paper's values, configs/paper.toml)")
     p.add_argument("--envs", type=int, default=2, help="speed train: env processes (default 2)")
@@ -343,7 +386,7 @@ def _run(args: argparse.Namespace) -> int:
         print(json.dumps(bench_catalog(scenes=scenes), indent=2))
         return 0
     steps = args.steps if args.steps is not None else {"sim": 2000, "system": 200, "train": 2048,
-                                                       "campaign": 256}[args.what]
+                                                       "campaign": 256, "snapshot": 200}[args.what]
     least = 2 if args.what == "train" else 1  # a PPO update needs two steps
     if steps < least:
         raise UserInputError(f"--steps = {steps} must be >= {least}")
@@ -375,6 +418,9 @@ def _run(args: argparse.Namespace) -> int:
             raise UserInputError(f"--executors {executor!r}: bench train takes one of local, ray")
         print(json.dumps(bench_train(args.config, envs=args.envs, updates=args.updates, n_steps=steps,
                                      system=args.system, executor=executor), indent=2))
+        return 0
+    if args.what == "snapshot":
+        print(json.dumps(bench_snapshot(steps=steps), indent=2))
         return 0
     if args.what == "system":
         print(json.dumps(bench_system(frames=args.frames, steps=steps, system=args.system), indent=2))
