@@ -184,6 +184,19 @@ def test_replay_reproduces_the_recorded_violations(tmp_path, campaign: Path, hit
     assert main(["replay", str(record), "--out", str(tmp_path / "r"), "--quiet"]) == 2  # no overwrite
 
 
+def test_a_record_keeps_its_world_seed_and_replays_in_another_world_on_request(tmp_path, campaign: Path,
+                                                                             hit: dict) -> None:
+    record = json.loads(hit["record"].read_text())
+    assert record["world_seed"] == record["episode_seed"]  # a campaign's world is its episode's
+    assert main(["replay", str(hit["record"]), "--out", str(tmp_path / "w"), "--quiet", "--no-gif",
+                 "--world-seed", "12345"]) == 0
+    rep = json.loads((tmp_path / "w" / "replay.json").read_text())
+    assert rep["world_seed"] == 12345 and rep["recorded_world_seed"] == record["episode_seed"]
+    assert "reproduced" not in rep  # another world is not a reproduction check
+    assert rep["violations"] != rep["recorded_violations"]  # the traffic moved otherwise: other figures
+    assert main(["replay", str(hit["record"]), "--out", str(tmp_path / "x"), "--world-seed", "-1"]) == 2
+
+
 def test_replay_says_whether_violations_or_only_the_steps_differ(tmp_path, campaign: Path, hit: dict, capsys) -> None:
     """A record whose step telemetry no longer matches (another renderer, say) but whose violations do is
     not called a different outcome."""

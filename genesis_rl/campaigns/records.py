@@ -72,6 +72,7 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
                   "vehicles": [asdict(v) for v in sc.vehicles]},
         "catalog": {"map": env.catalog.map, "seed": env.catalog.seed, "index": scene},
         "episode_seed": episode_seed,
+        "world_seed": env.world_seed,
         "steps": len(records),
         "camera": {"width": cfg.camera_width, "height": cfg.camera_height},
         "system": {"spec": cfg.system, "kwargs": cfg.system_kwargs, "identity": env.system.identity()},
@@ -132,9 +133,10 @@ def _check_record(rec: dict[str, Any], path: Path) -> None:
         v = rec_get(field)
         if isinstance(v, bool) or not isinstance(v, int) or not 16 <= v <= 4096:
             raise bad(field, "an integer in 16..4096")
-    seed = rec.get("episode_seed")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise bad("episode_seed", "an integer >= 0")
+    for field in ("episode_seed", "world_seed"):  # world_seed: absent in records before it (the episode seed)
+        seed = rec.get(field, 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise bad(field, "an integer >= 0")
     knobs = rec.get("knobs")
     if not isinstance(knobs, list) or not knobs or not all(k in KNOBS for k in knobs):
         raise bad("knobs", f"a list of knob names from {', '.join(KNOBS)}")
@@ -180,11 +182,19 @@ def load_recorded_system(recorded: dict[str, Any], weights: str | None = None) -
     return system
 
 
+def recorded_world_seed(rec: dict[str, Any]) -> int:
+    """The world seed the recorded episode ran in (records before the field: its episode seed)."""
+    return int(rec.get("world_seed", rec["episode_seed"]))
+
+
 def replay_record(rec: dict[str, Any], weights: str | None = None, progress: bool = False,
-                  keep_frames: bool = True, observer: Callable[[Simulation], None] | None = None) -> dict[str, Any]:
+                  keep_frames: bool = True, observer: Callable[[Simulation], None] | None = None,
+                  world_seed: int | None = None) -> dict[str, Any]:
     """Drive the record's episode again; returns the step records, frames, violations and whether they
     equal the recorded ones (to 1e-9). ``observer`` sees the simulation after the start and after every step
-    (the OpenSCENARIO export reads every vehicle's pose there)."""
+    (the OpenSCENARIO export reads every vehicle's pose there). ``world_seed``: play the recorded schedule in
+    another world (the traffic's behaviour, the camera's noise, the system's draws), as the benchmark's re-runs
+    do; None: the recorded world."""
     import torch  # local: start-up cost
 
     if rec.get("backend", "lite") != "lite":
@@ -204,8 +214,9 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
     records: list[StepRecord] = []
     frames: list[np.ndarray] = []
     try:
-        with backend.create_simulation(scene, seed=rec["episode_seed"], weather=start, camera=camera) as sim:
-            loop = ClosedLoop(sim, system, backend.name, rec["episode_seed"])
+        world = recorded_world_seed(rec) if world_seed is None else int(world_seed)
+        with backend.create_simulation(scene, seed=world, weather=start, camera=camera) as sim:
+            loop = ClosedLoop(sim, system, backend.name, world)
             loop.start(start)
             if observer is not None:
                 observer(sim)
