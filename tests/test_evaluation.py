@@ -468,6 +468,23 @@ def test_damaged_campaign_files_are_named_not_tracebacks(tmp_path, campaign: Pat
     assert "--weights applies to records of --system builtin, yolo or a plug-in" in capsys.readouterr().err
 
 
+def test_report_and_export_refuse_a_steps_file_a_row_short(tmp_path, campaign: Path, capsys) -> None:
+    """A file that parses but lost its last row (a copy cut short, say) is named, not plotted as a shorter run."""
+    import pyarrow.parquet as pq
+
+    copy = tmp_path / "camp"
+    shutil.copytree(campaign, copy)
+    hit_dir = sorted(p for p in (copy / "frames").glob("*/*") if p.is_dir())[0]
+    steps = copy / "steps" / hit_dir.parent.name / f"{hit_dir.name}.parquet"
+    table = pq.read_table(steps)
+    pq.write_table(table.slice(0, table.num_rows - 1), steps)
+    message = f"'{steps}' is damaged: it holds {table.num_rows - 1} step rows where its episode row says"
+    assert main(["export", str(copy), "--format", "coco", "--out", str(tmp_path / "x")]) == 2
+    assert message in capsys.readouterr().err
+    assert main(["report", str(copy), "--force"]) == 2
+    assert message in capsys.readouterr().err
+
+
 def test_export_says_when_the_frames_of_collisions_were_deleted(tmp_path, campaign: Path, capsys) -> None:
     copy = tmp_path / "camp"
     shutil.copytree(campaign, copy)

@@ -120,7 +120,7 @@ def fig_knobs(folder: Path, rows: dict[str, list[dict[str, Any]]], knobs: list[s
             if path.is_file():
                 # a knob the campaign's version did not record reads as its default
                 steps = [Weather.from_recorded({k: r[k] for k in knobs if k in r})
-                         for r in read_steps(path, columns=knobs)]
+                         for r in read_steps(path, columns=knobs, steps=e.get("steps"))]
                 runs.append(np.array([[w[k] for k in knobs] for w in steps], float).reshape(-1, len(knobs)))
         if runs:
             n = min(len(r) for r in runs)
@@ -223,8 +223,9 @@ def frame_strip(folder: Path, policy: str, scene: int, records: list[StepRecord]
     return _jpeg(np.hstack(tiles))
 
 
-def _steps(folder: Path, policy: str, scene: int) -> list[StepRecord]:
-    return read_step_records(steps_path(folder, policy, scene))
+def _steps(folder: Path, policy: str, scene: int, steps: int | None = None) -> list[StepRecord]:
+    """An episode's step records; ``steps``: the count its row states, which the file must hold exactly."""
+    return read_step_records(steps_path(folder, policy, scene), steps)
 
 
 CSS = """
@@ -332,7 +333,9 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
                  "finished episodes only; <code>genesis-rl evaluate ... --resume</code> completes it.</p>")
 
     # 0. natural edge cases (campaigns from 0.6.0 on)
-    h.extend(natural_section(folder, summary, rows, lambda p, sc: _steps(folder, p, sc), figure_png_base64,
+    stated = {(p, e["scene"]): e.get("steps") for p, eps in rows.items() for e in eps}
+    h.extend(natural_section(folder, summary, rows, lambda p, sc: _steps(folder, p, sc, stated.get((p, sc))),
+                             figure_png_base64,
                              lambda p, sc, recs: frame_strip(folder, p, sc, recs)))
     h.extend(cut_in_html(summary["policies"]))
     cut_fig = fig_cut_ins(rows, {p: policy_color(p, k) for k, p in enumerate(rows)})
@@ -386,7 +389,7 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
             continue
         shown += 1
         p, e = example
-        recs = _steps(folder, p, e["scene"])
+        recs = _steps(folder, p, e["scene"], e.get("steps"))
         title = (f"{MODE_TITLES[mode]}: {p}, scene {e['scene']}, impact at {e['failure']['speed']:.1f} m/s, "
                  f"step {e['first_collision_step']}")
         proximity = rulebook.rule("proximity")

@@ -19,7 +19,7 @@ from typing import Any
 
 from PIL import Image
 
-from genesis_rl.campaigns.campaign_files import REMEDY, read_steps, steps_path
+from genesis_rl.campaigns.campaign_files import REMEDY, episode_path, read_episode_row, read_steps, steps_path
 from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.summary import load_campaign
 from genesis_rl.core.errors import UserInputError
@@ -101,7 +101,8 @@ def _write(folder: Path, fmt: str, out: Path, tmp: Path, meta: dict[str, Any],
         key = (policy, scene)
         if key not in steps_cache:
             # a campaign written before a knob existed lacks its column: it reads as the knob's default
-            rows_ = read_steps(steps_path(folder, policy, scene), columns=["step", "gt_boxes", *KNOBS])
+            stated = read_episode_row(episode_path(folder, policy, scene))["steps"]  # the file must hold them all
+            rows_ = read_steps(steps_path(folder, policy, scene), columns=["step", "gt_boxes", *KNOBS], steps=stated)
             steps_cache[key] = {r["step"]: r for r in rows_}
         rec = steps_cache[key].get(step)
         if rec is None:
