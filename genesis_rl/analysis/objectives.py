@@ -52,7 +52,7 @@ def score_campaign(folder: Path) -> list[ScoredEpisode]:
         for row in rows:
             records = read_step_records(steps_path(folder, policy, row.scene), steps=row.steps)
             out.append(ScoredEpisode(
-                folder.name, policy, row.scene, in_odd_failure_at(records) is not None,
+                f"{folder.parent.name}/{folder.name}", policy, row.scene, in_odd_failure_at(records) is not None,
                 sum(float(r.reward["reward"]) for r in records), falsification_return(records, with_odd=with_odd),
                 sum(float(r.reward["reward"]) for r in records if r.collision.collided)))
     return out
