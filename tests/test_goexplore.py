@@ -168,3 +168,18 @@ def test_goexplore_on_lite_spends_at_most_its_budget_and_explores_the_same_way_t
     assert rows[0]["sim_steps"] == sum(extra["candidate_steps"]) <= 4 * 20
     assert extra["candidate_steps"][-1] == 20  # the report: the chosen chain replayed from the start
     assert rows[0]["extra"] == rows[1]["extra"] and rows[0]["return"] == rows[1]["return"]
+
+
+def test_a_world_where_every_start_crashes_outside_the_odd_ends_the_search_cleanly() -> None:
+    """Nothing is archived after a crash, so nothing can be returned to: the search stops and still reports."""
+    class Hostile(ToyWorld):
+        def step(self, action: np.ndarray) -> SimpleNamespace:
+            rec = super().step(action)
+            rec.collision.collided, rec.odd_status = True, "outside"
+            return rec
+
+    policy = GoExplore(PolicyContext(action_dim=3, seed=0, options={"search_budget": 4, "steps": STEPS,
+                                                                    "start": "natural"}))
+    outcome = policy.run_episode(Hostile(), scene=0, episode_seed=0)
+    assert outcome.extra["found_at_step"] is None and outcome.extra["archive_cells"] == 0
+    assert outcome.extra["candidate_steps"] == [1] * 48 + [STEPS]  # one step a root, then the report

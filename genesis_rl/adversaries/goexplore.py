@@ -180,6 +180,8 @@ class GoExplore(WeatherPolicy):
                 opened += 1
             else:
                 entry = self._choose(archive, steps, rng)
+                if entry is None:  # every archived state lies at the episode's end (or none survived a crash)
+                    break
                 entry.chosen += 1
                 if entry.stratum >= 0 and rng.random() < self.REROOT_SHARE:
                     stratum = entry.stratum  # a promising kind of light, from another start inside it
@@ -216,10 +218,6 @@ class GoExplore(WeatherPolicy):
                     known.seen += 1
             if records:
                 ledger.add(EpisodeOutcome(records, sim_steps=len(records)), value=-math.inf)
-            else:  # the chosen cell lies at the episode's end: nothing to explore from it
-                archive = {c: e for c, e in archive.items() if len(e.actions) < steps}
-                if not archive:
-                    break
         chain = found or self._most_dangerous(archive) or (draw(0), ())
         report = runner.run(_replay(chain[1], dim), scene, episode_seed, chain[0])
         ledger.add(report, value=math.inf)
@@ -264,11 +262,13 @@ class GoExplore(WeatherPolicy):
         return (value - spec.low) / spec.span
 
     @classmethod
-    def _choose(cls, archive: dict[Hashable, _Entry], steps: int, rng: np.random.Generator) -> _Entry:
+    def _choose(cls, archive: dict[Hashable, _Entry], steps: int, rng: np.random.Generator) -> _Entry | None:
         """Half the time the most promising cell (the most dangerous, less so each time it is chosen), else a
         draw weighted by novelty and promise: with a few dozen cells of steady driving, a draw alone would
         return to the one dangerous cell once in twenty tries."""
         entries = [e for e in archive.values() if len(e.actions) < steps]
+        if not entries:
+            return None
         dangerous = [e for e in entries if e.danger > 0.0]
         if dangerous and rng.random() < cls.EXPLOIT_SHARE:
             return max(dangerous, key=lambda e: (e.danger / math.sqrt(1.0 + e.chosen), len(e.actions)))
