@@ -3,10 +3,10 @@
 Go-Explore (Ecoffet et al., "First return, then explore", Nature 2021) keeps an archive of *cells*, coarse
 descriptions of the states visited, each with the exact state that reached it first (or most dangerously); it
 picks a cell (rarely chosen ones first, promising ones more often), returns to its state and explores from
-there with random actions. Koren et al. ("Finding failures in high-fidelity simulation using adaptive stress
-testing and the backward algorithm", IROS 2020) found failures this way where Monte Carlo tree search and
-deep RL found none. The searches here (``cmaes``, ``cem``, ``mcts``) replay whole episodes from the start;
-returning costs this one nothing (``GenesisEnv.snapshot``: a copy in about a tenth of a step, exact to the bit).
+there with random actions. Koren and Kochenderfer ("Adaptive Stress Testing without Domain Heuristics using
+Go-Explore", ITSC 2020) found failures this way where Monte Carlo tree search and deep RL found none. The
+searches here (``cmaes``, ``cem``, ``mcts``) replay whole episodes from the start; returning costs this one
+about a tenth of a step (``GenesisEnv.snapshot``, exact to the bit).
 
 A cell says what a tester would say matters: the sun's bearing from the heading and its altitude (in the
 bands a photographer names: night, twilight, golden hour, low, high), whether it glares, the light, the
