@@ -206,12 +206,13 @@ def test_a_near_miss_is_replayed_for_its_frames_and_exported_with_labels(hardene
     exported = export_dataset(test, "yolo", tmp_path / "export", extra_frames=tmp_path / "a",
                               keep=lambda p, s, st: (p, s) == ("sunny", 3) and st <= step)
     assert exported["images"] == len(frames) and exported["labels"] >= len(frames)
-    # another episode seed in the record: the replay departs from the campaign's step data
+    # another world seed in the record (the seed a replay's traffic and noise come from): the replay departs
+    # from the campaign's step data
     copy = tmp_path / "campaign"
     shutil.copytree(test, copy)
     record = copy / "records" / "sunny_scene_0003.json"
     data = json.loads(record.read_text())
-    data["episode_seed"] += 1
+    data["world_seed"] += 1
     record.write_text(json.dumps(data))
     with pytest.raises(UserInputError, match="replayed as the campaign recorded it"):
         render_frames(copy, found, tmp_path / "c", weights, frames_before=40, stride=2)

@@ -226,7 +226,7 @@ def test_a_failed_export_leaves_no_partial_folder(campaign, tmp_path, capsys, mo
     frame = tmp_path / "f.jpg"
     frame.write_bytes(b"\xff\xd8\xff")  # a damaged frame: the export fails half-way
     monkeypatch.setattr(export, "_frames", lambda folder: [("random", 0, 1, frame)])
-    monkeypatch.setattr(export, "read_steps", lambda path, columns=None: [{"step": 1, "gt_boxes": []}])
+    monkeypatch.setattr(export, "read_steps", lambda path, columns=None, steps=None: [{"step": 1, "gt_boxes": []}])
     rows = export.load_campaign(campaign)[1]
     scene = rows["random"][0]["scene"]
     monkeypatch.setattr(export, "_frames", lambda folder: [("random", scene, 1, frame)])
