@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from genesis_rl.adversaries.base import in_odd_failure_at
-from genesis_rl.campaigns.campaign_files import steps_path
+from genesis_rl.campaigns.campaign_files import read_step_records, steps_path
 from genesis_rl.campaigns.loaded import load_typed_campaign
 from genesis_rl.loop.rules.reward import FalsificationReward, RewardConfig
 from genesis_rl.world.step_record import StepRecord
@@ -43,8 +43,6 @@ def falsification_return(records: Sequence[StepRecord], config: RewardConfig | N
 
 def score_campaign(folder: Path) -> list[ScoredEpisode]:
     """Every episode of the campaign in ``folder``, scored both ways."""
-    from genesis_rl.campaigns.campaign_files import read_step_records
-
     campaign = load_typed_campaign(folder)
     with_odd = bool(campaign.spec.env.get("odd"))
     out = []

@@ -78,17 +78,19 @@ def run(args: argparse.Namespace) -> int:
         frames = [annotate_frame(result["frames"][i], result["records"][i])
                   for i in range(lo, min(len(result["frames"]), hit + 20), 2)]
         write_gif(out / "replay.gif", frames, fps=10)
-    report = {"record": str(args.record), "reproduced": result["reproduced"],
-              "steps_identical": result["steps_identical"], "violations": result["violations"],
-              "render_version": result["render_version"],
-              "recorded_render_version": result["recorded_render_version"],
-              "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
-              "first_collision_step": next((r.step for r in result["records"] if r.collision.collided), None)}
-    if args.world_seed is not None:  # another world: nothing to reproduce, only what happened there
+    first = next((r.step for r in result["records"] if r.collision.collided), None)
+    if args.world_seed is None:
+        report = {"record": str(args.record), "reproduced": result["reproduced"],
+                  "steps_identical": result["steps_identical"], "violations": result["violations"],
+                  "render_version": result["render_version"],
+                  "recorded_render_version": result["recorded_render_version"],
+                  "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
+                  "first_collision_step": first}
+    else:  # another world: nothing to reproduce, only what happened there
         report = {"record": str(args.record), "world_seed": args.world_seed,
                   "recorded_world_seed": recorded_world_seed(rec), "violations": result["violations"],
                   "recorded_violations": result["recorded_violations"], "steps": len(result["records"]),
-                  "first_collision_step": report["first_collision_step"],
+                  "first_collision_step": first,
                   "recorded_first_collision_step": (rec.get("summary") or {}).get("first_collision_step")}
     atomic_write_json(out / "replay.json", report, indent=2)
     print(json.dumps(report, indent=2))

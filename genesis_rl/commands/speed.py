@@ -294,8 +294,8 @@ def bench_catalog(scenes: int = 1200, repeats: int = 5) -> dict:
 
 
 
-#: the members ``speed snapshot`` times by default: an urban and a highway weather member, a timing member with a
-#: latency queue, and the real-photo detector's
+#: the members ``speed snapshot`` times by default: two urban weather members (two detectors), two highway timing
+#: members (a latency queue, a stalling camera), and the real-photo detector's
 SNAPSHOT_MEMBERS = ("low_sun", "glare_blind", "latency_braking", "stall_braking", "coco_low_sun")
 
 

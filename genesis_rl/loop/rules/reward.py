@@ -107,7 +107,12 @@ class PaperReward:
         reward as ``reward_naturalness``, so the agent searches for the most likely failure (AST)."""
         perception = self.config.iou_weight * math.exp(-iou)
         behaviour = math.log1p(sum(w * float(rule_terms.get(k, 0.0)) for k, w in self.weights.items()))
-        out = {"reward_perception": perception, "reward_behaviour": behaviour, "reward": perception + behaviour}
+        return self._with_naturalness(
+            {"reward_perception": perception, "reward_behaviour": behaviour, "reward": perception + behaviour},
+            surprise)
+
+    def _with_naturalness(self, out: dict[str, float], surprise: float) -> dict[str, float]:
+        """``out`` with the naturalness term joined (``naturalness_weight`` > 0), whichever objective built it."""
         if self.config.naturalness_weight > 0:
             out["reward_naturalness"] = self.config.naturalness_weight * surprise
             out["reward"] += out["reward_naturalness"]
@@ -139,12 +144,9 @@ class FalsificationReward(PaperReward):
         self.worst = now
         perception = c.perception_cap / self.episode_steps * math.exp(-rec.iou)
         failure = c.failure_reward if self.is_failure(rec) else 0.0
-        out = {"reward_perception": perception, "reward_closeness": closeness, "reward_failure": failure,
-               "reward": perception + closeness + failure}
-        if c.naturalness_weight > 0:
-            out["reward_naturalness"] = c.naturalness_weight * surprise
-            out["reward"] += out["reward_naturalness"]
-        return out
+        return self._with_naturalness({"reward_perception": perception, "reward_closeness": closeness,
+                                       "reward_failure": failure, "reward": perception + closeness + failure},
+                                      surprise)
 
 
 def make_reward(config: RewardConfig, rulebook: Rulebook, episode_steps: int, with_odd: bool) -> PaperReward:

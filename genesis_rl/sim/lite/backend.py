@@ -93,7 +93,7 @@ class LiteSimulation(Simulation):
 
     def snapshot(self) -> LiteSnapshot:
         return LiteSnapshot((self.scene.map, self.scene.seed), self.seed, self._step,
-                            copy_state(self.traffic, shared=(self.map,)), self._weather)
+                            copy_state(self.traffic), self._weather)
 
     def restore(self, state: object) -> None:
         if not isinstance(state, LiteSnapshot):
@@ -101,7 +101,7 @@ class LiteSimulation(Simulation):
         if state.scene != (self.scene.map, self.scene.seed):
             raise SnapshotUnsupported(f"snapshot of scene {state.scene} restored into scene "
                                       f"{(self.scene.map, self.scene.seed)}: a snapshot returns to its own scene")
-        self.traffic = copy_state(state.traffic, shared=(self.map,))  # the snapshot stays reusable
+        self.traffic = copy_state(state.traffic)  # the snapshot stays reusable; the map is shared (SNAPSHOT_SHARED)
         self._step, self._weather, self.seed = state.step, state.weather, state.world_seed
         if self._renderer is not None:
             self._renderer.set_episode_seed(self.seed)
