@@ -12,10 +12,18 @@ import sys
 from pathlib import Path
 
 from genesis_rl.analysis.objectives import score_campaign, separation
+from genesis_rl.core.errors import UserInputError
 
 
 def main(folders: list[str]) -> int:
-    episodes = [e for f in folders for e in score_campaign(Path(f))]
+    if not folders:
+        print(__doc__.strip(), file=sys.stderr)
+        return 2
+    try:
+        episodes = [e for f in folders for e in score_campaign(Path(f))]
+    except UserInputError as err:  # a missing or damaged campaign: one line, as the commands say it
+        print(f"objective_table: error: {err}", file=sys.stderr)
+        return err.exit_code
     print("| campaign | policy | scene | in-ODD failure | paper return | of it in contact | falsification return |")
     print("| --- | --- | ---: | --- | ---: | ---: | ---: |")
     for e in sorted(episodes, key=lambda e: (not e.failed, -e.paper)):
