@@ -55,3 +55,112 @@ def test_evaluate_force_keeps_an_analysis_in_records(old: Path, capsys, monkeypa
     assert "records/my_analysis.json" in capsys.readouterr().err
     assert (old / "camp" / "records" / "my_analysis.json").exists()
     assert (old / "camp" / "records" / "agent_scene_0001.json").exists()  # nothing of the campaign went either
+
+
+# --- the manifest: --force deletes a file only when genesis-rl wrote exactly it -------------------------------
+
+def _written_campaign(folder: Path) -> Path:
+    """A campaign folder as the tool leaves it: marker, files named like its own, and the manifest the hold
+    records as it lets the folder go."""
+    from genesis_rl.core.files.output_folder import claim, replace
+
+    with claim(folder, "campaign", force=False):
+        replace(folder, "campaign")
+        (folder / "summary.json").write_text('{"episodes": 1}')
+        (folder / "records").mkdir()
+        (folder / "records" / "agent_scene_0001.json").write_text("{}")
+    return folder
+
+
+def test_the_hold_records_what_it_wrote_with_sha256(tmp_path: Path) -> None:
+    import hashlib
+
+    from genesis_rl.core.files import manifest
+
+    camp = _written_campaign(tmp_path / "camp")
+    listing = manifest.read(camp)
+    assert listing is not None and sorted(listing.files) == ["records/agent_scene_0001.json", "summary.json"]
+    assert listing.files["summary.json"].sha256 == hashlib.sha256(b'{"episodes": 1}').hexdigest()
+    assert foreign_entries(camp, "campaign") == []
+    check_target(camp, "campaign", force=True)  # nothing of the user's: --force may go on
+
+
+def test_force_refuses_a_file_of_ours_that_the_user_edited(tmp_path: Path) -> None:
+    camp = _written_campaign(tmp_path / "camp")
+    (camp / "summary.json").write_text('{"episodes": 1, "my note": "checked by hand"}')
+    with pytest.raises(UserInputError, match=r"summary\.json \(changed since genesis-rl wrote it\)"):
+        check_target(camp, "campaign", force=True)
+    assert "my note" in (camp / "summary.json").read_text()
+
+
+def test_force_refuses_a_users_file_under_one_of_our_names(tmp_path: Path) -> None:
+    camp = _written_campaign(tmp_path / "camp")
+    (camp / "records" / "agent_scene_0002.json").write_text('{"mine": true}')
+    with pytest.raises(UserInputError, match=r"records/agent_scene_0002\.json \(not in the folder's manifest"):
+        check_target(camp, "campaign", force=True)
+
+
+def test_a_killed_writers_files_count_as_its_own(tmp_path: Path) -> None:
+    """A run killed before it let the folder go leaves its lock file; what it wrote after the manifest's last
+    record is named like ours and newer: --force may replace it (the usual 'start over' after a crash)."""
+    from genesis_rl.core.files.output_folder import lock_path
+
+    camp = _written_campaign(tmp_path / "camp")
+    (camp / "records" / "agent_scene_0002.json").write_text("{}")
+    with pytest.raises(UserInputError):
+        check_target(camp, "campaign", force=True)  # no lock left: someone else put it there
+    lock_path(camp).write_text("12345\n")  # the killed writer's lock file, unlocked
+    check_target(camp, "campaign", force=True)
+
+
+def test_a_folder_without_a_manifest_is_judged_by_names_and_adopted_when_held(old: Path) -> None:
+    from genesis_rl.core.files import manifest
+    from genesis_rl.core.files.output_folder import hold
+
+    camp = old / "camp"
+    assert manifest.read(camp) is None and foreign_entries(camp, "campaign") == []
+    with hold(camp):
+        pass  # a command that wrote nothing (refused under the lock) leaves the folder as it was
+    assert manifest.read(camp) is None
+    with hold(camp):
+        (camp / "summary.json").write_text("{}")  # a resume finishing it: its files of 0.29.0 adopted too
+    listing = manifest.read(camp)
+    assert listing is not None and "campaign.json" in listing.files and "summary.json" in listing.files
+
+
+def test_report_into_a_campaign_is_listed_in_its_manifest(tmp_path: Path) -> None:
+    from genesis_rl.core.files import manifest
+    from genesis_rl.core.files.output_paths import output_file
+
+    camp = _written_campaign(tmp_path / "camp")
+    output_file(camp / "report.html", force=False).write_text("<html></html>")
+    output_file(camp / "my_notes.html", force=False).write_text("<p>mine</p>")
+    listing = manifest.read(camp)
+    assert listing is not None and "report.html" in listing.files and "my_notes.html" not in listing.files
+    assert foreign_entries(camp, "campaign") == ["my_notes.html"]
+
+
+def test_drive_force_refuses_to_overwrite_an_edited_output(tmp_path: Path) -> None:
+    from genesis_rl.core.files.output_folder import claim, write_marker
+
+    out = tmp_path / "drive"
+    with claim(out, "drive", force=False, files=["summary.json"]):
+        out.mkdir()
+        (out / "summary.json").write_text("{}")
+        write_marker(out, "drive")
+    check_target(out, "drive", force=True, files=["summary.json"])
+    (out / "summary.json").write_text('{"edited": 1}')
+    with pytest.raises(UserInputError, match=r"summary\.json \(changed since genesis-rl wrote it\)"):
+        check_target(out, "drive", force=True, files=["summary.json"])
+
+
+def test_evaluate_force_keeps_a_hand_edited_summary(old: Path, capsys) -> None:
+    args = ["evaluate", "--agent", "run", "--policies", "random", "--catalog", "run/catalog.json", "--scenes", "1",
+            "--steps", "5", "--out", "fresh", "--quiet", "--no-report"]
+    assert main(args) == 0
+    assert main([*args, "--force"]) == 0  # untouched: the tool's own files, replaced
+    summary = old / "fresh" / "summary.json"
+    summary.write_text(summary.read_text().replace("{", '{"reviewed": "yes", ', 1))
+    assert main([*args, "--force"]) == 2
+    assert "summary.json (changed since genesis-rl wrote it)" in capsys.readouterr().err
+    assert '"reviewed": "yes"' in summary.read_text()

@@ -51,15 +51,16 @@ MARKER = ".genesis-rl.json"
 def _leftovers(top: Path) -> list[str]:
     """Hidden files under ``top`` other than the folders' markers: atomic writes' temporaries
     (``.NAME.XXXXXXXX.SUFFIX``, e.g. ``.step_00000016.zip.k2j4h1a_.zip``) and lock files
-    (``.NAME.genesis-rl.lock``)."""
-    return sorted(str(p.relative_to(top)) for p in top.rglob(".*") if p.is_file() and p.name != MARKER)
+    (``.NAME.genesis-rl.lock``); the manifests of what was written are the tool's record, not leftovers."""
+    return sorted(str(p.relative_to(top)) for p in top.rglob(".*")
+                  if p.is_file() and p.name not in (MARKER, ".genesis-rl.manifest.json"))
 
 
 def _temporary_appears(folder: Path, proc: subprocess.Popen, limit: float) -> bool:
     """Wait (polling every millisecond) until a temporary file of an atomic write exists under ``folder``."""
     end = time.monotonic() + limit
     while time.monotonic() < end and proc.poll() is None:
-        if folder.is_dir() and any(p.name != MARKER for p in folder.rglob(".*")):
+        if folder.is_dir() and any(p.name not in (MARKER, ".genesis-rl.manifest.json") for p in folder.rglob(".*")):
             return True
         time.sleep(0.001)
     return False

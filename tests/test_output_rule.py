@@ -84,7 +84,8 @@ def test_an_output_that_is_the_input_or_a_link_to_it_is_refused(camp, tmp_path, 
     assert f"--out '{hard}' is a hard link to '{camp / 'campaign.json'}'" in capsys.readouterr().err
     assert config.read_text() == TINY_RUN and _files(camp) == before and link.is_symlink()
     # report's own CAMPAIGN/report.html lies inside its input, but beside what it reads, never onto it
-    kept = ("report", "summary.json")  # report writes these; summary.json names the campaign's folder
+    # report writes these; summary.json names the campaign's folder; the manifest lists report.html
+    kept = ("report", "summary.json", ".genesis-rl.manifest.json")
     assert main(["report", str(camp), "--force"]) == 0
     assert (camp / "report.html").read_text().startswith("<!doctype html>")
     assert {k: v for k, v in _files(camp).items() if not k.startswith(kept)} == \

@@ -449,7 +449,7 @@ def leftovers(root: Path) -> list[str]:
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
         for name in dirnames + filenames:
-            if TEMP_RE.search(name) and not name.startswith(".genesis-rl.json"):
+            if TEMP_RE.search(name) and not name.startswith((".genesis-rl.json", ".genesis-rl.manifest.json")):
                 found.append(str((Path(dirpath) / name).relative_to(root)))
     return found
 

@@ -2,8 +2,9 @@
 
 A folder this package creates gets a marker file, ``.genesis-rl.json``, naming the kind of output (run,
 campaign, export, drive, render) and the package version. ``--force`` replaces (or, for drive and render,
-overwrites the outputs in) only a folder whose marker names the same kind; anything else is refused, naming
-the folder and what is in it, so a mistyped ``--out`` cannot delete a user's files. Folders written by
+overwrites the outputs in) only a folder whose marker names the same kind, and in it only the files its
+manifest (``manifest.py``) lists with the same SHA-256; anything else is refused, naming the folder and what is
+in it, so a mistyped ``--out`` or a hand-edited summary cannot cost a user's work. Folders written by
 genesis-rl 0.4.0 carry no marker and are recognised by their content instead (``legacy_kind``). An output
 folder is never the input of the same command, nor contains it.
 
@@ -18,14 +19,16 @@ import errno
 import fcntl
 import os
 import re
+import time
 from collections.abc import Collection, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from genesis_rl import __version__
 from genesis_rl.core.errors import UserInputError
-from genesis_rl.core.files import output_paths
+from genesis_rl.core.files import manifest, output_paths
 from genesis_rl.core.files.io_utils import (
     atomic_write_json,
     ensure_folder_path,
@@ -33,6 +36,7 @@ from genesis_rl.core.files.io_utils import (
     remove_tree,
 )
 from genesis_rl.core.parsing import read_json
+from genesis_rl.core.signals import deferred_signals
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
@@ -42,23 +46,27 @@ RESUMABLE = ("run", "campaign", "benchmark", "sweep", "estimate", "harden")
 #: kinds whose folder is one unit that --force replaces whole; drive and render write named files into theirs
 WHOLE_FOLDER = ("run", "campaign", "export", "benchmark", "sweep", "estimate", "harden")
 
+#: the marker and the manifest (core/files/manifest.py): every kind's own
+_BOOKKEEPING = (r"\.genesis-rl\.json", r"\.genesis-rl\.manifest\.json")
 #: what genesis-rl itself writes at the top of a run, campaign or export folder (regular expressions on the
 #: entry's name; a folder named here, e.g. checkpoints/, is the tool's as a whole). ``--force`` replaces a folder
 #: only when it holds nothing else, and removes only these: a user's notes, or a campaign kept in a run folder
 #: (RUN/eval), are named and kept. Temporaries of the atomic writes (".NAME.XXXXXXXX...") are the tool's too.
+#: Names are the first test only: where the folder has a manifest, a file must also be listed there with the
+#: same SHA-256 (``foreign_entries``).
 OWN_ENTRIES: dict[str, tuple[str, ...]] = {
-    "run": (r"\.genesis-rl\.json", r"agent\.zip", r"catalog\.json", r"checkpoints", r"config\.toml",
+    "run": (*_BOOKKEEPING, r"agent\.zip", r"catalog\.json", r"checkpoints", r"config\.toml",
             r"episodes\.csv", r"run\.json", r"tb", r"train_result\.json"),
-    "campaign": (r"\.genesis-rl\.json", r"campaign\.json", r"catalog\.json", r"episodes", r"steps", r"frames",
+    "campaign": (*_BOOKKEEPING, r"campaign\.json", r"catalog\.json", r"episodes", r"steps", r"frames",
                  r"records", r"damaged", r"episodes\.csv", r"summary\.json", r"run_time\.json",
                  r"report[\w.-]*\.html", r"reactivity_[\w.-]*\.json"),
-    "export": (r"\.genesis-rl\.json", r"images", r"labels", r"data\.yaml", r"annotations\.json",
+    "export": (*_BOOKKEEPING, r"images", r"labels", r"data\.yaml", r"annotations\.json",
                r"metadata\.jsonl", r"export\.json", r"scenarios", r"scenarios\.json"),
-    "benchmark": (r"\.genesis-rl\.json", r"benchmark\.json", r"campaigns", r"leaderboard\.json",
+    "benchmark": (*_BOOKKEEPING, r"benchmark\.json", r"campaigns", r"leaderboard\.json",
                   r"leaderboard\.html", r"reproductions"),
-    "sweep": (r"\.genesis-rl\.json", r"sweep\.json", r"sweep\.png", r"campaigns"),
-    "estimate": (r"\.genesis-rl\.json", r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
-    "harden": (r"\.genesis-rl\.json", r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
+    "sweep": (*_BOOKKEEPING, r"sweep\.json", r"sweep\.png", r"campaigns"),
+    "estimate": (*_BOOKKEEPING, r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
+    "harden": (*_BOOKKEEPING, r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
                r"validation_data\.npz",
                r"round_\d+", r"final_attack", r"final_agent", r"retrained_attack",
                r"final_estimate", r"retest_\d+"),
@@ -86,22 +94,20 @@ OWN_FILES: dict[tuple[str, str], str] = {
 _TEMPORARY = re.compile(r"\.(.+)\.[A-Za-z0-9_]{8}.*")
 
 
-def _foreign_files(folder: Path, kind: str, sub: str) -> list[str]:
-    """The files (and links) below ``folder/sub`` that genesis-rl does not write there, as ``sub/rel``."""
-    pattern = re.compile(OWN_FILES[kind, sub])
-    root = folder / sub
-    out = []
-    for dirpath, dirnames, filenames in os.walk(root):
-        names = filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]
-        for name in names:
-            rel = os.path.relpath(os.path.join(dirpath, name), root).replace(os.sep, "/")
-            temporary = _TEMPORARY.fullmatch(name)
-            head = rel.rpartition("/")[0]
-            if pattern.fullmatch(rel) or (temporary and pattern.fullmatch(
-                    (head + "/" if head else "") + temporary.group(1))):
-                continue
-            out.append(f"{sub}/{rel}")
-    return out
+def named_like_ours(kind: str, rel: str) -> bool:
+    """Whether a path below a ``kind`` folder (relative, with '/') is named like a file genesis-rl writes there."""
+    if kind in _FILE_PATTERNS:
+        return rel in (MARKER, manifest.MANIFEST) or bool(_FILE_PATTERNS[kind].fullmatch(rel))
+    top, _, rest = rel.partition("/")
+    if not _own(kind, top):
+        return False
+    if not rest or (kind, top) not in OWN_FILES:
+        return True
+    pattern = re.compile(OWN_FILES[kind, top])
+    temporary = _TEMPORARY.fullmatch(rest.rpartition("/")[2])
+    head = rest.rpartition("/")[0]
+    return bool(pattern.fullmatch(rest) or (temporary and pattern.fullmatch(
+        (head + "/" if head else "") + temporary.group(1))))
 
 
 def _own(kind: str, name: str) -> bool:
@@ -112,16 +118,40 @@ def _own(kind: str, name: str) -> bool:
 
 
 def foreign_entries(folder: Path, kind: str) -> list[str]:
-    """The top-level entries of a run, campaign or export folder that genesis-rl did not write (folders end
-    in '/'), sorted; empty for other kinds."""
+    """What ``--force`` may not delete in a run, campaign, export, ... folder, sorted: top-level entries
+    genesis-rl does not write (folders end in '/'), files below its own folders named unlike its files, and,
+    where the folder has a manifest, files named like its own that the manifest does not list with the same
+    SHA-256 (a user's edit, or a user's file under one of our names). Empty for drive and render."""
     if kind not in OWN_ENTRIES:
         return []
     folder = Path(folder)
-    top = [p.name + ("/" if p.is_dir() and not p.is_symlink() else "") for p in folder.iterdir()
+    listing = manifest.read(folder)
+    died = _writer_died(folder)
+    out = [p.name + ("/" if p.is_dir() and not p.is_symlink() else "") for p in folder.iterdir()
            if not _own(kind, p.name)]
-    inside = [f for (k, sub) in OWN_FILES if k == kind and (folder / sub).is_dir() and not (folder / sub).is_symlink()
-              for f in _foreign_files(folder, kind, sub)]
-    return sorted(top + inside)
+    for rel, st in manifest.walk(folder):
+        if not _own(kind, rel.partition("/")[0]):
+            continue  # named above as a whole
+        if not named_like_ours(kind, rel):
+            out.append(rel)
+        elif listing is not None:
+            why = _unlisted(listing, folder, rel, st, died)
+            if why:
+                out.append(f"{rel} ({why})")
+    return sorted(out)
+
+
+def _unlisted(listing: manifest.Manifest, folder: Path, rel: str, st: os.stat_result, died: bool) -> str | None:
+    """Why a file named like ours is not ours by the manifest; None when it is."""
+    import stat
+
+    if manifest.is_listed(listing, folder, rel, st):
+        return None
+    if died and st.st_mtime_ns >= listing.recorded_ns and stat.S_ISREG(st.st_mode):
+        return None  # written by the run that was killed before it could record it
+    if rel in listing.files:
+        return "changed since genesis-rl wrote it"
+    return "not in the folder's manifest of what genesis-rl wrote"
 
 
 #: the files that drive and render write: a marker-less folder holding only these is one of theirs (0.4.0)
@@ -201,6 +231,14 @@ def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | No
         label = f"{kind} folder" if kind in ("run", "campaign", "benchmark", "sweep") else "output"
         raise UserInputError(f"{label} '{folder}' exists; pass {hint}")
     found = folder_kind(folder)
+    if found == kind and clashes:
+        listing = manifest.read(folder)
+        changed = [f"{n} ({why})" for n in clashes if listing is not None
+                   and (why := _unlisted(listing, folder, n, os.lstat(folder / n), _writer_died(folder)))]
+        if changed:
+            raise UserInputError(f"--force: '{folder}' holds {', '.join(changed)}; refusing to overwrite it; move it "
+                                 "out of the folder, or choose another --out")
+        return
     if found == kind:
         foreign = foreign_entries(folder, kind)
         if foreign:
@@ -262,12 +300,32 @@ def replace(folder: Path, kind: str) -> None:
     write_marker(folder, kind)
 
 
+def note_written(path: Path) -> None:
+    """List a file the tool has just written beside a genesis-rl folder's own files (``report`` writing
+    CAMPAIGN/report.html) in that folder's manifest, when its name is one the folder's kind writes."""
+    folder = Path(path).parent
+    kind = folder_kind(folder) if (folder / MARKER).is_file() else None
+    if kind is not None and named_like_ours(kind, Path(path).name):
+        try:
+            manifest.note(folder, Path(path).name)
+        except OSError:
+            pass  # unlisted, it is then named by --force rather than deleted
+
+
 def lock_path(folder: Path) -> Path:
     folder = Path(folder).resolve()
     return folder.parent / f".{folder.name}.genesis-rl.lock"
 
 
-_HELD: dict[Path, list] = {}  # lock path -> [file descriptor, depth]: re-entrant within one process
+@dataclass
+class _Hold:
+    fd: int
+    depth: int
+    started_ns: int  # files named like ours modified since are this process's writes
+    died: bool  # the lock file was there, unlocked: the last writer was killed before it let the folder go
+
+
+_HELD: dict[Path, _Hold] = {}  # lock path -> its hold: re-entrant within one process
 
 
 def _acquire(path: Path, folder: Path) -> int:
@@ -307,25 +365,68 @@ def _lock_error(folder: Path, path: Path, err: OSError) -> UserInputError:
     return UserInputError(f"cannot lock output folder '{folder}': {cause}")
 
 
-@contextmanager
-def hold(folder: Path) -> Iterator[None]:
-    """Hold the folder exclusively (re-entrant within this process) for the block."""
+def _writer_died(folder: Path) -> bool:
+    """Whether the last process that held the folder was killed holding it: its lock file is still there and
+    nobody holds it (the kernel dropped the lock; the file stays)."""
     path = lock_path(folder)
     if path in _HELD:
-        _HELD[path][1] += 1
+        return _HELD[path].died
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return True
+    except OSError:
+        return False  # held by a live writer
+    finally:
+        os.close(fd)
+
+
+def _record_manifest(folder: Path, hold: _Hold) -> None:
+    """List what this process wrote into the folder, as it lets it go (``manifest.record``). A folder without a
+    manifest by now (new, replaced by --force, or of genesis-rl 0.30.0) adopts every file named like ours."""
+    folder = Path(folder)
+    kind = folder_kind(folder) if folder.is_dir() else None
+    if kind is None or not (folder / MARKER).is_file():
+        return  # a folder drive or render added files to stays unmarked, and unlisted
+    listing = manifest.read(folder)
+    since = 0 if listing is None else listing.recorded_ns if hold.died else hold.started_ns
+    try:
+        manifest.record(folder, lambda rel: named_like_ours(kind, rel), since, hold.started_ns)
+    except OSError:
+        pass  # a full disk: --force then judges the newest files by the manifest they are missing from
+
+
+@contextmanager
+def hold(folder: Path) -> Iterator[None]:
+    """Hold the folder exclusively (re-entrant within this process) for the block; as the outermost hold ends,
+    record what was written (``manifest``)."""
+    path = lock_path(folder)
+    if path in _HELD:
+        _HELD[path].depth += 1
     else:
-        _HELD[path] = [_acquire(path, Path(folder)), 1]
+        started = time.time_ns()
+        stale = path.exists()
+        fd = _acquire(path, Path(folder))
+        _HELD[path] = _Hold(fd, 1, started, stale)
     try:
         yield
     finally:
-        _HELD[path][1] -= 1
-        if _HELD[path][1] == 0:
-            fd, _ = _HELD.pop(path)
+        _HELD[path].depth -= 1
+        if _HELD[path].depth == 0:
+            held = _HELD[path]
             try:
-                path.unlink(missing_ok=True)  # while still locked, so no one locks a file that is going away
-            except OSError:
-                pass
-            os.close(fd)
+                with deferred_signals():
+                    _record_manifest(folder, held)
+            finally:
+                _HELD.pop(path)
+                try:
+                    path.unlink(missing_ok=True)  # while still locked, so no one locks a file that is going away
+                except OSError:
+                    pass
+                os.close(held.fd)
 
 
 @contextmanager

@@ -178,6 +178,10 @@ class OutputFile:
                 f.write(text)
             return
         atomic_write_text(self.path, text)
+        # output_folder imports this module: a top-level import would be a loop
+        from genesis_rl.core.files.output_folder import note_written
+
+        note_written(self.path)  # report.html into a campaign: listed in its manifest as the tool's
 
     def write_json(self, data: Any, indent: int | None = None) -> None:
         self.write_text(json.dumps(data, indent=indent, separators=None if indent else (",", ":")))
