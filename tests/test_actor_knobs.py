@@ -149,6 +149,27 @@ def test_forced_lead_braking_in_lite_traffic_follows_the_demand(steps_per_s):
     assert at2 == pytest.approx(max(0.0, v0 - 6.0 * (2.0 - 1.025)), abs=1e-9)
 
 
+def test_lead_braking_switched_on_before_the_first_tick_brakes_the_car_in_the_egos_lane():
+    """Before the first tick the ego's corridor is straight (it bends with the steering), so on a bend it runs
+    through the next lane: in free-flow highway scene 2 of catalog seed 0 it finds vehicle 2 in the
+    neighbouring lane, 16 m ahead, while vehicle 1 drives 36 m ahead in the ego's own lane. The knob must brake
+    vehicle 1."""
+    from genesis_rl.sim.lite.backend import LiteBackend
+    from genesis_rl.sim.lite.scenes import generate_catalog
+
+    scene = generate_catalog("highway", 3, 0, traffic="free_flow").scenes[2]
+    with LiteBackend().create_simulation(scene, seed=scene.seed, render=False) as sim:
+        tr = sim.traffic
+        corridor = tr.lead()
+        assert corridor is not None and corridor.vehicle_id == 2 and tr.lane[2] != tr.lane[0]
+        tr.set_lead_braking(6.0)
+        assert tr.braking_vehicle == 1 and tr.lane[1] == tr.lane[0]
+        v1 = float(tr.v[1])
+        for _ in range(20):
+            sim.tick()
+        assert float(tr.v[1]) == pytest.approx(v1 - 6.0 * 1.0, abs=0.5)  # it is the one slowing
+
+
 def test_odd_file_traffic_table_is_read_and_bad_values_exit_2(tmp_path):
     import subprocess
     import sys

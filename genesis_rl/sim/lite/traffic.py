@@ -205,6 +205,32 @@ class Traffic:
             return None
         return LeadInfo(int(j[0]), float(max(g[0], 0.0)), float(self.v[j[0]]))
 
+    def lead_in_lane(self) -> LeadInfo | None:
+        """The ego's leader for the ``lead_decel`` knob: the corridor leader (``lead``) when it drives in the
+        ego's lane or the lane after it, else the nearest vehicle ahead along those two lanes. The corridor
+        alone bends with the ego's steering, which is straight before the first tick: on a bend it runs
+        through the next lane and would brake a neighbour while the car in front drives on."""
+        corridor = self.lead()
+        ego_lanes = (int(self.lane[0]), int(self.next_lane[0]))
+        if corridor is not None and int(self.lane[corridor.vehicle_id]) in ego_lanes:
+            return corridor
+        length = float(self.map.length[ego_lanes[0]])
+        best: tuple[float, int] | None = None
+        for j in range(1, self.n):
+            lane = int(self.lane[j])
+            if lane == ego_lanes[0] and self.s[j] > self.s[0]:
+                ahead = float(self.s[j] - self.s[0])
+            elif lane == ego_lanes[1] and lane != ego_lanes[0]:
+                ahead = length - float(self.s[0]) + float(self.s[j])
+            else:
+                continue
+            gap = ahead - 0.5 * float(self.length[0] + self.length[j])
+            if gap < LEAD_RANGE and (best is None or gap < best[0]):
+                best = (gap, j)
+        if best is None:
+            return None
+        return LeadInfo(best[1], max(best[0], 0.0), float(self.v[best[1]]))
+
     # -- update ----------------------------------------------------------------------------------------
     def _lookahead_points(self, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         m = self.map
@@ -286,7 +312,7 @@ class Traffic:
             i, _, onset = self.forced_braking
             self.forced_braking = (i, float(decel), onset)
             return
-        lead = self.lead()
+        lead = self.lead_in_lane()
         if lead is not None:
             self.forced_braking = (lead.vehicle_id, float(decel), self._episode_time)
             # its brake lights come on with the braking: a careful driver perceives it at once

@@ -86,7 +86,8 @@ _LOW_SUN_HIGHWAY = ZooMember(
              "detector never saw a sun under 15 deg (as low_sun), and highway_day allows one as long as it is not "
              "in the camera's view. Found by the benchmark itself: with natural starts (0.15.0) adversaries found "
              "4 perception failures with the sun 0.06-1.6 deg up where builtin_highway, its earlier name, was "
-             "listed as a control (docs/results/14-benchmark-log.md, first measurement). A corner weakness on the highway."),
+             "listed as a control (docs/results/14-benchmark-log.md, first measurement). A corner weakness on the "
+             "highway."),
     trigger=TriggerRegion((Bound("sun_altitude_angle", 0.0, 15.0),)),
     env={"dynamics": "natural"},
 )
