@@ -57,9 +57,10 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
     "benchmark": (r"\.genesis-rl\.json", r"benchmark\.json", r"campaigns", r"leaderboard\.json",
                   r"leaderboard\.html", r"reproductions"),
     "sweep": (r"\.genesis-rl\.json", r"sweep\.json", r"sweep\.png", r"campaigns"),
-    "estimate": (r"\.genesis-rl\.json", r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
+    "estimate": (r"\.genesis-rl\.json", r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json",
+                 r"pins\.json"),
     "harden": (r"\.genesis-rl\.json", r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
-               r"validation_data\.npz",
+               r"validation_data\.npz", r"pins\.json",
                r"round_\d+", r"final_attack", r"final_agent", r"retrained_attack",
                r"final_estimate", r"retest_\d+"),
 }
