@@ -485,6 +485,64 @@ def test_report_and_export_refuse_a_steps_file_a_row_short(tmp_path, campaign: P
     assert message in capsys.readouterr().err
 
 
+def _claiming(steps: Path, rows: int, monkeypatch) -> None:
+    """Replace an episode's steps file by a small one whose footer claims ``rows`` rows, and make reading its rows
+    fail: a refusal must come from the footer, before any row is read."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.table({"step": pa.array(np.zeros(rows, np.int32))}), steps)
+    assert steps.stat().st_size < 1_000_000 and pq.ParquetFile(steps).metadata.num_rows == rows
+    real = pq.read_table
+
+    def guarded(source, *args, **kwargs):
+        assert pq.ParquetFile(source).metadata.num_rows != rows, f"the rows of {source} were read"
+        return real(source, *args, **kwargs)
+
+    monkeypatch.setattr(pq, "read_table", guarded)
+
+
+@pytest.mark.parametrize("rows", [50_000, 2_000_000])  # under the ceiling of 100,001 rows, and far above it
+@pytest.mark.parametrize("command", [["report", "{copy}", "--force"],
+                                     ["export", "{copy}", "--format", "coco", "--out", "{out}"],
+                                     ["export", "{copy}", "--format", "yolo", "--out", "{out}"]])
+def test_a_steps_file_claiming_more_rows_than_its_episode_is_refused_from_its_footer(
+        tmp_path, campaign: Path, capsys, monkeypatch, command, rows) -> None:
+    copy = tmp_path / "camp"
+    shutil.copytree(campaign, copy)
+    hit_dir = sorted(p for p in (copy / "frames").glob("*/*") if p.is_dir())[0]  # an episode the export reads
+    steps = copy / "steps" / hit_dir.parent.name / f"{hit_dir.name}.parquet"
+    _claiming(steps, rows, monkeypatch)
+    args = [a.format(copy=copy, out=tmp_path / "x") for a in command]
+    assert main(args) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"'{steps}' is damaged: " in line
+    assert (f"it holds {rows:,} step rows where its episode row says {STEPS} steps" if rows < 100_000 else
+            f"it claims {rows:,} step rows; an episode has at most") in line
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_resumed_campaign_sets_aside_a_steps_file_of_another_length_to_play_it_again(
+        tmp_path, campaign: Path, monkeypatch) -> None:
+    """evaluate --resume asks each kept episode whether it is done: one whose steps file holds another count of
+    rows than its row states is not, and its files are set aside (the episode then runs again)."""
+    import pyarrow.parquet as pq
+
+    from genesis_rl.campaigns.campaign_folder import episode_done
+
+    copy = tmp_path / "camp"
+    shutil.copytree(campaign, copy)
+    steps = sorted((copy / "steps" / "sunny").glob("*.parquet"))[0]
+    scene = int(steps.stem.split("_")[1])
+    assert episode_done(copy, "sunny", scene, resume=True)
+    _claiming(steps, 50_000, monkeypatch)
+    with pytest.warns(UserWarning, match=f"sunny {steps.stem} is damaged .*it holds 50,000 step rows"):
+        assert not episode_done(copy, "sunny", scene, resume=True)
+    assert not steps.exists() and not (copy / "episodes" / "sunny" / f"{steps.stem}.json").exists()
+    (aside,) = (copy / "damaged").glob(f"*/sunny/{steps.name}")
+    assert pq.ParquetFile(aside).metadata.num_rows == 50_000
+
+
 def test_export_says_when_the_frames_of_collisions_were_deleted(tmp_path, campaign: Path, capsys) -> None:
     copy = tmp_path / "camp"
     shutil.copytree(campaign, copy)

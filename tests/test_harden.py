@@ -304,3 +304,115 @@ def test_an_estimate_runs_the_member_with_the_given_weights(tmp_path) -> None:
     spec = EstimateSpec(member="glare_blind", method="crude", episodes=4, weights=str(DEFAULT_WEIGHTS))
     assert env_config(spec, tmp_path / "c.json")["system_kwargs"]["weights"] == str(DEFAULT_WEIGHTS.resolve())
     assert spec.to_json()["weights"] == str(DEFAULT_WEIGHTS)
+
+
+# -- what --resume reuses is what was written (pins.json) ---------------------------------------------------------
+def _edit(path: Path) -> None:
+    """Change a kept file as a colleague's script or a careless hand would: a number, a row, a byte."""
+    if path.name == "campaign.json":
+        data = json.loads(path.read_text())
+        data["spec"]["seed"] += 1
+        path.write_text(json.dumps(data))
+    elif path.suffix == ".json":
+        data = json.loads(path.read_text())
+        data["edited"] = True
+        path.write_text(json.dumps(data))
+    elif path.suffix == ".jsonl":
+        lines = path.read_text().splitlines()
+        path.write_text("\n".join(lines[:-1]) + "\n")
+    elif path.suffix == ".parquet":
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(path)
+        pq.write_table(table.slice(0, table.num_rows - 1), path)
+    else:
+        path.write_bytes(path.read_bytes() + b"\0")
+
+
+def _refused(capsys, name: Path) -> None:
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"'{name}'" in line and "start again with --force" in line, line
+
+
+@pytest.mark.parametrize("kept", [
+    "round_0/round.json",  # the baseline, kept
+    "round_1/round.json",  # a kept round
+    "round_1/weights/vehicle_detector.pt",  # the weights a kept round made: the rounds after it start from them
+    "round_1/failures/metadata.jsonl",  # a kept round's failure export: the rounds after it retrain on it too
+    "final_attack/campaign.json",  # a kept stage campaign: its spec
+    "final_attack/episodes/sunny/scene_*.json",  # ... an episode
+    "final_attack/steps/sunny/scene_*.parquet",  # ... its steps
+])
+def test_a_kept_file_edited_before_the_resume_is_refused_by_name(attack: Path, hardened: Path, tmp_path, capsys,
+                                                                  kept: str) -> None:
+    copy = tmp_path / "hard"
+    shutil.copytree(hardened, copy)
+    path = sorted(copy.glob(kept))[0]
+    _edit(path)
+    assert main(["harden", str(attack), "--out", str(copy), "--resume", *SMALL, *held_out(attack)]) == 2
+    _refused(capsys, path)
+
+
+def test_rendered_data_edited_before_a_round_retrains_on_it_is_refused(attack: Path, hardened: Path, tmp_path,
+                                                                       capsys) -> None:
+    """original_data.npz (validation_data.npz is read through the same function, after the training)."""
+    cache = "original_data.npz"
+    copy = tmp_path / "hard"
+    shutil.copytree(hardened, copy)
+    (copy / "round_1" / "round.json").unlink()  # round 1 runs again, from its kept export, and retrains
+    shutil.rmtree(copy / "round_1" / "weights")
+    _edit(copy / cache)
+    assert main(["harden", str(attack), "--out", str(copy), "--resume", *SMALL, *held_out(attack)]) == 2
+    _refused(capsys, copy / cache)
+
+
+def test_the_attack_campaign_or_the_weights_changed_since_the_start_are_refused(attack: Path, hardened: Path,
+                                                                                tmp_path, capsys) -> None:
+    copy = tmp_path / "hard"
+    shutil.copytree(hardened, copy)
+    row = sorted((attack / "episodes" / "sunny").glob("scene_*.json"))[0]
+    original = row.read_bytes()
+    try:
+        _edit(row)
+        assert main(["harden", str(attack), "--out", str(copy), "--resume", *SMALL, *held_out(attack)]) == 2
+        _refused(capsys, row)
+    finally:
+        row.write_bytes(original)
+    result = json.loads((copy / "harden.json").read_text())
+    result["base_weights_sha256"] = "0" * 64  # as if the weights the campaign names had been replaced since
+    (copy / "harden.json").write_text(json.dumps(result))
+    assert main(["harden", str(attack), "--out", str(copy), "--resume", *SMALL, *held_out(attack)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"the weights '{DEFAULT_WEIGHTS}' changed since the hardening" in line and "--force" in line
+
+
+def test_a_stage_campaign_is_checked_against_its_pins_and_replaced_only_when_its_spec_moved(attack: Path,
+                                                                                          tmp_path) -> None:
+    from genesis_rl.campaigns.campaign_files import read_campaign_meta
+    from genesis_rl.campaigns.campaign_spec import CampaignSpec
+    from genesis_rl.campaigns.layout import CampaignFolder
+    from genesis_rl.core.files.pins import Pins
+    from genesis_rl.harden.rounds import _run, attack_spec
+
+    base = dataclasses.replace(CampaignSpec.from_json(read_campaign_meta(attack)["spec"]), scenes=1, steps=20)
+    pins = Pins.start(tmp_path)
+    folder = tmp_path / "final_attack"
+    first, later = attack_spec(base, 2, DEFAULT_WEIGHTS), attack_spec(base, 3, DEFAULT_WEIGHTS)
+    _run(first, folder, 1, False, pins)
+    assert pins.check(folder, CampaignFolder.holds_results)
+    meta = folder / "campaign.json"
+    written = meta.read_bytes()
+    _edit(meta)
+    with pytest.raises(UserInputError, match=f"'{meta}' changed since genesis-rl wrote it"):
+        _run(first, folder, 1, False, pins)
+    # a campaign interrupted before its end is pinned by the spec harden started it with
+    meta.write_bytes(written)
+    pins.note_spec(folder, first.to_json())
+    _edit(meta)
+    with pytest.raises(UserInputError, match=f"'{meta}' holds other settings than harden started this campaign "
+                                             r"with \(seed\)"):
+        _run(first, folder, 1, False, pins)
+    meta.write_bytes(written)
+    _run(later, folder, 1, False, pins)  # a resume that moved the stage (more rounds): replaced, pinned anew
+    assert CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).to_json() == later.to_json()
+    assert pins.spec(folder) == json.loads(json.dumps(later.to_json()))

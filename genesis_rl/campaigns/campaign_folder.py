@@ -181,8 +181,10 @@ def episode_done(folder: Path, policy: str, scene: int, resume: bool) -> bool:
     if not resume:
         return True
     try:
-        read_episode_row(row_path)
-        read_steps(steps_path(folder, policy, scene), columns=["step"])
+        row = read_episode_row(row_path)
+        # as many step rows as the row states, from the footer: a file of another episode (or a crafted one
+        # claiming millions of rows) is set aside before any row is read
+        read_steps(steps_path(folder, policy, scene), columns=["step"], steps=row["steps"])
         return True
     except UserInputError as err:
         aside = folder / "damaged" / time.strftime("%Y%m%d-%H%M%S") / policy

@@ -47,6 +47,14 @@ class CampaignFolder:
     def __init__(self, root: str | Path) -> None:
         object.__setattr__(self, "root", Path(root))
 
+    @classmethod
+    def holds_results(cls, rel: str) -> bool:
+        """Whether the file at ``rel`` (inside a campaign folder) is one the episodes wrote, as opposed to what
+        ``report`` and the summary rewrite from them: the files a resume that keeps a finished campaign pins."""
+        head, sep, _ = rel.partition("/")
+        return rel in (cls.META, cls.CATALOG) or bool(sep) and head in (cls.EPISODES, cls.STEPS, cls.FRAMES,
+                                                                          cls.RECORDS)
+
     @property
     def meta(self) -> Path:
         return self.root / self.META

@@ -13,7 +13,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import shutil
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import MISSING, asdict, dataclass, fields
@@ -26,6 +25,7 @@ from genesis_rl.analysis.estimate_files import SCHEMA
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
 from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
+from genesis_rl.core.files.pins import Pins
 from genesis_rl.core.files.spreadsheet import safe_rows
 from genesis_rl.distributed.spawn_pool import SpawnPool
 from genesis_rl.estimation import estimator
@@ -251,24 +251,32 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
         return []
     out = []
     with path.open(newline="", encoding="utf-8") as f:
-        for r in csv.DictReader(f):
+        for line, r in enumerate(csv.DictReader(f), start=2):
             row: dict[str, Any] = dict(r)
-            for k in ("index", "stage", "scene", "episode_seed", "steps", "in_odd_steps"):
-                row[k] = int(row[k])
-            row["failed"] = row["failed"] == "True"
-            row["fail_step"] = int(row["fail_step"]) if row["fail_step"] else None
-            row["cluster"] = row["cluster"] or None
+            try:
+                for k in ("index", "stage", "scene", "episode_seed", "steps", "in_odd_steps"):
+                    row[k] = int(row[k])
+                row["failed"] = row["failed"] == "True"
+                row["fail_step"] = int(row["fail_step"]) if row["fail_step"] else None
+                row["cluster"] = row["cluster"] or None
+            except (KeyError, TypeError, ValueError) as err:  # an estimate of before the pins, damaged
+                raise UserInputError(f"--resume: '{path}' line {line} is damaged ({type(err).__name__}: {err}); "
+                                     "start again with --force") from None
             out.append(row)
     return out
 
 
-def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> None:
+def write_rows(path: Path, rows: Sequence[dict[str, Any]], pins: Pins | None = None) -> None:
+    """The checkpoint ``episodes.csv``; pinned in the folder's ``pins.json`` when ``pins`` is given."""
     buf = io.StringIO()
     names = list(dict.fromkeys(k for r in rows for k in r))  # rows of an estimate from before a column: blank
     w = csv.DictWriter(buf, fieldnames=names, restval="", lineterminator="\n")
     w.writeheader()
     w.writerows(safe_rows(rows))
-    atomic_write(path, lambda p: p.write_text(buf.getvalue(), encoding="utf-8"))
+    if pins is not None:
+        pins.write_bytes(path, buf.getvalue().encode("utf-8"))
+    else:
+        atomic_write(path, lambda p: p.write_text(buf.getvalue(), encoding="utf-8"))
 
 
 @dataclass
@@ -343,6 +351,10 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
                 may_change=("episodes", *IMPORTANCE_ONLY) if crude else READING_ONLY,
                 defaults={**{f.name: f.default for f in fields(EstimateSpec) if f.default is not MISSING},
                           **SETTINGS_BEFORE_0_26})
+            pins = Pins(out)
+            # what the resume reuses instead of playing again: the scenes and the episodes played so far
+            pins.check_or_record(out / "catalog.json")
+            pins.check_or_record(out / "episodes.csv")
             nominal, n_scenes, dt = probe_member(spec, out / "catalog.json")
         else:
             catalog = catalog_or_generate(None, member.map, DEFAULT_COUNTS.get(member.map, 1), spec.catalog_seed,
@@ -353,7 +365,8 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
                 catalog.save(Path(tmp) / "catalog.json")
                 nominal, n_scenes, dt = probe_member(spec, Path(tmp) / "catalog.json")
                 output_folder.replace(out, "estimate")
-                shutil.copyfile(Path(tmp) / "catalog.json", out / "catalog.json")
+                pins = Pins.start(out)
+                pins.write_bytes(out / "catalog.json", (Path(tmp) / "catalog.json").read_bytes())
         # unfinished until the end (a resumed one too: its spec may have gone on to more episodes)
         atomic_write_json(out / "estimate.json", {"schema": SCHEMA, "version": __version__,
                                                   "spec": spec.to_json(), "done": False}, indent=1)
@@ -364,7 +377,7 @@ def run_estimate(spec: EstimateSpec, out: Path, *, workers: int = 1, force: bool
                    unit="episode", disable=not progress)
         with _Pool(env_cfg, steps, workers) as pool:
             stages = play_stages(spec, nominal, n_scenes, rows, pool.play,
-                                 on_batch=lambda done: write_rows(out / "episodes.csv", done),
+                                 on_batch=lambda done: write_rows(out / "episodes.csv", done, pins),
                                  on_episode=lambda: bar.update(1))
         bar.close()
         result = summarise(spec, rows, nominal, steps * dt, stages)

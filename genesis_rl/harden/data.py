@@ -89,9 +89,13 @@ def original_frames(train_config: dict[str, Any], frames: int, cache: Path | Non
                     backend: Any = None, split: str = "train") -> DetectionDataset:
     """The first ``frames`` frames of the detector's own training (or, ``split="val"``, validation) data, rendered
     from the recipe its checkpoint records (map, weather condition, catalog seed, seed); kept in ``cache`` (an
-    ``.npz``) when given."""
+    ``.npz``) when given. A cache in a folder that keeps pins (a harden folder's ``pins.json``) is checked
+    against its pin before it is reused, and pinned when it is written."""
+    from genesis_rl.core.files import pins as pinning
     from genesis_rl.sim.interface import CameraConfig
     from genesis_rl.sut.perception.dataset import render_dataset
+
+    pins = pinning.Pins(cache.parent) if cache is not None and (cache.parent / pinning.NAME).is_file() else None
 
     fps = int(train_config.get("frames_per_scene", 4))
     seed_key, seed_default = ("train_catalog_seed", 100) if split == "train" else ("val_catalog_seed", 101)
@@ -99,9 +103,12 @@ def original_frames(train_config: dict[str, Any], frames: int, cache: Path | Non
             "catalog_seed": int(train_config.get(seed_key, seed_default)), "seed": int(train_config.get("seed", 0)),
             "frames": int(frames), "frames_per_scene": fps}
     if cache is not None and cache.is_file():
+        pinned = pins is not None and pins.check(cache)  # an edited cache is refused, named, before it is trained on
         try:
             data = DetectionDataset.load(cache)
             if data.meta.get("original") == want:
+                if pins is not None and not pinned:
+                    pins.record(cache)  # a cache of before the pins, as found
                 return data
         except UserInputError:
             pass
@@ -113,6 +120,8 @@ def original_frames(train_config: dict[str, Any], frames: int, cache: Path | Non
     data.meta = {**data.meta, "original": want}
     if cache is not None:
         data.save(cache)
+        if pins is not None:
+            pins.record(cache)
     return data
 
 

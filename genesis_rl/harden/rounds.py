@@ -15,6 +15,11 @@ Round ``r`` starts from the weights round ``r - 1`` accepted (round 1: the campa
 
 After the last round a final attack measures what a re-run adversary finds against the hardened system. Round 0
 is the baseline: the held-out test and the clear-day evaluation of the weights before any round.
+
+``--resume`` reuses what is on disk: a kept round (``round.json``, the weights it made, its failure export and
+near misses), every stage's campaign, the rendered original data (``.npz``), the final agent and the estimates.
+Each is pinned in the folder's ``pins.json`` when written (``core/files/pins.py``) and checked before it is
+reused, as are the attack campaign and the starting weights: an edited one is refused, named.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
 from genesis_rl.core.files.io_utils import atomic_write_json
+from genesis_rl.core.files.pins import Pins, plain
 from genesis_rl.core.parsing import read_json
 from genesis_rl.harden.loop import relative_to  # round.json stores paths inside the harden folder relative to it
 from genesis_rl.harden.near_miss import IN_ODD, near_misses  # IN_ODD: failures and near misses alike
@@ -175,21 +181,41 @@ def test_catalog_seed(base: Any, spec: HardenSpec) -> int:
     return int(seed)
 
 
-def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool) -> None:
+def _run(campaign_spec: Any, folder: Path, workers: int, progress: bool, pins: Pins | None = None) -> None:
     """Play ``campaign_spec`` into ``folder``, or resume it there. A campaign of another spec in ``folder`` is
-    replaced: a resume that added rounds moves the final attack to other weights and seed."""
+    replaced: a resume that added rounds moves the final attack to other weights and seed. With ``pins`` (the
+    harden folder's), a campaign kept is first checked against the files and the spec it was pinned with."""
     from genesis_rl.campaigns.campaign import run_campaign
     from genesis_rl.campaigns.campaign_files import read_campaign_meta
     from genesis_rl.campaigns.campaign_spec import CampaignSpec
     from genesis_rl.core.files.io_utils import remove_tree
 
-    if CampaignFolder(folder).meta.is_file():
+    camp = CampaignFolder(folder)
+    wanted = campaign_spec.to_json()
+    pinned = False
+    if camp.meta.is_file():
+        if pins is not None:  # a finished stage: the files it was pinned with (an edit is refused, named)
+            pinned = pins.check(folder, CampaignFolder.holds_results)
         recorded = CampaignSpec.from_json(read_campaign_meta(folder)["spec"]).to_json()
-        if recorded != campaign_spec.to_json():
+        started = pins.spec(folder) if pins is not None else None
+        if started is not None and plain(recorded) != started:
+            diff = sorted(k for k in set(started) | set(recorded) if plain(recorded).get(k) != started.get(k))
+            raise UserInputError(f"--resume: '{camp.meta}' holds other settings than harden started this campaign "
+                                 f"with ({', '.join(diff)}): it was edited or belongs to another run; start again "
+                                 "with --force")
+        if recorded != wanted:
+            if pins is not None:
+                pins.forget(folder)
             remove_tree(folder)
-    if not CampaignFolder(folder).summary.is_file():
-        run_campaign(campaign_spec, folder, workers=workers, resume=CampaignFolder(folder).meta.is_file(),
-                     progress=progress)
+            pinned = False
+    if not camp.summary.is_file():
+        if pins is not None:
+            pins.note_spec(folder, wanted)
+        run_campaign(campaign_spec, folder, workers=workers, resume=camp.meta.is_file(), progress=progress)
+        if pins is not None:
+            pins.record(folder, CampaignFolder.holds_results, spec=wanted)
+    elif pins is not None and not pinned:
+        pins.record(folder, CampaignFolder.holds_results, spec=wanted)  # a folder of before the pins
 
 
 def in_odd_failures(folder: Path) -> dict[str, Any]:
@@ -283,20 +309,27 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
                 "harden", out, output_folder.recorded_spec(out / "harden.json", "harden"), spec.to_json(),
                 may_change=("rounds", "adversary", "member", "estimate_episodes", "attack_scenes", "retest_scenes"),
                 defaults=LEGACY)
+            pins = Pins(out)
+            _check_started_with(out, pins, campaign, weights0, _sha(weights0, file_sha256))
         else:
             output_folder.replace(out, "harden")
+            pins = Pins.start(out)
+            from genesis_rl.campaigns.summary import load_campaign
+
+            load_campaign(campaign)  # rows of an older labeller are relabelled (rewritten) before they are pinned
+            pins.record(campaign, CampaignFolder.holds_results)
         head = {"schema": SCHEMA, "version": __version__, "spec": spec.to_json(), "system": system,
                 "map": base.map, "base_weights": str(weights0), "base_weights_sha256": _sha(weights0, file_sha256)}
         atomic_write_json(out / "harden.json", {**head, "done": False}, indent=1)
 
-        baseline = _baseline(spec, base, out / "round_0", system, kwargs0, weights0, workers, progress)
+        baseline = _baseline(spec, base, out / "round_0", system, kwargs0, weights0, workers, progress, pins)
         rounds: list[dict[str, Any]] = []
         weights = weights0
         failure_exports: list[Path] = []
         stopped = ""
         for r in range(1, spec.rounds + 1):
             result = _round(spec, base, out, r, system, kwargs0, weights, failure_exports, baseline, hook,
-                            workers, progress)
+                            workers, progress, pins)
             rounds.append(result)
             atomic_write_json(out / "harden.json", {**head, "done": False, "baseline": baseline, "rounds": rounds},
                               indent=1)
@@ -308,18 +341,19 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
         final = None
         if not stopped:
             folder = out / "final_attack"
-            _run(attack_spec(base, spec.rounds + 1, weights, spec.attack_scenes), folder, workers, progress)
+            _run(attack_spec(base, spec.rounds + 1, weights, spec.attack_scenes), folder, workers, progress, pins)
             final = {**_public(in_odd_failures(folder)), "weights": str(weights)}
         retrained = None
         if spec.adversary:  # also when the same adversary found nothing more: a re-trained one may
-            retrained = _retrained_attack(spec.adversary, spec, base, out, weights, workers, progress)
+            retrained = _retrained_attack(spec.adversary, spec, base, out, weights, workers, progress, pins)
         estimates = None
         if spec.estimate_episodes:
             assert spec.member is not None  # HardenSpec checks it
             estimates = {"before": _estimate(spec, spec.member, weights0, out / "round_0" / "estimate", workers,
-                                             progress),
-                         "after": _estimate(spec, spec.member, weights, out / "final_estimate", workers, progress)}
-        retest = _retest(spec, base, out, baseline, rounds, workers, progress) if spec.retest_scenes else None
+                                             progress, pins),
+                         "after": _estimate(spec, spec.member, weights, out / "final_estimate", workers, progress,
+                                            pins)}
+        retest = _retest(spec, base, out, baseline, rounds, workers, progress, pins) if spec.retest_scenes else None
         result = {**head, "done": True, "baseline": baseline, "rounds": rounds, "final_attack": final,
                   "retrained_attack": retrained, "estimates": estimates, "retest": retest,
                   "stopped": stopped, "final_weights": str(weights),
@@ -329,6 +363,17 @@ def run_harden(spec: HardenSpec, out: Path, *, workers: int = 1, force: bool = F
 
         write_page(out, result)
         return result
+
+
+def _check_started_with(out: Path, pins: Pins, campaign: Path, weights0: Path, sha_now: str | None) -> None:
+    """A resumed hardening starts from what it began with: the system's weights (harden.json pins their hash)
+    and the attack campaign whose failures and spec every round reads (pins.json)."""
+    pinned = read_json(out / "harden.json", f"harden '{out}': harden.json").get("base_weights_sha256")
+    if isinstance(pinned, str) and pinned != sha_now:
+        raise UserInputError(f"--resume: the weights '{weights0}' changed since the hardening in '{out}' began "
+                             f"(harden.json pins sha256 {pinned[:12]}, found {(sha_now or 'none')[:12]}): every "
+                             "round starts from them; restore them, or start again with --force")
+    pins.check_or_record(campaign, CampaignFolder.holds_results)
 
 
 def check_member(name: str, base: Any) -> None:
@@ -349,22 +394,34 @@ def check_member(name: str, base: Any) -> None:
                                  "whose system and ODD the campaign ran")
 
 
+#: the files of an estimate folder that a kept estimate is pinned by
+ESTIMATE_FILES = ("estimate.json", "episodes.csv", "catalog.json")
+
+
 def _estimate(spec: HardenSpec, member: str, weights: Path, folder: Path, workers: int,
-              progress: bool) -> dict[str, Any]:
+              progress: bool, pins: Pins | None = None) -> dict[str, Any]:
     """The member's in-ODD failure rate under natural conditions (crude Monte Carlo) with ``weights``."""
     from genesis_rl.estimation.run import EstimateSpec, run_estimate
 
     est = EstimateSpec(member=member, method="crude", episodes=spec.estimate_episodes, seed=spec.seed,
                        stages=1, weights=str(Path(weights).resolve()))
+    kept = ESTIMATE_FILES.__contains__
     if (folder / "estimate.json").is_file():
+        pinned = pins is not None and pins.check(folder, kept)
         data = read_json(folder / "estimate.json", f"'{folder}'")
         if data.get("spec", {}).get("weights") != est.weights:  # other weights (a resume that added rounds)
             from genesis_rl.core.files.io_utils import remove_tree
 
+            if pins is not None:
+                pins.forget(folder)
             remove_tree(folder)
         elif data.get("done") and data.get("spec", {}).get("episodes") == spec.estimate_episodes:
+            if pins is not None and not pinned:
+                pins.record(folder, kept)  # an estimate of before the pins: as found
             return {"folder": str(folder), **data["estimate"]}
     result = run_estimate(est, folder, workers=workers, resume=(folder / "estimate.json").is_file(), progress=progress)
+    if pins is not None:
+        pins.record(folder, kept)
     return {"folder": str(folder), **result["estimate"]}
 
 
@@ -377,8 +434,12 @@ def _trained_against(run: Path) -> str | None:
     return read_toml(run / "config.toml").get("env", {}).get("system_kwargs", {}).get("weights")
 
 
+#: the files of the final agent's run that the re-trained attack plays and a resume keeps
+AGENT_FILES = ("agent.zip", "train_result.json")
+
+
 def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weights: Path, workers: int,
-                      progress: bool) -> dict[str, Any]:
+                      progress: bool, pins: Pins | None = None) -> dict[str, Any]:
     """Train an agent by ``config`` against ``weights`` (seed ``spec.seed``), then let it attack them on
     the final attack's scenes."""
     from genesis_rl.core.config import read_toml
@@ -386,24 +447,33 @@ def _retrained_attack(config: str, spec: HardenSpec, base: Any, out: Path, weigh
     from genesis_rl.training.train import train
 
     run = out / "final_agent"
+    kept = AGENT_FILES.__contains__
+    pinned = pins is not None and pins.check(run, kept)
     if run.exists() and _trained_against(run) != str(Path(weights).resolve()):
         from genesis_rl.core.files.io_utils import remove_tree
 
+        if pins is not None:
+            pins.forget(run)
         remove_tree(run)  # trained against other weights (a resume that added rounds)
+        pinned = False
     if not (run / "train_result.json").is_file():
         env = dict(read_toml(config).get("env", {}))
         kwargs = {**env.get("system_kwargs", {}), "weights": str(Path(weights).resolve())}
         cfg = load_run_config(config, {"env": {"system_kwargs": kwargs}, "train": {"seed": spec.seed}})
         train(cfg, run, resume=(run / "run.json").is_file(), progress=progress, inputs=[config])
+        if pins is not None:
+            pins.record(run, kept)
+    elif pins is not None and not pinned:
+        pins.record(run, kept)  # a run of before the pins, as found
     folder = out / "retrained_attack"
     _run(dataclasses.replace(attack_spec(base, spec.rounds + 1, weights, spec.attack_scenes), policies=("agent",),
-                             agent=str(run / "agent.zip")), folder, workers, progress)
+                             agent=str(run / "agent.zip")), folder, workers, progress, pins)
     return {**_public(in_odd_failures(folder)), "agent": str(run), "config": config,
             "weights": str(weights)}
 
 
 def _retest(spec: HardenSpec, base: Any, out: Path, baseline: Mapping[str, Any], rounds: list[dict[str, Any]],
-            workers: int, progress: bool) -> dict[str, Any]:
+            workers: int, progress: bool, pins: Pins | None = None) -> dict[str, Any]:
     """Every round's weights (round 0: before any round; rejected rounds too) on ``retest_scenes`` held-out scenes
     of the re-test's catalog, in ``retest_N/round_R/``; each rate's fall from the accepted weights before it."""
     wide = dataclasses.replace(spec, test_scenes=spec.retest_scenes)
@@ -414,7 +484,7 @@ def _retest(spec: HardenSpec, base: Any, out: Path, baseline: Mapping[str, Any],
             continue  # an attack that found nothing made no weights
         weights = None if not rnd["round"] else inside(out, rnd["weights"])
         folder = out / f"retest_{spec.retest_scenes}" / f"round_{rnd['round']}"
-        _run(test_spec(base, wide, weights), folder, workers, progress)
+        _run(test_spec(base, wide, weights), folder, workers, progress, pins)
         found = _public(in_odd_failures(folder))
         row = {"round": rnd["round"], "status": rnd.get("status", "before"), "folder": relative_to(folder, out),
                **{k: found[k] for k in ("episodes", "in_odd_failures", "rate", "distinct")}}
@@ -451,22 +521,50 @@ def _sha(path: Path, file_sha256: Any) -> str | None:
     return file_sha256(path) if path.is_file() else None
 
 
+def _kept_round(done: Path, out: Path, pins: Pins | None) -> dict[str, Any] | None:
+    """A finished round's ``round.json`` (None: the round is to run), checked against its pin, and the weights
+    it made against the hash it recorded: the rounds after it start from them."""
+    if not done.is_file():
+        return None
+    if pins is not None:
+        pins.check_or_record(done)
+    finished = dict(read_json(done, f"'{done}'"))
+    made, pinned = finished.get("weights"), finished.get("weights_sha256")
+    if finished.get("round") and isinstance(made, str) and isinstance(pinned, str):
+        from genesis_rl.core.files.hashing import file_sha256
+
+        found = _sha(inside(out, made), file_sha256)
+        if found != pinned:
+            raise UserInputError(f"--resume: the weights '{inside(out, made)}' of round {finished['round']} "
+                                 f"{'changed' if found else 'are missing'} since the round made them ('{done}' pins "
+                                 f"sha256 {pinned[:12]}, found {(found or 'none')[:12]}); start again with --force")
+    return finished
+
+
+def _finish_round(done: Path, result: dict[str, Any], pins: Pins | None) -> None:
+    """Write ``round.json`` and pin it (a round kept by a resume is read from it)."""
+    atomic_write_json(done, result, indent=1)
+    if pins is not None:
+        pins.record(done)
+
+
 def _baseline(spec: HardenSpec, base: Any, folder: Path, system: str, kwargs0: Mapping[str, Any], weights0: Path,
-              workers: int, progress: bool) -> dict[str, Any]:
+              workers: int, progress: bool, pins: Pins | None = None) -> dict[str, Any]:
     folder.mkdir(parents=True, exist_ok=True)
     done = folder / "round.json"
-    if done.is_file():
-        return dict(read_json(done, f"'{done}'"))
-    _run(test_spec(base, spec, None), folder / "test", workers, progress)
+    kept = _kept_round(done, folder.parent, pins)
+    if kept is not None:
+        return kept
+    _run(test_spec(base, spec, None), folder / "test", workers, progress, pins)
     clear = clear_day(system, kwargs0, base.map, spec.clear_frames, progress)
     result = {"round": 0, "weights": str(weights0), "test": _public(in_odd_failures(folder / "test")), "clear": clear}
-    atomic_write_json(done, result, indent=1)
+    _finish_round(done, result, pins)
     return result
 
 
 def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0: Mapping[str, Any], weights: Path,
            failure_exports: list[Path], baseline: Mapping[str, Any], hook: Any, workers: int,
-           progress: bool) -> dict[str, Any]:
+           progress: bool, pins: Pins | None = None) -> dict[str, Any]:
     from genesis_rl.core.files.hashing import file_sha256
     from genesis_rl.exports.dataset import export_dataset
     from genesis_rl.harden.retrain import RetrainRequest
@@ -474,33 +572,40 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
     folder = out / f"round_{r}"
     folder.mkdir(parents=True, exist_ok=True)
     done = folder / "round.json"
-    if done.is_file():
-        finished = dict(read_json(done, f"'{done}'"))
+    finished = _kept_round(done, out, pins)
+    if finished is not None:
         if finished.get("export"):
-            failure_exports.append(inside(out, finished["export"]))
+            export = inside(out, finished["export"])
+            if pins is not None:  # the later rounds retrain on it too
+                pins.check_or_record(export)
+            failure_exports.append(export)
         return finished
     t0 = time.perf_counter()
     attack = Path(spec.campaign) if r == 1 else folder / "attack"
     if r > 1:
-        _run(attack_spec(base, r, weights, spec.attack_scenes), attack, workers, progress)
+        _run(attack_spec(base, r, weights, spec.attack_scenes), attack, workers, progress, pins)
     found = in_odd_failures(attack)
     result: dict[str, Any] = {"round": r, "start_weights": str(weights), "attack": _public(found)}
     if not found["in_odd_failures"]:
         result.update(status="no failure", export=None)
-        atomic_write_json(done, result, indent=1)
+        _finish_round(done, result, pins)
         return result
     impacts = found["impacts"]
     near = near_misses(attack, spec.near_miss_ttc)
     near_root = folder / "near_misses"
-    rendered = _near_miss_frames(attack, near, near_root, weights, base, progress)
+    rendered = _near_miss_frames(attack, near, near_root, weights, base, progress, pins)
     closest = {key: int(near[key]["step"]) for key in near
                if f"{key[0]}_scene_{key[1]:04d}" in rendered["episodes"]}
     export = folder / "failures"
+    if pins is not None and (export / "export.json").is_file():
+        pins.check_or_record(export)
     if not (export / "export.json").is_file():
         export_dataset(attack, "yolo", export, force=export.exists(),
                        keep=lambda p, s, step: (p, s) in impacts and step <= impacts[(p, s)]
                        or (p, s) in closest and step <= closest[(p, s)],
                        extra_frames=near_root if closest else None)
+        if pins is not None:
+            pins.record(export)
     failure_exports.append(export)
     exported = read_json(export / "export.json", f"'{export}'")
     result["near_misses"] = {"ttc_s": spec.near_miss_ttc, "found": len(near), "exported": len(closest),
@@ -514,32 +619,38 @@ def _round(spec: HardenSpec, base: Any, out: Path, r: int, system: str, kwargs0:
     if not new_weights.exists():
         raise UserInputError(f"retrain hook '{spec.retrain}' returned '{new_weights}', which does not exist")
     kwargs = {**kwargs0, "weights": str(new_weights.resolve())}
-    _run(test_spec(base, spec, new_weights), folder / "test", workers, progress)
+    _run(test_spec(base, spec, new_weights), folder / "test", workers, progress, pins)
     clear = clear_day(system, kwargs, base.map, spec.clear_frames, progress)
     check = seesaw(baseline.get("clear"), clear, spec.tolerance)
     result.update(export=relative_to(export, out), frames=exported.get("images"), labels=exported.get("labels"),
                   weights=relative_to(new_weights, out), weights_sha256=_sha(new_weights, file_sha256),
                   test=_public(in_odd_failures(folder / "test")), clear=clear, seesaw=check,
                   status="accepted" if check["ok"] else "seesaw", seconds=round(time.perf_counter() - t0, 1))
-    atomic_write_json(done, result, indent=1)
+    _finish_round(done, result, pins)
     return result
 
 
 def _near_miss_frames(attack: Path, near: Mapping[tuple[str, int], Mapping[str, float]], root: Path, weights: Path,
-                      base: Any, progress: bool) -> dict[str, Any]:
+                      base: Any, progress: bool, pins: Pins | None = None) -> dict[str, Any]:
     """The near misses' frames, rendered again into ``root`` (once: ``root/near_misses.json`` marks them done)."""
     from genesis_rl.core.files.io_utils import remove_tree
     from genesis_rl.harden.near_miss import render_frames
 
     done = root / "near_misses.json"
     if done.is_file():
+        if pins is not None:
+            pins.check_or_record(root)
         return dict(read_json(done, f"'{done}'"))
     if root.exists():  # an interrupted rendering: its frames may be partial
+        if pins is not None:
+            pins.forget(root)
         remove_tree(root)
     if not near:
         return {"episodes": [], "departed": [], "unrecorded": []}
     rendered = render_frames(attack, near, root, weights, base.frames_before, base.frame_stride, progress)
     atomic_write_json(done, rendered, indent=1)
+    if pins is not None:
+        pins.record(root)
     return rendered
 
 

@@ -65,9 +65,10 @@ OWN_ENTRIES: dict[str, tuple[str, ...]] = {
     "benchmark": (*_BOOKKEEPING, r"benchmark\.json", r"campaigns", r"leaderboard\.json",
                   r"leaderboard\.html", r"reproductions"),
     "sweep": (*_BOOKKEEPING, r"sweep\.json", r"sweep\.png", r"campaigns"),
-    "estimate": (*_BOOKKEEPING, r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json"),
+    "estimate": (*_BOOKKEEPING, r"estimate\.json", r"estimate\.png", r"episodes\.csv", r"catalog\.json",
+                 r"pins\.json"),
     "harden": (*_BOOKKEEPING, r"harden\.json", r"harden\.png", r"harden\.html", r"original_data\.npz",
-               r"validation_data\.npz",
+               r"validation_data\.npz", r"pins\.json",
                r"round_\d+", r"final_attack", r"final_agent", r"retrained_attack",
                r"final_estimate", r"retest_\d+"),
 }
