@@ -30,7 +30,7 @@ from genesis_rl.core.errors import UserInputError
 CONNECT_TIMEOUT_S = 3.0
 #: an HTTP/2 client's opening (preface and an empty SETTINGS frame): Ray's GCS and client server speak gRPC,
 #: whose servers answer it with a SETTINGS frame at once
-_HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
 _checked: set[str] = set()  # addresses that answered as gRPC in this process (preflight, then ray_session)
 INSTALL_HINT = "install the extra: pip install -e .[ray] (or pip install ray)"
 #: the ``ray.exceptions`` that mean "the actor, its worker process, its node or an object it held is gone"
@@ -42,9 +42,14 @@ LOST_ERROR_NAMES = ("RayActorError", "ActorDiedError", "ActorUnavailableError", 
 
 class RayWorkersLost(UserInputError):
     """Ray lost workers (or their nodes) and the run cannot go on; what is written is kept. The CLI prints the
-    message (which names ``--resume``) as one line and exits with status 3, no traceback."""
+    message (which names ``--resume``) as one line and exits with status 3, no traceback. ``reason``: what was
+    lost, without what to do next (a command that removes its folder says "run the command again" instead)."""
 
     exit_code = 3
+
+    def __init__(self, message: str, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = reason or message
 
 
 def lost_errors(ray: ModuleType) -> tuple[type[BaseException], ...]:
@@ -125,7 +130,7 @@ def check_reachable(address: str) -> None:
 
     fix = "start the cluster's head (ray start --head) or leave --ray-address out for a local Ray"
     try:
-        answer = ask(hp[0], hp[1], _HTTP2_HELLO, 9, CONNECT_TIMEOUT_S)
+        answer = ask(hp[0], hp[1], HTTP2_HELLO, 9, CONNECT_TIMEOUT_S)
     except ProbeError as err:
         what = {"unresolvable": f"'{hp[0]}' does not resolve ({err.detail})",
                 "silent": f"{hp[0]}:{hp[1]} accepts connections but does not answer as Ray's GCS within "
