@@ -498,6 +498,23 @@ def test_training_that_loses_a_node_stops_at_its_checkpoint_naming_resume(cluste
     assert (run / "checkpoints" / "last.json").is_file() and ckpt
 
 
+@pytest.mark.slow
+@LINUX_ONLY
+def test_a_ray_client_address_at_the_gcs_port_is_one_line_at_once(cluster, tmp_path) -> None:
+    """ray:// at the head's GCS port: Ray's client retried its PING for half a minute, then 'ray client connection
+    timeout'; now one line naming the fix, within the 3 s check (the rest is the command's start)."""
+    t0 = time.monotonic()
+    r = cluster.run("evaluate", *CAMPAIGN[:6], "--executor", "ray", "--ray-address", f"ray://{cluster.address}",
+                    "--out", str(tmp_path / "c"))
+    took = time.monotonic() - t0
+    assert r.returncode == 2 and not (tmp_path / "c").exists(), r.stderr[-2000:]
+    assert r.stderr == (f"genesis-rl evaluate: error: --ray-address = 'ray://{cluster.address}': {cluster.address} "
+                        "is a gRPC server but not Ray's Client server (ray:// needs the head's Ray Client port, 10001 "
+                        "unless ray start --ray-client-server-port set another); a cluster's GCS port is given "
+                        f"without ray://: --ray-address {cluster.address}\n")
+    print(f"\nrefused in {took:.1f} s (command start included)")
+
+
 HEAD_CAMPAIGN = ["--policies", "sunny,random", "--map", "highway", "--scenes", "3", "--steps", "20", "--system",
                  "blind", "--quiet", "--no-report"]
 
