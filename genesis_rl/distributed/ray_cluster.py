@@ -195,11 +195,13 @@ def connect_error(address: str, err: BaseException) -> UserInputError:
     failure from server:" and the lines of the head's proxy): its last line says what failed."""
     lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
     if "Traceback (most recent call last):" in lines:
-        last = lines[-1].rstrip(")").strip() or lines[-2]
+        last = lines[-1]
         cause = last.split(": ", 1)[1] if re.match(r"^[\w.]+(Error|Exception): ", last) else last
+        cause = cause[:300].rstrip(".")
+        logs = "" if "session_latest/logs" in cause else \
+            "; Ray's logs are on the head, in /tmp/ray/session_latest/logs by default"
         return UserInputError(f"--ray-address = '{address}': the Ray Client server there could not start this "
-                              f"command's session (Ray: \"{cause[:300].rstrip('.')}\"; Ray's logs are on the head, in "
-                              "/tmp/ray/session_latest/logs by default); run the command again, or connect without "
+                              f"command's session (Ray: \"{cause}\"{logs}); run the command again, or connect without "
                               "Ray Client: --ray-address HOST:6379 (the head's GCS port) from a machine that reaches "
                               "every node, or auto on the head")
     return UserInputError(f"--ray-address = '{address}': Ray could not connect ({' '.join(lines)[:300]})")
