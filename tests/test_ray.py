@@ -133,6 +133,86 @@ def test_an_unreachable_ray_address_is_refused_before_anything_is_written(tmp_pa
     assert rc == 2 and "--ray-address needs --executor ray" in capsys.readouterr().err
 
 
+def _client_server(cluster_info=None):  # noqa: ANN001, ANN202
+    """A gRPC server on a free loopback port; with ``cluster_info`` a Ray Client server whose ClusterInfo (the
+    client's PING) it answers, without one a gRPC server of no Ray service (as a GCS is to Ray's client)."""
+    from concurrent import futures
+
+    import grpc
+    from ray.core.generated import ray_client_pb2_grpc
+
+    server = grpc.server(futures.ThreadPoolExecutor(2))
+    if cluster_info is not None:
+        class Servicer(ray_client_pb2_grpc.RayletDriverServicer):
+            def ClusterInfo(self, request, context):  # noqa: ANN001, ANN202, N802
+                return cluster_info(request, context)
+
+        ray_client_pb2_grpc.add_RayletDriverServicer_to_server(Servicer(), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    return server, port
+
+
+#: what Ray Client raised after ~43 s when the head's proxy could not start the client's session
+PROXY_FAILURE = """Initialization failure from server:
+Traceback (most recent call last):
+  File "/venv/lib/python3.11/site-packages/ray/util/client/server/proxier.py", line 772, in Datapath
+    raise RuntimeError(
+RuntimeError: Starting Ray client server failed. See ray_client_server_23000.err for detailed logs.
+"""
+
+
+def test_a_ray_client_address_gets_one_line_and_the_fix(tmp_path, capsys, monkeypatch) -> None:
+    """ray:// at a port that is not Ray's Client server (the GCS's) or at a cluster that wants a token: Ray's
+    client retried its PING for 30 s and more, then said only "ray client connection timeout". Ray Client's
+    PING is asked within the 3 s check now. A session the head could not start came as Ray's multi-line server
+    traceback inside the error line: one line now, the traceback's last line in it."""
+    import time
+
+    import grpc
+    from ray.core.generated import ray_client_pb2
+
+    def unauthenticated(request, context):  # noqa: ANN001, ANN202 - what a head with token auth answers
+        context.abort(grpc.StatusCode.UNAUTHENTICATED, "Invalid or missing authentication token")
+
+    for info, expected in [(None, "is a gRPC server but not Ray's Client server (ray:// needs the head's Ray Client "
+                                  "port, 10001 unless ray start --ray-client-server-port set another); a cluster's "
+                                  "GCS port is given without ray://: --ray-address 127.0.0.1:"),
+                           (unauthenticated, "the cluster wants a token (Ray's token authentication) and this command "
+                                             "sent none or another; set RAY_AUTH_MODE=token")]:
+        server, port = _client_server(info)
+        try:
+            t0 = time.monotonic()
+            rc, out = _evaluate(tmp_path, "--executor", "ray", "--ray-address", f"ray://127.0.0.1:{port}")
+            took = time.monotonic() - t0
+        finally:
+            server.stop(None)
+        err = capsys.readouterr().err
+        assert rc == 2 and not out.exists() and took < 5, (rc, took, err)
+        assert err.count("\n") == 1 and expected in err, err
+
+    server, port = _client_server(lambda request, context: ray_client_pb2.ClusterInfoResponse(json="{}"))
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+
+    def refused(**kwargs) -> None:  # noqa: ANN003
+        raise ConnectionAbortedError(PROXY_FAILURE)
+
+    monkeypatch.setattr(ray, "init", refused)
+    from genesis_rl.distributed.ray_cluster import ray_session
+
+    try:  # (the session starts once the campaign has its scenes: asked directly here, it is quicker)
+        with pytest.raises(UserInputError) as e, ray_session(f"ray://127.0.0.1:{port}", 1):
+            pass
+    finally:
+        server.stop(None)
+    assert str(e.value) == (
+        f"--ray-address = 'ray://127.0.0.1:{port}': the Ray Client server there could not start this command's session "
+        "(Ray: \"Starting Ray client server failed. See ray_client_server_23000.err for detailed logs\"; Ray's logs "
+        "are on the head, in /tmp/ray/session_latest/logs by default); run the command again, or connect without Ray "
+        "Client: --ray-address HOST:6379 (the head's GCS port) from a machine that reaches every node, or auto on the "
+        "head")
+
+
 def test_ray_not_installed_names_the_extra(tmp_path, capsys, monkeypatch) -> None:
     import sys
 

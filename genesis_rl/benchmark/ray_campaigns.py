@@ -102,6 +102,7 @@ def run_campaigns_on_ray(jobs: Sequence[tuple[CampaignSpec, Path]], settings: Ex
     ``on_done`` sees each folder once its campaign is installed (in any order)."""
     from genesis_rl.campaigns.worker import plugin_modules
     from genesis_rl.distributed.ray_cluster import driver_paths, ray_session
+    from genesis_rl.distributed.ray_head import HeadWatch
 
     n = min(settings.workers, len(jobs))
     if n == 0:
@@ -114,7 +115,8 @@ def run_campaigns_on_ray(jobs: Sequence[tuple[CampaignSpec, Path]], settings: Ex
         def make(i: int) -> Any:
             return remote.options(resources=settings.ray_resources(i)).remote(plugins_ref, paths_ref)
 
-        scheduler = RayEpisodeScheduler(ray, make, n, tasks, max_losses=2, describe=_describe, unit="campaign")
+        scheduler = RayEpisodeScheduler(ray, make, n, tasks, max_losses=2, describe=_describe, unit="campaign",
+                                        watch=HeadWatch.of(ray, settings.ray_address))
         try:
             for folder, files in scheduler.run():
                 install(Path(folder), files)

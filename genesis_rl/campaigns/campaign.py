@@ -30,6 +30,7 @@ from genesis_rl.campaigns.worker import plugin_modules
 from genesis_rl.core.files import output_folder
 from genesis_rl.core.files.io_utils import atomic_write_text
 from genesis_rl.core.signals import deferred_signals, set_resume_hint
+from genesis_rl.distributed.ray_cluster import RayWorkersLost
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.labels.failure_modes import FAILURE_MODES, FailureModeThresholds
 
@@ -66,6 +67,9 @@ def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, 
                 shutil.rmtree(folder, ignore_errors=True)
             if isinstance(err, KeyboardInterrupt):
                 set_resume_hint(err, f"no episode had finished, so '{folder}' was removed; run the command again")
+            elif isinstance(err, RayWorkersLost):  # its --resume would be refused: there is nothing to resume
+                raise type(err)(f"{err.reason}; no episode had finished, so '{folder}' was removed: run the "
+                                "command again", err.reason) from None
         elif isinstance(err, KeyboardInterrupt):
             set_resume_hint(err, f"{done} episode(s) in '{folder}' are kept; the same command with --resume "
                                  "runs the rest")

@@ -11,8 +11,9 @@ An actor that is lost (its worker process killed, its node gone) costs only its 
 to the queue and runs again on the other actors (nothing of it was written yet, and an episode is seeded by its
 task, so the re-run is the same episode), a replacement actor is asked for in its place (it starts where the
 cluster has room), and one line on stderr names the node and the episodes re-run. The campaign stops, keeping
-what it wrote, only when no actor is left and none can be placed within ``REPLACEMENT_WAIT_S``, or when one
-episode has lost its worker more than ``retries + 1`` times (an episode that kills its worker).
+what it wrote, only when no actor is left and none can be placed within ``REPLACEMENT_WAIT_S``, when one
+episode has lost its worker more than ``retries + 1`` times (an episode that kills its worker), or when the
+cluster's head stops answering (``distributed/ray_head.py``: Ray would end the process itself 60 s later).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from typing import Any
 from genesis_rl.campaigns.campaign_folder import Task
 from genesis_rl.campaigns.worker import close_worker, init_worker, run_task
 from genesis_rl.core.files.io_utils import atomic_write
+from genesis_rl.distributed.ray_cluster import RayWorkersLost
+from genesis_rl.distributed.ray_head import HeadWatch, RayHeadLost
 from genesis_rl.distributed.settings import ExecutorSettings
 from genesis_rl.distributed.spawn_pool import SpawnPool
 
@@ -162,11 +165,13 @@ class RayEpisodeScheduler:
 
     def __init__(self, ray: Any, make_actor: Callable[[int], Any], slots: int, tasks: Sequence[Any],
                  max_losses: int, wait_s: float = REPLACEMENT_WAIT_S,
-                 describe: Callable[[Any], str] = _describe_episode, unit: str = "episode") -> None:
+                 describe: Callable[[Any], str] = _describe_episode, unit: str = "episode",
+                 watch: HeadWatch | None = None) -> None:
         from genesis_rl.distributed.ray_cluster import lost_errors
 
         self.ray, self.make_actor, self.tasks, self.max_losses, self.wait_s = ray, make_actor, tasks, max_losses, wait_s
         self.describe, self.unit = describe, unit
+        self.watch = watch or HeadWatch(None)  # the cluster's head, asked while the driver waits
         self.lost_errors = lost_errors(ray)
         self.queue: deque[int] = deque(range(len(tasks)))
         self.losses: dict[int, int] = {}
@@ -179,6 +184,12 @@ class RayEpisodeScheduler:
         return _Slot(i, actor, actor.where.remote(), failed_starts=failed_starts)
 
     def run(self) -> Iterator[tuple[Any, dict[str, bytes]]]:
+        try:
+            yield from self._run()
+        except RayHeadLost as err:
+            raise _workers_lost(str(err), self.unit, RayHeadLost) from None
+
+    def _run(self) -> Iterator[tuple[Any, dict[str, bytes]]]:
         from genesis_rl.distributed.ray_cluster import node_address
 
         stranded_since: float | None = None
@@ -196,10 +207,15 @@ class RayEpisodeScheduler:
                 stranded_since = None
             elif stranded_since is None:
                 stranded_since = time.monotonic()
-            timeout = None if working else max(0.0, self.wait_s - (time.monotonic() - (stranded_since or 0.0)))
-            ready, _ = self.ray.wait(list(waiting), num_returns=1, timeout=timeout)
+            left = None if working else max(0.0, self.wait_s - (time.monotonic() - (stranded_since or 0.0)))
+            # never longer than the head's probe interval: a lost head fails no call, Ray ends the process
+            ready, _ = self.ray.wait(list(waiting), num_returns=1,
+                                     timeout=self.watch.every_s if left is None else min(left, self.watch.every_s))
+            self.watch.check()
             if not ready:
-                raise self._stranded()
+                if left is not None and left <= self.watch.every_s:
+                    raise self._stranded()
+                continue
             slot = waiting[ready[0]]
             try:
                 value = self.ray.get(ready[0])
@@ -219,6 +235,7 @@ class RayEpisodeScheduler:
         back to the queue, replacements asked for, one line on stderr."""
         from genesis_rl.distributed.ray_cluster import node_alive
 
+        self.watch.confirm()  # a lost head takes its workers with it, and node_alive would wait on its GCS
         node_id, ip = slot.node or ("", "")
         node_gone = bool(node_id) and not node_alive(self.ray, node_id)
         victims = [s for s in self.slots if node_gone and s.node is not None and s.node[0] == node_id]
@@ -262,6 +279,8 @@ class RayEpisodeScheduler:
                              f"within {self.wait_s:g} s; {len(self.queue)} {self.unit}(s) are not run", self.unit)
 
     def close(self) -> None:
+        if self.watch.lost:
+            return  # every call below needs the head's GCS, and would wait for it until Ray ends the process
         for s in self.slots:
             if s.node is not None:
                 try:
@@ -279,12 +298,12 @@ def _short(err: BaseException) -> str:
     return f"{type(err).__name__}: {first[0][:160]}" if first else type(err).__name__
 
 
-def _workers_lost(reason: str, unit: str = "episode") -> Exception:
-    from genesis_rl.distributed.ray_cluster import RayWorkersLost
-
+def _workers_lost(reason: str, unit: str = "episode", kind: type[RayWorkersLost] = RayWorkersLost) -> RayWorkersLost:
     command = "benchmark" if unit == "campaign" else "evaluate"
-    return RayWorkersLost(f"{reason}; the finished {unit}s are kept: continue with genesis-rl {command} --resume "
-                          "(on Ray or locally) once the cluster has room")
+    where = ("(locally, or on Ray once the head is back)" if kind is RayHeadLost else
+             "(on Ray or locally) once the cluster has room")
+    return kind(f"{reason}; the finished {unit}s are kept: continue with genesis-rl {command} --resume {where}",
+                reason)
 
 
 def _run_ray(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettings) -> Iterator[dict[str, Any]]:
@@ -306,7 +325,8 @@ def _run_ray(tasks: Sequence[Task], setup: WorkerSetup, settings: ExecutorSettin
             return remote.options(resources=settings.ray_resources(i)).remote(setup_ref, catalog_ref,
                                                                               settings.server(i), paths_ref)
 
-        scheduler = RayEpisodeScheduler(ray, make, n, tasks, max_losses=retries + 1)
+        scheduler = RayEpisodeScheduler(ray, make, n, tasks, max_losses=retries + 1,
+                                        watch=HeadWatch.of(ray, settings.ray_address))
         try:
             for row, files in scheduler.run():
                 write_files(setup.folder, files)

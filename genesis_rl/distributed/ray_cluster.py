@@ -16,8 +16,10 @@ elsewhere (``evaluation/executors.py``), training stops at its last checkpoint (
 from __future__ import annotations
 
 import os
+import re
 import socket
 import sys
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from types import ModuleType
@@ -30,7 +32,7 @@ from genesis_rl.core.errors import UserInputError
 CONNECT_TIMEOUT_S = 3.0
 #: an HTTP/2 client's opening (preface and an empty SETTINGS frame): Ray's GCS and client server speak gRPC,
 #: whose servers answer it with a SETTINGS frame at once
-_HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
 _checked: set[str] = set()  # addresses that answered as gRPC in this process (preflight, then ray_session)
 INSTALL_HINT = "install the extra: pip install -e .[ray] (or pip install ray)"
 #: the ``ray.exceptions`` that mean "the actor, its worker process, its node or an object it held is gone"
@@ -42,9 +44,14 @@ LOST_ERROR_NAMES = ("RayActorError", "ActorDiedError", "ActorUnavailableError", 
 
 class RayWorkersLost(UserInputError):
     """Ray lost workers (or their nodes) and the run cannot go on; what is written is kept. The CLI prints the
-    message (which names ``--resume``) as one line and exits with status 3, no traceback."""
+    message (which names ``--resume``) as one line and exits with status 3, no traceback. ``reason``: what was
+    lost, without what to do next (a command that removes its folder says "run the command again" instead)."""
 
     exit_code = 3
+
+    def __init__(self, message: str, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = reason or message
 
 
 def lost_errors(ray: ModuleType) -> tuple[type[BaseException], ...]:
@@ -125,7 +132,7 @@ def check_reachable(address: str) -> None:
 
     fix = "start the cluster's head (ray start --head) or leave --ray-address out for a local Ray"
     try:
-        answer = ask(hp[0], hp[1], _HTTP2_HELLO, 9, CONNECT_TIMEOUT_S)
+        answer = ask(hp[0], hp[1], HTTP2_HELLO, 9, CONNECT_TIMEOUT_S)
     except ProbeError as err:
         what = {"unresolvable": f"'{hp[0]}' does not resolve ({err.detail})",
                 "silent": f"{hp[0]}:{hp[1]} accepts connections but does not answer as Ray's GCS within "
@@ -138,7 +145,66 @@ def check_reachable(address: str) -> None:
         raise UserInputError(f"--ray-address = '{address}': {hp[0]}:{hp[1]} answers, but not as Ray's GCS (a gRPC "
                              f"server; it sent {answer.data[:24]!r}); check the port (the head's GCS port, 6379 by "
                              f"default, or 10001 for ray://) or {fix}")
+    if address.startswith("ray://"):
+        _ping_client_server(address, hp[0], hp[1], max(0.5, CONNECT_TIMEOUT_S - answer.waited))
     _checked.add(address)
+
+
+def _ping_client_server(address: str, host: str, port: int, timeout: float) -> None:
+    """Ask a ``ray://`` address Ray Client's own first question (PING), on the channel ``ray.init`` would open
+    (with the token it would send): Ray's client retries a refused PING for half a minute and more, then says
+    only "ray client connection timeout"; the status tells a GCS port or another gRPC service (UNIMPLEMENTED)
+    and a cluster that wants a token (UNAUTHENTICATED) at once."""
+    try:
+        import grpc
+        from ray.core.generated import ray_client_pb2, ray_client_pb2_grpc
+    except ImportError:  # a Ray without them: ray.init will tell
+        return
+    try:
+        from ray._private.grpc_utils import init_grpc_channel  # Ray's own channel: its token and TLS settings
+        channel = init_grpc_channel(f"{host}:{port}")
+    except Exception:  # noqa: BLE001 - an older Ray: a plain channel still tells UNIMPLEMENTED apart
+        channel = grpc.insecure_channel(f"{host}:{port}")
+    try:
+        pb2: Any = ray_client_pb2  # generated code, no types
+        ray_client_pb2_grpc.RayletDriverStub(channel).ClusterInfo(
+            pb2.ClusterInfoRequest(type=pb2.ClusterInfoType.PING), timeout=timeout)
+    except grpc.RpcError as err:
+        code = err.code() if callable(getattr(err, "code", None)) else None
+        if code == grpc.StatusCode.UNIMPLEMENTED:
+            raise UserInputError(f"--ray-address = '{address}': {host}:{port} is a gRPC server but not Ray's Client "
+                                 f"server (ray:// needs the head's Ray Client port, 10001 unless ray start "
+                                 f"--ray-client-server-port set another); a cluster's GCS port is given without "
+                                 f"ray://: --ray-address {host}:{port}") from None
+        if code == grpc.StatusCode.UNAUTHENTICATED:
+            raise UserInputError(f"--ray-address = '{address}': the cluster wants a token (Ray's token "
+                                 "authentication) and this command sent none or another; set RAY_AUTH_MODE=token "
+                                 "here and give it the cluster's token (RAY_AUTH_TOKEN, or ~/.ray/auth_token as on "
+                                 "the head)") from None
+        details = " ".join(str(err.details() if callable(getattr(err, "details", None)) else err).split())
+        raise UserInputError(f"--ray-address = '{address}': the Ray Client server at {host}:{port} did not answer "
+                             f"its ping ({code.name if code else 'error'}: {details[:200]}); check that the head's "
+                             "Ray Client server runs there, or connect to the cluster's GCS (--ray-address "
+                             "HOST:6379)") from None
+    finally:
+        channel.close()
+
+
+def connect_error(address: str, err: BaseException) -> UserInputError:
+    """``ray.init``'s refusal as one line. Ray Client's refusals carry the server's whole traceback ("Initialization
+    failure from server:" and the lines of the head's proxy): its last line says what failed."""
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    if "Traceback (most recent call last):" in lines:
+        last = lines[-1]
+        cause = last.split(": ", 1)[1] if re.match(r"^[\w.]+(Error|Exception): ", last) else last
+        cause = cause[:300].rstrip(".")
+        logs = "" if "session_latest/logs" in cause else \
+            "; Ray's logs are on the head, in /tmp/ray/session_latest/logs by default"
+        return UserInputError(f"--ray-address = '{address}': the Ray Client server there could not start this "
+                              f"command's session (Ray: \"{cause}\"{logs}); run the command again, or connect without "
+                              "Ray Client: --ray-address HOST:6379 (the head's GCS port) from a machine that reaches "
+                              "every node, or auto on the head")
+    return UserInputError(f"--ray-address = '{address}': Ray could not connect ({' '.join(lines)[:300]})")
 
 
 def driver_paths() -> list[str]:
@@ -170,9 +236,11 @@ def ray_session(address: str | None, workers: int, per_worker: dict[str, float] 
         if address:
             check_reachable(address)
             try:
-                ray.init(address=address, **kwargs)
+                with warnings.catch_warnings():  # Ray Client warns in several lines before it raises
+                    warnings.simplefilter("ignore")
+                    ray.init(address=address, **kwargs)
             except (ConnectionError, RuntimeError, ValueError) as err:
-                raise UserInputError(f"--ray-address = '{address}': Ray could not connect ({err})") from None
+                raise connect_error(address, err) from None
         else:
             # "local": a new instance even where a `ray start` cluster (or a stale address file) exists
             ray.init(address="local", num_cpus=max(workers, os.cpu_count() or 1), **kwargs)

@@ -8,7 +8,8 @@ seeds and options handed to the next reset), so the same seeds give the same rol
 An env actor lost mid-run (its worker killed, its node gone) stops the run with :class:`RayWorkersLost`
 naming the env and its node; ``train`` turns it into one line naming ``train --resume`` (its last checkpoint
 is whole). A replacement env cannot continue the lost one's episode exactly (its simulator state and random
-stream went with it, and SB3's rollout holds half an episode), so none is made.
+stream went with it, and SB3's rollout holds half an episode), so none is made. A lost head is noticed by
+asking it while the driver waits (``distributed/ray_head.py``) and stops the run the same way.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from genesis_rl.distributed.ray_cluster import (
     ray_session,
     where_am_i,
 )
+from genesis_rl.distributed.ray_head import HeadWatch
 
 
 class EnvActor:
@@ -86,6 +88,7 @@ class RayVecEnv(VecEnv):
         """``resources``: the custom Ray resources each env holds (its node's CARLA server)."""
         self._stack = ExitStack()
         ray = self._ray = self._stack.enter_context(ray_session(address, len(env_fns), resources))
+        self._watch = HeadWatch.of(ray, address)
         remote = ray.remote(num_cpus=1)(EnvActor)
         paths = driver_paths()
         self.actors = [remote.options(resources=resources or {}).remote(fn, paths) for fn in env_fns]
@@ -121,15 +124,20 @@ class RayVecEnv(VecEnv):
         return _stack_obs(obs, self.observation_space)
 
     def _get(self, refs: Any) -> Any:
-        """``ray.get``, a lost actor or node raised as :class:`RayWorkersLost` naming the env and its node."""
-        try:
-            return self._ray.get(refs)
-        except self._lost as err:
-            if getattr(err, "actor_init_failed", False):
-                raise  # the env failed to set up: its own error says why
-            raise RayWorkersLost(self._describe_loss(err)) from None
+        """``ray.get``, a lost actor or node raised as :class:`RayWorkersLost` naming the env and its node, a
+        lost head as :class:`RayHeadLost` (the head is asked every second while the call waits)."""
+        while True:
+            try:
+                return self._ray.get(refs, timeout=self._watch.every_s)
+            except TimeoutError:  # Ray's GetTimeoutError is one
+                self._watch.check()
+            except self._lost as err:
+                if getattr(err, "actor_init_failed", False):
+                    raise  # the env failed to set up: its own error says why
+                raise RayWorkersLost(self._describe_loss(err)) from None
 
     def _describe_loss(self, err: BaseException) -> str:
+        self._watch.confirm()  # a lost head takes its envs with it, and node_alive would wait on its GCS
         gone = [i for i, (node_id, _) in enumerate(self.nodes) if not node_alive(self._ray, node_id)]
         if gone:
             nodes = sorted({f"{self.nodes[i][0]} ({self.nodes[i][1]})" for i in gone})
@@ -140,10 +148,11 @@ class RayVecEnv(VecEnv):
     def close(self) -> None:
         if self.closed:
             return
-        try:
-            self._ray.get([a.close.remote() for a in self.actors], timeout=60)
-        except Exception:  # noqa: BLE001 - a dead actor has nothing to close
-            pass
+        if not self._watch.lost:  # with a lost head the call would wait on its GCS
+            try:
+                self._ray.get([a.close.remote() for a in self.actors], timeout=60)
+            except Exception:  # noqa: BLE001 - a dead actor has nothing to close
+                pass
         self.closed = True
         self._stack.close()
 
