@@ -95,8 +95,9 @@ def _vehicle(xosc: Any, track: VehicleTrack) -> Any:
 
 
 def _g(v: float) -> float:
-    """``v`` to 10 significant digits: what a file needs, without float noise such as 2999.9999999999977."""
-    return float(f"{float(v):.10g}")
+    """``v`` at full precision. Rounded to 10 significant digits (until 0.30.0, to spare the file float noise
+    such as 2999.9999999999977), the sun's angles came back 3e-8 degrees off the recorded knobs."""
+    return float(v)
 
 
 def _environment(xosc: Any, env: OscEnvironment, minor: int) -> Any:
