@@ -37,14 +37,15 @@ from genesis_rl.exports.openscenario.writer import (
     vehicle_name,
     write_scenario,
 )
+from genesis_rl.world.step_record import StepRecord
 
 SCENARIO_FOLDER = "scenarios"
 INDEX = "scenarios.json"
-#: read-back tolerances: positions [m] (the polyline's tolerance per axis, in the plane, plus 0.1 mm rounding),
-#: headings [rad], speeds [m/s], knobs (relative to their range)
-TOLERANCES = {"position_m": math.sqrt(2.0) * float(VERTEX_TOLERANCE[0]) + 1e-4,
-              "heading_rad": float(VERTEX_TOLERANCE[3]) + 1e-6,
-              "speed_m_s": 1e-5, "knob_share": 1e-7}
+#: read-back tolerances: positions [m] (the polyline's tolerance per axis, in the plane, plus the rear axle's
+#: round trip in floating point), headings [rad], speeds [m/s], knobs (relative to their range)
+TOLERANCES = {"position_m": math.sqrt(2.0) * float(VERTEX_TOLERANCE[0]) + 1e-9,
+              "heading_rad": float(VERTEX_TOLERANCE[3]) + 1e-9,
+              "speed_m_s": 1e-9, "knob_share": 1e-7}
 VERSIONS = {"1.0": 0, "1.1": 1, "1.2": 2, "1.3": 3}
 
 
@@ -112,8 +113,28 @@ def roundtrip_errors(trace: EpisodeTrace, parsed: ParsedScenario) -> dict[str, A
     return out
 
 
-def reproduction(trace: EpisodeTrace, parsed: ParsedScenario, weights: str | None) -> dict[str, Any]:
-    """Drive lite from the parsed file and compare its failure with the trace's."""
+def first_difference(recorded: list[StepRecord], replayed: list[StepRecord]) -> dict[str, Any] | None:
+    """The first step where lite driven from the file leaves the recorded drive, and what differs there first
+    (the vehicles in the image, the detections, the ego's speed, its control, a collision); None: the same to
+    the last step."""
+    for a, b in zip(recorded, replayed, strict=False):
+        boxes = [(g.vehicle_id, g.box_xyxy) for g in a.perception.gt_boxes] == [
+            (g.vehicle_id, g.box_xyxy) for g in b.perception.gt_boxes]
+        what = [name for name, same in (
+            ("vehicles in the image", boxes), ("detections", a.perception.detections == b.perception.detections),
+            ("ego speed", a.ego.speed == b.ego.speed),
+            ("control", (a.ego.throttle, a.ego.brake, a.ego.steer) == (b.ego.throttle, b.ego.brake, b.ego.steer)),
+            ("collision", (a.collision.collided, a.collision.other_id) == (b.collision.collided, b.collision.other_id)))
+            if not same]
+        if what:
+            return {"step": a.step, "differs": what}
+    return None
+
+
+def reproduction(trace: EpisodeTrace, parsed: ParsedScenario, weights: str | None,
+                 recorded: list[StepRecord] | None = None) -> dict[str, Any]:
+    """Drive lite from the parsed file and compare its failure with the trace's; with the ``recorded`` steps,
+    also where the drive from the file first leaves them, and, when the failure does not reproduce, why."""
     from genesis_rl.exports.openscenario.lite_replay import drive_scenario
 
     drive = drive_scenario(parsed, weights=weights)
@@ -127,9 +148,18 @@ def reproduction(trace: EpisodeTrace, parsed: ParsedScenario, weights: str | Non
     else:
         same = ({k for k, v in trace.violations.items() if v > 0} == {k for k, v in drive.violations.items() if v > 0})
     standard = sorted(n for n, s in drive.knob_sources.items() if s == "standard")
-    return {"reproduced": bool(same), "original": original, "from_scenario": replayed,
-            "knobs_from_standard": standard,
-            "knobs_from_genesis_command": sorted(n for n, s in drive.knob_sources.items() if s == "genesis")}
+    out = {"reproduced": bool(same), "original": original, "from_scenario": replayed,
+           "knobs_from_standard": standard,
+           "knobs_from_genesis_command": sorted(n for n, s in drive.knob_sources.items() if s == "genesis")}
+    if recorded is not None:
+        diff = first_difference(recorded, drive.records)
+        out["first_difference"] = diff
+        if not same:
+            out["why_not"] = ("the drive from the file is the recorded one to the last step, so the failure "
+                              "check itself disagrees" if diff is None else
+                              f"the drive from the file leaves the recorded one at step {diff['step']}: "
+                              f"{', '.join(diff['differs'])} differ(s) first")
+    return out
 
 
 def export_scenarios(source: Path, out: Path, version: str = "1.0", check: bool = True, every: bool = False,
@@ -170,7 +200,7 @@ def export_scenarios(source: Path, out: Path, version: str = "1.0", check: bool 
             entry["schema"] = {"file": v.schema, "valid": v.valid, "errors": list(v.errors[:5])}
             parsed = read_scenario(xosc)
             entry["read_back"] = roundtrip_errors(trace, parsed)
-            entry["replay"] = reproduction(trace, parsed, weights)
+            entry["replay"] = reproduction(trace, parsed, weights, replay["records"])
         entries.append(entry)
         if on_scenario is not None:
             on_scenario(entry)
@@ -194,9 +224,12 @@ def summary_line(index: dict[str, Any]) -> str:
         return "no failing episode to export (pass --all-records to export every record)"
     if c is None:
         return f"{n} scenario(s) written (not checked: --no-check)"
-    return (f"{n} scenario(s): {c['schema_valid']} valid against ASAM's XSD, {c['read_back_ok']} read back within "
-            f"tolerance, {c['reproduced_on_lite']} reproduce their failure on lite; maps valid: "
-            f"{c['maps_valid']}/{len(index['maps'])}")
+    line = (f"{n} scenario(s): {c['schema_valid']} valid against ASAM's XSD, {c['read_back_ok']} read back within "
+            f"tolerance, {c['reproduced_on_lite']} of {n} ({100.0 * c['reproduced_on_lite'] / n:.0f} %) reproduce "
+            f"their failure on lite from the file; maps valid: {c['maps_valid']}/{len(index['maps'])}")
+    missed = [f"{e['scenario']} ({e['replay'].get('why_not', 'not reproduced')})" for e in index["scenarios"]
+              if not e["replay"]["reproduced"]]
+    return line + ("; not reproduced: " + "; ".join(missed) if missed else "")
 
 
 

@@ -6,9 +6,10 @@ Environment actions, a system under test driving the ego.
   from the ``genesis.*`` properties when they agree with the position (within :data:`MAX_PROPERTY_OFFSET`),
   else from the lane nearest the position;
 - the motion: a vehicle with a trajectory is scripted (``traffic.ScriptedMotion``): its pose after every step
-  is the polyline's, linearly interpolated in time; its speed is the distance it covers around the step over
-  the time; its brake lights are lit while it slows by more than 0.5 m/s^2 or stands; a vehicle without one
-  drives on lite's autopilot;
+  is the polyline's, linearly interpolated in time, height and pitch included; its speed is the distance it
+  covers around the step over the time; its brake lights switch where the file switches them
+  (``LightStateAction`` or our command), else they are lit while it slows by more than 0.5 m/s^2 or stands; a
+  vehicle without a trajectory drives on lite's autopilot;
 - the weather: at the start, the Init's Environment; before step k + 1 (time k dt), the last weather event
   that has fired by then. The knobs the standard carries come from the Environment
   (``environment.knobs_from_environment``), the others from our ``CustomCommandAction`` (default when the
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +31,7 @@ from genesis_rl.exports.openscenario.environment import expressed_knobs, knobs_f
 from genesis_rl.exports.openscenario.reader import ParsedScenario, ParsedVehicle, WeatherEvent
 from genesis_rl.exports.openscenario.trace import first_collision
 from genesis_rl.exports.openscenario.writer import BLUEPRINT, KNOBS_COMMAND, START_KNOBS_EVENT
-from genesis_rl.sim.interface import FIXED_DELTA_SECONDS
+from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, Simulation
 from genesis_rl.sim.lite.maps import MAP_NAMES, load_map
 from genesis_rl.sim.lite.maps.lane_graph import DS, RoadMap
 from genesis_rl.sim.lite.traffic import BRAKE_LIGHT_DECEL, ScriptedMotion
@@ -107,19 +109,28 @@ def _lane_start(road_map: RoadMap, v: ParsedVehicle, x: float, y: float, yaw: fl
 def _script(v: ParsedVehicle, dt: float, steps: int) -> ScriptedMotion:
     """The vehicle's pose after every step (row k: time (k + 1) dt) from its polyline."""
     assert v.times is not None and v.poses is not None
-    t = np.arange(steps + 1) * dt  # the start and after every step
+    # the start and after every step, to the microsecond the writer rounds vertex times to, so a sample falls on
+    # its vertex exactly and the pose is the file's to the bit
+    t = np.round(np.arange(steps + 1) * dt, 6)
     yaw_path = np.unwrap(v.poses[:, 3])
     pose = np.column_stack([np.interp(t, v.times, v.poses[:, 0]), np.interp(t, v.times, v.poses[:, 1]),
                             np.interp(t, v.times, v.poses[:, 2]), np.interp(t, v.times, yaw_path)])
+    pitch = -np.interp(t, v.times, v.poses[:, 4])  # the file's pitch is nose down, lite's nose up
     x, y, yaw = _centre(v, pose)
     chord = np.hypot(np.diff(x), np.diff(y)) / dt  # mean speed over each step
     speed = np.empty(steps + 1)
     speed[0], speed[-1] = chord[0], chord[-1]  # the ends: the one step beside them
     speed[1:-1] = 0.5 * (chord[:-1] + chord[1:])  # inside: the mean of the steps before and after the sample
     speed = np.where(speed < 1e-6, 0.0, speed)
-    slowing = np.diff(speed, prepend=speed[0]) / dt < -BRAKE_LIGHT_DECEL
-    braking = slowing | (speed < STANDING)
-    return ScriptedMotion(x=x[1:], y=y[1:], yaw=yaw[1:], speed=speed[1:], braking=braking[1:])
+    if v.brake_lights is not None:  # the file switches them: as lite lit them when the episode ran
+        braking = np.zeros(steps + 1, bool)
+        for after, lit in v.brake_lights:  # in time order: a later switch overrides
+            braking[t > after + 1e-9] = lit
+    else:  # a file that does not: lit while the trajectory slows faster than lite's threshold, or stands
+        slowing = np.diff(speed, prepend=speed[0]) / dt < -BRAKE_LIGHT_DECEL
+        braking = slowing | (speed < STANDING)
+    return ScriptedMotion(x=x[1:], y=y[1:], yaw=yaw[1:], speed=speed[1:], braking=braking[1:], z=pose[1:, 2],
+                          pitch=pitch[1:])
 
 
 def _knobs(event_env: Any, other: dict[str, float], minor: int, base: Weather) -> tuple[Weather, dict[str, str]]:
@@ -210,8 +221,11 @@ def scene_of(parsed: ParsedScenario) -> tuple[Scene, dict[int, ScriptedMotion], 
     return scene, scripts, dt, steps
 
 
-def drive_scenario(parsed: ParsedScenario, system_spec: str | None = None, weights: str | None = None) -> ScenarioDrive:
-    """Drive the scenario on lite with the file's system (``GenesisSystem``) or ``system_spec``."""
+def drive_scenario(parsed: ParsedScenario, system_spec: str | None = None, weights: str | None = None,
+                   observer: Callable[[Simulation], None] | None = None) -> ScenarioDrive:
+    """Drive the scenario on lite with the file's system (``GenesisSystem``) or ``system_spec``. ``observer``
+    sees the simulation after the start and after every step, as ``replay_record``'s does, so the two drives
+    can be compared state by state."""
     import torch  # local: start-up cost
 
     from genesis_rl.campaigns.records import load_recorded_system
@@ -230,7 +244,9 @@ def drive_scenario(parsed: ParsedScenario, system_spec: str | None = None, weigh
         recorded = {"spec": system_spec}
     system = load_recorded_system(recorded, weights)
     width, height = _camera(parsed)
-    seed = _parameter(parsed, "GenesisEpisodeSeed", "0", int, "an integer >= 0")
+    # the world the episode ran in: a benchmark's re-run plays its episode's schedule in another world
+    seed = _parameter(parsed, "GenesisWorldSeed", parsed.parameters.get("GenesisEpisodeSeed", "0"), int,
+                      "an integer >= 0")
     backend = LiteBackend()
     records: list[StepRecord] = []
     try:
@@ -240,9 +256,13 @@ def drive_scenario(parsed: ParsedScenario, system_spec: str | None = None, weigh
         with lite_sim as sim:
             loop = ClosedLoop(sim, system, backend.name, seed)
             loop.start(start)
+            if observer is not None:
+                observer(sim)
             for weather in weathers:
                 r = loop.advance(weather)
                 records.append(r.scored(rulebook.step_terms(r)))
+                if observer is not None:
+                    observer(sim)
     finally:
         backend.close()
     step, other = first_collision(records)

@@ -21,6 +21,7 @@ from genesis_rl.core.errors import UserInputError
 from genesis_rl.exports.openscenario.environment import OscEnvironment
 from genesis_rl.exports.openscenario.schema import require_scenariogeneration, scenario_minor_version
 from genesis_rl.exports.openscenario.writer import (
+    BRAKE_LIGHTS_COMMAND,
     EGO_NAME,
     KNOBS_COMMAND,
     START_KNOBS_EVENT,
@@ -33,7 +34,9 @@ POSE_FIELDS = ("x", "y", "z", "h", "p")
 @dataclass(frozen=True)
 class ParsedVehicle:
     """A vehicle of the file: name, CARLA blueprint, box [m], properties, start pose (reference point: rear
-    axle centre; x, y, z, h, p as written) and speed, and its trajectory (times [s], poses) if it has one."""
+    axle centre; x, y, z, h, p as written) and speed, its trajectory (times [s], poses) if it has one, and
+    its brake-light switches (fired once simulation time exceeds the time [s]; lit or not), None when the file
+    switches none (lite then derives them from the trajectory)."""
 
     name: str
     blueprint: str
@@ -46,6 +49,7 @@ class ParsedVehicle:
     start_speed: float
     times: np.ndarray | None = None
     poses: np.ndarray | None = None
+    brake_lights: tuple[tuple[float, bool], ...] | None = None
 
     @property
     def is_ego(self) -> bool:
@@ -134,6 +138,26 @@ def _knobs_command(action: ET.Element, where: str) -> dict[str, float]:
     return {str(k): float(v) for k, v in values.items()}
 
 
+def _brake_light_switch(action: ET.Element, where: str) -> bool | None:
+    """Whether an action lights (True) or puts out (False) the brake lights: a ``LightStateAction`` on
+    ``brakeLights`` (1.2 on) or our command; None for any other action."""
+    light = action.find("PrivateAction/AppearanceAction/LightStateAction")
+    if light is not None:
+        kind = light.find("LightType/VehicleLight")
+        if kind is None or kind.get("vehicleLightType") != "brakeLights":
+            return None
+        state = light.find("LightState")
+        mode = None if state is None else state.get("mode")
+    else:
+        cmd = action.find("UserDefinedAction/CustomCommandAction")
+        if cmd is None or cmd.get("type") != BRAKE_LIGHTS_COMMAND:
+            return None
+        mode = (cmd.text or "").strip()
+    if mode not in ("on", "off"):
+        raise UserInputError(f"{where}: a brake-light action with mode '{mode}'; allowed: on, off")
+    return mode == "on"
+
+
 def _trigger_after(event: ET.Element, where: str) -> float | None:
     cond = event.find("StartTrigger/ConditionGroup/Condition/ByValueCondition/SimulationTimeCondition")
     return None if cond is None else _float(cond, "value", f"{where}: event '{event.get('name')}'")
@@ -174,6 +198,7 @@ def read_scenario(path: Path | str) -> ParsedScenario:
         raise UserInputError(f"{where}: Init has no EnvironmentAction; lite needs the start weather")
 
     trajectories: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    lights: dict[str, list[tuple[float, bool]]] = {}
     weather: list[WeatherEvent] = []
     for group in root.iterfind(".//ManeuverGroup"):
         actors = [a.get("entityRef", "") for a in group.iterfind("Actors/EntityRef")]
@@ -191,6 +216,10 @@ def read_scenario(path: Path | str) -> ParsedScenario:
                         times.append(_float(vertex, "time", where))
                         poses.append(_pose(world, where))
                     trajectories[actors[0]] = (np.array(times), np.array(poses))
+                lit = _brake_light_switch(action, where)
+                if lit is not None and actors:
+                    after = _trigger_after(event, where)
+                    lights.setdefault(actors[0], []).append((-1.0 if after is None else after, lit))
             name = event.get("name", "")
             if name == START_KNOBS_EVENT or name.startswith(STEP_WEATHER_EVENT):
                 env_el = event.find("Action/GlobalAction/EnvironmentAction/Environment")
@@ -220,7 +249,8 @@ def read_scenario(path: Path | str) -> ParsedScenario:
             width=_float(dims, "width", where), height=_float(dims, "height", where),
             wheelbase=_float(front, "positionX", where) - _float(rear, "positionX", where), properties=props,
             start=np.array(starts[name]), start_speed=speeds.get(name, 0.0),
-            times=None if recorded is None else recorded[0], poses=None if recorded is None else recorded[1]))
+            times=None if recorded is None else recorded[0], poses=None if recorded is None else recorded[1],
+            brake_lights=tuple(sorted(lights[name])) if name in lights else None))
     stop = root.find("Storyboard/StopTrigger/ConditionGroup/Condition/ByValueCondition/SimulationTimeCondition")
     return ParsedScenario(
         path=path, minor=minor, description="" if header is None else header.get("description", ""),

@@ -2,8 +2,9 @@
 
 A record keeps the scene and the weather of every step, not the vehicles' paths (they follow from the scene,
 the seed and the system's controls). :func:`trace_record` replays the record (``replay_record``, so the
-trace is checked to be the recorded episode) and reads every vehicle's pose and speed at the start and after
-every step.
+trace is checked to be the recorded episode) and reads every vehicle's pose, speed and brake lights at the
+start and after every step. At the step the ego comes into contact with a vehicle, that vehicle's pose is
+where lite's contact test found it, before lite put both back: the file then meets the ego at the same step.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from genesis_rl.world.step_record import StepRecord
 class VehicleTrack:
     """One vehicle's start (lite's lane, arc length and next lane, as the scene gave them) and its pose at
     every sample of :attr:`EpisodeTrace.times` (x, y, z of its box centre on the road [m]; yaw
-    counter-clockwise from east and pitch nose-up [rad]; speed [m/s])."""
+    counter-clockwise from east and pitch nose-up [rad]; speed [m/s]; whether its brake lights were lit, as
+    lite lit them from the commanded deceleration: None when unknown)."""
 
     vehicle_id: int
     role: str
@@ -41,6 +43,7 @@ class VehicleTrack:
     yaw: np.ndarray
     pitch: np.ndarray
     speed: np.ndarray
+    braking: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,8 @@ class EpisodeTrace:
     violations: dict[str, float]
     first_collision_step: int | None
     collision_with: int | None
+    #: the world the episode ran in (the traffic, the camera's noise, the system's draws); None: the episode seed
+    world_seed: int | None = None
 
     @property
     def duration(self) -> float:
@@ -94,17 +99,25 @@ def xml_safe(text: Any) -> str:
 def trace_record(rec: dict[str, Any], name: str, weights: str | None = None) -> tuple[EpisodeTrace, dict[str, Any]]:
     """Replay ``rec`` on lite, reading every vehicle's pose at the start and after every step; returns the
     trace and the replay's result (``reproduced`` says whether the replay is the recorded episode)."""
-    from genesis_rl.campaigns.records import replay_record  # local: torch and the renderer load with it
+    from genesis_rl.campaigns.records import recorded_world_seed, replay_record  # local: torch, the renderer
+    from genesis_rl.sim.lite.backend import LiteSimulation
 
     samples: list[np.ndarray] = []
+    lights: list[np.ndarray] = []
     dt_box: list[float] = []
 
     def observe(sim: Simulation) -> None:
+        assert isinstance(sim, LiteSimulation)  # replay_record drives lite only
         dt_box[:] = [sim.dt]
-        samples.append(np.array([[a.x, a.y, a.z, a.yaw, a.pitch, a.speed] for a in sim.actors()]))
+        rows = np.array([[a.x, a.y, a.z, a.yaw, a.pitch, a.speed] for a in sim.actors()])
+        for j, (x, y, yaw) in sim.traffic.ego_contact_poses.items():
+            rows[j, [0, 1, 3]] = x, y, yaw  # where the ego hit it, not where lite put it back after the contact
+        samples.append(rows)
+        lights.append(np.array(sim.traffic.braking, dtype=bool))  # what the renderer drew: the detector saw it
 
     result = replay_record(rec, weights=weights, keep_frames=False, observer=observe)
     poses = np.stack(samples)  # (steps + 1, vehicles, 6)
+    lit = np.stack(lights)  # (steps + 1, vehicles)
     scene = rec["scene"]
     from genesis_rl.world.scenes.vehicles import MAKES
 
@@ -116,7 +129,7 @@ def trace_record(rec: dict[str, Any], name: str, weights: str | None = None) -> 
             length=m.length,
             width=m.width, height=m.height, lane=int(v["lane"]), s=float(v["s"]), next_lane=int(v["next_lane"]),
             x=poses[:, i, 0], y=poses[:, i, 1], z=poses[:, i, 2], yaw=np.unwrap(poses[:, i, 3]),
-            pitch=poses[:, i, 4], speed=poses[:, i, 5]))
+            pitch=poses[:, i, 4], speed=poses[:, i, 5], braking=lit[:, i]))
     dt = dt_box[0]
     step, other = first_collision(result["records"])
     trace = EpisodeTrace(
@@ -130,5 +143,5 @@ def trace_record(rec: dict[str, Any], name: str, weights: str | None = None) -> 
                 "identity": dict(rec["system"].get("identity") or {})},
         camera=(int(rec["camera"]["width"]), int(rec["camera"]["height"])), policy=xml_safe(rec.get("policy", "")),
         scene_index=int(scene["index"]), violations=dict(result["violations"]),
-        first_collision_step=step, collision_with=other)
+        first_collision_step=step, collision_with=other, world_seed=recorded_world_seed(rec))
     return trace, result

@@ -12,6 +12,8 @@ What goes where (docs/openscenario.md has the full mapping):
   ``Polyline`` with a vertex per step, absolute time); the ego's own path is there too as the reference, in
   an event that starts only when the parameter ``GenesisEgoFollowsReference`` is set true, so by default the
   user's stack drives;
+- the brake lights of every other vehicle, switched where lite switched them: ``LightStateAction`` from 1.3 on,
+  our ``CustomCommandAction`` of type ``genesis-rl:brake-lights`` before;
 - the weather: an ``EnvironmentAction`` at the start and at every step whose knobs changed
   (``environment.environment_of``), and beside it a ``CustomCommandAction`` of type ``genesis-rl:knobs``
   with the knobs the standard cannot carry (other tools ignore it);
@@ -42,6 +44,12 @@ KNOBS_COMMAND = "genesis-rl:knobs"
 EGO_REFERENCE_PARAMETER = "GenesisEgoFollowsReference"
 START_KNOBS_EVENT = "weather_start_knobs"
 STEP_WEATHER_EVENT = "weather_step_"  # + the step whose knobs it sets
+#: the first minor version whose ``LightStateAction`` we write: 1.2 has the action, but its XSD's ``LightType``
+#: demands a ``VehicleLight`` and a ``UserDefinedLight`` together (a sequence; 1.3 made it a choice)
+LIGHT_STATE_MINOR = 3
+#: our command for a vehicle's brake lights before :data:`LIGHT_STATE_MINOR` (``on`` / ``off``)
+BRAKE_LIGHTS_COMMAND = "genesis-rl:brake-lights"
+BRAKE_LIGHTS_EVENT = "_brake_lights_"  # vehicle name + this + the sample (step) from which the lights hold
 #: CARLA 0.9.16 blueprint and OpenSCENARIO category written for each lite make
 BLUEPRINT = {"sedan": "vehicle.tesla.model3", "hatchback": "vehicle.mini.cooper_s_2021", "suv": "vehicle.audi.etron",
              "van": "vehicle.volkswagen.t2_2021", "truck": "vehicle.carlamotors.european_hgv",
@@ -62,9 +70,10 @@ def rear_axle(track: VehicleTrack) -> tuple[np.ndarray, np.ndarray]:
 
 def _position(xosc: Any, x: float, y: float, z: float, yaw: float, pitch: float) -> Any:
     # OpenSCENARIO's pitch turns about the vehicle's y axis (to its left), so a positive pitch lowers the nose;
-    # lite's pitch is nose-up positive
-    return xosc.WorldPosition(x=round(float(x), 4), y=round(float(y), 4), z=round(float(z), 4),
-                              h=round(wrap_angle(float(yaw)), 6), p=round(-float(pitch), 6), r=0.0)
+    # lite's pitch is nose-up positive. Every number at full precision (Python's shortest repr, read back to the
+    # bit): a pose rounded to 0.1 mm moves the pixels the system under test sees, and a marginal failure then
+    # does not replay from the file
+    return xosc.WorldPosition(x=float(x), y=float(y), z=float(z), h=wrap_angle(float(yaw)), p=-float(pitch), r=0.0)
 
 
 def _vehicle(xosc: Any, track: VehicleTrack) -> Any:
@@ -86,8 +95,9 @@ def _vehicle(xosc: Any, track: VehicleTrack) -> Any:
 
 
 def _g(v: float) -> float:
-    """``v`` to 10 significant digits: what a file needs, without float noise such as 2999.9999999999977."""
-    return float(f"{float(v):.10g}")
+    """``v`` at full precision. Rounded to 10 significant digits (until 0.30.0, to spare the file float noise
+    such as 2999.9999999999977), the sun's angles came back 3e-8 degrees off the recorded knobs."""
+    return float(v)
 
 
 def _environment(xosc: Any, env: OscEnvironment, minor: int) -> Any:
@@ -139,8 +149,10 @@ def polyline_vertices(times: np.ndarray, path: np.ndarray, tolerance: np.ndarray
     return keep
 
 
-#: how far a dropped vertex may lie from the polyline through the kept ones: 2 mm, 0.5 mrad
-VERTEX_TOLERANCE = np.array([0.002, 0.002, 0.002, 0.0005, 0.0005])
+#: how far a dropped vertex may lie from the polyline through the kept ones: nothing, so the file is lossless
+#: (a vertex is dropped only where the line through its neighbours gives it exactly, as while a vehicle stands);
+#: 2 mm and 0.5 mrad, as until 0.30.0, made marginal failures replay differently from the file
+VERTEX_TOLERANCE = np.zeros(5)
 
 
 def _follow(xosc: Any, trace: EpisodeTrace, track: VehicleTrack) -> Any:
@@ -151,6 +163,38 @@ def _follow(xosc: Any, trace: EpisodeTrace, track: VehicleTrack) -> Any:
     trajectory = xosc.Trajectory(f"{vehicle_name(track.vehicle_id)}_recorded", False)
     trajectory.add_shape(xosc.Polyline([round(float(trace.times[k]), 6) for k in keep], positions))
     return xosc.FollowTrajectoryAction(trajectory, xosc.FollowingMode.position, xosc.ReferenceContext.absolute, 1, 0)
+
+
+def brake_light_changes(braking: np.ndarray) -> list[tuple[int, bool]]:
+    """(sample, lit) wherever a vehicle's brake lights change, starting from unlit (as lite starts them)."""
+    lit = np.asarray(braking, bool)
+    before = np.concatenate([[False], lit[:-1]])
+    return [(int(k), bool(lit[k])) for k in np.flatnonzero(lit != before)]
+
+
+def _brake_lights(xosc: Any, trace: EpisodeTrace, track: VehicleTrack, minor: int) -> Any | None:
+    """A maneuver that switches a vehicle's brake lights where lite switched them: lite lights them from the
+    commanded deceleration, which the trajectory shows only smoothed, and the system under test sees them.
+    ``LightStateAction`` from 1.3 on, our ``CustomCommandAction`` before; each fired half a step before its
+    sample, as the weather's are. Parallel priority: a light event must not stop the vehicle's trajectory."""
+    if track.braking is None or track.vehicle_id == 0:  # the ego's lights follow its own driver's brake
+        return None
+    changes = brake_light_changes(track.braking)
+    if not changes:
+        return None
+    name = vehicle_name(track.vehicle_id)
+    maneuver = xosc.Maneuver(f"{name}_brake_lights")
+    for k, lit in changes:
+        mode = "on" if lit else "off"
+        if minor >= LIGHT_STATE_MINOR:
+            action = xosc.LightStateAction(xosc.VehicleLightType.brakeLights, getattr(xosc.LightMode, mode))
+        else:
+            action = xosc.UserDefinedAction(xosc.CustomCommandAction(BRAKE_LIGHTS_COMMAND, mode))
+        event = xosc.Event(f"{name}{BRAKE_LIGHTS_EVENT}{k}", xosc.Priority.parallel)
+        event.add_action(f"{name}_brake_lights_{mode}_{k}", action)
+        event.add_trigger(_time_trigger(xosc, f"{name}_brake_lights_{k}_time", (k - 0.5) * trace.dt))
+        maneuver.add_event(event)
+    return maneuver
 
 
 def describe(trace: EpisodeTrace) -> str:
@@ -176,6 +220,7 @@ def build_scenario(trace: EpisodeTrace, xodr_file: str, minor: int = 0) -> Any:
             ("GenesisMap", xosc.ParameterType.string, trace.map),
             ("GenesisEpisodeSeed", integer, str(trace.episode_seed)),
             ("GenesisSceneSeed", integer, str(trace.scene_seed)),
+            ("GenesisWorldSeed", integer, str(trace.episode_seed if trace.world_seed is None else trace.world_seed)),
             ("GenesisSignalOffset", xosc.ParameterType.double, repr(float(trace.signal_offset))),
             ("GenesisStepSeconds", xosc.ParameterType.double, repr(float(trace.dt))),
             ("GenesisCamera", xosc.ParameterType.string, f"{trace.camera[0]}x{trace.camera[1]}"),
@@ -192,7 +237,7 @@ def build_scenario(trace: EpisodeTrace, xodr_file: str, minor: int = 0) -> Any:
         init.add_init_action(name, xosc.TeleportAction(
             _position(xosc, xr[0], yr[0], track.z[0], track.yaw[0], track.pitch[0])))
         init.add_init_action(name, xosc.AbsoluteSpeedAction(
-            round(float(track.speed[0]), 6), xosc.TransitionDynamics(xosc.DynamicsShapes.step,
+            float(track.speed[0]), xosc.TransitionDynamics(xosc.DynamicsShapes.step,
                                                                      xosc.DynamicsDimension.time, 0)))
     env, custom = _weather_actions(xosc, trace.start_weather, minor)
     init.add_global_action(env)
@@ -220,6 +265,9 @@ def build_scenario(trace: EpisodeTrace, xodr_file: str, minor: int = 0) -> Any:
         group = xosc.ManeuverGroup(f"{name}_group")
         group.add_actor(name)
         group.add_maneuver(maneuver)
+        lights = _brake_lights(xosc, trace, track, minor)
+        if lights is not None:
+            group.add_maneuver(lights)
         act.add_maneuver_group(group)
 
     previous = None
@@ -254,6 +302,11 @@ def write_scenario(trace: EpisodeTrace, path: Path, xodr_file: str, minor: int =
     """Write the trace's scenario to ``path`` (atomically: a temporary file, then renamed)."""
     scenario = build_scenario(trace, xodr_file, minor)
     root = scenario.get_element()
+    for light in root.iter("LightStateAction"):  # scenariogeneration 0.16.7 writes LightState first; the XSD
+        kind = light.find("LightType")            # wants LightType first (the file is otherwise invalid)
+        if kind is not None:
+            light.remove(kind)
+            light.insert(0, kind)
     ET.indent(root, space=" ")  # scenariogeneration's pretty print indents by 4 per level: 4x the size
     text = ET.tostring(root, encoding="unicode", xml_declaration=False)
     atomic_write_text(path, '<?xml version="1.0" encoding="utf-8"?>\n' + text + "\n")

@@ -33,13 +33,17 @@ class ScriptedMotion:
     """A vehicle's motion given from outside: its pose and speed after every step (row k: after step k + 1,
     so row 0 is the pose one ``dt`` into the episode) and whether its brake lights are lit. A scripted vehicle
     still collides (contacts are reported as for any vehicle), but its pose after a step is always the
-    script's: it moves as recorded, whatever the ego does."""
+    script's: it moves as recorded, whatever the ego does. ``z`` and ``pitch`` (nose up), when given, are its
+    height and pitch as recorded; else they come from its lane, as for any vehicle (a script does not follow
+    lite's lanes, so after a lane change or a junction they can be another lane's)."""
 
     x: np.ndarray
     y: np.ndarray
     yaw: np.ndarray
     speed: np.ndarray
     braking: np.ndarray
+    z: np.ndarray | None = None
+    pitch: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.x)
@@ -127,6 +131,11 @@ class Traffic:
         #: vehicles that follow a given motion instead of their autopilot (an OpenSCENARIO trajectory replayed
         #: on lite): vehicle index -> its script; see ``ScriptedMotion``
         self.scripted: dict[int, ScriptedMotion] = {}
+        self._script_row = -1  # the scripts' row the vehicles stand at (-1: before the first step)
+        #: the vehicles the ego came into contact with this step, at the pose the contact test found them before
+        #: they were put back (vehicle -> x, y, yaw): a trajectory replayed with the put-back pose would meet
+        #: the ego a step later, or, in a slow creep, not at all
+        self.ego_contact_poses: dict[int, tuple[float, float, float]] = {}
         self._episode_time = 0.0
         #: what the actor knobs made happen, oldest first (``actor_events``); a running cut-in's event is
         #: replaced once the cutter has wandered far enough to be perceived
@@ -161,7 +170,13 @@ class Traffic:
     # -- queries ---------------------------------------------------------------------------------------
     def z_pitch(self) -> tuple[np.ndarray, np.ndarray]:
         idx = self.map.point_index(self.lane, self.s)
-        return self.map.points[idx, 2], self.map.slopes[idx]
+        z, pitch = self.map.points[idx, 2], self.map.slopes[idx]
+        if self._script_row >= 0:
+            for i, m in self.scripted.items():
+                if m.z is not None and m.pitch is not None:
+                    k = min(self._script_row, len(m) - 1)
+                    z[i], pitch[i] = m.z[k], m.pitch[k]
+        return z, pitch
 
     def _frames(self) -> tuple[np.ndarray, np.ndarray]:
         """Longitudinal and lateral offsets of every vehicle j in every vehicle i's frame (i rows)."""
@@ -506,6 +521,8 @@ class Traffic:
             for i, j in pairs
             if (i, j) not in self._contacts
         ]
+        self.ego_contact_poses = {j: (float(self.x[j]), float(self.y[j]), float(self.yaw[j]))
+                                  for i, j in pairs if i == 0 and (i, j) not in self._contacts}
         self._contacts = set(pairs)
         if pairs:
             hit = np.setdiff1d(np.unique(np.array(pairs).ravel()), scripted)  # a script already holds its pose
@@ -521,6 +538,7 @@ class Traffic:
     def _apply_scripts(self, step_index: int) -> np.ndarray:
         """Put every scripted vehicle at its script's pose after this step (held at the script's last row once
         it ends); returns their indices."""
+        self._script_row = step_index
         for i, m in self.scripted.items():
             k = min(step_index, len(m) - 1)
             self.x[i], self.y[i], self.yaw[i], self.v[i] = m.x[k], m.y[k], m.yaw[k], m.speed[k]
