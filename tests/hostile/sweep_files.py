@@ -61,7 +61,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the shared builders
 from builders import tiny_run  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]  # the repository (this file is tests/hostile/sweep_files.py)
 PY = sys.executable
 GRL = [PY, "-m", "genesis_rl"]
 FAMILIES = {
