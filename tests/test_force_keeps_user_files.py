@@ -100,17 +100,51 @@ def test_force_refuses_a_users_file_under_one_of_our_names(tmp_path: Path) -> No
         check_target(camp, "campaign", force=True)
 
 
-def test_a_killed_writers_files_count_as_its_own(tmp_path: Path) -> None:
-    """A run killed before it let the folder go leaves its lock file; what it wrote after the manifest's last
-    record is named like ours and newer: --force may replace it (the usual 'start over' after a crash)."""
+def test_after_a_killed_run_force_names_what_the_manifest_does_not_list_and_says_resume(tmp_path: Path) -> None:
+    """A run killed before it let the folder go leaves its lock file. Its last files and a user's edit since
+    cannot be told apart, so --force names them (and says to --resume) rather than deleting a user's work."""
     from genesis_rl.core.files.output_folder import lock_path
 
     camp = _written_campaign(tmp_path / "camp")
-    (camp / "records" / "agent_scene_0002.json").write_text("{}")
-    with pytest.raises(UserInputError):
-        check_target(camp, "campaign", force=True)  # no lock left: someone else put it there
+    (camp / "summary.json").write_text('{"edited after the crash": 1}')
     lock_path(camp).write_text("12345\n")  # the killed writer's lock file, unlocked
-    check_target(camp, "campaign", force=True)
+    with pytest.raises(UserInputError, match=r"summary\.json \(changed since genesis-rl wrote it; the run writing "
+                                             r"the folder was killed .*--resume it\)"):
+        check_target(camp, "campaign", force=True)
+    assert "edited after the crash" in (camp / "summary.json").read_text()
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated", "deep", "link"])
+def test_a_missing_or_damaged_manifest_refuses_force(tmp_path: Path, damage: str) -> None:
+    """A marker of this version promises a manifest: without a readable one --force cannot tell a hand-edited
+    file from ours, so it refuses (a folder of 0.30.0, whose marker promises none, is judged by names)."""
+    from genesis_rl.core.files import manifest
+
+    camp = _written_campaign(tmp_path / "camp")
+    path = camp / manifest.MANIFEST
+    if damage == "missing":
+        path.unlink()
+    elif damage == "truncated":
+        path.write_text(path.read_text()[:20])
+    elif damage == "deep":
+        path.write_text("[" * 100_000 + "]" * 100_000)
+    else:
+        path.unlink()
+        path.symlink_to(tmp_path / "elsewhere.json")
+    with pytest.raises(UserInputError, match=r"\.genesis-rl\.manifest\.json \(missing or unreadable"):
+        check_target(camp, "campaign", force=True)
+
+
+def test_force_onto_a_hand_edited_report_in_a_campaign_is_refused(tmp_path: Path) -> None:
+    from genesis_rl.core.files.output_paths import output_file
+
+    camp = _written_campaign(tmp_path / "camp")
+    output_file(camp / "report.html", force=False).write_text("<html>ours</html>")
+    output_file(camp / "report.html", force=True).write_text("<html>ours again</html>")  # ours: replaced
+    (camp / "report.html").write_text("<html>annotated by hand</html>")
+    with pytest.raises(UserInputError, match=r"report\.html.*changed since genesis-rl wrote it"):
+        output_file(camp / "report.html", force=True)
+    assert "annotated" in (camp / "report.html").read_text()
 
 
 def test_a_folder_without_a_manifest_is_judged_by_names_and_adopted_when_held(old: Path) -> None:

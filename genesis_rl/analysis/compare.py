@@ -22,6 +22,7 @@ import numpy as np
 from genesis_rl.campaigns.summary import load_campaign
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.stats import bootstrap_mean_ci, clopper_pearson, paired_comparison
+from genesis_rl.core.text import terminal_safe
 from genesis_rl.labels.distinct import natural_summary
 from genesis_rl.world.odd.domain import IN_ODD
 
@@ -186,4 +187,4 @@ def compare_markdown(result: dict[str, Any]) -> str:
                 f"{x['p_value']:.3f}"
             cells.append(f"{_ci(x['difference'], digits)}, {x['wins']}/{x['ties']}/{x['losses']}, p {p}")
         lines.append(f"| {name.replace('_vs_', ' - ')} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return terminal_safe("\n".join(lines) + "\n", keep="\n")  # names from a shared file print as text

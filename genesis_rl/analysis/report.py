@@ -30,7 +30,7 @@ from PIL import Image
 from genesis_rl.adversaries.agent import agent_learning_curve
 from genesis_rl.analysis.estimate_files import check_same_system, estimate_line, load_estimate
 from genesis_rl.analysis.report_natural import section as natural_section
-from genesis_rl.campaigns.campaign_files import read_step_records, read_steps, steps_path
+from genesis_rl.campaigns.campaign_files import campaign_named_files, read_step_records, read_steps, steps_path
 from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.summary import campaign_rulebook, load_campaign, summarize_campaign, write_summary_files
 from genesis_rl.core.errors import UserInputError
@@ -297,7 +297,9 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
 
     folder = Path(folder)
     given = out if out else CampaignFolder(folder).report
-    inputs = [folder, estimate]  # the report may not land on what it reads (an estimate's files included)
+    # the report may not land on what it reads: an estimate's files, and what the campaign names (its agent run,
+    # catalog, the ODD, rulebook and weights of its env)
+    inputs = [folder, estimate, *campaign_named_files(folder)]
     check_inputs(given, inputs, products=REPORT_PRODUCTS)  # before "pass --force", which would not help
     if not is_stdout(given) and Path(given).exists() and not Path(given).is_symlink() and not force:
         raise UserInputError(f"report '{given}' exists; pass --force to rebuild it")
@@ -318,6 +320,11 @@ def build_report(folder: Path, out: Path | str | None = None, force: bool = Fals
     sums = [f"{r.name}_sum" for r in rulebook.rules if not r.in_total]
     spec = meta["spec"]
     knobs = list(spec.get("env", {}).get("knobs") or PAPER_KNOBS)
+    unknown = [k for k in knobs if not isinstance(k, str) or k not in KNOBS]
+    if unknown:  # a knob of a plug-in this command did not load, or a damaged campaign.json
+        raise UserInputError(f"campaign '{folder}': campaign.json spec.env.knobs names {unknown[0]!r}, which is not "
+                             f"a knob; allowed: {', '.join(sorted(KNOBS))} (a plug-in's knob: name its module "
+                             "in GENESIS_RL_PLUGINS)")
     h: list[str] = [f"<!doctype html><html><head><meta charset=utf-8><title>GENESIS-RL report</title>"
                     f"<style>{CSS}</style></head><body>"]
     h.append("<h1>GENESIS-RL evaluation report</h1>")

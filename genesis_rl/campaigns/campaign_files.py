@@ -180,17 +180,20 @@ def read_steps(path: Path, columns: list[str] | None = None, steps: int | None =
     if not path.is_file():
         raise UserInputError(f"steps file '{path}' is missing; {REMEDY}")
     try:
-        rows = pq.ParquetFile(path).metadata.num_rows  # the footer's count, read before any row
-        most = limits.SIM_STEPS.value() + 1  # an episode's steps and its start
-        if rows > most:
-            raise _damaged(path, f"it claims {rows:,} step rows; an episode has at most {most:,} "
-                                 f"({limits.SIM_STEPS.variable} raises the limit)")
-        if steps is not None and rows != steps:
-            raise _damaged(path, f"it holds {rows:,} step rows where its episode row says {steps:,} steps")
-        if columns is not None:
-            present = set(pq.read_schema(path).names)
-            columns = [c for c in columns if c in present]
-        return pq.read_table(path, columns=columns).to_pylist()
+        # opened by Python, not by Arrow: Arrow cannot take a folder name that is not UTF-8
+        with open(path, "rb") as fh:
+            parquet = pq.ParquetFile(fh)
+            rows = parquet.metadata.num_rows  # the footer's count, read before any row
+            most = limits.SIM_STEPS.value() + 1  # an episode's steps and its start
+            if rows > most:
+                raise _damaged(path, f"it claims {rows:,} step rows; an episode has at most {most:,} "
+                                     f"({limits.SIM_STEPS.variable} raises the limit)")
+            if steps is not None and rows != steps:
+                raise _damaged(path, f"it holds {rows:,} step rows where its episode row says {steps:,} steps")
+            if columns is not None:
+                present = set(parquet.schema_arrow.names)
+                columns = [c for c in columns if c in present]
+            return parquet.read(columns=columns).to_pylist()
     except (pa.ArrowException, OSError) as err:  # a truncated or foreign file
         raise _damaged(path, f"not a readable Parquet file ({err})") from None
 

@@ -15,6 +15,7 @@ from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.core.files.io_utils import atomic_write_json, atomic_write_text
 from genesis_rl.core.files.spreadsheet import safe_rows
 from genesis_rl.core.stats import bootstrap_mean_ci, paired_comparison
+from genesis_rl.core.text import terminal_safe
 from genesis_rl.labels.actor_summary import cut_in_markdown, cut_in_summary
 from genesis_rl.labels.distinct import natural_summary
 from genesis_rl.labels.failure_modes import FAILURE_MODES, LABELLER_VERSION, FailureModeThresholds, label_collision
@@ -213,4 +214,4 @@ def summary_markdown(summary: dict[str, Any]) -> str:
                 pv = "–" if c["p_value"] is None else f"{c['p_value']:.4f}"
                 lines.append(f"| {name} | {m} | {ci(c['difference'])} | {c['wins']} / {c['ties']} / {c['losses']} "
                              f"| {pv} |")
-    return "\n".join(lines) + "\n"
+    return terminal_safe("\n".join(lines) + "\n", keep="\n")  # names from a shared file print as text

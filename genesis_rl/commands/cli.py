@@ -20,6 +20,7 @@ from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files.io_utils import os_error_message
 from genesis_rl.core.plugins import import_env_plugins
 from genesis_rl.core.signals import exit_status, interrupts_raise, resume_hint
+from genesis_rl.core.text import terminal_safe
 from genesis_rl.core.trust import add_trust_arguments, trusted_for
 
 #: the commands in the order of the data flow, each group a stage (its module: genesis_rl/commands/NAME.py)
@@ -82,7 +83,7 @@ def _one_line_warning(command: str, default: Any) -> Any:
     def format_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                        line: str | None = None) -> str:
         if f"{os.sep}genesis_rl{os.sep}" in filename:
-            return f"genesis-rl {command}: warning: {message}\n"
+            return f"genesis-rl {command}: warning: {terminal_safe(str(message))}\n"
         return str(default(message, category, filename, lineno, line))
 
     return format_warning
@@ -103,7 +104,7 @@ def _main(argv: list[str] | None, named: list[str]) -> int:
     try:
         import_env_plugins()  # before the parser: a user's knobs are known to --weather and --help
     except UserInputError as err:
-        print(f"genesis-rl: error: {err}", file=sys.stderr)
+        print(f"genesis-rl: error: {terminal_safe(str(err))}", file=sys.stderr)
         return err.exit_code
     parser = build_parser()
     try:
@@ -119,13 +120,13 @@ def _main(argv: list[str] | None, named: list[str]) -> int:
         with trusted_for(args):  # only what this command line names is imported or unpickled
             return int(args.func(args))
     except UserInputError as err:
-        print(f"genesis-rl {args.command}: error: {err}", file=sys.stderr)
+        print(f"genesis-rl {args.command}: error: {terminal_safe(str(err))}", file=sys.stderr)
         return err.exit_code
     except OSError as err:  # permission, read-only, disk full, name too long: the machine's, not a bug
         message = os_error_message(err)
         if message is None:
             raise
-        print(f"genesis-rl {args.command}: error: {message}", file=sys.stderr)
+        print(f"genesis-rl {args.command}: error: {terminal_safe(message)}", file=sys.stderr)
         return UserInputError.exit_code
     finally:
         warnings.formatwarning = default_format

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -30,11 +31,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from genesis_rl.analysis.compare import compare, compare_markdown, parse_series
+    from genesis_rl.campaigns.campaign_files import campaign_named_files
     from genesis_rl.core.files.output_paths import output_file
 
     series = [parse_series(s) for s in args.series]
-    # checked before the campaigns are read: --json CAMP/campaign.json --force replaced a campaign's description
-    out = output_file(args.json, args.force, flag="--json", inputs=[s.folder for s in series]) if args.json else None
+    # checked before the campaigns are read: --json CAMP/campaign.json --force replaced a campaign's description;
+    # what a campaign names (its agent run, catalog, env files) is an input too
+    inputs: list[str | Path | None] = []
+    for s in series:
+        inputs += [s.folder, *campaign_named_files(s.folder)]
+    out = output_file(args.json, args.force, flag="--json", inputs=inputs) if args.json else None
     result = compare(series, seed=args.seed)
     if out is not None:
         out.write_json(result, indent=1)

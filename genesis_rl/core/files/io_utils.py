@@ -143,7 +143,8 @@ def os_error_message(err: OSError, hint: bool = True) -> str | None:
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+    """UTF-8; a file name that is not UTF-8 (a surrogate in ``text``) is written as its escape, ``\\udcff``."""
+    atomic_write(path, lambda p: p.write_text(text, encoding="utf-8", errors="backslashreplace"))
 
 
 def atomic_write_json(path: Path, data: Any, indent: int | None = None) -> None:

@@ -7,10 +7,11 @@ named like the tool's that the command wrote, with its size, modification time a
 deletes a file only when the manifest lists it with the same digest; anything else is named and the command
 refused.
 
-Two cases the manifest cannot have seen are judged by name, as before manifests existed: a folder written by
-genesis-rl 0.30.0 or older (no manifest: its files named like ours are adopted the next time it is held), and a
-run that was killed before it let the folder go (its lock file is still there, unlocked: the files named like
-ours written after the manifest's last record are that run's).
+A folder written by genesis-rl 0.30.0 or older has no manifest and is judged by names, as before manifests
+existed (its files named like ours are adopted the next time a command writes into it); its marker says so
+(no ``"manifest": true``). A folder whose marker promises a manifest that is missing or unreadable, or a run
+killed before it could list what it wrote, cannot be told apart from a user's edits: ``--force`` refuses it and
+says why.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def read(folder: Path) -> Manifest | None:
         if data.get("schema") != MANIFEST_SCHEMA:
             return None
         return Manifest(files, int(data["recorded_ns"]))
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
         return None
 
 
@@ -98,7 +99,8 @@ def record(folder: Path, named_like_ours: Callable[[str], bool], since_ns: int, 
     regular file named like ours modified at or after ``since_ns`` (the command's own writes; 0 adopts every
     such file), each hashed once. A listed file changed before ``since_ns`` was changed by someone else and
     leaves the manifest. A command that wrote nothing named like ours since it took the folder (``held_ns``:
-    one refused under the lock) leaves the folder as it was, manifest included."""
+    one refused under the lock) leaves the folder as it was, manifest included; ``held_ns`` 0 always writes (a
+    folder marked in this hold)."""
     import stat
 
     folder = Path(folder)
@@ -121,7 +123,7 @@ def record(folder: Path, named_like_ours: Callable[[str], bool], since_ns: int, 
                 files[rel] = Entry(file_sha256(folder / rel), st.st_size, st.st_mtime_ns)
             except OSError:
                 continue
-    if wrote or (old is not None and files != before):
+    if wrote or held_ns == 0 or (old is not None and files != before):
         _write(folder, Manifest(files, now))
 
 

@@ -130,6 +130,8 @@ def foreign_entries(folder: Path, kind: str) -> list[str]:
     died = _writer_died(folder)
     out = [p.name + ("/" if p.is_dir() and not p.is_symlink() else "") for p in folder.iterdir()
            if not _own(kind, p.name)]
+    if listing is None and _promises_manifest(folder):
+        return sorted([*out, f"{manifest.MANIFEST} ({_no_manifest(folder, died)})"])
     for rel, st in manifest.walk(folder):
         if not _own(kind, rel.partition("/")[0]):
             continue  # named above as a whole
@@ -142,17 +144,30 @@ def foreign_entries(folder: Path, kind: str) -> list[str]:
     return sorted(out)
 
 
-def _unlisted(listing: manifest.Manifest, folder: Path, rel: str, st: os.stat_result, died: bool) -> str | None:
-    """Why a file named like ours is not ours by the manifest; None when it is."""
-    import stat
+def _promises_manifest(folder: Path) -> bool:
+    """Whether the folder's marker was written by a genesis-rl that keeps manifests (0.30.0 and older did not)."""
+    return _json_object(Path(folder) / MARKER).get("manifest") is True
 
+
+def _no_manifest(folder: Path, died: bool) -> str:
+    if died:
+        return (f"the run writing it was killed before it could list what it wrote (its lock "
+                f"'{lock_path(folder).name}' is left): --resume it, or delete the folder yourself")
+    return "missing or unreadable, so genesis-rl cannot tell its files from yours: delete the folder yourself"
+
+
+def _unlisted(listing: manifest.Manifest, folder: Path, rel: str, st: os.stat_result, died: bool) -> str | None:
+    """Why a file named like ours is not ours by the manifest; None when it is. A file a killed run wrote after
+    the manifest's last record cannot be told from a user's edit since, so it is named too."""
     if manifest.is_listed(listing, folder, rel, st):
         return None
-    if died and st.st_mtime_ns >= listing.recorded_ns and stat.S_ISREG(st.st_mode):
-        return None  # written by the run that was killed before it could record it
     if rel in listing.files:
-        return "changed since genesis-rl wrote it"
-    return "not in the folder's manifest of what genesis-rl wrote"
+        why = "changed since genesis-rl wrote it"
+    else:
+        why = "not in the folder's manifest of what genesis-rl wrote"
+    if died:
+        why += f"; the run writing the folder was killed (its lock '{lock_path(folder).name}' is left): --resume it"
+    return why
 
 
 #: the files that drive and render write: a marker-less folder holding only these is one of theirs (0.4.0)
@@ -256,8 +271,10 @@ def check_target(folder: Path, kind: str, force: bool, files: Sequence[str] | No
 
 
 def write_marker(folder: Path, kind: str) -> None:
-    atomic_write_json(Path(folder) / MARKER, {"schema": MARKER_SCHEMA, "kind": kind, "version": __version__},
-                      indent=2)
+    """Mark the folder as this kind's; ``manifest: true`` says that it keeps a manifest (``manifest.py``), so that
+    a missing one is damage, not a folder of 0.30.0."""
+    atomic_write_json(Path(folder) / MARKER, {"schema": MARKER_SCHEMA, "kind": kind, "version": __version__,
+                                              "manifest": True}, indent=2)
 
 
 def recorded_spec(path: Path, kind: str) -> dict[str, Any]:
@@ -311,6 +328,23 @@ def note_written(path: Path) -> None:
             manifest.note(folder, Path(path).name)
         except OSError:
             pass  # unlisted, it is then named by --force rather than deleted
+
+
+def check_overwrite(path: Path) -> None:
+    """Refuse ``--force`` onto a file beside a genesis-rl folder's own (``report`` onto CAMPAIGN/report.html)
+    that its manifest does not list as written by the tool: a user's edit of it, or a user's file of that name."""
+    path = Path(path)
+    folder = path.parent
+    kind = folder_kind(folder) if (folder / MARKER).is_file() else None
+    if kind is None or not named_like_ours(kind, path.name):
+        return
+    listing = manifest.read(folder)
+    if listing is None:
+        return  # a folder of 0.30.0: judged by the name, as before
+    why = _unlisted(listing, folder, path.name, os.lstat(path), _writer_died(folder))
+    if why:
+        raise UserInputError(f"--force: '{path}' ({why}); refusing to overwrite it; move it away, or choose another "
+                             "--out")
 
 
 def lock_path(folder: Path) -> Path:
@@ -394,8 +428,12 @@ def _record_manifest(folder: Path, hold: _Hold) -> None:
         return  # a folder drive or render added files to stays unmarked, and unlisted
     listing = manifest.read(folder)
     since = 0 if listing is None else listing.recorded_ns if hold.died else hold.started_ns
+    # a folder marked during this hold (new, or replaced by --force) gets its manifest even if nothing else was
+    # written yet: its marker promises one
+    marked_now = (folder / MARKER).stat().st_mtime_ns >= hold.started_ns
     try:
-        manifest.record(folder, lambda rel: named_like_ours(kind, rel), since, hold.started_ns)
+        manifest.record(folder, lambda rel: named_like_ours(kind, rel), since,
+                        0 if marked_now and listing is None else hold.started_ns)
     except OSError:
         pass  # a full disk: --force then judges the newest files by the manifest they are missing from
 

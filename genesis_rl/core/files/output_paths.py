@@ -76,6 +76,9 @@ def check_inputs(out: str | Path, inputs: Inputs, *, flag: str = "--out", produc
     for given in inputs:
         if given is None or is_stdout(given):
             continue
+        if "\x00" in str(given):  # a path no system call takes (a NUL read from a shared campaign.json)
+            raise UserInputError(f"input path {str(given)!r} holds a NUL byte, which no file name can; fix the "
+                                 "file that names it")
         path = Path(os.path.realpath(given))
         if files is not None:
             if path == real or path in {real / f for f in files} or any(_same_file(real / f, path) for f in files):
@@ -234,4 +237,9 @@ def output_file(given: str | Path, force: bool, *, flag: str = "--out", inputs: 
     from genesis_rl.core.files.io_utils import ensure_writable
 
     ensure_writable(path, force)  # a folder, an existing file without --force, then a link or device
+    if force and path.is_file():
+        # output_folder imports this module: a top-level import would be a loop
+        from genesis_rl.core.files.output_folder import check_overwrite
+
+        check_overwrite(path)  # CAMPAIGN/report.html edited by hand: named, not replaced
     return OutputFile(name, path)
