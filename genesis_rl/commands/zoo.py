@@ -108,6 +108,8 @@ def _truth(args: argparse.Namespace) -> int:
     onsets = _values(args.onsets, "--onsets") if args.onsets else ()
     if not all(math.isfinite(t) and t >= 0.0 for t in onsets):  # before the pool starts, not in a worker
         raise UserInputError(f"--onsets '{args.onsets}': every onset must be a finite number of seconds >= 0")
+    # every onset is a schedule played on each tuning scene: their count is a search budget
+    limits.SEARCH_BUDGET.check(len(onsets), "--onsets")
     result = measure(args.member, tuning=args.tuning, held_out=args.held_out, onsets=onsets, seed=args.seed,
                      workers=args.workers, progress=not args.quiet)
     assert out.path is not None
