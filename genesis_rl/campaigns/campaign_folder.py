@@ -85,14 +85,18 @@ def spec_differences(saved: Any, spec: CampaignSpec) -> list[str]:
 
 def check_finished_campaign(spec: CampaignSpec, folder: Path) -> None:
     """A finished campaign that a resumed benchmark or sweep keeps must be the one it would run: an edited
-    ``spec`` (a policy dropped, other scenes) would silently change the leaderboard."""
+    ``spec`` (a policy dropped, other scenes) would silently change the leaderboard, and so would an edited
+    ``scenes`` list (other episode seeds) or catalog."""
     from genesis_rl.campaigns.campaign_files import read_campaign_meta
 
-    diff = spec_differences(read_campaign_meta(folder)["spec"], spec)
+    meta = read_campaign_meta(folder)
+    diff = spec_differences(meta["spec"], spec)
     if diff:
         raise UserInputError(f"--resume: '{CampaignFolder(folder).meta}' holds other settings than this trial's "
                              f"({', '.join(diff)}): it was edited, or belongs to another run; delete the folder "
                              f"'{folder}' (it runs again) or start over with --force")
+    _check_catalog_pin(folder, meta.get("catalog"))
+    _check_scene_pairs(folder, meta, spec, [tuple(p) for p in meta["scenes"]])
 
 
 def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool,

@@ -129,6 +129,9 @@ def _check_record(rec: dict[str, Any], path: Path) -> None:
             raise bad(field, "an object")
     if not isinstance(rec.get("rulebook"), list | dict):
         raise bad("rulebook", "the recorded list of rules")
+    for field in ("system.kwargs", "system.identity"):  # dict() of a list of pairs would misread, not refuse
+        if not isinstance(rec_get(field) or {}, dict):
+            raise bad(field, "an object")
     for field in ("camera.width", "camera.height"):
         v = rec_get(field)
         if isinstance(v, bool) or not isinstance(v, int) or not 16 <= v <= 4096:
@@ -161,10 +164,16 @@ def _check_record(rec: dict[str, Any], path: Path) -> None:
             raise bad(f"violations.{k}", "a number")
 
 
-def load_recorded_system(recorded: dict[str, Any], weights: str | None = None) -> Any:
+def load_recorded_system(recorded: dict[str, Any], weights: str | None = None, where: str = "the record") -> Any:
     """The system a record names (``{"spec", "kwargs", "identity"}``), with the weights it was made with: the
     given ``weights``, else the record's own, else the shipped archive's copy with the recorded sha256.
-    Refuses weights whose sha256 differs from the recorded one."""
+    Refuses weights whose sha256 differs from the recorded one; ``where`` names the record in errors."""
+    if not isinstance(recorded, dict):
+        raise UserInputError(f"{where}: field 'system' = {str(recorded)[:60]!r}; allowed: an object")
+    for field in ("kwargs", "identity"):
+        if not isinstance(recorded.get(field) or {}, dict):
+            raise UserInputError(f"{where}: field 'system.{field}' = {str(recorded[field])[:60]!r}; allowed: an "
+                                 "object")
     kwargs = dict(recorded.get("kwargs") or {})
     recorded_id = recorded.get("identity") or {}
     if weights:

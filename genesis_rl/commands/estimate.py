@@ -18,7 +18,7 @@ def run(args: argparse.Namespace) -> int:
     from genesis_rl.estimation.run import EstimateSpec, run_estimate
     from genesis_rl.sut.zoo.members import zoo_member
 
-    zoo_member(args.member)  # an unknown name is refused with the list
+    member = zoo_member(args.member)  # an unknown name is refused with the list
     if args.workers < 1:
         raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
     limits.WORKERS.check(args.workers, "--workers")
@@ -29,6 +29,14 @@ def run(args: argparse.Namespace) -> int:
     nominal = load_starts(Path(args.nominal)) if args.nominal else None
     if args.weights is not None and not Path(args.weights).exists():
         raise UserInputError(f"--weights '{args.weights}' does not exist")
+    if args.weights is not None:
+        from genesis_rl.sut.system.protocol import BUILTIN_SYSTEMS, WEIGHTED_SYSTEMS
+
+        # refused here, not by the system's constructor after every episode's setup ran
+        if member.system in BUILTIN_SYSTEMS and member.system not in WEIGHTED_SYSTEMS:
+            raise UserInputError(f"--weights '{args.weights}': member '{args.member}' runs system '{member.system}', "
+                                 f"which takes no weights; --weights applies to members whose system is one of "
+                                 f"{', '.join(WEIGHTED_SYSTEMS)}")
     spec = EstimateSpec(member=args.member, method=args.method, episodes=args.episodes, seed=args.seed,
                         steps=args.steps, stages=args.stages if args.method == "importance" else 1,
                         defensive=args.defensive, elite=args.elite, pilot=args.pilot, nominal=nominal,

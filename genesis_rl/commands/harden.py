@@ -21,6 +21,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
     limits.WORKERS.check(args.workers, "--workers")
     limits.SCENES.check(args.test_scenes, "--test-scenes")
+    limits.ROUNDS.check(args.rounds, "--rounds")
+    limits.FRAMES.check(args.clear_frames, "--clear-frames")
     check_folder_output(args.out)
     finetune = {k: v for k, v in (("epochs", args.epochs), ("lr", args.lr), ("original_frames", args.original_frames),
                                   ("failure_repeat", args.failure_repeat),

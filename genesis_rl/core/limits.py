@@ -59,6 +59,7 @@ WORKERS = Limit("WORKERS", 256, "processes", "each runs a simulator and takes a 
 THREADS = Limit("THREADS", 256, "threads", "more threads than cores only slow a run down")
 BUFFER = Limit("BUFFER", 1_000_000, "transitions", "held in memory: 1,000,000 camera observations of 72x96 take "
                                                    "21 GB; the paper's PPO holds 2,048")
+ROUNDS = Limit("ROUNDS", 100, "rounds", "the paper hardens in 3; each attacks, retrains and re-tests, minutes to hours")
 RETRIES = Limit("RETRIES", 100, "retries", "each reconnects to the simulator and plays the episode again")
 
 

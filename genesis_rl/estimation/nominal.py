@@ -18,7 +18,6 @@ narrowed to the hours their fleet drives.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -183,10 +182,9 @@ def start_names(held: Sequence[str]) -> list[str]:
 def load_starts(path: Path) -> tuple[StartRange, ...]:
     """A ``--nominal`` file: ``[start.NAME]`` with ``low`` and ``high`` for each held knob (``sun_bearing``, in
     [-180, 180], for the sun's azimuth); :func:`check_starts` compares the names with the held knobs."""
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise UserInputError(f"--nominal '{path}': not TOML ({err})") from None
+    from genesis_rl.core.parsing import loads_toml, read_toml_text  # size and depth limits: a hostile file is one line
+
+    data = loads_toml(read_toml_text(path, "--nominal"), f"--nominal '{path}'")
     table = data.get("start")
     if not isinstance(table, dict) or not table or set(data) != {"start"}:
         raise UserInputError(f"--nominal '{path}': give one [start.NAME] table per held knob, nothing else")

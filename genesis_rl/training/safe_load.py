@@ -349,6 +349,34 @@ def _take(z: Any, name: str) -> Any:
     return {f.split("/", 1)[1]: z[f] for f in keys} if keys else None
 
 
+#: bytes any member of an ``.npz`` may take whatever the run's arrays: positions and the episode-info JSON are
+#: a few KB; a run's own arrays may be larger, and then its largest one is the ceiling
+NPZ_MEMBER_FLOOR = 16 * 2**20
+
+
+def check_npz_headers(path: Path, ceiling: int, damaged: Any) -> None:
+    """Refuse an ``.npz`` member whose header claims more than ``ceiling`` bytes, before numpy allocates the
+    claimed shape (a header of 10**12 elements is a MemoryError, or the machine swapping, not a refusal)."""
+    fmt = np.lib.format
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            member = info.filename.removesuffix(".npy")
+            with zf.open(info) as fh:
+                version = fmt.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = fmt.read_array_header_1_0(fh)
+                elif version == (2, 0):
+                    shape, _, dtype = fmt.read_array_header_2_0(fh)
+                else:  # numpy writes 3.0 only for non-Latin-1 field names, which these files never hold
+                    raise damaged(f"member '{member}' has .npy format version {version[0]}.{version[1]}")
+            size = math.prod(shape) * dtype.itemsize
+            if size > ceiling:
+                raise damaged(f"member '{member}' claims shape {list(shape)} of {dtype}, {size:,} bytes; the run's "
+                              f"arrays take at most {ceiling:,}")
+
+
 def write_sb3_state(path: Path, model: Any) -> None:
     """The last observation, episode starts and episode-info deque of ``model``, as plain arrays."""
     arrays: dict[str, np.ndarray] = {}
@@ -388,7 +416,11 @@ def read_sb3_state(path: Path, cfg: RunConfig, n_envs: int) -> dict[str, Any]:
                 raise damaged(f"'{name}' {k} is not {space.dtype}{list(shape)}")
         return value
 
+    obs_parts = obs_space.spaces.values() if isinstance(obs_space, spaces.Dict) else [obs_space]
+    ceiling = max([NPZ_MEMBER_FLOOR, *(n_envs * math.prod(sp.shape or ()) * np.dtype(sp.dtype).itemsize
+                                       for sp in obs_parts)])
     try:
+        check_npz_headers(path, ceiling, damaged)
         with np.load(path, allow_pickle=False) as z:
             last_obs = checked_obs(_take(z, "last_obs"), "last_obs", False)
             original = checked_obs(_take(z, "last_original_obs"), "last_original_obs", True)
@@ -400,6 +432,8 @@ def read_sb3_state(path: Path, cfg: RunConfig, n_envs: int) -> dict[str, Any]:
         raise
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, RecursionError) as err:  # EOFError: empty
         raise damaged(f"{type(err).__name__}: {err}") from None
+    except MemoryError:  # the headers are checked; this is the safety net should memory be short anyway
+        raise damaged("it does not fit in memory") from None
     if not isinstance(infos, list) or not all(isinstance(i, dict) and all(
             isinstance(v, (int, float)) for v in i.values()) for i in infos):
         raise damaged("'ep_info_buffer_json' is not a list of numbers by name")
@@ -429,7 +463,11 @@ def read_replay_buffer(path: Path, buffer: Any) -> None:
     def damaged(why: str) -> UserInputError:
         return UserInputError(f"--resume: replay buffer '{path}' is damaged ({why}); start the run again with --force")
 
+    own = [getattr(buffer, name, None) for name in _BUFFER_ARRAYS]
+    arrays = [a for x in own for a in (x.values() if isinstance(x, dict) else [x]) if isinstance(a, np.ndarray)]
+    ceiling = max([NPZ_MEMBER_FLOOR, *(a.nbytes for a in arrays)])  # no member is larger than the buffer's own
     try:
+        check_npz_headers(path, ceiling, damaged)
         with np.load(path, allow_pickle=False) as z:
             loaded: dict[str, Any] = {}
             for name in _BUFFER_ARRAYS:
@@ -455,6 +493,8 @@ def read_replay_buffer(path: Path, buffer: Any) -> None:
         raise
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:  # EOFError: an empty file
         raise damaged(f"{type(err).__name__}: {err}") from None
+    except MemoryError:  # the headers are checked; this is the safety net should memory be short anyway
+        raise damaged("it does not fit in memory") from None
     for name, value in loaded.items():
         if isinstance(value, dict):
             getattr(buffer, name).update({k: np.array(v) for k, v in value.items()})
