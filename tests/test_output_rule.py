@@ -177,11 +177,13 @@ def test_a_link_or_a_device_is_never_replaced(tmp_path, capsys) -> None:
 # --- --force replaces only what genesis-rl wrote ------------------------------------------------------------
 
 def _run_folder(path: Path) -> Path:
+    """A run folder as training leaves it: written under the folder's hold, which lists it in the manifest."""
     path.mkdir()
-    output_folder.write_marker(path, "run")
-    (path / "config.toml").write_text(TINY_RUN)
-    (path / "checkpoints").mkdir()
-    (path / "checkpoints" / "last.json").write_text('{"timesteps": 16}')
+    with output_folder.hold(path):
+        output_folder.write_marker(path, "run")
+        (path / "config.toml").write_text(TINY_RUN)
+        (path / "checkpoints").mkdir()
+        (path / "checkpoints" / "last.json").write_text('{"timesteps": 16}')
     return path
 
 
@@ -211,9 +213,10 @@ def test_evaluate_force_keeps_a_users_file_in_a_campaign(campaign, camp, capsys)
 
 def test_replace_removes_only_the_tools_own_entries(tmp_path) -> None:
     run = _run_folder(tmp_path / "run")
-    (run / "tb").mkdir()
-    (run / "tb" / "progress.csv").write_text("x")
-    (run / ".agent.zip.ab12cd34.zip").write_text("a temporary of a killed write")
+    with output_folder.hold(run):  # written by the tool: listed in the manifest as the hold ends
+        (run / "tb").mkdir()
+        (run / "tb" / "progress.csv").write_text("x")
+        (run / ".agent.zip.ab12cd34.zip").write_text("a temporary of a killed write")
     output_folder.check_target(run, "run", force=True)  # all its own: replaceable
     (run / "mine.txt").write_text("keep")
     output_folder.replace(run, "run")  # one that appeared after the check is kept all the same

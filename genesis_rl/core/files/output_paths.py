@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.ownership import check_overwrite, note_written
 from genesis_rl.core.files.special_files import DISCARD, special_kind
 
 #: names that mean standard output, and standard error
@@ -181,9 +182,6 @@ class OutputFile:
                 f.write(text)
             return
         atomic_write_text(self.path, text)
-        # output_folder imports this module: a top-level import would be a loop
-        from genesis_rl.core.files.output_folder import note_written
-
         note_written(self.path)  # report.html into a campaign: listed in its manifest as the tool's
 
     def write_json(self, data: Any, indent: int | None = None) -> None:
@@ -238,8 +236,5 @@ def output_file(given: str | Path, force: bool, *, flag: str = "--out", inputs: 
 
     ensure_writable(path, force)  # a folder, an existing file without --force, then a link or device
     if force and path.is_file():
-        # output_folder imports this module: a top-level import would be a loop
-        from genesis_rl.core.files.output_folder import check_overwrite
-
         check_overwrite(path)  # CAMPAIGN/report.html edited by hand: named, not replaced
     return OutputFile(name, path)
