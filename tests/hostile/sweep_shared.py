@@ -1088,7 +1088,7 @@ def family13() -> None:
            ("estimate-elite-0", f"{EST_ARGS.replace('crude', 'importance')} --elite 0 --out e"), ("estimate-elite-2", f"{EST_ARGS.replace('crude', 'importance')} --elite 2 --out e"),
            ("estimate-elite-min-neg", f"{EST_ARGS.replace('crude', 'importance')} --elite-min -1 --out e"), ("estimate-smoothing-nan", f"{EST_ARGS.replace('crude', 'importance')} --smoothing nan --out e"),
            ("estimate-smoothing-inf", f"{EST_ARGS.replace('crude', 'importance')} --smoothing inf --out e"), ("estimate-steps-0", f"{EST_ARGS.replace('--steps 20', '--steps 0')} --out e"),
-           ("estimate-tilt-unknown", f"{EST_ARGS.replace('crude', 'importance').replace('--episodes 4', '--episodes 20')} --stages 2 --tilt nonsense,, --out e"),
+           ("estimate-tilt-unknown", f"{EST_ARGS.replace('crude', 'importance').replace('--episodes 4', '--episodes 20')} --tilt nonsense,, --stages 2 --out e"),
            ("sweep-scenes-0", f"{ZS_ARGS.replace('--scenes 1', '--scenes 0')} --out z"), ("sweep-scenes-1e12", f"{ZS_ARGS.replace('--scenes 1', '--scenes 1000000000000')} --out z"),
            ("sweep-steps-neg", f"{ZS_ARGS.replace('--steps 20', '--steps -1')} --out z"), ("sweep-values-nan", f"{ZS_ARGS.replace('0,60', 'nan')} --out z"),
            ("sweep-values-inf", f"{ZS_ARGS.replace('0,60', '0,inf')} --out z"), ("sweep-values-1e308", f"{ZS_ARGS.replace('0,60', '1e308')} --out z"),
