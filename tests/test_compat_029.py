@@ -64,13 +64,44 @@ def test_the_029_run_plays_the_same_episodes_as_0_29_0(old: Path, tmp_path: Path
     seed gives the same steps, to the bit: knobs, rewards and metrics."""
     assert main(["evaluate", "--agent", "run", "--policies", "agent,random", "--catalog", "run/catalog.json",
                  "--scenes", "2", "--steps", "10", "--out", str(tmp_path / "again"), "--quiet"]) == 0
+    # random's steps are equal to the bit on any CPU. The agent's are where 0.29.0 recorded them on an Intel Xeon;
+    # on an AMD EPYC its MLP's matrix products round differently (AVX2 against AVX-512 kernels): its knobs differ
+    # from the 8th significant digit (fog 0.04485251847654581 against 0.04485251381993294), so they are compared
+    # to a relative 1e-6 there, and to the bit on the vendor that recorded them
+    exact = _cpu_vendor() == "GenuineIntel"
     for policy in ("agent", "random"):
         for scene in ("scene_0001", "scene_0002"):
-            assert _steps(tmp_path / "again" / "steps" / policy / f"{scene}.parquet") == \
-                _steps(FIXTURE / "camp" / "steps" / policy / f"{scene}.parquet"), (policy, scene)
+            again = _steps(tmp_path / "again" / "steps" / policy / f"{scene}.parquet")
+            recorded = _steps(FIXTURE / "camp" / "steps" / policy / f"{scene}.parquet")
+            if policy == "random" or exact:
+                assert again == recorded, (policy, scene)
+            else:
+                assert _close(json.loads(again), json.loads(recorded)), (policy, scene)
     before = json.loads((FIXTURE / "camp" / "summary.json").read_text())["policies"]
     after = json.loads((tmp_path / "again" / "summary.json").read_text())["policies"]
-    assert after == before
+    assert after["random"] == before["random"]
+    assert after["agent"] == before["agent"] if exact else _close(after["agent"], before["agent"])
+
+
+def _cpu_vendor() -> str:
+    try:
+        return next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                     if line.startswith("vendor_id")), "")
+    except OSError:
+        return ""
+
+
+def _close(a: object, b: object) -> bool:
+    """Equal, but floats within a relative 1e-6 (NaN equals NaN)."""
+    import math
+
+    if isinstance(a, float) and isinstance(b, float):
+        return (math.isnan(a) and math.isnan(b)) or math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9)
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
 
 
 def test_a_029_record_replays(old: Path, tmp_path: Path) -> None:
