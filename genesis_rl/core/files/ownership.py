@@ -15,6 +15,7 @@ from pathlib import Path
 
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import manifest
+from genesis_rl.core.parsing import read_json
 
 MARKER = ".genesis-rl.json"
 MARKER_SCHEMA = "genesis-rl/output-folder"
@@ -157,8 +158,6 @@ _FILE_PATTERNS = {
 
 def _json_object(path: Path) -> dict:
     try:
-        from genesis_rl.core.parsing import read_json
-
         data = read_json(path, "marker")
     except (OSError, ValueError):  # a UserInputError (too big, too deep, not JSON) is a ValueError too
         return {}
