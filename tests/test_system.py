@@ -227,9 +227,11 @@ def test_drive_never_overwrites_a_result_without_force(tmp_path, capsys) -> None
     args = ["drive", "--map", "highway", "--scene", "0", "--system", "blind", "--steps", "3", "--out", str(tmp_path),
             "--quiet"]
     assert main(args) == 0
+    from genesis_rl.core.files.manifest import MANIFEST
     from genesis_rl.core.files.output_folder import MARKER
 
-    assert {p.name for p in tmp_path.iterdir()} == {"summary.json", "telemetry.parquet", "drive.gif", MARKER}
+    assert {p.name for p in tmp_path.iterdir()} == {"summary.json", "telemetry.parquet", "drive.gif", MARKER,
+                                                     MANIFEST}  # the manifest lists the files --force may replace
     assert json.loads((tmp_path / MARKER).read_text())["kind"] == "drive"  # --force may replace it later
     (tmp_path / "summary.json").unlink()  # e.g. an interrupted earlier run left its telemetry
     before = (tmp_path / "telemetry.parquet").read_bytes()

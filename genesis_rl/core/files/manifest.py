@@ -123,8 +123,8 @@ def record(folder: Path, named_like_ours: Callable[[str], bool], since_ns: int, 
                 files[rel] = Entry(file_sha256(folder / rel), st.st_size, st.st_mtime_ns)
             except OSError:
                 continue
-    if wrote or held_ns == 0 or (old is not None and files != before):
-        _write(folder, Manifest(files, now))
+    if wrote or held_ns == 0:  # a refused command leaves even the manifest as it was: a listed file it found
+        _write(folder, Manifest(files, now))  # edited stays listed with the bytes genesis-rl wrote, so it is not ours
 
 
 def note(folder: Path, rel: str) -> None:
