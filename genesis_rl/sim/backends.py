@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -23,6 +24,8 @@ from typing import Any, Protocol, cast
 
 from genesis_rl.core import ranges
 from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.files.hashing import regular_file_sha256
+from genesis_rl.core.parsing import CATALOG_MB
 from genesis_rl.core.plugins import load_class
 from genesis_rl.sim.interface import Backend, ConnectionSettings
 from genesis_rl.world.scenes.catalog import Catalog, parse_catalog, read_catalog
@@ -225,10 +228,34 @@ def catalog_from_json(data: Any) -> Catalog:
     return catalog
 
 
+#: catalogs this process read and checked, by their file's SHA-256, newest last: each of a campaign's episodes
+#: and each campaign of a benchmark reads the same catalog.json, and a 1,199-scene one takes seconds to parse and
+#: check. Keyed by content, an edited file is read afresh; a Catalog is frozen.
+_LOADED: OrderedDict[str, Catalog] = OrderedDict()
+_LOADED_KEPT = 4
+
+
+def _catalog_digest(path: Path | str) -> str | None:
+    """The SHA-256 of a regular file within the catalog size limit, else None (read_catalog refuses it)."""
+    try:
+        size = Path(path).stat().st_size
+    except (OSError, ValueError):
+        return None
+    return regular_file_sha256(path) if size <= CATALOG_MB.value() * (1 << 20) else None
+
+
 def load_catalog(path: Path | str) -> Catalog:
     """The catalog in a JSON file, checked against the schema and against its backend's maps."""
+    digest = _catalog_digest(path)
+    if digest is not None and digest in _LOADED:
+        _LOADED.move_to_end(digest)
+        return _LOADED[digest]
     catalog = read_catalog(path)
     scene_source(catalog.backend).check_catalog(catalog)
+    if digest is not None and _catalog_digest(path) == digest:  # not rewritten while it was read
+        _LOADED[digest] = catalog
+        while len(_LOADED) > _LOADED_KEPT:
+            _LOADED.popitem(last=False)
     return catalog
 
 

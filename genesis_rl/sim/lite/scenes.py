@@ -9,6 +9,7 @@ The module-level functions :func:`check_map`, :func:`default_count`, :func:`gene
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Iterator
 
 import numpy as np
@@ -157,13 +158,28 @@ def iter_scenes(map_name: str, count: int, seed: int, traffic: str = "mixed") ->
         yield generate_scene(road_map, i, int(ss.generate_state(1)[0]), traffic)
 
 
+#: catalogs this process generated, newest last: a campaign generates its map's whole catalog (1,199 scenes,
+#: half a minute) to draw a few scenes from it, and a benchmark or a test session runs many campaigns on the
+#: same map and seed. A Catalog is frozen, and its scenes depend on nothing but this key.
+_GENERATED: OrderedDict[tuple[str, int, int, str], Catalog] = OrderedDict()
+_GENERATED_KEPT = 4
+
+
 def generate_catalog(map_name: str, count: int, seed: int, progress: bool = False, traffic: str = "mixed") -> Catalog:
     if traffic not in TRAFFIC:
         raise UserInputError(f"traffic = '{traffic}' is unknown; allowed: {', '.join(TRAFFIC)}")
+    key = (map_name, int(count), int(seed), traffic)
+    if key in _GENERATED:
+        _GENERATED.move_to_end(key)
+        return _GENERATED[key]
     scenes = iter_scenes(map_name, count, seed, traffic)
     if progress:
         scenes = tqdm(scenes, total=count, desc=f"scenes {map_name}", unit="scene")
-    return Catalog(map_name, seed, "lite", tuple(scenes))
+    catalog = Catalog(map_name, seed, "lite", tuple(scenes))
+    _GENERATED[key] = catalog
+    while len(_GENERATED) > _GENERATED_KEPT:
+        _GENERATED.popitem(last=False)
+    return catalog
 
 
 # -- the scene source of the lite backend (genesis_rl.sim.backends.SceneSource) ---------------------------------

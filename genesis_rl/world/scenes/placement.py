@@ -3,6 +3,7 @@ overlap test between padded vehicle boxes. Backend-neutral, so the CARLA generat
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -61,11 +62,18 @@ def draw_autopilot(rng: np.random.Generator, limit: float, role: str, traffic: s
     }
 
 
-def draw_make(rng: np.random.Generator) -> str:
-    """A vehicle make, drawn by the makes' weights."""
+@functools.cache
+def _make_odds() -> tuple[list[str], np.ndarray]:
+    """The makes and their probabilities (the makes are fixed; scene generation draws one per vehicle tried)."""
     names = list(MAKES)
     w = np.array([MAKES[n].weight for n in names])
-    return str(names[int(rng.choice(len(names), p=w / w.sum()))])
+    return names, w / w.sum()
+
+
+def draw_make(rng: np.random.Generator) -> str:
+    """A vehicle make, drawn by the makes' weights."""
+    names, p = _make_odds()
+    return str(names[int(rng.choice(len(names), p=p))])
 
 
 def fits(spec: VehicleSpec, placed: list[VehicleSpec], search_radius: float = 15.0) -> bool:

@@ -178,7 +178,10 @@ class RoadMap:
 
     def pose(self, lane: int, s: float) -> tuple[float, float, float, float]:
         """x, y, z, heading at arc length ``s`` on ``lane``."""
-        i = int(self.point_index(lane, s))
+        # point_index's arithmetic on Python scalars (round() rounds half to even like np.rint): scene generation
+        # asks this for every vehicle it tries, and numpy's per-call overhead was most of its cost
+        lane = int(lane)
+        i = int(self.offset[lane]) + min(max(int(round(float(s) / DS)), 0), int(self.count[lane]) - 1)
         x, y, z = self.points[i]
         return float(x), float(y), float(z), float(self.headings[i])
 
