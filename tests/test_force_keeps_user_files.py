@@ -4,6 +4,7 @@ command is refused before anything is deleted."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -198,3 +199,49 @@ def test_evaluate_force_keeps_a_hand_edited_summary(old: Path, capsys) -> None:
     assert main([*args, "--force"]) == 2
     assert "summary.json (changed since genesis-rl wrote it)" in capsys.readouterr().err
     assert '"reviewed": "yes"' in summary.read_text()
+
+
+def _marker(folder: Path, kind: str, version: str = "0.30.0") -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / ".genesis-rl.json").write_text(json.dumps({"schema": "genesis-rl/output-folder", "kind": kind,
+                                                         "version": version}))
+
+
+def test_a_folder_of_0_30_judges_the_folders_nested_in_its_own_by_their_names(tmp_path: Path) -> None:
+    """A harden or benchmark folder of 0.30.0 has no manifest, so names decide; its round and campaign folders
+    are its own, but a user's note in one is not: each nested genesis-rl folder is judged by its kind's names,
+    and what harden writes beside them (round.json, weights/, near_misses/) by harden's."""
+    hd = tmp_path / "hd"
+    _marker(hd, "harden")
+    (hd / "harden.json").write_text("{}")
+    for rnd in ("round_0", "round_1"):
+        (hd / rnd).mkdir()
+        (hd / rnd / "round.json").write_text("{}")
+        _marker(hd / rnd / "test", "campaign")
+        (hd / rnd / "test" / "campaign.json").write_text("{}")
+        (hd / rnd / "test" / "episodes" / "sunny").mkdir(parents=True)
+        (hd / rnd / "test" / "episodes" / "sunny" / "scene_0003.json").write_text("{}")
+    (hd / "round_1" / "weights").mkdir()
+    (hd / "round_1" / "weights" / "detector.pt").write_bytes(b"w")
+    (hd / "round_1" / "near_misses" / "frames").mkdir(parents=True)
+    (hd / "round_1" / "near_misses" / "near_misses.json").write_text("{}")
+    _marker(hd / "retest_4" / "round_1", "campaign")
+    (hd / "retest_4" / "round_1" / "summary.json").write_text("{}")
+    assert foreign_entries(hd, "harden") == []  # everything the tool writes passes
+
+    (hd / "round_1" / "notes.txt").write_text("mine")
+    (hd / "round_1" / "test" / "episodes" / "sunny" / "analysis.ipynb").write_text("mine")
+    (hd / "retest_4" / "todo.md").write_text("mine")
+    assert foreign_entries(hd, "harden") == ["retest_4/todo.md", "round_1/notes.txt",
+                                             "round_1/test/episodes/sunny/analysis.ipynb"]
+    with pytest.raises(UserInputError, match="round_1/notes.txt"):
+        check_target(hd, "harden", force=True)
+    assert (hd / "round_1" / "notes.txt").read_text() == "mine"
+
+    bm = tmp_path / "bm"
+    _marker(bm, "benchmark")
+    _marker(bm / "campaigns" / "low_sun" / "trial_00", "campaign")
+    (bm / "campaigns" / "low_sun" / "trial_00" / "campaign.json").write_text("{}")
+    assert foreign_entries(bm, "benchmark") == []
+    (bm / "campaigns" / "notes.txt").write_text("mine")
+    assert foreign_entries(bm, "benchmark") == ["campaigns/notes.txt"]

@@ -70,6 +70,16 @@ OWN_FILES: dict[tuple[str, str], str] = {
 }
 
 
+#: in a folder judged by names alone (one of 0.30.0, which kept no manifest): what harden, benchmark and sweep
+#: write in their own folders outside the genesis-rl folders they nest there (campaigns, exports, estimates and
+#: runs, each with its marker, judged by its own kind's names). Anything else below those folders is a user's:
+#: a note in HARDEN/round_1/ is named and kept, not deleted with the round.
+NESTED_OWN_FILES: dict[str, re.Pattern[str]] = {
+    "harden": re.compile(r"round_\d+/round\.json|round_\d+/(weights|near_misses)/.+"),
+    "benchmark": re.compile(r"(?!)"),  # campaigns/MEMBER/trial_NN are campaign folders; nothing else is written
+    "sweep": re.compile(r"(?!)"),  # campaigns/value_NN likewise
+}
+
 #: an atomic write's temporary of NAME: ".NAME.XXXXXXXX..." (io_utils.atomic_write)
 _TEMPORARY = re.compile(r"\.(.+)\.[A-Za-z0-9_]{8}.*")
 
@@ -88,6 +98,18 @@ def named_like_ours(kind: str, rel: str) -> bool:
     head = rest.rpartition("/")[0]
     return bool(pattern.fullmatch(rest) or (temporary and pattern.fullmatch(
         (head + "/" if head else "") + temporary.group(1))))
+
+
+def _named_like_ours_nested(folder: Path, kind: str, rel: str) -> bool:
+    """Whether ``rel``, below one of a ``kind`` folder's own folders, is named like a file genesis-rl writes there:
+    judged by the deepest genesis-rl folder (one with a marker) around it, else by :data:`NESTED_OWN_FILES`."""
+    parts = rel.split("/")
+    for depth in range(len(parts) - 1, 0, -1):
+        sub = Path(folder).joinpath(*parts[:depth])
+        nested = folder_kind(sub) if (sub / MARKER).is_file() else None
+        if nested is not None:
+            return named_like_ours(nested, "/".join(parts[depth:]))
+    return bool(NESTED_OWN_FILES[kind].fullmatch(rel))
 
 
 def _own(kind: str, name: str) -> bool:
@@ -116,6 +138,9 @@ def foreign_entries(folder: Path, kind: str) -> list[str]:
             continue  # named above as a whole
         if not named_like_ours(kind, rel):
             out.append(rel)
+        elif listing is None and kind in NESTED_OWN_FILES and "/" in rel \
+                and not _named_like_ours_nested(folder, kind, rel):
+            out.append(rel)  # named by names alone: a file of a folder nested in ours must be named like its own
         elif listing is not None:
             why = _unlisted(listing, folder, rel, st, died)
             if why:
