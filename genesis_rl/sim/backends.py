@@ -25,7 +25,7 @@ from typing import Any, Protocol, cast
 from genesis_rl.core import ranges
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files.hashing import regular_file_sha256
-from genesis_rl.core.parsing import CATALOG_MB
+from genesis_rl.core.parsing import CATALOG_MB, check_size
 from genesis_rl.core.plugins import load_class
 from genesis_rl.sim.interface import Backend, ConnectionSettings
 from genesis_rl.world.scenes.catalog import Catalog, parse_catalog, read_catalog
@@ -235,24 +235,16 @@ _LOADED: OrderedDict[str, Catalog] = OrderedDict()
 _LOADED_KEPT = 4
 
 
-def _catalog_digest(path: Path | str) -> str | None:
-    """The SHA-256 of a regular file within the catalog size limit, else None (read_catalog refuses it)."""
-    try:
-        size = Path(path).stat().st_size
-    except (OSError, ValueError):
-        return None
-    return regular_file_sha256(path) if size <= CATALOG_MB.value() * (1 << 20) else None
-
-
 def load_catalog(path: Path | str) -> Catalog:
     """The catalog in a JSON file, checked against the schema and against its backend's maps."""
-    digest = _catalog_digest(path)
+    check_size(Path(path), "catalog file", CATALOG_MB)  # read_catalog's own refusal, before the file is hashed
+    digest = regular_file_sha256(path)
     if digest is not None and digest in _LOADED:
         _LOADED.move_to_end(digest)
         return _LOADED[digest]
     catalog = read_catalog(path)
     scene_source(catalog.backend).check_catalog(catalog)
-    if digest is not None and _catalog_digest(path) == digest:  # not rewritten while it was read
+    if digest is not None and regular_file_sha256(path) == digest:  # not rewritten while it was read
         _LOADED[digest] = catalog
         while len(_LOADED) > _LOADED_KEPT:
             _LOADED.popitem(last=False)

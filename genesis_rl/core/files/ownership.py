@@ -100,13 +100,16 @@ def named_like_ours(kind: str, rel: str) -> bool:
         (head + "/" if head else "") + temporary.group(1))))
 
 
-def _named_like_ours_nested(folder: Path, kind: str, rel: str) -> bool:
+def _named_like_ours_nested(folder: Path, kind: str, rel: str, kinds: dict[Path, str | None]) -> bool:
     """Whether ``rel``, below one of a ``kind`` folder's own folders, is named like a file genesis-rl writes there:
-    judged by the deepest genesis-rl folder (one with a marker) around it, else by :data:`NESTED_OWN_FILES`."""
+    judged by the deepest genesis-rl folder (one with a marker) around it, else by :data:`NESTED_OWN_FILES`.
+    ``kinds`` keeps each folder's kind for the walk, so a marker is read once, not once per file below it."""
     parts = rel.split("/")
     for depth in range(len(parts) - 1, 0, -1):
         sub = Path(folder).joinpath(*parts[:depth])
-        nested = folder_kind(sub) if (sub / MARKER).is_file() else None
+        if sub not in kinds:
+            kinds[sub] = folder_kind(sub) if (sub / MARKER).is_file() else None
+        nested = kinds[sub]
         if nested is not None:
             return named_like_ours(nested, "/".join(parts[depth:]))
     return bool(NESTED_OWN_FILES[kind].fullmatch(rel))
@@ -133,13 +136,14 @@ def foreign_entries(folder: Path, kind: str) -> list[str]:
            if not _own(kind, p.name)]
     if listing is None and _promises_manifest(folder):
         return sorted([*out, f"{manifest.MANIFEST} ({_no_manifest(folder, died)})"])
+    nested_kinds: dict[Path, str | None] = {}
     for rel, st in manifest.walk(folder):
         if not _own(kind, rel.partition("/")[0]):
             continue  # named above as a whole
         if not named_like_ours(kind, rel):
             out.append(rel)
         elif listing is None and kind in NESTED_OWN_FILES and "/" in rel \
-                and not _named_like_ours_nested(folder, kind, rel):
+                and not _named_like_ours_nested(folder, kind, rel, nested_kinds):
             out.append(rel)  # named by names alone: a file of a folder nested in ours must be named like its own
         elif listing is not None:
             why = _unlisted(listing, folder, rel, st, died)
