@@ -87,6 +87,27 @@ def load_agent(path: Path | None) -> Any:
     return load_model(found, _run_config(found), device="cpu", what="--agent")
 
 
+def trained_steps(agent: Path) -> int | None:
+    """The env steps an agent was trained for: a checkpoint's own (``checkpoints/step_N.zip``), else its run's
+    ``train.total_timesteps``; None for a loose file without its run's config (its cost is unknown)."""
+    import re
+
+    found = agent_file(Path(agent))
+    if found is None:
+        return None
+    named = re.fullmatch(r"step_(\d+)", found.stem)
+    if named and found.parent.name == "checkpoints":
+        return int(named.group(1))
+    if found.name == "last.zip":  # an unfinished run: the steps its last checkpoint reached
+        from genesis_rl.core.parsing import read_json
+
+        steps = read_json(found.with_suffix(".json"), "checkpoint index").get("timesteps") \
+            if found.with_suffix(".json").is_file() else None
+        return steps if isinstance(steps, int) and not isinstance(steps, bool) and steps >= 0 else None
+    config = _run_config(found)
+    return None if config is None else int(config.train.total_timesteps)
+
+
 def run_folder_of(agent: Path) -> Path:
     """The training run folder of ``--agent``: a folder, its agent.zip, or a checkpoint inside it."""
     if agent.suffix != ".zip":

@@ -114,6 +114,11 @@ class EpisodeRunner(Protocol):
         """One episode; ``start_head``: ``act``'s first action chooses the start (``GenesisEnv.chosen_start``)."""
         ...
 
+    def play_schedule(self, scene: int, episode_seed: int, start: Weather | None,
+                      schedule: Sequence[Weather]) -> EpisodeOutcome:
+        """One episode whose weather follows ``schedule`` open loop from ``start`` (``adversaries.replay``)."""
+        ...
+
     @property
     def has_start_head(self) -> bool:
         """Whether the env observes the start step (``env.start_head``), so an agent may choose its start."""

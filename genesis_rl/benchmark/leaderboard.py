@@ -177,6 +177,39 @@ def _fig_ranks(board: dict[str, Any]) -> str | None:
     return figure_png_base64(fig)
 
 
+def _transfer_table(board: dict[str, Any], member: str) -> list[str]:
+    """Under the transfer protocol: what each policy cost in simulator steps (tuning and training included), the
+    tuning scene each search's schedule came from, and each trained agent's break-even count of held-out
+    scenes; nothing under the per-scene protocol."""
+    transfer = (board.get("transfer") or {}).get("members", {}).get(member)
+    if not transfer:
+        return []
+    costs, chosen, even = transfer["costs"], transfer["tuned"], transfer["break_even_scenes"]
+    searches = sorted({s for row in even.values() for s in row})
+    h = ["<p class=meta>Transfer protocol: each search tuned on its own scenes and replayed its best schedule once "
+         "on every held-out scene above. Simulator steps, summed over the trials:</p><table><tr>"
+         + "".join(f"<th class=l>{c}</th>" for c in ("policy", "tuning", "training", "held-out", "in all",
+                                                     "schedule from tuning scene (hit)",
+                                                     *[f"break-even scenes vs {s}" for s in searches])) + "</tr>"]
+
+    def num(v: Any) -> str:
+        return "–" if v is None else f"{v:,.0f}" if isinstance(v, int) else f"{v:,.1f}"
+
+    for policy, c in costs.items():
+        picks = ", ".join(f"{p['scene']} ({'yes' if p['hit'] else 'no'})" for p in chosen.get(policy, [])) or "–"
+        row = [policy, num(c["tuning_steps"]), num(c["training_steps"]), num(c["held_out_steps"]),
+               num(c["total_steps"]), picks]
+        row += [("never" if even[policy].get(s) is None else num(even[policy][s])) if policy in even else "–"
+                for s in searches]
+        h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in row) + "</tr>")
+    h.append("</table>")
+    if searches:
+        h.append("<p class=meta>Break-even: the held-out scenes after which a trained agent's simulator steps per "
+                 "confirmed failure (its training once, one episode a scene) drop to the search's (its tuning of "
+                 "one trial, one episode a scene); never: the agent confirms fewer failures a scene.</p>")
+    return h
+
+
 def render_page(board: dict[str, Any]) -> str:
     """The leaderboard as one self-contained HTML page."""
     from genesis_rl import __version__
@@ -187,7 +220,11 @@ def render_page(board: dict[str, Any]) -> str:
          "</head><body><h1>GENESIS-RL benchmark: adversaries against systems with known weaknesses</h1>",
          f"<p class=meta>{len(spec['members'])} zoo members x {len(spec['policies'])} policies x {spec['trials']} "
          f"trials (seeds {spec['seed']}..{spec['seed'] + spec['trials'] - 1}), {spec['scenes']} scene(s) a trial, "
-         f"{spec['steps'] or 'each member’s own'} steps an episode · genesis-rl {__version__} · docs/zoo.md</p>"]
+         f"{spec['steps'] or 'each member’s own'} steps an episode · "
+         + ("transfer protocol: searches tuned on "
+            f"{spec.get('tuning_scenes')} other scene(s) a trial, one episode a held-out scene · "
+            if spec.get("protocol") == "transfer" else "")
+         + f"genesis-rl {__version__} · docs/zoo.md</p>"]
     r = board["ranks"]
     if board["weaknesses"]:
         h.append("<h2>Ranks over the weakness members</h2>")
@@ -231,6 +268,7 @@ def render_page(board: dict[str, Any]) -> str:
                      avoidable, str(c["reached"]), str(c["triggered"]), med, str(c["distinct_in_odd_failures"]), alarms]
             h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in cells) + "</tr>")
         h.append("</table>")
+        h.extend(_transfer_table(board, member))
         h.append(f"<img src='{_fig_survival(board, member)}'>")
     h.append("<p class=meta>Confirmed: the reported episode's in-ODD failure is triggered (on a control: any), not "
              "blamed unavoidable, and reproduces in at least half of its re-runs on fresh world seeds (traffic, "

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from genesis_rl.benchmark.campaign_once import finished, run_campaign_once
 from genesis_rl.benchmark.reproduce import DEFAULT_RERUNS, reproduction_file, run_reproductions
+from genesis_rl.benchmark.transfer import DEFAULT_TUNING_SCENES, SEARCHES, tuned
 from genesis_rl.campaigns.campaign_folder import check_finished_campaign
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.core import limits
@@ -39,6 +40,8 @@ SCHEMA = "genesis-rl/benchmark"
 MAX_TRIALS = 100
 #: re-runs of a reported failure beyond this are refused (each is an episode)
 MAX_RERUNS = 100
+#: how adversaries are scored: on the scenes they searched, or on held-out scenes after tuning elsewhere
+PROTOCOLS = ("per_scene", "transfer")
 #: the adversaries a benchmark plays; a trained agent needs one training per member, which this command does not do
 ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts", "goexplore", "stall_watcher",
                "verifai_ce", "verifai_mab", "verifai_bo")
@@ -66,6 +69,11 @@ class BenchmarkSpec:
     #: re-runs of every reported in-ODD failure on fresh world seeds (``benchmark.reproduce``); 0: none, and the
     #: primary score then asks no reproduction
     reruns: int = DEFAULT_RERUNS
+    #: ``per_scene`` (every adversary searches the scene it is scored on) or ``transfer`` (searches are tuned on
+    #: other scenes and replay their best schedule on held-out ones: ``benchmark.transfer``)
+    protocol: str = "per_scene"
+    #: under ``transfer``: the tuning scenes of each trial, none of them held out
+    tuning_scenes: int = DEFAULT_TUNING_SCENES
 
     def __post_init__(self) -> None:
         for name, values, allowed in (("members", self.members, tuple(ZOO)),
@@ -96,6 +104,14 @@ class BenchmarkSpec:
             labels += [f"{member}/{agent_label(r)}" for r in runs]
         if len(set(labels)) != len(labels):
             raise UserInputError(f"benchmark agents: {labels} names one run twice (folders of one name)")
+        if self.protocol not in PROTOCOLS:
+            raise UserInputError(f"benchmark protocol = {self.protocol!r}; allowed: {', '.join(PROTOCOLS)}")
+        if not isinstance(self.tuning_scenes, int) or isinstance(self.tuning_scenes, bool) or self.tuning_scenes < 1:
+            raise UserInputError(f"benchmark tuning_scenes = {self.tuning_scenes!r}; allowed: an integer >= 1")
+        limits.SCENES.check(self.tuning_scenes, "benchmark tuning_scenes")
+        if self.protocol == "transfer" and not tuned(self.policies):
+            raise UserInputError(f"benchmark protocol transfer: none of the policies {list(self.policies)} is a "
+                                 f"search to tune; name at least one of {', '.join(SEARCHES)}")
         if self.start not in ("fixed", "natural"):
             raise UserInputError(f"benchmark start = {self.start!r}; allowed: fixed, natural")
         if self.steps is not None:
@@ -111,6 +127,8 @@ class BenchmarkSpec:
             d["agents"] = {m: list(r) for m, r in self.agents.items()}
         else:
             del d["agents"]
+        if self.protocol == "per_scene":  # written only for transfer, so benchmark.json files of before compare
+            del d["protocol"], d["tuning_scenes"]
         return d
 
 
@@ -161,7 +179,31 @@ def campaign_spec(spec: BenchmarkSpec, member: str, trial: int,
 
 
 def campaign_folder(out: Path, member: str, trial: int) -> Path:
+    """A trial's campaign (under ``transfer``: its held-out scenes)."""
     return Path(out) / "campaigns" / member / f"trial_{trial:02d}"
+
+
+def tuning_folder(out: Path, member: str, trial: int) -> Path:
+    """A trial's tuning campaign under ``transfer``."""
+    return Path(out) / "campaigns" / member / f"trial_{trial:02d}_tuning"
+
+
+def tuning_campaign_spec(spec: BenchmarkSpec, member: str, trial: int) -> CampaignSpec:
+    """A trial's tuning campaign: its searches on ``tuning_scenes`` scenes none of which the trial holds out."""
+    from genesis_rl.benchmark.transfer import held_out_scenes, tuning_spec
+
+    held = campaign_spec(spec, member, trial)
+    return tuning_spec(held, spec.tuning_scenes, held_out_scenes(held))
+
+
+def held_out_campaign_spec(spec: BenchmarkSpec, out: Path, member: str, trial: int) -> CampaignSpec:
+    """A trial's held-out campaign under ``transfer``: every search replays its best tuning schedule."""
+    from genesis_rl.benchmark.transfer import best_schedule, held_out_spec
+
+    region = zoo_member(member).trigger
+    folder = tuning_folder(out, member, trial)
+    return held_out_spec(campaign_spec(spec, member, trial),
+                         {p: best_schedule(folder, p, region)[0] for p in tuned(spec.policies)})
 
 
 def agent_campaign_folder(out: Path, member: str, trial: int, run: str) -> Path:
@@ -279,42 +321,15 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                                                    "spec": spec.to_json()}, indent=1)
         cells: list[tuple[str, int, str | None]] = [
             (m, t, run) for m in spec.members for t in range(spec.trials) for run in (None, *spec.agents.get(m, ()))]
-        jobs = [(campaign_spec(spec, m, t, None if run is None else (run, agent_envs[m, run])),
+        if spec.protocol == "transfer":  # the searches tune on scenes of their own first
+            _run_jobs([(tuning_campaign_spec(spec, m, t), tuning_folder(out, m, t))
+                       for m in spec.members for t in range(spec.trials)],
+                      out, "tuning", workers, executor, parallel, progress)
+        jobs = [(_trial_spec(spec, out, m, t) if run is None else campaign_spec(spec, m, t, (run, agent_envs[m, run])),
                  campaign_folder(out, m, t) if run is None else agent_campaign_folder(out, m, t, run))
                 for m, t, run in cells]
-        bar = tqdm(total=len(jobs), desc="benchmark", unit="campaign", disable=not progress)
-        for campaign, folder in jobs:  # a kept campaign must be this trial's: an edited one is refused, named
-            if finished(folder):
-                check_finished_campaign(campaign, folder)
-        todo = [(c, f) for c, f in jobs if not finished(f)]
-        bar.update(len(jobs) - len(todo))
-        if parallel_mode(parallel, workers, executor, len(todo)) == "campaigns":
-            from genesis_rl.benchmark.parallel import run_side_by_side
-            from genesis_rl.benchmark.ray_campaigns import run_campaigns_on_ray
-
-            try:
-                if executor is not None:
-                    run_campaigns_on_ray(todo, executor, on_done=lambda folder: bar.update())
-                else:
-                    run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
-            except KeyboardInterrupt as err:
-                kept = ("a campaign an actor was running starts again (its episodes were staged on the actor)"
-                        if executor is not None else "a half-run one its finished episodes")
-                set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and {kept}; the same command "
-                                     "with --resume runs the rest")
-                raise
-        else:
-            try:
-                for campaign, folder in todo:
-                    bar.set_postfix_str(str(folder.relative_to(out / "campaigns")))
-                    run_campaign_once(campaign, folder, workers=workers, executor=executor)
-                    bar.update()
-            except KeyboardInterrupt as err:  # the trial's own hint ("run the command again") is the campaign's;
-                # the benchmark folder stays, and only --resume continues it
-                set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and a half-run one its finished "
-                                     "episodes; the same command with --resume runs the rest")
-                raise
-        bar.close()
+        _run_jobs(jobs, out, "benchmark" if spec.protocol == "per_scene" else "held-out scenes", workers, executor,
+                  parallel, progress)
         if spec.reruns:
             done = [(f, m, t) for (m, t, run), (_, f) in zip(cells, jobs, strict=True)]
             again = [(f, m, zoo_member(m).trigger, t, reproduction_file(out, m, f)) for f, m, t in done]
@@ -331,8 +346,82 @@ def run_benchmark(spec: BenchmarkSpec, out: Path, *, force: bool = False, resume
                             {m: {agent_label(r): [agent_campaign_folder(out, m, t, r) for t in range(spec.trials)]
                                  for r in runs} for m, runs in spec.agents.items()}, out=out)
         board["estimates"] = rates
+        if spec.protocol == "transfer":
+            board["transfer"] = transfer_summary(spec, out, board)
         write_leaderboard(out, board)
     return board
+
+
+def transfer_summary(spec: BenchmarkSpec, out: Path, board: Mapping[str, Any]) -> dict[str, Any]:
+    """Under transfer, per member: each policy's simulator steps (tuning, training, held-out, in all), the
+    schedule each search took from its tuning scenes in each trial, and the trained agents' break-even counts
+    of held-out scenes against each search (``benchmark.transfer``)."""
+    from genesis_rl.adversaries.agent import trained_steps
+    from genesis_rl.benchmark.transfer import best_schedule, break_even_table, campaign_steps, transfer_costs
+
+    members: dict[str, Any] = {}
+    for m in spec.members:
+        region = zoo_member(m).trigger
+        tuning = [campaign_steps(tuning_folder(out, m, t)) for t in range(spec.trials)]
+        held: list[dict[str, int]] = []
+        for t in range(spec.trials):
+            steps = campaign_steps(campaign_folder(out, m, t))
+            for run in spec.agents.get(m, ()):
+                steps[agent_label(run)] = campaign_steps(agent_campaign_folder(out, m, t, run))["agent"]
+            held.append(steps)
+        costs = transfer_costs(tuning, held, {agent_label(r): trained_steps(Path(r)) for r in spec.agents.get(m, ())})
+        members[m] = {
+            "costs": costs,
+            "tuned": {p: [best_schedule(tuning_folder(out, m, t), p, region)[1] for t in range(spec.trials)]
+                      for p in tuned(spec.policies)},
+            "break_even_scenes": break_even_table(board["cells"][m], costs, spec.trials, member_steps(spec, m))}
+    return {"tuning_scenes": spec.tuning_scenes, "members": members}
+
+
+def _trial_spec(spec: BenchmarkSpec, out: Path, member: str, trial: int) -> CampaignSpec:
+    """The campaign a trial is scored on: per scene, the trial's; under transfer, its held-out one."""
+    if spec.protocol == "transfer":
+        return held_out_campaign_spec(spec, out, member, trial)
+    return campaign_spec(spec, member, trial)
+
+
+def _run_jobs(jobs: Sequence[tuple[CampaignSpec, Path]], out: Path, desc: str, workers: int, executor: Any,
+              parallel: str, progress: bool) -> None:
+    """Every (campaign, folder) not yet finished (a kept one must be the campaign asked for: an edited one is
+    refused, named), campaigns side by side or one at a time (``parallel_mode``)."""
+    bar = tqdm(total=len(jobs), desc=desc, unit="campaign", disable=not progress)
+    for campaign, folder in jobs:
+        if finished(folder):
+            check_finished_campaign(campaign, folder)
+    todo = [(c, f) for c, f in jobs if not finished(f)]
+    bar.update(len(jobs) - len(todo))
+    if parallel_mode(parallel, workers, executor, len(todo)) == "campaigns":
+        from genesis_rl.benchmark.parallel import run_side_by_side
+        from genesis_rl.benchmark.ray_campaigns import run_campaigns_on_ray
+
+        try:
+            if executor is not None:
+                run_campaigns_on_ray(todo, executor, on_done=lambda folder: bar.update())
+            else:
+                run_side_by_side(todo, workers, on_done=lambda folder: bar.update())
+        except KeyboardInterrupt as err:
+            kept = ("a campaign an actor was running starts again (its episodes were staged on the actor)"
+                    if executor is not None else "a half-run one its finished episodes")
+            set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and {kept}; the same command "
+                                 "with --resume runs the rest")
+            raise
+    else:
+        try:
+            for campaign, folder in todo:
+                bar.set_postfix_str(str(folder.relative_to(out / "campaigns")))
+                run_campaign_once(campaign, folder, workers=workers, executor=executor)
+                bar.update()
+        except KeyboardInterrupt as err:  # the trial's own hint ("run the command again") is the campaign's;
+            # the benchmark folder stays, and only --resume continues it
+            set_resume_hint(err, f"the finished campaigns in '{out}' are kept, and a half-run one its finished "
+                                 "episodes; the same command with --resume runs the rest")
+            raise
+    bar.close()
 
 
 def member_trials(spec: BenchmarkSpec, out: Path, member: str) -> Sequence[Path]:

@@ -134,7 +134,7 @@ def prepare_campaign(spec: CampaignSpec, folder: Path, force: bool, resume: bool
         if catalog.map != spec.map:  # the campaign records spec.map: it must be the map its scenes are on
             raise UserInputError(f"map '{spec.map}' and catalog '{spec.catalog}' disagree: the catalog's scenes are on "
                                  f"map '{catalog.map}'; pass --map {catalog.map}, or a catalog made for '{spec.map}'")
-        pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed)
+        pairs = pick_scenes(len(catalog.scenes), spec.scenes, spec.seed, spec.exclude)
         commit = git_commit()
         with deferred_signals():  # the folder with its catalog and campaign.json, so --resume can take it up
             output_folder.replace(folder, "campaign")
@@ -169,7 +169,7 @@ def _check_scene_pairs(folder: Path, saved: dict, spec: CampaignSpec, pairs: lis
     size = (saved.get("catalog") or {}).get("scenes")
     if type(size) is not int:  # campaigns of 0.4.0 kept no catalog size: nothing to redraw from
         return
-    expected = [tuple(p) for p in pick_scenes(size, spec.scenes, spec.seed)]
+    expected = [tuple(p) for p in pick_scenes(size, spec.scenes, spec.seed, spec.exclude)]
     if pairs != expected:
         raise UserInputError(f"--resume: '{folder / 'campaign.json'}' field 'scenes' is not what seed {spec.seed} "
                              f"draws from its {size}-scene catalog (scene indices or episode seeds were edited); "

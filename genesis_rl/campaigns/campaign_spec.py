@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 
 from genesis_rl.adversaries import PolicyContext, checked_run, load_agent, resolve_policy, run_folder_of
+from genesis_rl.adversaries.replay import OPTION as SCHEDULES
+from genesis_rl.adversaries.replay import build_policy
 from genesis_rl.core.config import read_toml
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.plugins import check_import
@@ -41,6 +43,9 @@ class CampaignSpec:
     #: the generated catalog's traffic (genesis_rl.world.scenes.placement.TRAFFIC): mixed (the paper's) or free_flow;
     #: written to campaign.json only when not mixed, so campaigns written before read the same
     traffic: str = "mixed"
+    #: scene indices never drawn (a benchmark's tuning scenes keep out of its held-out ones); written to
+    #: campaign.json only when given, so campaigns written before read the same
+    exclude: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         """The counts that set a campaign's work, bounded also when they come from a campaign.json."""
@@ -59,6 +64,10 @@ class CampaignSpec:
         if self.traffic != "mixed" and self.catalog:
             raise UserInputError(f"campaign spec.traffic = '{self.traffic}' generates its scenes, and a catalog file "
                                  f"('{self.catalog}') brings its own: pass one or the other")
+        if not isinstance(self.exclude, tuple) or not all(
+                isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in self.exclude) \
+                or len(set(self.exclude)) != len(self.exclude):
+            raise UserInputError(f"campaign spec.exclude = {self.exclude!r}; allowed: distinct scene indices >= 0")
         chooses_start(self.options)  # a bad options.start is refused here, before any episode runs
         for name, limit in (("search_budget", limits.SEARCH_BUDGET), ("retries", limits.RETRIES)):
             value = self.options.get(name)
@@ -70,12 +79,18 @@ class CampaignSpec:
         d["policies"] = list(self.policies)
         if self.traffic == "mixed":
             del d["traffic"]
+        if self.exclude:
+            d["exclude"] = list(self.exclude)
+        else:
+            del d["exclude"]
         return d
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> CampaignSpec:
         """The spec that :meth:`to_json` wrote (campaign.json's ``spec``)."""
-        return cls(**{**d, "policies": tuple(d["policies"])})
+        exclude = d.get("exclude", ())
+        return cls(**{**d, "policies": tuple(d["policies"]),
+                      "exclude": tuple(exclude) if isinstance(exclude, list) else exclude})
 
     def policy_context(self, action_dim: int) -> PolicyContext:
         """What this campaign's policies are built from."""
@@ -83,12 +98,19 @@ class CampaignSpec:
                              options={**self.options, "steps": self.steps})
 
 
-def pick_scenes(n_catalog: int, count: int, seed: int) -> list[tuple[int, int]]:
-    """(scene index, episode seed) pairs: ``count`` distinct scenes drawn by ``seed``, in catalog order."""
-    if not 1 <= count <= n_catalog:
-        raise UserInputError(f"--scenes = {count} must be in 1..{n_catalog} (the test catalog's size)")
+def pick_scenes(n_catalog: int, count: int, seed: int, exclude: tuple[int, ...] = ()) -> list[tuple[int, int]]:
+    """(scene index, episode seed) pairs: ``count`` distinct scenes drawn by ``seed``, in catalog order, none of
+    ``exclude`` (without it, the draw of every version before)."""
+    allowed = n_catalog - len({i for i in exclude if i < n_catalog})
+    if not 1 <= count <= allowed:
+        raise UserInputError(f"--scenes = {count} must be in 1..{allowed} (the test catalog's size"
+                             + (f", less {n_catalog - allowed} excluded scenes)" if exclude else ")"))
     rng = np.random.default_rng(seed)
-    indices = sorted(int(i) for i in rng.choice(n_catalog, size=count, replace=False))
+    if exclude:
+        pool = np.setdiff1d(np.arange(n_catalog), np.asarray(exclude, dtype=np.int64))
+        indices = sorted(int(i) for i in rng.choice(pool, size=count, replace=False))
+    else:
+        indices = sorted(int(i) for i in rng.choice(n_catalog, size=count, replace=False))
     return [(i, int(np.random.default_rng([seed, i]).integers(0, 2**31 - 1))) for i in indices]
 
 
@@ -163,6 +185,10 @@ def check_spec(spec: CampaignSpec) -> None:
             raise UserInputError(f"policy '{name}' needs a trained agent: pass --agent runs/NAME")
         if not cls.needs_agent:
             action_dim = len(spec.env.get("knobs") or PAPER_KNOBS)
-            cls(spec.policy_context(action_dim))
+            build_policy(cls, name, spec.policy_context(action_dim))  # a bad schedule is refused here too
+    strangers = sorted(set(spec.options.get(SCHEDULES) or ()) - set(spec.policies))
+    if strangers:
+        raise UserInputError(f"campaign option {SCHEDULES} names {strangers}, which the campaign does not play; "
+                             f"allowed: {', '.join(spec.policies)}")
     if any(resolve_policy(p).needs_agent for p in spec.policies):
         load_agent(Path(spec.agent) if spec.agent else None)

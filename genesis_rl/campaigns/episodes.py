@@ -22,6 +22,7 @@ from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.campaigns.layout import CampaignFolder
 from genesis_rl.campaigns.records import make_record, save_record
 from genesis_rl.core.config import from_mapping
+from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files.io_utils import atomic_write, atomic_write_json
 from genesis_rl.env.genesis_env import EnvConfig, GenesisEnv
 from genesis_rl.labels.blame import blame_label, reference_name, visibility_evidence
@@ -93,15 +94,43 @@ class CampaignRunner:
             start: Weather | None = None, start_head: bool = False) -> EpisodeOutcome:
         """One episode; ``start``: the weather it starts from (None: the env's start weather); ``start_head``:
         ``act``'s first action chooses it instead (``GenesisEnv.chosen_start``; the env needs start_head)."""
-        env, spec = self.env, self.spec
+        env = self.env
         obs, _ = env.reset(options=self._reset_options(scene, episode_seed, start, start_head))
         if start_head:  # the start step: the env begins the episode where the action says
             obs, *_ = env.step(act(obs))
+        state = {"obs": obs}
+
+        def step(i: int) -> tuple[bool, bool]:
+            state["obs"], _, terminated, truncated, _ = env.step(act(state["obs"]))
+            return terminated, truncated
+
+        return self._play(step)
+
+    def play_schedule(self, scene: int, episode_seed: int, start: Weather | None,
+                      schedule: Sequence[Weather]) -> EpisodeOutcome:
+        """One episode whose weather follows ``schedule`` open loop from ``start`` (no policy acts; after its
+        last entry the weather holds): a schedule tuned on other scenes, played on this one, with the frames
+        and fields of any episode (``replay`` returns only the records)."""
+        if not schedule:
+            raise UserInputError("a schedule to play holds no step")
+        env = self.env
+        env.reset(options=self._reset_options(scene, episode_seed, start))
+
+        def step(i: int) -> tuple[bool, bool]:
+            _, _, terminated, truncated, _ = env.step_weather(schedule[min(i, len(schedule) - 1)])
+            return terminated, truncated
+
+        return self._play(step)
+
+    def _play(self, step: Callable[[int], tuple[bool, bool]]) -> EpisodeOutcome:
+        """The episode after its reset: ``step(i)`` plays step ``i`` (returns terminated, truncated), the frames
+        around the first collision are kept."""
+        env, spec = self.env, self.spec
         ring: deque[tuple[int, np.ndarray]] = deque(maxlen=spec.frames_before + 1)
         frames: dict[int, np.ndarray] = {}
         hit_step: int | None = None
-        for _ in range(spec.steps):
-            obs, _, terminated, truncated, _ = env.step(act(obs))
+        for i in range(spec.steps):
+            terminated, truncated = step(i)
             rec = env.records[-1]
             rgb = env.camera_frame()
             if hit_step is None:

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from genesis_rl.adversaries import POLICIES, WeatherPolicy, resolve_policy
+from genesis_rl.adversaries.replay import build_policy
 from genesis_rl.campaigns.campaign_folder import Task
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.campaigns.episodes import CampaignRunner, write_episode
@@ -59,7 +60,8 @@ def _runner() -> CampaignRunner:
 def _policy(name: str) -> WeatherPolicy:
     spec: CampaignSpec = _WORKER["spec"]
     if name not in _WORKER["policies"]:
-        _WORKER["policies"][name] = resolve_policy(name)(spec.policy_context(_runner().env.mapper.action_dim))
+        _WORKER["policies"][name] = build_policy(resolve_policy(name), name,
+                                                 spec.policy_context(_runner().env.mapper.action_dim))
     return _WORKER["policies"][name]
 
 

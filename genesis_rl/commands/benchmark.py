@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 from genesis_rl.benchmark.reproduce import DEFAULT_RERUNS
+from genesis_rl.benchmark.transfer import DEFAULT_TUNING_SCENES
 from genesis_rl.core.errors import UserInputError
 
 
@@ -49,7 +50,8 @@ def _estimates(given: list[str] | None) -> dict[str, Path]:
 #: the flags that set the matrix, at their defaults (``--smoke`` refuses any other value: it has its own matrix)
 MATRIX_DEFAULTS: dict[str, object] = {
     "members": None, "policies": "sunny,random,constant,random_search,cmaes,cem,mcts", "agent": None, "trials": 10,
-    "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None, "reruns": DEFAULT_RERUNS}
+    "scenes": 5, "seed": 0, "steps": None, "start": "natural", "search_budget": None, "reruns": DEFAULT_RERUNS,
+    "protocol": "per_scene", "tuning_scenes": DEFAULT_TUNING_SCENES}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
         spec = BenchmarkSpec(
             members=_names(args.members, "--members") if args.members else tuple(ZOO),
             policies=_names(args.policies, "--policies"), trials=args.trials, scenes=args.scenes, seed=args.seed,
-            steps=args.steps, options=options, start=args.start, agents=_agents(args.agent), reruns=args.reruns)
+            steps=args.steps, options=options, start=args.start, agents=_agents(args.agent), reruns=args.reruns,
+            protocol=args.protocol, tuning_scenes=args.tuning_scenes)
     executor = None
     if args.executor == "ray" or args.ray_address:
         from genesis_rl.distributed.settings import ExecutorSettings
@@ -148,6 +151,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     help="re-runs of every reported in-ODD failure on fresh world seeds (traffic, sensor noise) that "
                          "no adversary saw; a failure is confirmed when at least half reproduce it; 0: none "
                          f"(default {DEFAULT_RERUNS})")
+    bm.add_argument("--protocol", choices=("per_scene", "transfer"), default=MATRIX_DEFAULTS["protocol"],
+                    help="per_scene (default): each adversary searches the scene it is scored on; transfer: the "
+                         "searches tune on --tuning-scenes other scenes a trial and replay their best schedule, "
+                         "start included, once on each held-out scene, where every adversary plays one episode "
+                         "(the costs, tuning and training included, and the agents' break-even go on the page)")
+    bm.add_argument("--tuning-scenes", type=int, default=MATRIX_DEFAULTS["tuning_scenes"],
+                    help=f"under --protocol transfer: tuning scenes a trial (default {DEFAULT_TUNING_SCENES})")
     bm.add_argument("--smoke", action="store_true",
                     help="a tiny matrix that runs in about a minute and finds one failure (latency_braking and "
                          "builtin_braking, sunny and constant, 2 trials of one 160-step scene, 2 re-runs)")
