@@ -164,7 +164,7 @@ def test_corners_steps_1e12_refuses_at_once(tmp_path, capsys, monkeypatch) -> No
     assert "GENESIS_RL_MAX_SIM_STEPS" in err
 
 
-@pytest.mark.parametrize("policy", ["cmaes", "cem", "mcts", "goexplore"])
+@pytest.mark.parametrize("policy", ["cmaes", "cem", "mcts", "goexplore", "corner_search"])
 def test_a_search_budget_of_1e9_refuses_at_once(tmp_path, capsys, monkeypatch, policy) -> None:
     _must_not_start(monkeypatch, "genesis_rl.campaigns.campaign", "run_campaign")
     t0 = time.monotonic()

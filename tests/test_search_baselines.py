@@ -53,3 +53,45 @@ def test_corner_search_plays_every_corner_and_ranks_them() -> None:
     means = [r["mean_return"] for r in rows]
     assert means == sorted(means, reverse=True) and all(len(r["returns"]) == 2 for r in rows)
     assert rows[0]["mean_return"] == pytest.approx(sum(rows[0]["returns"]) / 2, abs=1e-3)
+
+
+class _CornerRunner:
+    """What corner_search sees of an episode runner: it records each candidate's start and action."""
+
+    held_knobs = ("sun_altitude_angle",)
+    knobs = ("fog_density", "precipitation", "sun_altitude_angle")
+    has_start_head = False
+    last_record = None
+
+    def __init__(self) -> None:
+        self.played: list[tuple[tuple[float, ...], tuple[float, ...]]] = []
+
+    def held_indices(self) -> list[int]:
+        return [2]
+
+    def start_from(self, position):
+        return tuple(position)
+
+    def run(self, act, scene, episode_seed, start=None, start_head=False):
+        from genesis_rl.adversaries import EpisodeOutcome
+
+        action = tuple(float(v) for v in act(None))
+        self.played.append((start, action))
+        return EpisodeOutcome([], sim_steps=10)
+
+
+def test_corner_search_plays_every_corner_within_its_budget_and_a_seeded_draw_beyond_it() -> None:
+    from genesis_rl.adversaries import CornerSearch, PolicyContext
+
+    runner = _CornerRunner()
+    CornerSearch(PolicyContext(3, seed=0, options={"search_budget": 8, "start": "natural"})).run_episode(runner, 4, 9)
+    assert sorted(a for _, a in runner.played) == [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    # a held knob starts at the end its action names: the sun at the ODD's low or high bound
+    assert all(start == ((a[2] + 1.0) / 2.0,) for start, a in runner.played)
+    few = CornerSearch(PolicyContext(3, seed=0, options={"search_budget": 3}))
+    picked = few.corners(4, 9)
+    assert len(set(picked)) == 3 and picked == few.corners(4, 9) and picked != few.corners(5, 9)
+    runner = _CornerRunner()
+    outcome = few.run_episode(runner, 4, 9)
+    assert outcome.sim_steps == 30 and all(start is None for start, _ in runner.played)  # fixed start: none chosen
+    assert outcome.extra["corners"] == picked

@@ -3,7 +3,8 @@
 
 - ``base``: the interface, the episode runner a policy plays through, the registry;
 - ``step``: ``sunny``, ``random`` (natural rates), ``constant`` (an open-loop schedule);
-- ``search``: ``cmaes`` and ``cem`` over piecewise-constant schedules, ``random_search`` (random at their budget);
+- ``search``: ``cmaes`` and ``cem`` over piecewise-constant schedules, ``random_search`` (random at their budget),
+  ``corner_search`` (the best corner of the action box);
 - ``tree``: ``mcts``, Adaptive Stress Testing's Monte Carlo tree search over knob changes;
 - ``goexplore``: Go-Explore, an archive of cells returned to from exact snapshots (lite only);
 - ``verifai_search``: ``verifai_ce``, ``verifai_mab``, ``verifai_bo``, VerifAI's own samplers (the ``verifai`` extra);
@@ -37,15 +38,15 @@ from genesis_rl.adversaries.agent import (
     load_agent,
     run_folder_of,
 )
-from genesis_rl.adversaries.search import CMAESSearch, CrossEntropySearch, RandomSearch
+from genesis_rl.adversaries.search import CMAESSearch, CornerSearch, CrossEntropySearch, RandomSearch
 from genesis_rl.adversaries.tree import TreeSearch
 from genesis_rl.adversaries.goexplore import GoExplore
 from genesis_rl.adversaries.scripted import FixedOnset, StallWatcher
 from genesis_rl.adversaries.verifai_search import VerifaiBandit, VerifaiBayesOpt, VerifaiCrossEntropy
 # isort: on
 
-__all__ = ["AgentPolicy", "CMAESSearch", "ConstantPolicy", "CrossEntropySearch", "EpisodeOutcome", "EpisodeRunner",
-           "ExploringRunner", "GoExplore",
+__all__ = ["AgentPolicy", "CMAESSearch", "ConstantPolicy", "CornerSearch", "CrossEntropySearch", "EpisodeOutcome",
+           "EpisodeRunner", "ExploringRunner", "GoExplore",
            "FixedOnset", "StallWatcher", "VerifaiBandit", "VerifaiBayesOpt", "VerifaiCrossEntropy",
            "POLICIES", "PolicyContext", "RandomPolicy", "RandomSearch", "STARTS", "StepPolicy", "SunnyPolicy",
            "TreeSearch", "WeatherPolicy", "agent_file", "agent_learning_curve", "checked_run", "chooses_start",

@@ -158,3 +158,53 @@ class RandomSearch(WeatherPolicy):
 
             ledger.add(runner.run(act, scene, episode_seed, start))
         return ledger.report()
+
+
+@register_policy
+class CornerSearch(WeatherPolicy):
+    """The corners of the action box at a search's budget: each candidate pushes every knob to one end and holds
+    it there (a constant action of +-1 per knob; a held knob, such as the sun under natural dynamics, starts at
+    that end when the campaign lets policies choose the start), and the best episode (by total reward) is
+    reported. With 2^K corners over K knobs and a smaller ``search_budget``, the corners played are drawn
+    without replacement from the scene's seeds. ``constant`` is one fixed corner (+1 on every knob, the sun at
+    noon); this is the best corner a scene offers, and under the benchmark's transfer protocol the best corner
+    of the tuning scenes, replayed on held-out ones: the open-loop reference a reactive adversary must beat."""
+
+    name = "corner_search"
+    description = "the best corner of the action box (each knob held at one end), search_budget corners per scene"
+
+    def __init__(self, context: PolicyContext) -> None:
+        super().__init__(context)
+        self.budget = int(context.options.get("search_budget", 8))
+        if self.budget < 1:
+            raise UserInputError(f"search_budget = {self.budget} must be >= 1")
+        from genesis_rl.core import limits
+
+        limits.SEARCH_BUDGET.check(self.budget, "search_budget")
+
+    @classmethod
+    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
+        return int(options.get("search_budget", 8))
+
+    def corners(self, scene: int, episode_seed: int) -> list[int]:
+        """The corners this scene plays, as bit masks (bit i set: knob i at +1), in increasing order."""
+        count = 2 ** self.context.action_dim
+        if self.budget >= count:
+            return list(range(count))
+        rng = np.random.default_rng([self.context.seed, scene, episode_seed, 7])
+        return sorted(int(c) for c in rng.choice(count, size=self.budget, replace=False))
+
+    def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
+        choose = chooses_start(self.context.options) and bool(runner.held_knobs)
+        ledger = SearchLedger()
+        picked = self.corners(scene, episode_seed)
+        for mask in picked:
+            action = np.array([1.0 if mask >> i & 1 else -1.0 for i in range(self.context.action_dim)], np.float32)
+            start = runner.start_from([(float(action[i]) + 1.0) / 2.0 for i in runner.held_indices()]) \
+                if choose else None
+
+            def act(obs: Any, a: np.ndarray = action) -> np.ndarray:
+                return a
+
+            ledger.add(runner.run(act, scene, episode_seed, start))
+        return ledger.report(corners=picked)

@@ -43,8 +43,8 @@ MAX_RERUNS = 100
 #: how adversaries are scored: on the scenes they searched, or on held-out scenes after tuning elsewhere
 PROTOCOLS = ("per_scene", "transfer")
 #: the adversaries a benchmark plays; a trained agent needs one training per member, which this command does not do
-ADVERSARIES = ("sunny", "random", "constant", "random_search", "cmaes", "cem", "mcts", "goexplore", "stall_watcher",
-               "verifai_ce", "verifai_mab", "verifai_bo")
+ADVERSARIES = ("sunny", "random", "constant", "random_search", "corner_search", "cmaes", "cem", "mcts", "goexplore",
+               "stall_watcher", "verifai_ce", "verifai_mab", "verifai_bo")
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,8 @@ if TYPE_CHECKING:  # the command's parser reads this module's defaults: the camp
     from genesis_rl.sut.zoo.trigger import TriggerRegion
 
 #: the adversaries that search a scene (spend episodes on it) and so are tuned, then replayed, under transfer
-SEARCHES = ("random_search", "cmaes", "cem", "mcts", "goexplore", "verifai_ce", "verifai_mab", "verifai_bo")
+SEARCHES = ("random_search", "corner_search", "cmaes", "cem", "mcts", "goexplore", "verifai_ce", "verifai_mab",
+            "verifai_bo")
 #: tuning scenes per trial unless the benchmark says otherwise
 DEFAULT_TUNING_SCENES = 4
 

@@ -146,7 +146,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     help="natural (default): each adversary chooses where the knobs that cannot move within an "
                          "episode start (the sun); fixed: every episode from the start weather")
     bm.add_argument("--search-budget", type=int, default=MATRIX_DEFAULTS["search_budget"],
-                    help="episodes a search adversary (random_search, cmaes, cem, mcts, goexplore) may spend per scene")
+                    help="episodes a search adversary (random_search, corner_search, cmaes, cem, mcts, goexplore) may "
+                         "spend per scene")
     bm.add_argument("--reruns", type=int, default=MATRIX_DEFAULTS["reruns"],
                     help="re-runs of every reported in-ODD failure on fresh world seeds (traffic, sensor noise) that "
                          "no adversary saw; a failure is confirmed when at least half reproduce it; 0: none "
