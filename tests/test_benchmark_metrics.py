@@ -143,6 +143,19 @@ def test_on_a_control_every_in_odd_failure_is_a_false_alarm_candidate() -> None:
         (1, 9, "perception"), (4, 5, "perception")]
 
 
+def test_a_control_counts_the_false_alarms_beyond_those_sunny_has_on_the_same_scenes() -> None:
+    from genesis_rl.benchmark.leaderboard import pooled
+
+    member = zoo_member("oracle_highway")
+    adversary = policy_metrics("random", member, TRIALS, ROWS)  # in-ODD failures on scenes 1 and 4
+    # sunny (the held start weather) fails on scene 4 as well: a failure the system has whatever the weather
+    sunny = policy_metrics("sunny", member, (Trial(1, 20, None, None), Trial(4, 20, None, 7)),
+                           (_row(1, None), _row(4, _failure(8))))
+    cell = pooled("random", "oracle_highway", [adversary], baseline=[sunny])
+    assert (cell["false_alarm_candidates"], cell["false_alarms_beyond_sunny"]) == (2, 1)
+    assert pooled("random", "oracle_highway", [adversary])["false_alarms_beyond_sunny"] is None  # no sunny played
+
+
 # -- a real campaign ---------------------------------------------------------------------------------------
 #: the blind system (no detections) inside highway_day: it hits its lead in clear noon on scenes 3 and 5 of a
 #: six-scene catalog (the campaign's seed 4 picks them; tests/test_natural_campaign.py)

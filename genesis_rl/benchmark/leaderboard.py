@@ -30,10 +30,13 @@ def _mean(values: Sequence[float | None]) -> float | None:
     return round(sum(known) / len(known), 1) if known else None
 
 
-def pooled(policy: str, member: str, per_trial: list[PolicyMetrics], rerun: bool = False) -> dict[str, Any]:
+def pooled(policy: str, member: str, per_trial: list[PolicyMetrics], rerun: bool = False,
+           baseline: list[PolicyMetrics] | None = None) -> dict[str, Any]:
     """One policy's figures on one member over its trials (module docstring); ``rerun``: the benchmark re-ran
     reported failures on fresh world seeds (``benchmark.reproduce``), so the primary score asks them to
-    reproduce."""
+    reproduce; ``baseline``: ``sunny``'s trials on the same scenes, when it played: on a control, a false-alarm
+    candidate on a scene where the held weather fails inside the ODD too is the system's own failure, not one
+    the adversary caused (``false_alarms_beyond_sunny``)."""
     trials = [t for m in per_trial for t in m.trials]
     n = len(trials)
     kind = zoo_member(member).kind
@@ -67,7 +70,18 @@ def pooled(policy: str, member: str, per_trial: list[PolicyMetrics], rerun: bool
         "distinct_in_odd_failures": len(keys),
         "false_alarm_candidates": len(alarms),
         "unconfirmed_false_alarms": sum(1 for a in alarms if a.get("oracle_collides") is False),
+        "false_alarms_beyond_sunny": None if baseline is None else _beyond(per_trial, baseline),
     }
+
+
+def _beyond(per_trial: Sequence[PolicyMetrics], baseline: Sequence[PolicyMetrics]) -> int:
+    """The false-alarm candidates on scenes where the baseline (sunny, the held start weather) had no in-ODD
+    failure in the same trial: what the adversary's weather added to the system's own failures."""
+    count = 0
+    for mine, base in zip(per_trial, baseline, strict=True):
+        own = {t.scene for t in base.trials if t.failure_at is not None}
+        count += sum(1 for a in mine.false_alarm_candidates if a["scene"] not in own)
+    return count
 
 
 def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]],
@@ -95,10 +109,12 @@ def leaderboard(spec: Mapping[str, Any], trials: Mapping[str, Sequence[Path]],
         for folder in trials[member]:
             for policy, metrics in falsifier_metrics(folder, member, again(member, folder)).items():
                 per_policy.setdefault(policy, []).append(metrics)
-        cells[member] = {p: pooled(p, member, per_policy[p], rerun) for p in policies}
+        sunny = per_policy.get("sunny") if zoo_member(member).kind == "control" else None
+        base = sunny if sunny and len(sunny) == len(trials[member]) else None
+        cells[member] = {p: pooled(p, member, per_policy[p], rerun, base) for p in policies}
         for label, folders in (agent_trials or {}).get(member, {}).items():
             cells[member][label] = pooled(label, member, [falsifier_metrics(f, member, again(member, f))["agent"]
-                                                          for f in folders], rerun)
+                                                          for f in folders], rerun, base)
     weak = [m for m in members if zoo_member(m).kind == "weakness"]
 
     def score(c: dict[str, Any]) -> float:
@@ -241,7 +257,8 @@ def render_page(board: dict[str, Any]) -> str:
     head = ["policy", "episodes", "simulator steps a scene", "confirmed [95 % CI]", "reproduction rate",
             "in-ODD collisions, any candidate [95 % CI]", "trials with a failure",
             "avoidable", "reached", "triggered",
-            "median steps to first failure", "distinct in-ODD failures", "false-alarm candidates (unconfirmed)"]
+            "median steps to first failure", "distinct in-ODD failures",
+            "false-alarm candidates (unconfirmed; beyond sunny)"]
     for member in spec["members"]:
         m = zoo_member(member)
         h.append(f"<h2>{html.escape(member)} <span class=meta>({m.kind})</span></h2>"
@@ -255,7 +272,9 @@ def render_page(board: dict[str, Any]) -> str:
             rate = "–" if c["falsification_rate"] is None else \
                 f"{c['falsification_rate']:.2f} [{lo:.2f}, {hi:.2f}]"
             med = "–" if c["median_steps_to_failure"] is None else f"{c['median_steps_to_failure']:.0f}"
-            alarms = f"{c['false_alarm_candidates']} ({c['unconfirmed_false_alarms']})" if m.kind == "control" else "–"
+            beyond = c.get("false_alarms_beyond_sunny")
+            alarms = f"{c['false_alarm_candidates']} ({c['unconfirmed_false_alarms']}; " \
+                     f"{'–' if beyond is None else beyond} beyond sunny)" if m.kind == "control" else "–"
             spend = "–" if c.get("sim_steps_per_scene") is None else f"{c['sim_steps_per_scene']:.0f}"
             avoidable = "–" if c.get("avoidable") is None else f"{c['avoidable']}/{c['falsified']}"
             clo, chi = c.get("confirmed_ci") or (None, None)
@@ -283,5 +302,7 @@ def render_page(board: dict[str, Any]) -> str:
              "triggered: an in-ODD failure "
              "at or after that. Never reached says exploration; reached, never triggered, timing or naturalness. "
              "On a control every in-ODD failure is a false-alarm candidate; unconfirmed: the oracle replay "
-             "avoided it.</p></body></html>")
+             "avoided it; beyond sunny: on a scene where sunny (the held start weather) had no in-ODD failure in "
+             "the same trial, so the failure is not the system's own whatever the weather (scene 39 of "
+             "builtin_highway is one it has anyway).</p></body></html>")
     return "\n".join(h)

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                           parallel=args.parallel)
     short = {m: {p: {k: c[k] for k in ("confirmed_rate", "reproduction_rate", "falsification_rate", "triggered",
                                         "median_steps_to_failure", "distinct_in_odd_failures",
-                                        "false_alarm_candidates")}
+                                        "false_alarm_candidates", "false_alarms_beyond_sunny")}
                  for p, c in cells.items()} for m, cells in board["cells"].items()}
     print(json.dumps({"out": args.out, "cells": short, "average_rank": board["ranks"]["average_rank"],
                       "friedman_p": board["ranks"]["friedman_p"]}, indent=2))
