@@ -27,7 +27,7 @@ from genesis_rl.core.provenance import numeric_platform
 from genesis_rl.loop.drive import ClosedLoop
 from genesis_rl.loop.rules.rulebook import build_rulebook
 from genesis_rl.sim.backends import catalog_from_json
-from genesis_rl.sim.interface import CameraConfig, Simulation
+from genesis_rl.sim.interface import EXPOSURE_JITTER_MAX, CameraConfig, Simulation
 from genesis_rl.sim.lite.backend import LiteBackend
 from genesis_rl.sut.perception.detector import archived_weights
 from genesis_rl.sut.system.protocol import load_system
@@ -74,7 +74,8 @@ def make_record(spec: Any, runner: Any, policy: str, scene: int, episode_seed: i
         "episode_seed": episode_seed,
         "world_seed": env.world_seed,
         "steps": len(records),
-        "camera": {"width": cfg.camera_width, "height": cfg.camera_height},
+        "camera": {"width": cfg.camera_width, "height": cfg.camera_height,
+                   **({"exposure_jitter": cfg.camera_exposure_jitter} if cfg.camera_exposure_jitter else {})},
         "system": {"spec": cfg.system, "kwargs": cfg.system_kwargs, "identity": env.system.identity()},
         "rulebook": env.rulebook.describe(),
         "start_weather": (start or env.start_weather).as_dict(),
@@ -136,6 +137,9 @@ def _check_record(rec: dict[str, Any], path: Path) -> None:
         v = rec_get(field)
         if isinstance(v, bool) or not isinstance(v, int) or not 16 <= v <= 4096:
             raise bad(field, "an integer in 16..4096")
+    jitter = rec_get("camera.exposure_jitter") or 0.0  # absent in records before it and without one
+    if isinstance(jitter, bool) or not isinstance(jitter, int | float) or not 0.0 <= jitter <= EXPOSURE_JITTER_MAX:
+        raise bad("camera.exposure_jitter", f"a number in 0..{EXPOSURE_JITTER_MAX}")
     for field in ("episode_seed", "world_seed"):  # world_seed: absent in records before it (the episode seed)
         seed = rec.get(field, 0)
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -218,7 +222,8 @@ def replay_record(rec: dict[str, Any], weights: str | None = None, progress: boo
     now_id = system.identity()
     names = rec["knobs"]
     start = Weather.from_recorded(rec["start_weather"])
-    camera = CameraConfig(width=rec["camera"]["width"], height=rec["camera"]["height"])
+    camera = CameraConfig(width=rec["camera"]["width"], height=rec["camera"]["height"],
+                          exposure_jitter=rec["camera"].get("exposure_jitter", 0.0))
     backend = LiteBackend()
     records: list[StepRecord] = []
     frames: list[np.ndarray] = []

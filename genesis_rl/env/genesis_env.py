@@ -39,7 +39,14 @@ from genesis_rl.loop.frames import annotate_frame
 from genesis_rl.loop.rules.reward import RewardConfig, make_reward
 from genesis_rl.loop.rules.rulebook import Rulebook, check_rulebook_imports, rulebook_for
 from genesis_rl.sim.backends import backend_class, catalog_or_generate, check_backend_setting, make_backend
-from genesis_rl.sim.interface import FIXED_DELTA_SECONDS, ActorEvent, CameraConfig, ConnectionSettings, Simulation
+from genesis_rl.sim.interface import (
+    EXPOSURE_JITTER_MAX,
+    FIXED_DELTA_SECONDS,
+    ActorEvent,
+    CameraConfig,
+    ConnectionSettings,
+    Simulation,
+)
 from genesis_rl.sut.system.protocol import BUILTIN_SYSTEMS, load_system
 from genesis_rl.world.knobs import KNOBS, PAPER_KNOBS, KnobActionMapper, Weather, parse_weather
 from genesis_rl.world.odd.conditions import conditions_model
@@ -60,6 +67,7 @@ ENV_RANGES: dict[str, ranges.Ranged] = {
     "episode_steps": ranges.Ranged(1, 2**31 - 1, "steps", integer=True),  # and at most limits.SIM_STEPS
     "camera_width": ranges.Ranged(16, 4096, "px", integer=True),
     "camera_height": ranges.Ranged(16, 4096, "px", integer=True),
+    "camera_exposure_jitter": ranges.Ranged(0.0, EXPOSURE_JITTER_MAX, note="0: none"),
     "obs_width": ranges.Ranged(36, 1024, "px", integer=True, note="CNN policies need >= 36"),
     "obs_height": ranges.Ranged(36, 1024, "px", integer=True, note="CNN policies need >= 36"),
     "obs_history": ranges.Ranged(1, 16, "steps", integer=True),
@@ -113,6 +121,9 @@ class EnvConfig:
     episode_steps: int = 512  # steps per episode (0.05 s each), then truncated
     camera_width: int = 320  # the system's camera [px]
     camera_height: int = 240
+    #: frame-to-frame exposure jitter of the camera (log-sd of each frame's gain, drawn from the world seed; 0:
+    #: none, as every preset; 0.03 is an auto-exposure camera's flicker), lite only
+    camera_exposure_jitter: float = 0.0
     obs_width: int = 96  # the policy's image [px] (the paper's 640x480, downscaled; 4:3 as the camera)
     obs_height: int = 72
     obs_knobs: bool = False  # observe {"image", "knobs"} instead of the image alone (= observation "image+knobs")
@@ -158,6 +169,10 @@ class EnvConfig:
         for k in ("camera_width", "camera_height"):
             if not 16 <= getattr(self, k) <= 4096:
                 raise UserInputError(f"env.{k} = {getattr(self, k)} must be in 16..4096")
+        if self.camera_exposure_jitter and self.backend != "lite":
+            raise UserInputError(f"env.camera_exposure_jitter = {self.camera_exposure_jitter} is lite's camera model; "
+                                 f"env.backend = '{self.backend}' keeps its own exposure (CARLA: the RGB blueprint's "
+                                 "exposure_mode): set it to 0")
         if set(self.disabled_knobs) >= set(self.knobs):
             raise UserInputError(f"env.disabled_knobs {list(self.disabled_knobs)} disable every knob the agent "
                                  f"turns ({', '.join(self.knobs)}); leave at least one")
@@ -286,7 +301,8 @@ class GenesisEnv(gym.Env):
                                                backend=c.backend)
 
 
-        self.camera = CameraConfig(width=c.camera_width, height=c.camera_height)
+        self.camera = CameraConfig(width=c.camera_width, height=c.camera_height,
+                                   exposure_jitter=c.camera_exposure_jitter)
         with _setting("env.system"):  # before the backend, so a bad system leaves no simulator open
             self.system = load_system(c.system, **c.system_kwargs)
         self.backend = make_backend(c.backend, ConnectionSettings(c.carla_host, c.carla_port, c.carla_tm_port,

@@ -40,6 +40,10 @@ class VehicleControl:
                 raise ValueError(f"VehicleControl.{name} = {v} must be in [{lo}, {hi}]")
 
 
+#: the largest exposure jitter a camera takes (a log-sd of 0.5 is a gain off by 65 % one frame in three)
+EXPOSURE_JITTER_MAX = 0.5
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """The ego's RGB + depth camera. Mount is in the ego frame (x forward, y left, z up, metres, from the
@@ -53,8 +57,13 @@ class CameraConfig:
     mount_z: float = 1.5
     pitch_deg: float = 0.0
     max_range: float = 200.0
+    #: frame-to-frame exposure jitter of an auto-exposure camera: the standard deviation of the log of each
+    #: frame's exposure gain, drawn from the world seed (0: none, as every preset; ``EXPOSURE_JITTER_MAX`` at most)
+    exposure_jitter: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.exposure_jitter <= EXPOSURE_JITTER_MAX:
+            raise ValueError(f"camera exposure_jitter must be in 0..{EXPOSURE_JITTER_MAX}, got {self.exposure_jitter}")
         if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096):
             raise ValueError(f"camera width/height must be in 16..4096, got {self.width}x{self.height}")
         if not 10.0 <= self.fov_deg <= 170.0:

@@ -239,7 +239,8 @@ class LiteRenderer:
         self.root.set_light(self._sun_np)
         self.root.set_light(self._amb_np)
 
-        self._compositor = WeatherCompositor(self.width, self.height, hfov, self.seed)
+        self._compositor = WeatherCompositor(self.width, self.height, hfov, self.seed,
+                                             exposure_jitter=camera.exposure_jitter)
         self._vehicles: dict[int, VehicleModel] = {}
         self._depth_u32: np.ndarray | None = None  # reused buffers of _read_depth
         self._depth_f64: np.ndarray | None = None

@@ -107,12 +107,14 @@ class WeatherCompositor:
     Grids that depend only on the resolution (pixel rays, noise bank, rain layers) are built once here.
     """
 
-    def __init__(self, width: int, height: int, fov_deg: float, seed: int) -> None:
+    def __init__(self, width: int, height: int, fov_deg: float, seed: int, exposure_jitter: float = 0.0) -> None:
         if width < 8 or height < 8:
             raise ValueError(f"image must be at least 8x8, got {width}x{height}")
         if not 1.0 <= fov_deg <= 170.0:
             raise ValueError(f"fov_deg must be in 1..170, got {fov_deg}")
         self.width, self.height, self.fov_deg, self.seed = int(width), int(height), float(fov_deg), int(seed)
+        #: the log-sd of each frame's exposure gain (``CameraConfig.exposure_jitter``; 0: the gain is exact)
+        self.exposure_jitter = float(exposure_jitter)
         w, h = self.width, self.height
         #: focal length in pixels (square pixels, principal point at the centre)
         self.focal = (w / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
@@ -413,7 +415,15 @@ class WeatherCompositor:
         # ---------------------------------------------------------- 6. camera
         # Exposure that adapts (partly) to the scene's light, and lens vignetting: one multiply.
         light = luminance(lighting.ambient_color) + 0.5 * luminance(lighting.sun_color)
-        cv2.multiply(img, self._vignette, dst=img, scale=exposure_gain(light))
+        # the world's draws of this frame: the noise window first (the order of every version before), then
+        # the exposure's jitter, drawn only when the camera has one, so a camera without it is unchanged
+        rng = np.random.default_rng((self.episode_seed, int(step)))
+        oy = int(rng.integers(self._noise_pad[0]))
+        ox = int(rng.integers(self._noise_pad[1]))
+        exposure = exposure_gain(light)
+        if self.exposure_jitter > 0.0:
+            exposure *= math.exp(self.exposure_jitter * float(rng.standard_normal()))
+        cv2.multiply(img, self._vignette, dst=img, scale=exposure)
         # 8-bit from here: OpenCV's fixed-point blur is twice as fast; every value is >= 0, so the abs
         # of convertScaleAbs is a plain rounding, saturating cast.
         u8 = cv2.convertScaleAbs(img, dst=self._u8)
@@ -421,9 +431,6 @@ class WeatherCompositor:
         ksize = 2 * math.ceil(2.5 * sigma_blur) + 1
         u8 = cv2.GaussianBlur(u8, (ksize, ksize), sigma_blur, dst=self._u8b)
         sigma_noise = 4.0 + 4.5 * (1.0 - smoothstep(0.06, 0.35, light))  # dark scene: more gain, more noise
-        rng = np.random.default_rng((self.episode_seed, int(step)))
-        oy = int(rng.integers(self._noise_pad[0]))
-        ox = int(rng.integers(self._noise_pad[1]))
         noise = self._noise[oy : oy + h, ox : ox + w]
         k = sigma_noise / _NOISE_SCALE
         raw = cv2.addWeighted(u8, 1.0, noise, k, -128.0 * k, dst=self._u8)
