@@ -180,3 +180,21 @@ def test_a_transfer_benchmark_tunes_on_other_scenes_and_replays_the_best_schedul
     assert "Transfer protocol: each search tuned on its own scenes" in (out / "leaderboard.html").read_text()
     assert main([*args, "--resume"]) == 0  # the kept campaigns are the ones asked for, schedules included
     assert json.loads((out / "leaderboard.json").read_text())["transfer"] == board["transfer"]
+
+
+def test_held_out_scenes_an_agent_trained_on_are_counted(monkeypatch):
+    import genesis_rl.campaigns.campaign_spec as campaign_spec
+    from genesis_rl.benchmark.transfer import seen_in_training
+
+    held = CampaignSpec(policies=("agent",), map="urban", scenes=3)
+    runs = {"all": {"map": "urban", "scenes": 1202}, "first_100": {"map": "urban", "scenes": 100},
+            "other_seed": {"map": "urban", "catalog_seed": 1}, "file": {"catalog": "mine.json"},
+            "highway": {"map": "highway"}}
+    monkeypatch.setattr(campaign_spec, "env_settings_for", lambda run, config, system: runs[run])
+    scenes = (12, 430, 1100)
+    assert seen_in_training("all", held, scenes) == 3  # the default training catalog holds them all
+    assert seen_in_training("first_100", held, scenes) == 1
+    assert seen_in_training("other_seed", held, scenes) == seen_in_training("highway", held, scenes) == 0
+    assert seen_in_training("file", held, scenes) is None
+    free = CampaignSpec(policies=("agent",), map="urban", scenes=3, traffic="free_flow")
+    assert seen_in_training("all", free, scenes) == 0  # a training env generates mixed traffic: other scenes

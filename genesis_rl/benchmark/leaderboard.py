@@ -219,6 +219,12 @@ def _transfer_table(board: dict[str, Any], member: str) -> list[str]:
                 for s in searches]
         h.append("<tr>" + "".join(f"<td class=l>{html.escape(x)}</td>" for x in row) + "</tr>")
     h.append("</table>")
+    seen = {a: n for a, n in (transfer.get("held_out_scenes_seen_in_training") or {}).items() if n != 0}
+    if seen:
+        h.append("<p class=meta>Held-out scenes a trained agent trained on (its run generated them: same map, "
+                 "catalog seed and traffic): " + html.escape(", ".join(
+                     f"{a}: {'unknown (a catalog file)' if n is None else n}" for a, n in seen.items()))
+                 + ". Its held-out figures are not on unseen scenes there.</p>")
     if searches:
         h.append("<p class=meta>Break-even: the held-out scenes after which a trained agent's simulator steps per "
                  "confirmed failure (its training once, one episode a scene) drop to the search's (its tuning of "

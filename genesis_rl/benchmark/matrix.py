@@ -357,7 +357,14 @@ def transfer_summary(spec: BenchmarkSpec, out: Path, board: Mapping[str, Any]) -
     schedule each search took from its tuning scenes in each trial, and the trained agents' break-even counts
     of held-out scenes against each search (``benchmark.transfer``)."""
     from genesis_rl.adversaries.agent import trained_steps
-    from genesis_rl.benchmark.transfer import best_schedule, break_even_table, campaign_steps, transfer_costs
+    from genesis_rl.benchmark.transfer import (
+        best_schedule,
+        break_even_table,
+        campaign_steps,
+        held_out_scenes,
+        seen_in_training,
+        transfer_costs,
+    )
 
     members: dict[str, Any] = {}
     for m in spec.members:
@@ -370,8 +377,12 @@ def transfer_summary(spec: BenchmarkSpec, out: Path, board: Mapping[str, Any]) -
                 steps[agent_label(run)] = campaign_steps(agent_campaign_folder(out, m, t, run))["agent"]
             held.append(steps)
         costs = transfer_costs(tuning, held, {agent_label(r): trained_steps(Path(r)) for r in spec.agents.get(m, ())})
+        trial_specs = [campaign_spec(spec, m, t) for t in range(spec.trials)]
+        seen = {agent_label(r): [seen_in_training(r, c, held_out_scenes(c)) for c in trial_specs]
+                for r in spec.agents.get(m, ())}
         members[m] = {
             "costs": costs,
+            "held_out_scenes_seen_in_training": {a: None if None in v else sum(v) for a, v in seen.items()},
             "tuned": {p: [best_schedule(tuning_folder(out, m, t), p, region)[1] for t in range(spec.trials)]
                       for p in tuned(spec.policies)},
             "break_even_scenes": break_even_table(board["cells"][m], costs, spec.trials, member_steps(spec, m))}

@@ -124,6 +124,25 @@ def campaign_steps(folder: Path) -> dict[str, int]:
     return {p: sum(int(r["sim_steps"]) for r in rows) for p, rows in campaign.episodes.items()}
 
 
+def seen_in_training(run: str, held_out: CampaignSpec, scenes: Sequence[int]) -> int | None:
+    """How many of the held-out ``scenes`` the trained agent of ``run`` trained on: the scenes its env generated
+    (``env.scenes`` of ``env.map`` from ``env.catalog_seed``, the mixed traffic a training env generates) are
+    the campaign's own catalog's first ones when map, seed and traffic agree; 0 when they do not; None when
+    the run trained on a catalog file (its scenes are not compared)."""
+    from genesis_rl.campaigns.campaign_spec import env_settings_for
+    from genesis_rl.env.genesis_env import EnvConfig
+
+    env = env_settings_for(run, None, None)
+    if env.get("catalog"):
+        return None
+    defaults = EnvConfig()
+    same = (env.get("map", defaults.map) == held_out.map and held_out.catalog is None
+            and int(env.get("catalog_seed", defaults.catalog_seed)) == held_out.catalog_seed
+            and held_out.traffic == "mixed")
+    count = int(env.get("scenes", defaults.scenes))
+    return sum(1 for s in scenes if s < count) if same else 0
+
+
 def transfer_costs(tuning: Sequence[Mapping[str, int]], held_out: Sequence[Mapping[str, int]],
                    training: Mapping[str, int | None]) -> dict[str, dict[str, int | None]]:
     """Per policy, summed over the trials: the steps spent tuning, training (a trained agent; None: unknown, a
