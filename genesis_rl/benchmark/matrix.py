@@ -8,6 +8,8 @@ folder::
 
     OUT/benchmark.json                       the spec (what decides the results)
     OUT/campaigns/MEMBER/trial_NN/           one campaign each (campaign.json, episodes/, summary.json, ...)
+    OUT/campaigns/MEMBER/trial_NN_tuning/    under ``--protocol transfer``: the searches on the trial's tuning
+                                             scenes; trial_NN/ then holds the held-out scenes (``benchmark.transfer``)
     OUT/leaderboard.json, leaderboard.html   the figures (``benchmark.leaderboard``)
 
 ``--resume`` continues the matrix where it stopped: finished campaigns are kept, a half-run one resumes
