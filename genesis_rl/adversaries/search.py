@@ -123,15 +123,8 @@ class CrossEntropySearch(CMAESSearch):
         return ledger.report(generations=sizes)
 
 
-@register_policy
-class RandomSearch(WeatherPolicy):
-    """Random testing at a search's budget: ``search_budget`` episodes of uniform random actions per scene, each
-    with its own draws (and, when the campaign lets policies choose the start, its own start drawn inside the
-    ODD, as ``random``'s), reporting the best by total reward. ``random`` plays one episode a scene; this is the
-    baseline a search must beat at equal simulator budget, as fuzzers are measured against random testing."""
-
-    name = "random_search"
-    description = "random at a search's budget: search_budget random episodes per scene, the best reported"
+class BudgetedSearch(WeatherPolicy):
+    """A search that plays whole episodes, ``search_budget`` of them a scene (at least 1), and reports its best."""
 
     def __init__(self, context: PolicyContext) -> None:
         super().__init__(context)
@@ -145,6 +138,17 @@ class RandomSearch(WeatherPolicy):
     @classmethod
     def episodes_per_scene(cls, options: dict[str, Any]) -> int:
         return int(options.get("search_budget", 8))
+
+
+@register_policy
+class RandomSearch(BudgetedSearch):
+    """Random testing at a search's budget: ``search_budget`` episodes of uniform random actions per scene, each
+    with its own draws (and, when the campaign lets policies choose the start, its own start drawn inside the
+    ODD, as ``random``'s), reporting the best by total reward. ``random`` plays one episode a scene; this is the
+    baseline a search must beat at equal simulator budget, as fuzzers are measured against random testing."""
+
+    name = "random_search"
+    description = "random at a search's budget: search_budget random episodes per scene, the best reported"
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         choose = chooses_start(self.context.options) and bool(runner.held_knobs)
@@ -161,7 +165,7 @@ class RandomSearch(WeatherPolicy):
 
 
 @register_policy
-class CornerSearch(WeatherPolicy):
+class CornerSearch(BudgetedSearch):
     """The corners of the action box at a search's budget: each candidate pushes every knob to one end and holds
     it there (a constant action of +-1 per knob; a held knob, such as the sun under natural dynamics, starts at
     that end when the campaign lets policies choose the start), and the best episode (by total reward) is
@@ -172,19 +176,6 @@ class CornerSearch(WeatherPolicy):
 
     name = "corner_search"
     description = "the best corner of the action box (each knob held at one end), search_budget corners per scene"
-
-    def __init__(self, context: PolicyContext) -> None:
-        super().__init__(context)
-        self.budget = int(context.options.get("search_budget", 8))
-        if self.budget < 1:
-            raise UserInputError(f"search_budget = {self.budget} must be >= 1")
-        from genesis_rl.core import limits
-
-        limits.SEARCH_BUDGET.check(self.budget, "search_budget")
-
-    @classmethod
-    def episodes_per_scene(cls, options: dict[str, Any]) -> int:
-        return int(options.get("search_budget", 8))
 
     def corners(self, scene: int, episode_seed: int) -> list[int]:
         """The corners this scene plays, as bit masks (bit i set: knob i at +1), in increasing order."""
