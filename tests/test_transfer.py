@@ -198,3 +198,11 @@ def test_held_out_scenes_an_agent_trained_on_are_counted(monkeypatch):
     assert seen_in_training("file", held, scenes) is None
     free = CampaignSpec(policies=("agent",), map="urban", scenes=3, traffic="free_flow")
     assert seen_in_training("all", free, scenes) == 0  # a training env generates mixed traffic: other scenes
+
+
+def test_a_schedules_option_that_is_not_an_object_is_refused_before_any_policy_is_built():
+    from genesis_rl.campaigns.campaign_spec import check_spec
+
+    spec = CampaignSpec(policies=("agent",), scenes=1, agent="runs/none", options={"schedules": [{"x": 1}]})
+    with pytest.raises(UserInputError, match="campaign option schedules: an object of policy -> schedule"):
+        check_spec(spec)

@@ -77,13 +77,19 @@ class ScheduleReplay(WeatherPolicy):
         return runner.play_schedule(scene, episode_seed, self.schedule.start, self.schedule.steps)
 
 
-def replayed_schedule(options: Mapping[str, Any], policy: str) -> Schedule | None:
-    """The schedule a campaign's option ``schedules`` gives ``policy`` (None: the policy plays itself)."""
+def schedules_option(options: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A campaign's option ``schedules`` (empty when absent): policy -> schedule, or refused naming it."""
     given = options.get(OPTION)
     if given is None:
-        return None
+        return {}
     if not isinstance(given, Mapping):
         raise UserInputError(f"campaign option {OPTION}: an object of policy -> schedule")
+    return given
+
+
+def replayed_schedule(options: Mapping[str, Any], policy: str) -> Schedule | None:
+    """The schedule a campaign's option ``schedules`` gives ``policy`` (None: the policy plays itself)."""
+    given = schedules_option(options)
     if policy not in given:
         return None
     return Schedule.from_json(given[policy], f"campaign option {OPTION}.{policy}")

@@ -89,21 +89,21 @@ def best_schedule(folder: Path, policy: str, region: TriggerRegion) -> tuple[Sch
     if not rows:
         raise UserInputError(f"tuning campaign '{folder}' holds no episode of '{policy}'; run it again "
                              "(delete the folder, or --resume)")
-    best: tuple[tuple[bool, bool, float, int], Any, list[Any]] | None = None
+    best: tuple[tuple[bool, bool, float, int], Any, list[Any], Trial] | None = None
     for row in rows:
         records = read_step_records(campaign.folder.steps(policy, row.scene), row.steps)
         trial = Trial(row.scene, len(records), region.reached(records), in_odd_failure_at(records))
         key = score_key(trial, region.empty, row.episode_return, row.scene)
         if best is None or key > best[0]:
-            best = (key, row, records)
+            best = (key, row, records, trial)
     assert best is not None
-    key, row, records = best
+    key, row, records, trial = best
     if not row.record:
         raise UserInputError(f"tuning campaign '{folder}': the episode of '{policy}' on scene {row.scene} has no "
                              "record (a tuning campaign records every episode); run it again")
     start = load_record(campaign.folder.root / row.record).get("start_weather")
     schedule = Schedule.of_episode(None if start is None else Weather.from_recorded(start), [r.knobs for r in records])
-    return schedule, {"scene": row.scene, "hit": key[0], "failure_at": in_odd_failure_at(records),
+    return schedule, {"scene": row.scene, "hit": key[0], "failure_at": trial.failure_at,
                       "return": round(row.episode_return, 3), "tuning_steps": sum(int(r["sim_steps"]) for r in rows)}
 
 

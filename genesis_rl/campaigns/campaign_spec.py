@@ -15,7 +15,7 @@ import numpy as np
 
 from genesis_rl.adversaries import PolicyContext, checked_run, load_agent, resolve_policy, run_folder_of
 from genesis_rl.adversaries.replay import OPTION as SCHEDULES
-from genesis_rl.adversaries.replay import build_policy
+from genesis_rl.adversaries.replay import build_policy, schedules_option
 from genesis_rl.core.config import read_toml
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.plugins import check_import
@@ -105,12 +105,9 @@ def pick_scenes(n_catalog: int, count: int, seed: int, exclude: tuple[int, ...] 
     if not 1 <= count <= allowed:
         raise UserInputError(f"--scenes = {count} must be in 1..{allowed} (the test catalog's size"
                              + (f", less {n_catalog - allowed} excluded scenes)" if exclude else ")"))
-    rng = np.random.default_rng(seed)
-    if exclude:
-        pool = np.setdiff1d(np.arange(n_catalog), np.asarray(exclude, dtype=np.int64))
-        indices = sorted(int(i) for i in rng.choice(pool, size=count, replace=False))
-    else:
-        indices = sorted(int(i) for i in rng.choice(n_catalog, size=count, replace=False))
+    # numpy draws from an index array as from its length, so without exclude this is the draw of before
+    pool = np.setdiff1d(np.arange(n_catalog), np.asarray(exclude, dtype=np.int64))
+    indices = sorted(int(i) for i in np.random.default_rng(seed).choice(pool, size=count, replace=False))
     return [(i, int(np.random.default_rng([seed, i]).integers(0, 2**31 - 1))) for i in indices]
 
 
@@ -186,7 +183,7 @@ def check_spec(spec: CampaignSpec) -> None:
         if not cls.needs_agent:
             action_dim = len(spec.env.get("knobs") or PAPER_KNOBS)
             build_policy(cls, name, spec.policy_context(action_dim))  # a bad schedule is refused here too
-    strangers = sorted(set(spec.options.get(SCHEDULES) or ()) - set(spec.policies))
+    strangers = sorted(set(schedules_option(spec.options)) - set(spec.policies))
     if strangers:
         raise UserInputError(f"campaign option {SCHEDULES} names {strangers}, which the campaign does not play; "
                              f"allowed: {', '.join(spec.policies)}")
