@@ -122,7 +122,7 @@ class EnvConfig:
     camera_width: int = 320  # the system's camera [px]
     camera_height: int = 240
     #: frame-to-frame exposure jitter of the camera (log-sd of each frame's gain, drawn from the world seed; 0:
-    #: none, as every preset; 0.03 is an auto-exposure camera's flicker), lite only
+    #: none, as every preset; 0.03 is a gain a few per cent off from frame to frame), lite only
     camera_exposure_jitter: float = 0.0
     obs_width: int = 96  # the policy's image [px] (the paper's 640x480, downscaled; 4:3 as the camera)
     obs_height: int = 72
