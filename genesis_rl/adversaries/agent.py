@@ -28,20 +28,30 @@ class AgentPolicy(StepPolicy):
     name = "agent"
     needs_agent = True
     reacts = True
-    description = "the trained policy (PPO or SAC), deterministic"
+    description = "the trained policy (PPO, SAC or a recurrent PPO), deterministic"
 
     def __init__(self, context: PolicyContext) -> None:
         super().__init__(context)
         self.model = load_agent(context.agent_path)
+        self.memory: Any = None  # a recurrent agent's LSTM states, carried from step to step of an episode
+        self.first_step = True
+
+    def reset(self, scene: int, episode_seed: int) -> None:
+        """A recurrent agent starts each episode with an empty memory, as it did in training."""
+        self.memory, self.first_step = None, True
 
     def act(self, obs: Any) -> np.ndarray:
         with pinned_threads():  # the same floats in the main process, a pool worker or a Ray actor
-            action, _ = self.model.predict(obs, deterministic=True)
+            # PPO and SAC ignore state and episode_start; RecurrentPPO reads and returns its memory
+            action, self.memory = self.model.predict(obs, state=self.memory,
+                                                     episode_start=np.array([self.first_step]), deterministic=True)
+        self.first_step = False
         return np.asarray(action, np.float32)
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:
         """An agent trained with a start head chooses its start with its first action where the campaign lets
         policies choose (``start = "natural"``); otherwise it plays from the env's start weather."""
+        self.reset(scene, episode_seed)
         head = chooses_start(self.context.options) and runner.has_start_head
         return runner.run(self.act, scene, episode_seed, None, start_head=head)
 
@@ -71,8 +81,8 @@ def _run_config(agent: Path) -> Any:
 
 
 def load_agent(path: Path | None) -> Any:
-    """A trained agent (PPO or SAC) from a run folder (its ``agent.zip``, else its last checkpoint) or a .zip
-    file, rebuilt from its run's config.toml and the file's tensors: nothing in the file is unpickled
+    """A trained agent (PPO, SAC or RecurrentPPO) from a run folder (its ``agent.zip``, else its last checkpoint)
+    or a .zip file, rebuilt from its run's config.toml and the file's tensors: nothing in the file is unpickled
     (training/safe_load.py); a loose file without its run's config loads only with ``--trust-pickle``."""
     from genesis_rl.training.safe_load import load_model
 

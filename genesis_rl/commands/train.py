@@ -1,4 +1,4 @@
-"""``genesis-rl train``: train the weather agent (SB3 PPO or SAC) against the system under test."""
+"""``genesis-rl train``: train the weather agent (SB3 PPO or SAC, or a recurrent PPO) against the system under test."""
 
 from __future__ import annotations
 
@@ -14,6 +14,9 @@ from genesis_rl.sim.backends import (
     env_overrides_from_args,
 )
 
+#: training.config.ALGORITHMS, written out: importing the config here would load the env for ``--help``
+ALGORITHMS = ("ppo", "sac", "recurrent_ppo")
+
 
 def _csv_list(text: str | None) -> list[str] | None:
     return None if text is None else [t.strip() for t in text.split(",") if t.strip()]
@@ -21,7 +24,8 @@ def _csv_list(text: str | None) -> list[str] | None:
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """The ``train`` command's flags."""
-    p = sub.add_parser("train", help="train the weather agent (SB3 PPO or SAC) against the system under test")
+    p = sub.add_parser("train", help="train the weather agent (SB3 PPO or SAC, or a recurrent PPO) against the system "
+                                     "under test")
     p.add_argument("--config", default=None, help="TOML config (default: the paper's values, configs/paper.toml)")
     p.add_argument("--out", required=True, help="run folder (runs/NAME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
@@ -29,8 +33,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--envs", type=int, default=None,
                    help="parallel environments (subprocesses, or Ray actors with --executor ray)")
     p.add_argument("--steps", type=int, default=None, help="total env steps (train.total_timesteps)")
-    p.add_argument("--algorithm", choices=("ppo", "sac"), default=None,
-                   help="the learner (train.algorithm): ppo (the paper's, [ppo]) or sac ([sac])")
+    p.add_argument("--algorithm", choices=ALGORITHMS, default=None,
+                   help="the learner (train.algorithm): ppo (the paper's, [ppo]), sac ([sac]) or recurrent_ppo "
+                        "(an LSTM policy with memory of the episode: [ppo] and [recurrent])")
     p.add_argument("--n-steps", type=int, default=None, help="steps per PPO update (ppo.n_steps)")
     p.add_argument("--episode-steps", type=int, default=None, help="steps per episode (env.episode_steps)")
     p.add_argument("--seed", type=seed_int, default=None, help="training seed (train.seed)")

@@ -1,5 +1,6 @@
-"""The training configuration: [env], [ppo], [sac] and [train] tables; ``configs/paper.toml`` spells out the
-paper's values with units. ``train.algorithm`` picks the learner: PPO (the paper's) or SAC."""
+"""The training configuration: [env], [ppo], [sac], [recurrent] and [train] tables; ``configs/paper.toml`` spells
+out the paper's values with units. ``train.algorithm`` picks the learner: PPO (the paper's), SAC, or PPO with an
+LSTM (``recurrent_ppo``: sb3-contrib's RecurrentPPO, the [ppo] table's settings and the [recurrent] table's)."""
 
 from __future__ import annotations
 
@@ -188,12 +189,38 @@ class SACConfig:
         return self.ent_coef if self.ent_coef.startswith("auto") else float(self.ent_coef)
 
 
-ALGORITHMS = ("ppo", "sac")
+#: the LSTM's size: a wider or deeper one than this is far beyond what a few knobs and gaps need
+RECURRENT_RANGES: dict[str, ranges.Ranged] = {
+    "lstm_hidden_size": _R(1, 1024, "units", integer=True),
+    "n_lstm_layers": _R(1, 8, "layers", integer=True),
+}
+
+
+@dataclass(frozen=True)
+class RecurrentConfig:
+    """The memory of ``train.algorithm = "recurrent_ppo"`` (sb3-contrib's RecurrentPPO; its other settings are
+    the [ppo] table's). An LSTM carries what the agent saw earlier in the episode (the stutter that began
+    a second ago, the gap that has been closing) where a stack of the last few observations forgets it."""
+
+    lstm_hidden_size: int = 64  # sb3-contrib's default is 256; 64 matches the policy's [64, 64] layers
+    n_lstm_layers: int = 1
+    enable_critic_lstm: bool = True  # the value function has its own LSTM (sb3-contrib's default)
+
+    def __post_init__(self) -> None:
+        _check_types("recurrent", self, RECURRENT_RANGES)
+        if not isinstance(self.enable_critic_lstm, bool):
+            raise UserInputError(f"recurrent.enable_critic_lstm = {self.enable_critic_lstm!r}; allowed: true, false")
+        _check_ranges("recurrent", self, RECURRENT_RANGES)
+
+
+ALGORITHMS = ("ppo", "sac", "recurrent_ppo")
+#: the learners that collect PPO's rollouts, with the [ppo] table's settings
+PPO_FAMILY = ("ppo", "recurrent_ppo")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    algorithm: str = "ppo"  # the learner: ppo (the paper's; the [ppo] table) or sac (the [sac] table)
+    algorithm: str = "ppo"  # the learner: ppo (the paper's; [ppo]), sac ([sac]) or recurrent_ppo ([ppo], [recurrent])
     total_timesteps: int = 40960  # env steps (the paper: 40,960 = 20 updates of 2048)
     envs: int = 1  # parallel environments, each in its own process when > 1
     seed: int = 0  # seeds the envs' scene draws, the policy's initialisation and its sampling
@@ -224,29 +251,40 @@ class RunConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     sac: SACConfig = field(default_factory=SACConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    recurrent: RecurrentConfig = field(default_factory=RecurrentConfig)
 
     def __post_init__(self) -> None:
         # each env collects the same share of a PPO update's rollout
-        if self.train.algorithm == "ppo" and self.ppo.n_steps % self.train.envs:
+        if self.train.algorithm in PPO_FAMILY and self.ppo.n_steps % self.train.envs:
             raise UserInputError(f"ppo.n_steps = {self.ppo.n_steps} must be a multiple of train.envs = "
                                  f"{self.train.envs}")
 
     def to_toml(self) -> str:
-        return dump_toml({"env": to_mapping(self.env), "ppo": to_mapping(self.ppo), "sac": to_mapping(self.sac),
-                          "train": to_mapping(self.train)})
+        """The resolved config; [recurrent] only for a recurrent learner, so every other run's file reads as
+        before."""
+        tables = {"env": to_mapping(self.env), "ppo": to_mapping(self.ppo), "sac": to_mapping(self.sac),
+                  "train": to_mapping(self.train)}
+        if self.train.algorithm == "recurrent_ppo":
+            tables["recurrent"] = to_mapping(self.recurrent)
+        return dump_toml(tables)
 
     @property
     def device(self) -> str:
         """The torch device of the chosen learner."""
         return self.sac.device if self.train.algorithm == "sac" else self.ppo.device
 
+    @property
+    def device_section(self) -> str:
+        """The table that sets the learner's device (recurrent_ppo's is [ppo])."""
+        return "sac" if self.train.algorithm == "sac" else "ppo"
+
 
 def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None) -> RunConfig:
     """Read a config file (None: all defaults) and apply per-section overrides from the command line."""
     data = read_toml(path) if path is not None else {}
-    unknown = sorted(set(data) - {"env", "ppo", "sac", "train"})
+    unknown = sorted(set(data) - {"env", "ppo", "sac", "train", "recurrent"})
     if unknown:
-        raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, sac, train")
+        raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, sac, train, recurrent")
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
     return RunConfig(
@@ -254,4 +292,5 @@ def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]
         ppo=from_mapping(PPOConfig, data.get("ppo"), "ppo"),
         sac=from_mapping(SACConfig, data.get("sac"), "sac"),
         train=from_mapping(TrainConfig, data.get("train"), "train"),
+        recurrent=from_mapping(RecurrentConfig, data.get("recurrent"), "recurrent"),
     )

@@ -48,9 +48,9 @@ _COUNTERS: dict[str, tuple[type, float, float]] = {
     "start_time": (float, 0, 2**63 - 1), "_stats_window_size": (int, 1, 100_000),  # start_time: ns, or 0.0
 }
 #: The tensors files each learner's zip holds (policy and optimizers) besides pytorch_variables.pth.
-_STATE_DICTS = {"ppo": {"policy", "policy.optimizer"},
+_STATE_DICTS = {"ppo": {"policy", "policy.optimizer"}, "recurrent_ppo": {"policy", "policy.optimizer"},
                 "sac": {"policy", "actor.optimizer", "critic.optimizer", "ent_coef_optimizer"}}
-_VARIABLES = {"ppo": set(), "sac": {"log_ent_coef", "ent_coef_tensor"}}
+_VARIABLES: dict[str, set[str]] = {"ppo": set(), "recurrent_ppo": set(), "sac": {"log_ent_coef", "ent_coef_tensor"}}
 TRUST_HINT = ("pass --trust-pickle to load it the old way if you trust whoever made the file (unpickling runs any "
               "code it holds)")
 
@@ -68,7 +68,11 @@ _KWARG_CLASSES = {
 }
 _KWARG_SCALARS = {"log_std_init": float, "use_sde": bool, "ortho_init": bool, "normalize_images": bool,
                   "share_features_extractor": bool, "squash_output": bool, "full_std": bool, "use_expln": bool,
-                  "n_critics": int, "clip_mean": float}
+                  "n_critics": int, "clip_mean": float, "lstm_hidden_size": int, "n_lstm_layers": int,
+                  "shared_lstm": bool, "enable_critic_lstm": bool}
+#: integer settings a file may not set beyond what genesis-rl builds (a claimed 10**9 LSTM units is an allocation,
+#: not a model)
+_KWARG_INT_BOUNDS = {"n_critics": (1, 16), "lstm_hidden_size": (1, 1024), "n_lstm_layers": (1, 8)}
 
 
 def _class_named(text: Any, allowed: tuple[str, ...]) -> type | None:
@@ -113,7 +117,8 @@ def stored_policy_kwargs(data: dict[str, Any], path: Path, what: str) -> dict[st
             kind = _KWARG_SCALARS[key]
             ok = isinstance(value, bool) if kind is bool else (
                 isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value))
-            if not ok:
+            low, high = _KWARG_INT_BOUNDS.get(key, (-math.inf, math.inf))
+            if not ok or kind is int and not (isinstance(value, int) and low <= value <= high):
                 raise refuse(key)
             out[key] = kind(value)
         elif key == "net_arch":
@@ -134,6 +139,23 @@ def stored_policy_kwargs(data: dict[str, Any], path: Path, what: str) -> dict[st
     return out
 
 
+def learner_class(algorithm: str) -> Any:
+    """The SB3 class of ``train.algorithm`` (sb3-contrib's RecurrentPPO for ``recurrent_ppo``)."""
+    if algorithm == "recurrent_ppo":
+        from sb3_contrib import RecurrentPPO
+
+        return RecurrentPPO
+    from stable_baselines3 import PPO, SAC
+
+    return SAC if algorithm == "sac" else PPO
+
+
+def policy_name(algorithm: str, policy: str) -> str:
+    """The learner's name for the observation's policy class: the recurrent learner's are the LSTM twins of
+    SB3's (``MlpPolicy`` -> ``MlpLstmPolicy``)."""
+    return policy.replace("Policy", "LstmPolicy") if algorithm == "recurrent_ppo" else policy
+
+
 def learner_kwargs(cfg: RunConfig, policy: str) -> dict[str, Any]:
     """The SB3 constructor settings of ``cfg``'s learner (``train.algorithm``): a new model and a loaded one
     are built from the same."""
@@ -147,6 +169,10 @@ def learner_kwargs(cfg: RunConfig, policy: str) -> dict[str, Any]:
                 "gradient_steps": s.gradient_steps, "ent_coef": s.sb3_ent_coef(), "seed": cfg.train.seed,
                 "policy_kwargs": {**kwargs, "net_arch": list(s.net_arch)}}
     p = cfg.ppo
+    if cfg.train.algorithm == "recurrent_ppo":
+        r = cfg.recurrent
+        kwargs = {**kwargs, "lstm_hidden_size": r.lstm_hidden_size, "n_lstm_layers": r.n_lstm_layers,
+                  "enable_critic_lstm": r.enable_critic_lstm}
     return {"learning_rate": p.learning_rate, "n_steps": p.n_steps // cfg.train.envs,
             "batch_size": min(p.batch_size, p.n_steps), "n_epochs": p.n_epochs, "gamma": p.gamma,
             "gae_lambda": p.gae_lambda, "clip_range": p.clip_range, "ent_coef": p.ent_coef, "vf_coef": p.vf_coef,
@@ -231,17 +257,16 @@ def _variables(blob: bytes, algorithm: str, path: Path, what: str) -> None:
 def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: str = "cpu",
                resume_state: dict[str, Any] | None = None, force_reset: bool = True, what: str = "--agent",
                trust_pickle: bool | None = None) -> Any:
-    """The SB3 model in ``path`` (PPO or SAC, as ``cfg`` says), built from ``cfg`` and the file's tensors.
+    """The SB3 model in ``path`` (PPO, SAC or RecurrentPPO, as ``cfg`` says), built from ``cfg`` and the file's
+    tensors.
 
     ``resume_state``: what :func:`read_sb3_state` read beside a checkpoint (the last observation and episode
     starts), for a resumed run; None for an agent that only acts. ``trust_pickle`` (None: the command's
     ``--trust-pickle``) loads through SB3's own ``load`` instead: what an older file without its run's
     config needs."""
-    from stable_baselines3 import PPO, SAC
-
     path = Path(path)
     trust = pickle_trusted() if trust_pickle is None else trust_pickle
-    learners: dict[str, Any] = {"ppo": PPO, "sac": SAC}
+    learners: dict[str, Any] = {"ppo": learner_class("ppo"), "sac": learner_class("sac")}
     if cfg is None:
         if not trust:
             raise UserInputError(f"{what}: '{path}' has no run config.toml beside it (in its folder or the one "
@@ -255,7 +280,7 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
                 errors.append(f"as {name.upper()}: {err}")
         raise UserInputError(f"{what}: '{path}' cannot be loaded ({'; '.join(errors)})")
     algorithm = cfg.train.algorithm
-    cls = learners[algorithm]
+    cls = learner_class(algorithm)
     if trust:
         try:
             return cls.load(path, env=env, device=device, force_reset=force_reset)
@@ -266,7 +291,7 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
     from genesis_rl.env.observation import sb3_policy
 
     data, pth = _read_zip(path, what)
-    policy = sb3_policy(cfg.env.observation_mode)
+    policy = policy_name(algorithm, sb3_policy(cfg.env.observation_mode))
     settings = learner_kwargs(cfg, policy)
     obs_space, action_space = model_spaces(cfg)
     built = settings.pop("policy_kwargs")
@@ -320,10 +345,13 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
             out.writestr(name, blob)
     buffer.seek(0)
     try:
-        return cls.load(buffer, env=env, device=device, custom_objects=custom, force_reset=force_reset)
+        model = cls.load(buffer, env=env, device=device, custom_objects=custom, force_reset=force_reset)
     except Exception as err:  # noqa: BLE001 - weights of another shape, a missing tensor file, ...
         raise UserInputError(f"{what}: '{path}' does not fit the model its run's config.toml describes "
                              f"({type(err).__name__}: {str(err)[:300]})") from None
+    if resume_state is not None:
+        restore_lstm_states(model, resume_state.get("lstm"))
+    return model
 
 
 # -- what a resumed run needs beyond the zip ------------------------------------------------------------
@@ -383,6 +411,11 @@ def write_sb3_state(path: Path, model: Any) -> None:
     _put(arrays, "last_obs", model._last_obs)
     _put(arrays, "last_original_obs", getattr(model, "_last_original_obs", None))
     _put(arrays, "last_episode_starts", model._last_episode_starts)
+    lstm = getattr(model, "_last_lstm_states", None)  # RecurrentPPO: the memory of each env's episode so far
+    if lstm is not None:
+        for part, pair in zip(("pi", "vf"), lstm, strict=True):
+            for name, tensor in zip(("h", "c"), pair, strict=True):
+                arrays[f"lstm/{part}_{name}"] = tensor.detach().cpu().numpy()
     infos = [{k: int(v) if isinstance(v, (int, np.integer)) else float(v) for k, v in info.items()
               if isinstance(v, (int, float, np.floating, np.integer))} for info in (model.ep_info_buffer or [])]
     arrays["ep_info_buffer_json"] = np.asarray(json.dumps(infos))
@@ -428,6 +461,15 @@ def read_sb3_state(path: Path, cfg: RunConfig, n_envs: int) -> dict[str, Any]:
             if not isinstance(starts, np.ndarray) or starts.shape != (n_envs,) or starts.dtype != np.bool_:
                 raise damaged(f"'last_episode_starts' is not {n_envs} booleans")
             infos = json.loads(str(z["ep_info_buffer_json"]))
+            lstm = _take(z, "lstm")
+            if cfg.train.algorithm == "recurrent_ppo":
+                shape = (cfg.recurrent.n_lstm_layers, n_envs, cfg.recurrent.lstm_hidden_size)
+                parts = ("pi_h", "pi_c", "vf_h", "vf_c")
+                if not isinstance(lstm, dict) or set(lstm) != set(parts) or any(
+                        lstm[k].shape != shape or lstm[k].dtype != np.float32 for k in parts):
+                    raise damaged(f"'lstm' is not the recurrent policy's four float32{list(shape)} states")
+            elif lstm is not None:
+                raise damaged(f"it holds an LSTM's states, which a {cfg.train.algorithm} run does not have")
     except UserInputError:
         raise
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, RecursionError) as err:  # EOFError: empty
@@ -438,7 +480,21 @@ def read_sb3_state(path: Path, cfg: RunConfig, n_envs: int) -> dict[str, Any]:
             isinstance(v, (int, float)) for v in i.values()) for i in infos):
         raise damaged("'ep_info_buffer_json' is not a list of numbers by name")
     return {"last_obs": last_obs, "last_original_obs": original, "last_episode_starts": starts,
-            "ep_info_buffer": infos}
+            "ep_info_buffer": infos, "lstm": lstm}
+
+
+def restore_lstm_states(model: Any, lstm: dict[str, np.ndarray] | None) -> None:
+    """Give a resumed RecurrentPPO the memory its envs' episodes had at the checkpoint (sb3-contrib leaves
+    it out of the zip and starts from zeros, so the rollout after a resume would differ)."""
+    if lstm is None:
+        return
+    import torch
+    from sb3_contrib.common.recurrent.type_aliases import RNNStates
+
+    def tensor(key: str) -> torch.Tensor:
+        return torch.as_tensor(lstm[key], device=model.device)
+
+    model._last_lstm_states = RNNStates((tensor("pi_h"), tensor("pi_c")), (tensor("vf_h"), tensor("vf_c")))
 
 
 # -- SAC's replay buffer ----------------------------------------------------------------------------------

@@ -38,9 +38,9 @@ class ChannelsLastNatureCNN(NatureCNN):
 
 def policy_kwargs(policy: str) -> dict[str, Any]:
     """policy_kwargs of a new PPO model: Adam as one fused kernel (torch >= 2.4 has it on the CPU) and, for
-    the image policy, the channels-last Nature CNN."""
+    the image policy (and its LSTM twin), the channels-last Nature CNN."""
     kwargs: dict[str, Any] = {"optimizer_kwargs": {"fused": True}}
-    if policy == "CnnPolicy":
+    if policy in ("CnnPolicy", "CnnLstmPolicy"):
         kwargs["features_extractor_class"] = ChannelsLastNatureCNN
     return kwargs
 

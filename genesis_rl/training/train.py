@@ -1,5 +1,5 @@
-"""``genesis-rl train``: SB3 PPO (or SAC) against GenesisEnv, with checkpoints, resume, TensorBoard and a progress
-bar.
+"""``genesis-rl train``: SB3 PPO (or SAC, or sb3-contrib's RecurrentPPO) against GenesisEnv, with checkpoints,
+resume, TensorBoard and a progress bar.
 
 The run folder keeps everything needed to trust and reuse the agent: the resolved config, the scene
 catalog it trained on, seeds, package version and git commit (``run.json``), checkpoints with their step
@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
@@ -41,9 +40,9 @@ from genesis_rl.env.observation import sb3_policy
 from genesis_rl.loop.rules.reward import RewardConfig
 from genesis_rl.sim.backends import catalog_or_generate
 from genesis_rl.training.checkpoint import CHECKPOINTS, EpisodeLog, load_checkpoint, read_last, save_checkpoint
-from genesis_rl.training.config import RunConfig, check_device_present, load_run_config
+from genesis_rl.training.config import PPO_FAMILY, RunConfig, check_device_present, load_run_config
 from genesis_rl.training.pinning import adopt_pins, check_run, current_pins, write_pins
-from genesis_rl.training.safe_load import learner_kwargs
+from genesis_rl.training.safe_load import learner_class, learner_kwargs, policy_name
 from genesis_rl.training.throughput import RolloutThreads
 
 
@@ -181,15 +180,15 @@ def update_threads(cfg: RunConfig) -> int:
 def max_timesteps(cfg: RunConfig) -> int:
     """The steps a run of ``cfg`` ends at: SB3 collects whole rollouts (PPO: ppo.n_steps over all envs; SAC:
     sac.train_freq steps of every env), so total_timesteps rounds up."""
-    n = cfg.ppo.n_steps if cfg.train.algorithm == "ppo" else cfg.sac.train_freq * cfg.train.envs
+    n = cfg.ppo.n_steps if cfg.train.algorithm in PPO_FAMILY else cfg.sac.train_freq * cfg.train.envs
     return -(-cfg.train.total_timesteps // n) * n
 
 
 def new_model(cfg: RunConfig, env: Any, policy: str) -> BaseAlgorithm:
     """A fresh learner of ``train.algorithm`` for ``env``, seeded with ``train.seed`` (a checkpoint or agent is
     loaded with the same settings: training/safe_load.py)."""
-    learner = SAC if cfg.train.algorithm == "sac" else PPO
-    return learner(policy, env, device=cfg.device, verbose=0, **learner_kwargs(cfg, policy))
+    return learner_class(cfg.train.algorithm)(policy, env, device=cfg.device, verbose=0,
+                                              **learner_kwargs(cfg, policy))
 
 
 def prepare_run(out: Path, cfg: RunConfig, force: bool, resume: bool, argv: list[str],
@@ -274,12 +273,12 @@ def train(cfg: RunConfig, out: Path, force: bool = False, resume: bool = False, 
 def _train_prepared(cfg: RunConfig, out: Path, resume: bool, progress: bool,
                     scale: ExecutorSettings | None = None, extra: Sequence[BaseCallback] = ()) -> dict[str, Any]:
 
-    check_device_present(cfg.train.algorithm, cfg.device)
+    check_device_present(cfg.device_section, cfg.device)
     if cfg.train.torch_threads:
         torch.set_num_threads(cfg.train.torch_threads)
     env = build_vec_env(cfg, out / "catalog.json", scale)
     try:
-        policy = sb3_policy(cfg.env.observation_mode)
+        policy = policy_name(cfg.train.algorithm, sb3_policy(cfg.env.observation_mode))
         sums: dict[int, dict[str, Any]] = {}
         if resume:
             resumed = load_checkpoint(out, env, cfg.device, max_timesteps(cfg), cfg)
