@@ -79,7 +79,7 @@ def test_bad_command_lines_exit_2_with_a_message_and_touch_nothing(tmp_path, cap
         (("render", "--weather", "fog=3", "--out", str(tmp_path / "r")), "--weather: unknown knob 'fog'; allowed:"),
         (("render", "--sweep", "--weather", "fog_density=150", "--out", str(tmp_path / "r")),
          "--weather does not apply with --sweep"),
-        (("render", "--warmup", "-5", "--out", str(tmp_path / "r")), "--warmup must be >= 0, got -5"),
+        (("render", "--warmup", "-5", "--out", str(tmp_path / "r")), "--warmup = -5; allowed: an integer >= 0"),
         (("render", "--map", "urban", "--scene", "5000000", "--out", str(tmp_path / "r")),
          "without a catalog at most 5000 are"),
         (("render", "--out", str(own)), f"'{own / 'rgb.png'}' already exists; pass --force"),

@@ -128,3 +128,36 @@ def test_a_benchmark_stopped_in_its_first_trial_names_resume(tmp_path, monkeypat
         matrix.run_benchmark(spec, tmp_path / "b", progress=False)
     assert "--resume runs the rest" in resume_hint(caught.value)
     assert (tmp_path / "b" / "benchmark.json").exists()
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["scenes", "--count", "0"], "genesis-rl scenes: error: --count = 0; allowed: an integer >= 1"),
+    (["zoo", "truth", "stall_braking", "--held-out", "0"], "genesis-rl zoo: error: --held-out = 0; allowed:"),
+    (["bench", "system", "--frames", "-3"], "genesis-rl bench: error: --frames = -3; allowed: an integer >= 1"),
+    (["harden", "CAMP", "--rounds", "1000"], "genesis-rl harden: error: --rounds = 1,000, over the limit of 100"),
+    (["estimate", "--member", "low_sun", "--workers", "0"], "genesis-rl estimate: error: --workers = 0; allowed"),
+])
+def test_a_count_flag_out_of_bounds_is_refused_as_it_is_parsed(tmp_path, capsys, argv, message) -> None:
+    """Count flags declare their bounds where they are defined (cli_args.count): refused before the command runs,
+    naming the command, the flag and what is allowed, exit 2, nothing written."""
+    out = tmp_path / "out.json"
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_a_count_limit_is_raised_by_its_variable_at_parse_time(monkeypatch, capsys) -> None:
+    import argparse
+
+    from genesis_rl.commands.cli_args import count
+    from genesis_rl.core import limits
+    from genesis_rl.core.errors import UserInputError
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=5)
+    assert parser.parse_args([]).steps == 5
+    with pytest.raises(UserInputError, match="--steps = 200,000, over the limit of 100,000"):
+        parser.parse_args(["--steps", "200000"])
+    monkeypatch.setenv("GENESIS_RL_MAX_SIM_STEPS", "300000")
+    assert parser.parse_args(["--steps", "200000"]).steps == 200_000

@@ -248,7 +248,7 @@ def test_drive_threads_are_checked_and_only_set_for_the_run(tmp_path, capsys) ->
 
     before = torch.get_num_threads()
     assert main(["drive", "--threads", "0", "--out", str(tmp_path / "x")]) == 2
-    assert "--threads must be >= 1, got 0" in capsys.readouterr().err
+    assert "--threads = 0; allowed: an integer >= 1" in capsys.readouterr().err
     assert main(["drive", "--map", "highway", "--scene", "0", "--system", "blind", "--steps", "2", "--no-gif",
                  "--threads", "1", "--quiet", "--out", str(tmp_path / "y")]) == 0
     assert torch.get_num_threads() == before  # a notebook's or test's own setting survives the command

@@ -109,6 +109,12 @@ def _main(argv: list[str] | None, named: list[str]) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
+    except UserInputError as err:  # a count flag out of its bounds (cli_args.count)
+        names = next(a.choices for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # aliases too
+        command = next((a for a in (sys.argv[1:] if argv is None else argv) if a in names), None)
+        print(" ".join(["genesis-rl", *([command] if command else [])]) + f": error: {terminal_safe(str(err))}",
+              file=sys.stderr)
+        return err.exit_code
     except OSError as err:  # --help or --version to a full disk or a closed pipe (Parser above)
         print(f"genesis-rl: error: the help or version text could not be written ({err.strerror or err})",
               file=sys.stderr)

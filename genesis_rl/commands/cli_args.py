@@ -3,7 +3,32 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
+from typing import Any
 
+from genesis_rl.core.errors import UserInputError
+from genesis_rl.core.limits import Limit
+
+
+def count(low: int = 1, limit: Limit | None = None) -> type[argparse.Action]:
+    """``action=count(1, limits.SIM_STEPS)`` beside ``type=int``: a count flag's bounds, declared where the flag
+    is. A value below ``low`` or over the limit (which its environment variable may raise) is refused as the
+    flag is parsed, naming it and what is allowed (exit 2), before any command has imported or written
+    anything. (A ``UserInputError``, not an argparse type error: argparse would replace a ValueError's message
+    with "invalid value".)"""
+
+    class Count(argparse.Action):
+        def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                     values: str | Sequence[Any] | None, option_string: str | None = None) -> None:
+            flag = option_string or self.dest
+            value = int(values)  # type: ignore[arg-type] # type=int converted it
+            if value < low:
+                raise UserInputError(f"{flag} = {value}; allowed: an integer >= {low}")
+            if limit is not None:
+                limit.check(value, flag)
+            setattr(namespace, self.dest, value)
+
+    return Count
 
 def seed_int(text: str) -> int:
     """An integer >= 0: numpy's generators refuse negative seeds, and would do so with a traceback."""

@@ -6,9 +6,8 @@ import argparse
 import json
 import time
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import count, seed_int
 from genesis_rl.core import limits
-from genesis_rl.core.errors import UserInputError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -19,9 +18,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                        "winner is the open-loop baseline for evaluate --policies constant --constant-action.")
     p.add_argument("--config", default=None, help="TOML config whose [env] is used (e.g. configs/reactive.toml)")
     p.add_argument("--map", default=None, help="map of the scenes (default: the config's env.map, the training map)")
-    p.add_argument("--scenes", type=int, default=10, help="training scenes drawn by --seed (default: 10)")
+    p.add_argument("--scenes", type=int, action=count(1, limits.SCENES), default=10,
+                   help="training scenes drawn by --seed (default: 10)")
     p.add_argument("--seed", type=seed_int, default=0, help="draws the scenes and their episode seeds")
-    p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the config's)")
+    p.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=None,
+                   help="steps per episode (default: the config's)")
     p.add_argument("--out", required=True, help="output JSON")
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -30,13 +31,6 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.steps is not None:  # before anything is imported or built: --steps 1000000000000 would run for years
-        if args.steps < 1:
-            raise UserInputError(f"--steps must be >= 1, got {args.steps}")
-        limits.SIM_STEPS.check(args.steps, "--steps")
-    if args.scenes < 1:
-        raise UserInputError(f"--scenes must be >= 1, got {args.scenes}")
-    limits.SCENES.check(args.scenes, "--scenes")
     from genesis_rl.analysis.corners import search_corners
     from genesis_rl.campaigns.campaign_files import env_named_files
     from genesis_rl.campaigns.campaign_spec import pick_scenes

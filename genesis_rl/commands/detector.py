@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import count, seed_int
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 
@@ -24,15 +24,9 @@ def _train(args: argparse.Namespace) -> int:
     defaults = DetectorTrainConfig()
     changes: dict = {"seed": args.seed, "condition": args.condition}
     if args.frames is not None:
-        if args.frames < 1:
-            raise UserInputError(f"--frames must be >= 1, got {args.frames}")
-        limits.FRAMES.check(args.frames, "--frames")
         changes["train_scenes"] = max(1, math.ceil(args.frames / defaults.frames_per_scene))
         changes["val_scenes"] = max(1, min(defaults.val_scenes, math.ceil(changes["train_scenes"] / 6)))
     if args.epochs is not None:
-        if args.epochs < 1:
-            raise UserInputError(f"--epochs must be >= 1, got {args.epochs}")
-        limits.EPOCHS.check(args.epochs, "--epochs")
         changes["epochs"] = args.epochs
     cfg = dataclasses.replace(defaults, **changes)
     from genesis_rl.core.files.output_paths import check_folder_output
@@ -62,8 +56,6 @@ def _eval(args: argparse.Namespace) -> int:
     if bad or not conds:
         raise UserInputError(f"--conditions: unknown condition(s) {bad or '(none given)'}; "
                              f"allowed: {', '.join(CONDITIONS)}")
-    if args.frames_per_condition < 1:
-        raise UserInputError(f"--frames-per-condition must be >= 1, got {args.frames_per_condition}")
     limits.FRAMES.check(args.frames_per_condition * len(maps) * len(conds), "--frames-per-condition",
                         f"{args.frames_per_condition} x {len(maps)} maps x {len(conds)} conditions")
     from genesis_rl.core.files.output_paths import check_folder_output, check_inputs
@@ -104,9 +96,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     tr = dsub.add_parser("train", help="render typical-weather urban frames and train the detector")
     tr.add_argument("--out", default="out/detector",
                     help="output directory (vehicle_detector.pt, vehicle_detector.json, cached datasets)")
-    tr.add_argument("--frames", type=int, default=None,
+    tr.add_argument("--frames", type=int, action=count(1, limits.FRAMES), default=None,
                     help="training frames (default: the shipped recipe's 3600; 4 frames per scene)")
-    tr.add_argument("--epochs", type=int, default=None, help="training epochs (default: the shipped recipe's)")
+    tr.add_argument("--epochs", type=int, action=count(1, limits.EPOCHS), default=None,
+                    help="training epochs (default: the shipped recipe's)")
     tr.add_argument("--seed", type=seed_int, default=0, help="seed of weather draws, init, shuffling, augmentation")
     tr.add_argument("--condition", default="typical",
                     help="weather distribution of the training frames (default: typical, the shipped recipe; "
@@ -120,7 +113,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     help="builtin (our CNN, default) or coco (the photo-trained yolov3-tiny of --system coco)")
     ev.add_argument("--weights", default=None, help="detector checkpoint (default: the shipped weights; coco: a "
                                                     "model folder, default: the model store)")
-    ev.add_argument("--frames-per-condition", type=int, default=200, help="frames per (map, condition)")
+    ev.add_argument("--frames-per-condition", type=int, action=count(1), default=200,
+                    help="frames per (map, condition)")
     ev.add_argument("--maps", default="urban,highway", help="comma-separated maps: urban, highway")
     ev.add_argument("--conditions", default=None,
                     help="comma-separated conditions (default: all: typical, clear, fog30, fog60, fog90, rain, "

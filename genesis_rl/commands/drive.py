@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import count, seed_int
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
@@ -190,7 +190,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--weights", default=None,
                    help="detector weights for --system builtin or yolo (default: the shipped ones), or the "
                         "model folder for coco (default: the model store)")
-    p.add_argument("--steps", type=int, default=512, help="steps per episode, 0.05 s each (default: 512)")
+    p.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=512,
+                   help="steps per episode, 0.05 s each (default: 512)")
     p.add_argument("--width", type=int, default=320, help="camera width [px] (default: 320)")
     p.add_argument("--height", type=int, default=240, help="camera height [px] (default: 240)")
     p.add_argument("--out", required=True, help="output directory")
@@ -200,7 +201,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--gif-stride", type=int, default=2, help="keep every Nth frame in the GIF (default: 2)")
     p.add_argument("--gif-from", type=int, default=0, help="first step shown in the GIF (default: 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=int, action=count(1, limits.THREADS), default=1,
                    help="torch CPU threads for the system under test (default 1: the arithmetic of evaluate and "
                         "replay, and no slowdown when several processes share the cores)")
     add_backend_arguments(p)
@@ -213,14 +214,8 @@ def run(args: argparse.Namespace) -> int:
     from genesis_rl.world.knobs import parse_weather
     from genesis_rl.world.weather_schedule import load_schedule
 
-    if args.steps < 1:
-        raise UserInputError(f"--steps must be >= 1, got {args.steps}")
-    limits.SIM_STEPS.check(args.steps, "--steps")
     if not 1 <= args.gif_stride <= args.steps:  # a stride past the episode keeps one frame; past 2**63 overflows
         raise UserInputError(f"--gif-stride = {args.gif_stride}; allowed: 1..{args.steps} (--steps)")
-    if args.threads < 1:
-        raise UserInputError(f"--threads must be >= 1, got {args.threads}")
-    limits.THREADS.check(args.threads, "--threads")
     if args.gif_from < 0 or args.gif_from >= args.steps:
         raise UserInputError(f"--gif-from must be a step in 0..{args.steps - 1} (--steps {args.steps}), "
                              f"got {args.gif_from}")

@@ -7,24 +7,18 @@ import argparse
 import json
 from pathlib import Path
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 
 
 def run(args: argparse.Namespace) -> int:
-    from genesis_rl.core import limits
     from genesis_rl.core.files.output_paths import check_folder_output
     from genesis_rl.estimation.nominal import load_starts
     from genesis_rl.estimation.run import EstimateSpec, run_estimate
     from genesis_rl.sut.zoo.members import zoo_member
 
     member = zoo_member(args.member)  # an unknown name is refused with the list
-    if args.workers < 1:
-        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
-    limits.WORKERS.check(args.workers, "--workers")
-    limits.SCENES.check(args.episodes, "--episodes")
-    if args.steps is not None:
-        limits.SIM_STEPS.check(args.steps, "--steps")
     check_folder_output(args.out)
     nominal = load_starts(Path(args.nominal)) if args.nominal else None
     if args.weights is not None and not Path(args.weights).exists():
@@ -67,7 +61,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--method", default="importance", choices=["crude", "importance"],
                    help="crude: episodes drawn from the nominal model; importance: from a cross-entropy-adapted "
                         "start proposal with a defensive share of nominal starts, weighted (default)")
-    p.add_argument("--episodes", type=int, default=120, help="episodes in all (default 120)")
+    p.add_argument("--episodes", type=int, action=count(1, limits.SCENES), default=120,
+                   help="episodes in all (default 120)")
     p.add_argument("--stages", type=int, default=4,
                    help="importance: stages; all but the last adapt the proposal by cross-entropy (default 4)")
     p.add_argument("--pilot", type=float, default=0.5,
@@ -95,14 +90,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "(default), or adapted, every stage after the first (broad) pilot, pooled with fixed "
                         "weights (unbiased; better where the failure is an event's tail, docs/estimation.md); "
                         "a resumed estimate may change it (the same episodes, read again)")
-    p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's)")
+    p.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=None,
+                   help="steps per episode (default: the member's)")
     p.add_argument("--nominal", default=None,
                    help="a TOML file of start ranges replacing the default nominal model (docs/estimation.md)")
     p.add_argument("--weights", default=None,
                    help="the member's system with these detector weights (a hardened one: genesis-rl harden); "
                         "default: the member's own")
     p.add_argument("--seed", type=seed_int, default=0, help="every draw flows from it (default 0)")
-    p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
+    p.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1,
+                   help="episode processes (results do not depend on it)")
     p.add_argument("--out", required=True, help="output folder: episodes.csv, estimate.json, estimate.png")
     p.add_argument("--force", action="store_true", help="replace an estimate already in --out")
     p.add_argument("--resume", action="store_true",

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from genesis_rl.campaigns.summary import summary_rule_metrics
-from genesis_rl.commands.cli_args import add_odd_arguments, add_scale_arguments, odd_overrides_from_args
+from genesis_rl.commands.cli_args import add_odd_arguments, add_scale_arguments, count, odd_overrides_from_args
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.sim.backends import add_backend_arguments, check_backend_setting, env_overrides_from_args
@@ -52,21 +52,25 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--map", default=None, help="test map (default: the --catalog's map, else highway; the agent "
                                                "trains on urban)")
     p.add_argument("--catalog", default=None, help="test catalog file (default: the map's generated catalog)")
-    p.add_argument("--catalog-seed", type=int, default=0, help="seed of the generated test catalog")
+    p.add_argument("--catalog-seed", type=int, action=count(0), default=0, help="seed of the generated test catalog")
     p.add_argument("--traffic", default="mixed", choices=TRAFFIC,
                    help="traffic of the generated test catalog: mixed (default, the paper's: the lead stops now "
                         "and then) or free_flow (lite; everyone cruises near the limit, nobody stops on its own)")
-    p.add_argument("--scenes", type=int, default=50, help="scenes picked from the catalog by --seed")
-    p.add_argument("--seed", type=int, default=0, help="campaign seed: scene choice and episode seeds")
-    p.add_argument("--steps", type=int, default=512, help="steps per episode (0.05 s each)")
+    p.add_argument("--scenes", type=int, action=count(1, limits.SCENES), default=50,
+                   help="scenes picked from the catalog by --seed")
+    p.add_argument("--seed", type=int, action=count(0), default=0, help="campaign seed: scene choice and episode seeds")
+    p.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=512,
+                   help="steps per episode (0.05 s each)")
     p.add_argument("--system", default=None, help="system under test (default: the agent's)")
     p.add_argument("--weights", default=None,
                    help="detector weights of the system under test (builtin or yolo; default: the shipped ones; "
                         "coco: a model folder): "
                         "an agent against a detector it never trained with")
     p.add_argument("--config", default=None, help="TOML with an [env] table, when no --agent is given")
-    p.add_argument("--search-budget", type=int, default=8, help="episodes per scene a search baseline may spend")
-    p.add_argument("--search-segments", type=int, default=4, help="piecewise-constant segments of a searched schedule")
+    p.add_argument("--search-budget", type=int, action=count(2, limits.SEARCH_BUDGET), default=8,
+                   help="episodes per scene a search baseline may spend")
+    p.add_argument("--search-segments", type=int, action=count(1), default=4,
+                   help="piecewise-constant segments of a searched schedule")
     p.add_argument("--constant-action", default=None, metavar="A,B,...",
                    help="policy 'constant': its action, one value in [-1, 1] per knob (default: 1 on every knob)")
     p.add_argument("--start", default="fixed", choices=["fixed", "natural"],
@@ -75,9 +79,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "draws them inside the ODD, constant takes its corner, the searches search them)")
     p.add_argument("--records", default="failures", choices=["failures", "all"],
                    help="write replayable edge-case records for failing episodes only, or for all")
-    p.add_argument("--retries", type=int, default=2,
+    p.add_argument("--retries", type=int, action=count(0, limits.RETRIES), default=2,
                    help="times an episode is retried after reconnecting when the simulator dies mid-episode")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1,
                    help="parallel workers (processes, or Ray actors with --executor ray), one episode each at a time")
     add_scale_arguments(p, "--workers")
     p.add_argument("--out", default=None, help="campaign folder (default: AGENT/eval)")
@@ -96,24 +100,6 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     # counts first, before any policy is imported: a refused budget answers at once
-    for flag in ("seed", "catalog_seed"):
-        if getattr(args, flag) < 0:
-            raise UserInputError(f"--{flag.replace('_', '-')} = {getattr(args, flag)} must be >= 0")
-    if args.retries < 0:
-        raise UserInputError(f"--retries = {args.retries} must be >= 0")
-    limits.RETRIES.check(args.retries, "--retries")
-    if args.workers < 1:
-        raise UserInputError(f"--workers = {args.workers} must be >= 1")
-    limits.WORKERS.check(args.workers, "--workers")
-    limits.SCENES.check(args.scenes, "--scenes")
-    if args.steps < 1:
-        raise UserInputError(f"--steps = {args.steps} must be >= 1")
-    limits.SIM_STEPS.check(args.steps, "--steps")  # as drive --steps: 999999999 ran for days
-    if args.search_segments < 1:
-        raise UserInputError(f"--search-segments = {args.search_segments} must be >= 1")
-    if args.search_budget < 2:
-        raise UserInputError(f"--search-budget = {args.search_budget} must be >= 2 episodes")
-    limits.SEARCH_BUDGET.check(args.search_budget, "--search-budget")  # 1000000000 would search for years
     if args.search_segments > args.steps:
         raise UserInputError(f"--search-segments = {args.search_segments} must be at most --steps = {args.steps} "
                              "(a segment is at least one step)")

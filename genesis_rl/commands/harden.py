@@ -7,22 +7,16 @@ import argparse
 import json
 from pathlib import Path
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.harden.page import clear_text
 
 
 def run(args: argparse.Namespace) -> int:
-    from genesis_rl.core import limits
     from genesis_rl.core.files.output_paths import check_folder_output
     from genesis_rl.harden.rounds import HardenSpec, run_harden
 
-    if args.workers < 1:
-        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
-    limits.WORKERS.check(args.workers, "--workers")
-    limits.SCENES.check(args.test_scenes, "--test-scenes")
-    limits.ROUNDS.check(args.rounds, "--rounds")
-    limits.FRAMES.check(args.clear_frames, "--clear-frames")
     check_folder_output(args.out)
     finetune = {k: v for k, v in (("epochs", args.epochs), ("lr", args.lr), ("original_frames", args.original_frames),
                                   ("failure_repeat", args.failure_repeat),
@@ -34,10 +28,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserInputError("--epochs, --lr, --original-frames, --failure-repeat, --validation-frames, --distill "
                              f"and --keep-threshold set the built-in fine-tune; --retrain {args.retrain} takes none of "
                              "them")
-    if args.attack_scenes is not None:
-        limits.SCENES.check(args.attack_scenes, "--attack-scenes")
-    if args.retest_scenes:
-        limits.SCENES.check(args.retest_scenes, "--retest-scenes")
     spec = HardenSpec(campaign=args.campaign, rounds=args.rounds, test_scenes=args.test_scenes,
                       attack_scenes=args.attack_scenes,
                       test_catalog_seed=args.test_catalog_seed, test_catalog=args.test_catalog, seed=args.seed,
@@ -93,9 +83,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("campaign", help="the attack campaign folder (genesis-rl evaluate; one inside a benchmark run "
                                     "will do): its system, ODD, adversaries and steps are the ones hardened against")
     p.add_argument("--out", required=True, help="output folder: harden.json, harden.html, harden.png, round_N/")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of attack -> retrain -> re-test (default 3)")
-    p.add_argument("--test-scenes", type=int, default=20, help="held-out scenes of every re-test (default 20)")
-    p.add_argument("--attack-scenes", type=int, default=None,
+    p.add_argument("--rounds", type=int, action=count(1, limits.ROUNDS), default=3,
+                   help="rounds of attack -> retrain -> re-test (default 3)")
+    p.add_argument("--test-scenes", type=int, action=count(1, limits.SCENES), default=20,
+                   help="held-out scenes of every re-test (default 20)")
+    p.add_argument("--attack-scenes", type=int, action=count(1, limits.SCENES), default=None,
                    help="scenes of the later rounds' attacks and the final one (default: the campaign's count); a "
                         "hardened system fails rarely, so what is left takes a bigger attack")
     p.add_argument("--test-catalog-seed", type=int, default=None,
@@ -124,7 +116,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "0: off)")
     p.add_argument("--keep-threshold", action="store_true",
                    help="builtin fine-tune: keep the checkpoint's score threshold instead of re-picking it")
-    p.add_argument("--clear-frames", type=int, default=200,
+    p.add_argument("--clear-frames", type=int, action=count(1, limits.FRAMES), default=200,
                    help="clear-day evaluation frames on the campaign's map (default 200)")
     p.add_argument("--tolerance", type=float, default=0.01,
                    help="the largest clear-day precision or recall drop a round may cause (default 0.01)")
@@ -141,12 +133,13 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="near misses join the data: collision-free episodes whose time to collision with the lead "
                         "fell to SECONDS or below inside the ODD, replayed from their records for their frames up "
                         "to the closest approach (default 1.5, the traffic-conflict line; 0: failures only)")
-    p.add_argument("--retest-scenes", type=int, default=0,
+    p.add_argument("--retest-scenes", type=int, action=count(0, limits.SCENES), default=0,
                    help="after the rounds, re-test the weights before any round and every round's on this many "
                         "held-out scenes (the same for all; default 0: none). 20 scenes cannot tell a rate of 0.10 "
                         "from 0.05; may be added on --resume")
     p.add_argument("--seed", type=seed_int, default=0, help="the retraining's draws flow from it (default 0)")
-    p.add_argument("--workers", type=int, default=1, help="episode processes (results do not depend on it)")
+    p.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1,
+                   help="episode processes (results do not depend on it)")
     p.add_argument("--force", action="store_true", help="replace a hardening already in --out")
     p.add_argument("--resume", action="store_true", help="continue the hardening in --out where it stopped "
                                                          "(--rounds may grow; --retest-scenes, --adversary, "

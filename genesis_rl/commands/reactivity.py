@@ -7,8 +7,8 @@ import json
 import time
 from pathlib import Path
 
+from genesis_rl.commands.cli_args import count
 from genesis_rl.core import limits
-from genesis_rl.core.errors import UserInputError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -24,7 +24,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, default=None, help="the campaign's first N scenes (default: all)")
     p.add_argument("--no-other-seeds", action="store_true", help="skip the same-scene, other-seed comparison "
                    "(halves the cost: 2 episodes a scene instead of 4)")
-    p.add_argument("--workers", type=int, default=1, help="parallel processes, one episode "
+    p.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1,
+                   help="parallel processes, one episode "
                    "each at a time (default: 1); the result is the same for any number")
     p.add_argument("--out", default=None, help="output JSON (default: CAMPAIGN/reactivity_POLICY.json)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -35,12 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from genesis_rl.analysis.reactivity import measure_campaign
-    from genesis_rl.core.files.output_paths import output_file
-
-    if args.workers < 1:
-        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
-    limits.WORKERS.check(args.workers, "--workers")
     from genesis_rl.campaigns.campaign_files import campaign_named_files
+    from genesis_rl.core.files.output_paths import output_file
 
     out = output_file(args.out if args.out else Path(args.campaign) / f"reactivity_{args.policy}.json", args.force,
                       inputs=[args.campaign, *campaign_named_files(Path(args.campaign))],

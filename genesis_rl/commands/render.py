@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import count, seed_int
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
@@ -161,13 +161,14 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--map", default="urban", help="map name: urban or highway (default: urban; scene generated "
                    "with --seed)")
     p.add_argument("--catalog", default=None, help="take the scene from this catalog file instead")
-    p.add_argument("--scene", type=int, default=0, help="scene index (default: 0)")
+    p.add_argument("--scene", type=int, action=count(0), default=0, help="scene index (default: 0)")
     p.add_argument("--seed", type=seed_int, default=0, help="catalog seed when no --catalog is given")
     p.add_argument("--weather", default=None, help=_weather_help())
     p.add_argument("--sweep", action="store_true", help="write a contact sheet sweeping each knob")
     p.add_argument("--width", type=int, default=320, help="image width [px] (default: 320)")
     p.add_argument("--height", type=int, default=240, help="image height [px] (default: 240)")
-    p.add_argument("--warmup", type=int, default=0, help="simulation steps before the frame")
+    p.add_argument("--warmup", type=int, action=count(0, limits.SIM_STEPS), default=0,
+                   help="simulation steps before the frame")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.set_defaults(func=run)
@@ -179,11 +180,6 @@ def run(args: argparse.Namespace) -> int:
     from genesis_rl.sim.interface import CameraConfig
     from genesis_rl.world.knobs import parse_weather
 
-    if args.scene < 0:
-        raise UserInputError(f"--scene must be >= 0, got {args.scene}")
-    if args.warmup < 0:
-        raise UserInputError(f"--warmup must be >= 0, got {args.warmup}")
-    limits.SIM_STEPS.check(args.warmup, "--warmup")
     if args.sweep and args.weather is not None:
         raise UserInputError("--weather does not apply with --sweep: the sheet sweeps each knob from clear noon")
     catalog = catalog_or_generate(args.catalog, args.map, args.scene + 1, args.seed)

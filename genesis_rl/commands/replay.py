@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from genesis_rl.commands.cli_args import count
 from genesis_rl.core.errors import UserInputError
 
 if TYPE_CHECKING:
@@ -34,7 +35,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("record", help="edge-case record (CAMPAIGN/records/*.json)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--weights", default=None, help="detector weights, when the recorded file has moved")
-    p.add_argument("--gif-seconds", type=int, default=6, help="seconds before the collision in the GIF (0: all)")
+    p.add_argument("--gif-seconds", type=int, action=count(0), default=6,
+                   help="seconds before the collision in the GIF (0: all)")
     p.add_argument("--no-gif", action="store_true", help="skip the animation")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.add_argument("--world-seed", type=int, default=None,
@@ -52,8 +54,6 @@ def run(args: argparse.Namespace) -> int:
     from genesis_rl.loop.drive import write_telemetry
     from genesis_rl.loop.frames import annotate_frame, write_gif
 
-    if args.gif_seconds is not None and args.gif_seconds < 0:
-        raise UserInputError(f"--gif-seconds must be >= 0, got {args.gif_seconds}")
     if args.world_seed is not None and not 0 <= args.world_seed < 2**63:
         raise UserInputError(f"--world-seed = {args.world_seed}; allowed: an integer in 0..2**63-1")
     rec = load_record(args.record)

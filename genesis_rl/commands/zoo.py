@@ -8,6 +8,8 @@ import json
 import math
 from pathlib import Path
 
+from genesis_rl.commands.cli_args import count
+from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 
 
@@ -53,13 +55,8 @@ def _list(args: argparse.Namespace) -> int:
 
 def _sweep(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.sweep import SweepSpec, run_sweep
-    from genesis_rl.core import limits
     from genesis_rl.core.files.output_paths import check_folder_output
 
-    if args.workers < 1:
-        raise UserInputError(f"--workers = {args.workers}; allowed: an integer >= 1")
-    limits.WORKERS.check(args.workers, "--workers")
-    limits.SCENES.check(args.scenes, "--scenes")
     spec = SweepSpec(member=args.member, knob=args.knob, values=_values(args.values), scenes=args.scenes,
                      seed=args.seed, steps=args.steps, hold=_hold(args.hold))
     check_folder_output(args.out)
@@ -85,15 +82,9 @@ def _sweep(args: argparse.Namespace) -> int:
 
 def _truth(args: argparse.Namespace) -> int:
     from genesis_rl.benchmark.reactive_truth import measure, plot_truth
-    from genesis_rl.core import limits
     from genesis_rl.core.files.io_utils import atomic_write_json, ensure_writable
     from genesis_rl.core.files.output_paths import output_file
 
-    for value, flag, low in ((args.tuning, "--tuning", 1), (args.held_out, "--held-out", 1),
-                             (args.workers, "--workers", 1)):
-        if value < low:
-            raise UserInputError(f"{flag} = {value}; allowed: an integer >= {low}")
-    limits.WORKERS.check(args.workers, "--workers")
     limits.SCENES.check(args.tuning + args.held_out, "--tuning + --held-out")
     from genesis_rl.benchmark.reactive_truth import WATCHERS
 
@@ -142,10 +133,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     sw.add_argument("--hold", default=None,
                     help="other knobs held at one value for every swept value, e.g. lead_decel=6 (a region over two "
                          "knobs: sweep one, hold the other inside it)")
-    sw.add_argument("--scenes", type=int, default=8, help="scenes (episodes) per value (default 8)")
+    sw.add_argument("--scenes", type=int, action=count(1, limits.SCENES), default=8,
+                    help="scenes (episodes) per value (default 8)")
     sw.add_argument("--seed", type=seed_int, default=0, help="campaign seed: which scenes and episode seeds")
-    sw.add_argument("--steps", type=int, default=None, help="steps per episode (default: the member's own)")
-    sw.add_argument("--workers", type=int, default=1, help="parallel episodes")
+    sw.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=None,
+                    help="steps per episode (default: the member's own)")
+    sw.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1, help="parallel episodes")
     sw.add_argument("--out", required=True, help="sweep folder")
     sw.add_argument("--resume", action="store_true", help="continue the sweep in --out where it stopped")
     sw.add_argument("--force", action="store_true", help="replace an existing sweep folder")
@@ -159,13 +152,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "the first triggers it in >= 60 % of held-out episodes and the second in <= 15 %. Writes "
                     "FILE.json and FILE.png (docs/zoo.md).")
     tr.add_argument("member", help="a reactive zoo member: stall_braking")
-    tr.add_argument("--tuning", type=int, default=4, help="tuning scenes each fixed onset is played on (default 4)")
-    tr.add_argument("--held-out", type=int, default=30, help="held-out scenes both policies play (default 30)")
+    tr.add_argument("--tuning", type=int, action=count(1), default=4,
+                    help="tuning scenes each fixed onset is played on (default 4)")
+    tr.add_argument("--held-out", type=int, action=count(1), default=30,
+                    help="held-out scenes both policies play (default 30)")
     tr.add_argument("--onsets", default=None,
                     help="comma list of fixed onsets [s] to search (default every second of the episode but "
                          "its last 4)")
     tr.add_argument("--seed", type=seed_int, default=0, help="catalog seed and the source of the world seeds")
-    tr.add_argument("--workers", type=int, default=1, help="parallel episodes")
+    tr.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1, help="parallel episodes")
     tr.add_argument("--out", required=True, help="result file, .json (the plot beside it, .png)")
     tr.add_argument("--force", action="store_true", help="replace an existing result")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
