@@ -201,16 +201,33 @@ def test_zoo_truth_refuses_a_member_without_a_watcher_and_a_bad_out(tmp_path, ca
 def test_the_truth_plot_shows_both_policies_against_the_thresholds(tmp_path):
     from genesis_rl.benchmark.reactive_truth import plot_truth
 
-    cell = {"triggered": 3, "episodes": 10, "share": 0.3, "ci95": [0.07, 0.65]}
+    cell = {"counted": 3, "triggered": 3, "episodes": 10, "share": 0.3, "triggered_share": 0.3, "ci95": [0.07, 0.65]}
     result = {"member": "stall_braking", "onsets_s": [0.0, 1.0, 2.0], "tuning_episodes": 6, "held_out_episodes": 10,
-              "tuning_triggered_by_onset": {"0": 0, "1": 2, "2": 1}, "best_fixed_onset_s": 1.0,
-              "reactive_policy": "stall_watcher", "reactive": {**cell, "triggered": 8, "share": 0.8,
-                                                               "ci95": [0.44, 0.97]}, "best_fixed": cell}
+              "tuning_counted_by_onset": {"0": 0, "1": 2, "2": 1}, "best_fixed_onset_s": 1.0,
+              "reactive_policy": "stall_watcher", "reactive": {**cell, "counted": 2, "triggered": 8, "share": 0.2,
+                                                               "triggered_share": 0.8, "ci95": [0.03, 0.56]},
+              "best_fixed": cell}
     plot_truth(result, tmp_path / "t.png")
     from PIL import Image
 
     with Image.open(tmp_path / "t.png") as im:
         assert im.size[0] > 800 and im.size[1] > 300
+
+
+def test_the_truth_counts_a_failure_as_the_benchmark_confirms_it_triggered_and_avoidable():
+    from genesis_rl.benchmark.reactive_truth import Episode, _share
+
+    def ep(reached, failure, unavoidable=None):
+        return Episode("stall_watcher", None, 0, 1, reached, failure, unavoidable)
+
+    episodes = [ep(100, 236, True), ep(100, 266, False), ep(300, 250, False), ep(None, 200, False), ep(50, None),
+                ep(None, None)]
+    assert [e.triggered for e in episodes] == [True, True, False, False, False, False]
+    assert [e.counts for e in episodes] == [False, True, False, False, False, False]
+    cell = _share(episodes)
+    assert (cell["counted"], cell["triggered"], cell["unavoidable"], cell["failed"], cell["reached"]) == (1, 2, 1, 4, 4)
+    assert cell["share"] == round(1 / 6, 4) and cell["triggered_share"] == round(2 / 6, 4)
+    assert cell["ci95"][0] < cell["share"] < cell["ci95"][1]
 
 
 def test_a_steps_file_must_hold_as_many_rows_as_its_episode_row_says(tmp_path):

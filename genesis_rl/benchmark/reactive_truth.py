@@ -6,11 +6,14 @@ the system to hit it. Two policies measure that on the member (``adversaries.scr
 - the scripted reactive policy written from the mechanism (``stall_watcher``), played on held-out scenes and
   world seeds;
 - the best fixed schedule: ``fixed_onset`` at every onset of a grid, each played on the tuning scenes (world
-  seeds apart from the held-out ones), the onset with the most triggered in-ODD failures kept (ties: the
-  earliest) and played on the held-out ones.
+  seeds apart from the held-out ones), the onset with the most counted failures kept (ties: the earliest) and
+  played on the held-out ones.
 
-A member passes when the reactive policy triggers it in at least :data:`REACTIVE_AT_LEAST` of the held-out
-episodes and the best fixed schedule in at most :data:`FIXED_AT_MOST` (docs/zoo.md). The grid spends
+A failure *counts* as the benchmark's confirmed ones do: in the ODD, triggered (at or after the episode first
+entered the trigger region) and not blamed unavoidable (when the tester braked the vehicle hit, the R157
+careful driver in the ego's place avoids it). A member passes when the reactive policy's failures count in at
+least :data:`REACTIVE_AT_LEAST` of the held-out episodes and the best fixed schedule's in at most
+:data:`FIXED_AT_MOST` (docs/zoo.md). The triggered shares, blame aside, are kept beside them. The grid spends
 ``len(onsets) * tuning`` episodes, ten times and more the 8 a search spends on a scene by default.
 """
 
@@ -49,10 +52,17 @@ class Episode:
     world_seed: int
     reached_at: int | None
     failure_at: int | None
+    #: the failure's blame is "unavoidable" (the careful driver collides too); None: no failure
+    unavoidable: bool | None = None
 
     @property
     def triggered(self) -> bool:
         return self.failure_at is not None and self.reached_at is not None and self.failure_at >= self.reached_at
+
+    @property
+    def counts(self) -> bool:
+        """Triggered and avoidable: what the benchmark confirms (re-runs aside: the truth plays each world once)."""
+        return self.triggered and not self.unavoidable
 
 
 def world_seeds(seed: int, split: int, count: int) -> list[int]:
@@ -89,15 +99,34 @@ def _play(task: tuple[str, float | None, int, int]) -> Episode:
     options = {} if onset is None else {"onset_s": onset}
     policy = resolve_policy(name)(PolicyContext(runner.env.mapper.action_dim, _WORKER["seed"], options=options))
     outcome = policy.run_episode(runner.in_world(world_seed), scene, world_seed)
-    return Episode(name, onset, scene, world_seed, m.trigger.reached(outcome.records),
-                   in_odd_failure_at(outcome.records))
+    failure_at = in_odd_failure_at(outcome.records)
+    return Episode(name, onset, scene, world_seed, m.trigger.reached(outcome.records), failure_at,
+                   None if failure_at is None else unavoidable(outcome, failure_at, runner.env.dt))
+
+
+def unavoidable(outcome: Any, hit_at: int, dt: float) -> bool:
+    """The campaign's blame of the failure at ``hit_at`` (``campaigns.episodes``), without the oracle replay,
+    which only tells perception from control: with a careful-driver reference (the tester acted on the vehicle
+    hit) unavoidable when that driver collides too, else when the hit was not visible and stoppable."""
+    from genesis_rl.labels.blame import blame_label, visibility_evidence
+    from genesis_rl.labels.careful_driver import careful_driver_evidence, event_for_collision
+
+    records = outcome.records
+    event = event_for_collision(outcome.actor_events, records, hit_at)
+    careful = None if event is None else careful_driver_evidence(records, hit_at, event, dt)
+    return blame_label(visibility_evidence(records, hit_at, dt), None, careful) == "unavoidable"
 
 
 def _share(episodes: Sequence[Episode]) -> dict[str, Any]:
-    k, n = sum(e.triggered for e in episodes), len(episodes)
-    ci = clopper_pearson(k, n)
-    return {"triggered": k, "episodes": n, "share": round(k / n, 4) if n else None,
-            "ci95": [ci["ci_low"], ci["ci_high"]], "failed": sum(e.failure_at is not None for e in episodes),
+    """The counted share (``share``, ``ci95``) and, blame aside, the triggered one."""
+    k, n = sum(e.counts for e in episodes), len(episodes)
+    t = sum(e.triggered for e in episodes)
+    ci, ci_t = clopper_pearson(k, n), clopper_pearson(t, n)
+    return {"counted": k, "episodes": n, "share": round(k / n, 4) if n else None,
+            "ci95": [ci["ci_low"], ci["ci_high"]], "triggered": t,
+            "triggered_share": round(t / n, 4) if n else None, "triggered_ci95": [ci_t["ci_low"], ci_t["ci_high"]],
+            "unavoidable": sum(bool(e.unavoidable) for e in episodes),
+            "failed": sum(e.failure_at is not None for e in episodes),
             "reached": sum(e.reached_at is not None for e in episodes)}
 
 
@@ -124,7 +153,7 @@ def measure(member: str, *, tuning: int = 6, held_out: int = 30, onsets: Sequenc
             bar = tqdm(total=len(tune) + 2 * len(held), desc=f"truth {member}", unit="episode", disable=not progress)
             tuned = _collect(pool, tune, bar)
             by_onset = {t: [e for e in tuned if e.onset_s == t] for t in grid}
-            best = max(grid, key=lambda t: (sum(e.triggered for e in by_onset[t]), -t))
+            best = max(grid, key=lambda t: (sum(e.counts for e in by_onset[t]), -t))
             fixed = [("fixed_onset", best, tuning + i, s) for i, s in enumerate(held_seeds)]
             played = _collect(pool, held + fixed, bar)
             bar.close()
@@ -133,13 +162,13 @@ def measure(member: str, *, tuning: int = 6, held_out: int = 30, onsets: Sequenc
     r, f = _share(reactive), _share(fixed_eps)
     return {
         "member": member, "seed": seed, "tuning_episodes": len(tune), "held_out_episodes": held_out,
-        "onsets_s": list(grid), "tuning_triggered_by_onset": {f"{t:g}": sum(e.triggered for e in by_onset[t])
-                                                              for t in grid},
+        "onsets_s": list(grid), "tuning_counted_by_onset": {f"{t:g}": sum(e.counts for e in by_onset[t])
+                                                            for t in grid},
         "best_fixed_onset_s": best, "reactive": r, "best_fixed": f,
         "reactive_policy": WATCHERS[member],
         "passes": bool(r["share"] is not None and f["share"] is not None and r["share"] >= REACTIVE_AT_LEAST
                        and f["share"] <= FIXED_AT_MOST),
-        "episodes": [asdict(e) | {"triggered": e.triggered} for e in (*tuned, *played)],
+        "episodes": [asdict(e) | {"triggered": e.triggered, "counts": e.counts} for e in (*tuned, *played)],
     }
 
 
@@ -152,22 +181,22 @@ def _collect(pool: ProcessPoolExecutor, tasks: list, bar: tqdm) -> list[Episode]
 
 
 def plot_truth(result: dict[str, Any], path: Path) -> None:
-    """Two panels: the tuning scenes' triggered failures at each fixed onset (the search the best schedule came
-    from), and the held-out shares of the reactive policy and the best fixed schedule with their 95 % intervals
-    against the thresholds."""
+    """Two panels: the tuning scenes' counted failures at each fixed onset (the search the best schedule came
+    from), and the held-out counted shares of the reactive policy and the best fixed schedule with their 95 %
+    intervals against the thresholds; a hollow marker shows each triggered share, blame aside."""
     from genesis_rl.core.files.io_utils import atomic_write
     from genesis_rl.core.plotting import pyplot
 
     plt = pyplot()
     fig, (grid, held) = plt.subplots(1, 2, figsize=(9.0, 3.2), gridspec_kw={"width_ratios": [1.6, 1.0]})
     onsets = [float(t) for t in result["onsets_s"]]
-    counts = [result["tuning_triggered_by_onset"][f"{t:g}"] for t in onsets]
+    counts = [result["tuning_counted_by_onset"][f"{t:g}"] for t in onsets]
     per = result["tuning_episodes"] // max(len(onsets), 1)
     grid.bar(onsets, counts, width=0.8, color="#8c8c8c")
-    grid.bar([result["best_fixed_onset_s"]], [result["tuning_triggered_by_onset"][f"{result['best_fixed_onset_s']:g}"]],
+    grid.bar([result["best_fixed_onset_s"]], [result["tuning_counted_by_onset"][f"{result['best_fixed_onset_s']:g}"]],
              width=0.8, color="#d62728", label=f"best: {result['best_fixed_onset_s']:g} s")
     grid.set_xlabel("fixed onset of the lead's braking [s]")
-    grid.set_ylabel(f"triggered of {per} tuning episodes")
+    grid.set_ylabel(f"counted of {per} tuning episodes")
     grid.set_ylim(0, max(per, 1))
     grid.set_yticks(range(max(per, 1) + 1))
     grid.legend(fontsize=8)
@@ -177,8 +206,13 @@ def plot_truth(result: dict[str, Any], path: Path) -> None:
         lo, hi = cell["ci95"]
         held.errorbar([k], [cell["share"]], yerr=[[cell["share"] - lo], [hi - cell["share"]]], fmt="o", color=color,
                       capsize=4)
-        held.annotate(f"{cell['triggered']}/{cell['episodes']}", (k, cell["share"]), xytext=(8, -3),
+        held.annotate(f"{cell['counted']}/{cell['episodes']}", (k, cell["share"]), xytext=(8, -3),
                       textcoords="offset points", fontsize=8)
+        if cell["triggered_share"] != cell["share"]:  # failures blamed unavoidable: triggered, not counted
+            held.plot([k], [cell["triggered_share"]], "o", mfc="none", color=color,
+                      label="triggered, blame aside" if k == 0 else None)
+            held.annotate(f"{cell['triggered']}/{cell['episodes']} triggered", (k, cell["triggered_share"]),
+                          xytext=(8, -3), textcoords="offset points", fontsize=7, color="#555555")
     held.axhline(REACTIVE_AT_LEAST, color="#1f77b4", ls=":", lw=1)
     held.axhline(FIXED_AT_MOST, color="#d62728", ls=":", lw=1)
     held.annotate(f"reactive needs >= {REACTIVE_AT_LEAST:.2f}", (1.45, REACTIVE_AT_LEAST), xytext=(0, 3),
@@ -188,7 +222,9 @@ def plot_truth(result: dict[str, Any], path: Path) -> None:
     held.set_xticks([0, 1], names, fontsize=8)
     held.set_xlim(-0.5, 1.5)
     held.set_ylim(-0.02, 1.02)
-    held.set_ylabel("triggered share, held-out worlds")
+    held.set_ylabel("counted share, held-out worlds")
+    if held.get_legend_handles_labels()[0]:
+        held.legend(fontsize=7, loc="upper center")
     held.set_title(f"{result['held_out_episodes']} held-out scenes and worlds", fontsize=9)
     fig.tight_layout()
     atomic_write(Path(path), lambda p: fig.savefig(p, format="png", dpi=110))
