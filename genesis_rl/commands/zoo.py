@@ -109,7 +109,9 @@ def _truth(args: argparse.Namespace) -> int:
     for name in ("reactive", "best_fixed"):
         cell = result[name]
         lo, hi = cell["ci95"]
-        print(f"{name}: {cell['triggered']}/{cell['episodes']} held-out episodes triggered [95 % CI {lo:.2f}-{hi:.2f}]")
+        print(f"{name}: {cell['counted']}/{cell['episodes']} held-out episodes counted (triggered and avoidable) "
+              f"[95 % CI {lo:.2f}-{hi:.2f}]; {cell['failed']} failed, {cell['triggered']} triggered, "
+              f"{cell['unavoidable']} blamed unavoidable")
     print(json.dumps({"out": args.out, "best_fixed_onset_s": result["best_fixed_onset_s"],
                       "passes": result["passes"], "plot": str(picture)}))
     return 0
