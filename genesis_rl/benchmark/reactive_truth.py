@@ -195,6 +195,7 @@ def plot_truth(result: dict[str, Any], path: Path) -> None:
     grid.bar(onsets, counts, width=0.8, color="#8c8c8c")
     grid.bar([result["best_fixed_onset_s"]], [result["tuning_counted_by_onset"][f"{result['best_fixed_onset_s']:g}"]],
              width=0.8, color="#d62728", label=f"best: {result['best_fixed_onset_s']:g} s")
+    grid.set_xlim(min(onsets) - 1.0, max(onsets) + 1.0)  # one onset alone would fill the panel with its bar
     grid.set_xlabel("fixed onset of the lead's braking [s]")
     grid.set_ylabel(f"counted of {per} tuning episodes")
     grid.set_ylim(0, max(per, 1))
