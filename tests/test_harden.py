@@ -257,7 +257,7 @@ def test_seesaw_tolerance() -> None:
     (["--test-catalog", "{attack}/../held_out.json", "--test-scenes", "5"], "holds 4 scenes"),
     (["--test-catalog", "{attack}/../held_out.json", "--test-scenes", "1", "--retest-scenes", "5"],
      "--retest-scenes 5"),
-    (["--retest-scenes", "-1"], "retest_scenes"),
+    (["--retest-scenes", "-1"], "--retest-scenes = -1; allowed: an integer >= 0"),
     (["--near-miss-ttc", "11"], "near_miss_ttc"),
 ])
 def test_bad_input_exits_2_naming_the_field(attack: Path, tmp_path, capsys, args, field) -> None:

@@ -57,6 +57,12 @@ def test_a_resumed_recurrent_run_matches_an_uninterrupted_one(tmp_path, capsys) 
     assert (cut / "episodes.csv").read_text() == (whole / "episodes.csv").read_text()
     assert "[recurrent]" in (whole / "config.toml").read_text()
 
+    # the old way (--trust-pickle: SB3's own load) keeps no memory either; the checkpoint's is restored there too
+    trusted = _train(tmp_path, "trusted", "--steps", "32")
+    assert main(["train", "--out", str(trusted), "--resume", "--steps", "64", "--quiet", "--trust-pickle"]) == 0
+    c = _state(trusted / "agent.zip")
+    assert [k for k in a if not torch.equal(a[k], c[k])] == []
+
     # the memory is what the resume needs: a checkpoint whose LSTM states were lost is refused, naming them
     state = cut / "checkpoints" / "step_00000064.sb3.npz"
     with np.load(state) as z:
@@ -128,3 +134,13 @@ def test_the_train_command_offers_every_learner_the_config_accepts() -> None:
     from genesis_rl.training.config import ALGORITHMS
 
     assert OFFERED == ALGORITHMS
+
+
+def test_a_recurrent_table_without_the_recurrent_learner_is_named_as_ignored(tmp_path) -> None:
+    from genesis_rl.training.config import load_run_config
+
+    config = tmp_path / "ablation.toml"
+    config.write_text(TINY_RECURRENT)
+    with pytest.warns(UserWarning, match=r"the \[recurrent\] table is ignored: train.algorithm = 'ppo'"):
+        cfg = load_run_config(config, {"train": {"algorithm": "ppo"}})  # what --algorithm ppo does
+    assert cfg.train.algorithm == "ppo" and "[recurrent]" not in cfg.to_toml()

@@ -230,6 +230,32 @@ def test_the_truth_counts_a_failure_as_the_benchmark_confirms_it_triggered_and_a
     assert cell["ci95"][0] < cell["share"] < cell["ci95"][1]
 
 
+def test_the_truth_blames_as_campaigns_do_the_careful_driver_first_the_oracle_only_without_it(monkeypatch):
+    from types import SimpleNamespace
+
+    import genesis_rl.labels.blame as blame
+    import genesis_rl.labels.careful_driver as careful
+    from genesis_rl.benchmark.reactive_truth import unavoidable
+
+    asked = []
+
+    def oracle() -> bool:
+        asked.append(True)
+        return False  # the oracle avoids it: a perception failure, avoidable
+
+    outcome = SimpleNamespace(records=[], actor_events=["lead braked"])
+    monkeypatch.setattr(blame, "visibility_evidence", lambda records, hit_at, dt: {"stoppable": False})
+    monkeypatch.setattr(careful, "event_for_collision", lambda events, records, hit_at: events[0] if events else None)
+    for collides in (True, False):  # the tester braked the lead: the careful driver alone decides
+        monkeypatch.setattr(careful, "careful_driver_evidence", lambda *a, c=collides: {"collides": c})
+        assert unavoidable(outcome, 5, 0.05, oracle) is collides
+    assert asked == []
+    # no actor event: not visible and stoppable, but the oracle system avoids it, so perception, avoidable
+    assert unavoidable(SimpleNamespace(records=[], actor_events=[]), 5, 0.05, oracle) is False
+    assert asked == [True]
+    assert unavoidable(SimpleNamespace(records=[], actor_events=[]), 5, 0.05, lambda: True) is True
+
+
 def test_a_steps_file_must_hold_as_many_rows_as_its_episode_row_says(tmp_path):
     import pyarrow as pa
     import pyarrow.parquet as pq

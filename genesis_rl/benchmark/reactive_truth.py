@@ -20,7 +20,7 @@ least :data:`REACTIVE_AT_LEAST` of the held-out episodes and the best fixed sche
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
@@ -100,21 +100,30 @@ def _play(task: tuple[str, float | None, int, int]) -> Episode:
     policy = resolve_policy(name)(PolicyContext(runner.env.mapper.action_dim, _WORKER["seed"], options=options))
     outcome = policy.run_episode(runner.in_world(world_seed), scene, world_seed)
     failure_at = in_odd_failure_at(outcome.records)
+    if failure_at is None:
+        return Episode(name, onset, scene, world_seed, m.trigger.reached(outcome.records), None)
+    hit_at = failure_at
+
+    def oracle() -> bool:
+        return runner.oracle_collides(scene, world_seed, outcome.records, hit_at, outcome.start)
+
     return Episode(name, onset, scene, world_seed, m.trigger.reached(outcome.records), failure_at,
-                   None if failure_at is None else unavoidable(outcome, failure_at, runner.env.dt))
+                   unavoidable(outcome, failure_at, runner.env.dt, oracle))
 
 
-def unavoidable(outcome: Any, hit_at: int, dt: float) -> bool:
-    """The campaign's blame of the failure at ``hit_at`` (``campaigns.episodes``), without the oracle replay,
-    which only tells perception from control: with a careful-driver reference (the tester acted on the vehicle
-    hit) unavoidable when that driver collides too, else when the hit was not visible and stoppable."""
+def unavoidable(outcome: Any, hit_at: int, dt: float, oracle_collides: Callable[[], bool]) -> bool:
+    """The campaign's blame of the failure at ``hit_at`` (``campaigns.episodes``): with a careful-driver
+    reference (the tester acted on the vehicle hit) unavoidable when that driver collides too; else as the
+    visibility evidence and the counterfactual oracle replay say, which is played only then (a perception
+    failure is avoidable)."""
     from genesis_rl.labels.blame import blame_label, visibility_evidence
     from genesis_rl.labels.careful_driver import careful_driver_evidence, event_for_collision
 
     records = outcome.records
     event = event_for_collision(outcome.actor_events, records, hit_at)
     careful = None if event is None else careful_driver_evidence(records, hit_at, event, dt)
-    return blame_label(visibility_evidence(records, hit_at, dt), None, careful) == "unavoidable"
+    oracle = None if careful is not None else oracle_collides()
+    return blame_label(visibility_evidence(records, hit_at, dt), oracle, careful) == "unavoidable"
 
 
 def _share(episodes: Sequence[Episode]) -> dict[str, Any]:

@@ -5,6 +5,7 @@ LSTM (``recurrent_ppo``: sb3-contrib's RecurrentPPO, the [ppo] table's settings 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -287,6 +288,9 @@ def load_run_config(path: str | Path | None, overrides: dict[str, dict[str, Any]
         raise UserInputError(f"unknown table(s) {unknown} in '{path}'; allowed: env, ppo, sac, train, recurrent")
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
+    algorithm = (data.get("train") or {}).get("algorithm", TrainConfig.algorithm)
+    if data.get("recurrent") and algorithm != "recurrent_ppo":  # e.g. a recurrent config run with --algorithm ppo
+        warnings.warn(f"the [recurrent] table is ignored: train.algorithm = {algorithm!r} has no LSTM", stacklevel=2)
     return RunConfig(
         env=from_mapping(EnvConfig, data.get("env"), "env"),
         ppo=from_mapping(PPOConfig, data.get("ppo"), "ppo"),

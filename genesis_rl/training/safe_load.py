@@ -266,7 +266,7 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
     config needs."""
     path = Path(path)
     trust = pickle_trusted() if trust_pickle is None else trust_pickle
-    learners: dict[str, Any] = {"ppo": learner_class("ppo"), "sac": learner_class("sac")}
+    learners: dict[str, Any] = {name: learner_class(name) for name in ("ppo", "sac", "recurrent_ppo")}
     if cfg is None:
         if not trust:
             raise UserInputError(f"{what}: '{path}' has no run config.toml beside it (in its folder or the one "
