@@ -34,18 +34,17 @@ class AgentPolicy(StepPolicy):
         super().__init__(context)
         self.model = load_agent(context.agent_path)
         self.memory: Any = None  # a recurrent agent's LSTM states, carried from step to step of an episode
-        self.first_step = True
 
     def reset(self, scene: int, episode_seed: int) -> None:
         """A recurrent agent starts each episode with an empty memory, as it did in training."""
-        self.memory, self.first_step = None, True
+        self.memory = None
 
     def act(self, obs: Any) -> np.ndarray:
         with pinned_threads():  # the same floats in the main process, a pool worker or a Ray actor
-            # PPO and SAC ignore state and episode_start; RecurrentPPO reads and returns its memory
+            # PPO and SAC ignore state and episode_start (their memory stays None); RecurrentPPO reads and returns
+            # its memory, which is None only before an episode's first step
             action, self.memory = self.model.predict(obs, state=self.memory,
-                                                     episode_start=np.array([self.first_step]), deterministic=True)
-        self.first_step = False
+                                                     episode_start=np.array([self.memory is None]), deterministic=True)
         return np.asarray(action, np.float32)
 
     def run_episode(self, runner: EpisodeRunner, scene: int, episode_seed: int) -> EpisodeOutcome:

@@ -100,14 +100,14 @@ def _play(task: tuple[str, float | None, int, int]) -> Episode:
     policy = resolve_policy(name)(PolicyContext(runner.env.mapper.action_dim, _WORKER["seed"], options=options))
     outcome = policy.run_episode(runner.in_world(world_seed), scene, world_seed)
     failure_at = in_odd_failure_at(outcome.records)
+    reached_at = m.trigger.reached(outcome.records)
     if failure_at is None:
-        return Episode(name, onset, scene, world_seed, m.trigger.reached(outcome.records), None)
-    hit_at = failure_at
+        return Episode(name, onset, scene, world_seed, reached_at, None)
 
     def oracle() -> bool:
-        return runner.oracle_collides(scene, world_seed, outcome.records, hit_at, outcome.start)
+        return runner.oracle_collides(scene, world_seed, outcome.records, failure_at, outcome.start)
 
-    return Episode(name, onset, scene, world_seed, m.trigger.reached(outcome.records), failure_at,
+    return Episode(name, onset, scene, world_seed, reached_at, failure_at,
                    unavoidable(outcome, failure_at, runner.env.dt, oracle))
 
 

@@ -38,7 +38,6 @@ from genesis_rl.training.safe_load import (
     load_model,
     read_replay_buffer,
     read_sb3_state,
-    restore_lstm_states,
     sb3_state_path,
     write_replay_buffer,
     write_sb3_state,
@@ -251,9 +250,13 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, cfg: RunCo
     trust = pickle_trusted()
     ck = model_path.parent
     sb3_state = None
-    if state is not None and not trust:  # 0.4.0 checkpoints hold no observation: the envs are reset (below)
+    recurrent = cfg.train.algorithm == "recurrent_ppo"  # its LSTM memory is in the .sb3.npz alone, trusted or not
+    if state is not None and (not trust or recurrent):  # 0.4.0 checkpoints hold no observation: envs are reset
         sb3_path = sb3_state_path(model_path)
         if not sb3_path.is_file():
+            if recurrent:
+                raise UserInputError(f"--resume: the checkpoint in '{run}' has no {sb3_path.name}, which keeps the "
+                                     "recurrent policy's memory; start the run again with --force")
             raise UserInputError(f"--resume: the checkpoint in '{run}' was written by genesis-rl 0.10.0 or before "
                                  f"and keeps its last observation only pickled inside '{model_path.name}' (no "
                                  f"{sb3_path.name}); {TRUST_HINT}")
@@ -271,13 +274,6 @@ def load_checkpoint(run: Path, env: Any, device: str, max_steps: int, cfg: RunCo
     # force_reset=False keeps the checkpoint's last observation: the envs are rebuilt below, not reset
     model: Any = load_model(model_path, cfg, env=env, device=device, resume_state=sb3_state,
                             force_reset=state is None, what="--resume", trust_pickle=trust)
-    if trust and state is not None and cfg.train.algorithm == "recurrent_ppo":
-        # SB3's own load keeps no LSTM memory either: without it the resumed rollouts would differ
-        sb3_path = sb3_state_path(model_path)
-        if not sb3_path.is_file():
-            raise UserInputError(f"--resume: the checkpoint in '{run}' has no {sb3_path.name}, which keeps the "
-                                 "recurrent policy's memory; start the run again with --force")
-        restore_lstm_states(model, read_sb3_state(sb3_path, cfg, env.num_envs)["lstm"])
     if cfg.train.algorithm == "sac":
         if replay.suffix == ".pkl":
             try:

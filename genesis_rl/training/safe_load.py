@@ -71,8 +71,8 @@ _KWARG_SCALARS = {"log_std_init": float, "use_sde": bool, "ortho_init": bool, "n
                   "n_critics": int, "clip_mean": float, "lstm_hidden_size": int, "n_lstm_layers": int,
                   "shared_lstm": bool, "enable_critic_lstm": bool}
 #: integer settings a file may not set beyond what genesis-rl builds (a claimed 10**9 LSTM units is an allocation,
-#: not a model)
-_KWARG_INT_BOUNDS = {"n_critics": (1, 16), "lstm_hidden_size": (1, 1024), "n_lstm_layers": (1, 8)}
+#: not a model); the LSTM's are the [recurrent] table's ranges (training/config.py)
+_KWARG_INT_BOUNDS = {"n_critics": (1, 16)}
 
 
 def _class_named(text: Any, allowed: tuple[str, ...]) -> type | None:
@@ -101,6 +101,10 @@ def stored_policy_kwargs(data: dict[str, Any], path: Path, what: str) -> dict[st
         return UserInputError(f"{what}: '{path}': policy_kwargs['{key}'] = {str(stored[key])[:80]!r} is not one "
                               f"genesis-rl rebuilds without unpickling; {TRUST_HINT}")
 
+    from genesis_rl.training.config import RECURRENT_RANGES
+
+    bounds = {**_KWARG_INT_BOUNDS, **{k: (r.low, r.high) for k, r in RECURRENT_RANGES.items()}}
+
     def numbers(value: Any) -> bool:
         return isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096
                                                for v in value)
@@ -117,7 +121,7 @@ def stored_policy_kwargs(data: dict[str, Any], path: Path, what: str) -> dict[st
             kind = _KWARG_SCALARS[key]
             ok = isinstance(value, bool) if kind is bool else (
                 isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value))
-            low, high = _KWARG_INT_BOUNDS.get(key, (-math.inf, math.inf))
+            low, high = bounds.get(key, (-math.inf, math.inf))
             if not ok or kind is int and not (isinstance(value, int) and low <= value <= high):
                 raise refuse(key)
             out[key] = kind(value)
@@ -266,8 +270,8 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
     config needs."""
     path = Path(path)
     trust = pickle_trusted() if trust_pickle is None else trust_pickle
-    learners: dict[str, Any] = {name: learner_class(name) for name in ("ppo", "sac", "recurrent_ppo")}
     if cfg is None:
+        learners = {name: learner_class(name) for name in ("ppo", "sac", "recurrent_ppo")}
         if not trust:
             raise UserInputError(f"{what}: '{path}' has no run config.toml beside it (in its folder or the one "
                                  "above checkpoints/), and an agent is rebuilt from its run's config, never "
@@ -283,9 +287,12 @@ def load_model(path: Path, cfg: RunConfig | None, *, env: Any = None, device: st
     cls = learner_class(algorithm)
     if trust:
         try:
-            return cls.load(path, env=env, device=device, force_reset=force_reset)
+            model = cls.load(path, env=env, device=device, force_reset=force_reset)
         except Exception as err:  # noqa: BLE001 - a corrupt zip raises many kinds
             raise UserInputError(f"{what}: '{path}' cannot be loaded: {err}") from None
+        if resume_state is not None:  # SB3's own load keeps no LSTM memory either
+            restore_lstm_states(model, resume_state.get("lstm"))
+        return model
     from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
     from genesis_rl.env.observation import sb3_policy
