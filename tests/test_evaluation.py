@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genesis_rl.campaigns.campaign import CampaignSpec, pick_scenes, run_campaign
+from genesis_rl.campaigns.campaign import CampaignResult, CampaignSpec, pick_scenes, run_campaign
 from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.stats import bootstrap_mean_ci, paired_comparison
@@ -144,10 +144,21 @@ def test_campaign_records_every_episode_and_labels_the_collision(campaign: Path)
 
 def test_same_seed_gives_identical_summary(tmp_path, campaign: Path, catalog: str) -> None:
     again = tmp_path / "again"
-    run_campaign(_spec(catalog), again, workers=2, progress=False)
+    result = run_campaign(_spec(catalog), again, workers=2, progress=False)
     a = json.loads((campaign / "summary.json").read_text())
     b = json.loads((again / "summary.json").read_text())
     assert _stable(a) == _stable(b)
+    # the run returns what it wrote, typed, plus how it ran (which summary.json leaves out)
+    assert isinstance(result, CampaignResult) and result == {**b, "run_seconds": result.run_seconds,
+                                                             "workers": 2, "executor": "local"}
+    assert (result.workers, result.executor, result.scenes, result.complete) == (2, "local", 3, True)
+    assert result.folder.summary == again / "summary.json" and json.loads(json.dumps(result.to_json())) == result
+    random_ = result.policies["random"]
+    assert (random_.episodes, random_.episodes_with_collision, random_.failure_modes["non_detection"]) == (3, 1, 1)
+    collision = random_.metric("collision")
+    assert collision.n == 3 and collision.mean == b["policies"]["random"]["collision"]["mean"] > 0
+    with pytest.raises(KeyError, match="'episodes' is not a metric of policy 'random'"):
+        random_.metric("episodes")
 
 
 def test_interrupted_campaign_resumes_without_duplicates(tmp_path, campaign: Path, catalog: str, hit: dict) -> None:

@@ -15,7 +15,6 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any
 
 from tqdm import tqdm
 
@@ -25,6 +24,7 @@ from genesis_rl.campaigns.campaign_spec import CampaignSpec, env_settings_for, p
 from genesis_rl.campaigns.episodes import CampaignRunner, episode_row
 from genesis_rl.campaigns.executors import WorkerSetup, run_tasks
 from genesis_rl.campaigns.layout import CampaignFolder
+from genesis_rl.campaigns.result import CampaignResult
 from genesis_rl.campaigns.summary import summarize_campaign
 from genesis_rl.campaigns.worker import plugin_modules
 from genesis_rl.core.files import output_folder
@@ -36,8 +36,8 @@ from genesis_rl.labels.failure_modes import FAILURE_MODES, FailureModeThresholds
 
 
 def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool = False, resume: bool = False,
-                 progress: bool = True, executor: ExecutorSettings | None = None) -> dict[str, Any]:
-    """Run every (policy, scene) not yet done, then write summary.json; returns the summary. The folder is
+                 progress: bool = True, executor: ExecutorSettings | None = None) -> CampaignResult:
+    """Run every (policy, scene) not yet done, then write summary.json; returns the summary, typed. The folder is
     held for the whole run: a second campaign into it is refused, not mixed in. ``executor`` says where the
     episodes run (default: ``workers`` local processes)."""
     settings = executor or ExecutorSettings(workers=workers)
@@ -47,7 +47,7 @@ def run_campaign(spec: CampaignSpec, folder: Path, workers: int = 1, force: bool
 
 
 def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, force: bool, resume: bool,
-                  progress: bool) -> dict[str, Any]:
+                  progress: bool) -> CampaignResult:
     tasks = prepare_campaign(spec, folder, force, resume, progress)  # checks policies and agent first
     t0 = time.perf_counter()
     # longest tasks first (search baselines) so workers finish together; stable for equal costs
@@ -77,17 +77,17 @@ def _run_campaign(spec: CampaignSpec, folder: Path, settings: ExecutorSettings, 
     finally:
         bar.close()
     summary = summarize_campaign(folder)
-    summary["run_seconds"] = round(time.perf_counter() - t0, 1)
-    summary["workers"] = settings.workers
-    summary["executor"] = settings.kind
-    atomic_write_text(CampaignFolder(folder).run_time, json.dumps({"seconds": summary["run_seconds"],
-                                                           "workers": settings.workers, "executor": settings.kind,
-                                                           "episodes_run": len(tasks), "cpus": os.cpu_count()}))
-    return summary
+    seconds = round(time.perf_counter() - t0, 1)
+    result = CampaignResult.from_summary(summary, seconds, settings.workers, settings.kind)
+    atomic_write_text(CampaignFolder(folder).run_time, json.dumps({"seconds": seconds, "workers": settings.workers,
+                                                                   "executor": settings.kind,
+                                                                   "episodes_run": len(tasks),
+                                                                   "cpus": os.cpu_count()}))
+    return result
 
 
 
 
-__all__ = ["CampaignSpec", "CampaignRunner", "ExecutorSettings", "plugin_modules", "FAILURE_MODES",
+__all__ = ["CampaignResult", "CampaignSpec", "CampaignRunner", "ExecutorSettings", "plugin_modules", "FAILURE_MODES",
            "FailureModeThresholds", "pick_scenes", "prepare_campaign", "run_campaign", "env_settings_for",
            "run_folder_of", "episode_row", "Task"]

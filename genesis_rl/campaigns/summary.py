@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -164,10 +165,10 @@ def _holds(path: Path, text: str) -> bool:
         return False
 
 
-def summary_rule_metrics(summary: dict[str, Any]) -> list[str]:
+def summary_rule_metrics(summary: Mapping[str, Any]) -> list[str]:
     """The rule columns of a summary (violations and ``total``), in its order, read from the summary itself."""
-    stats: dict[str, Any] = next(iter(summary["policies"].values()), {})
-    return [k for k, v in stats.items() if isinstance(v, dict) and "mean" in v and k not in OTHER_METRICS]
+    stats: Mapping[str, Any] = next(iter(summary["policies"].values()), {})
+    return [k for k, v in stats.items() if isinstance(v, Mapping) and "mean" in v and k not in OTHER_METRICS]
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:

@@ -151,11 +151,11 @@ def run(args: argparse.Namespace) -> int:
         summary = run_campaign(spec, out, force=args.force, resume=args.resume, progress=not args.quiet,
                                executor=executor)
         rule_metrics = [m for m in summary_rule_metrics(summary) if m != "total"]
-        brief = {p: {**{m: None if s[m]["mean"] is None else round(s[m]["mean"], 3) for m in rule_metrics},
-                     "episodes_with_collision": s["episodes_with_collision"],
-                     "failure_modes": {k: v for k, v in s["failure_modes"].items() if v}}
-                 for p, s in summary["policies"].items()}
-        print(json.dumps({"out": str(out), "seconds": summary["run_seconds"], "policies": brief}, indent=2))
+        brief = {p: {**{m: None if (mean := s.metric(m).mean) is None else round(mean, 3) for m in rule_metrics},
+                     "episodes_with_collision": s.episodes_with_collision,
+                     "failure_modes": {k: v for k, v in s.failure_modes.items() if v}}
+                 for p, s in summary.policies.items()}
+        print(json.dumps({"out": str(out), "seconds": summary.run_seconds, "policies": brief}, indent=2))
         if not args.no_report:
             from genesis_rl.analysis.report import build_report
 

@@ -97,9 +97,8 @@ def run(args: argparse.Namespace) -> int:
                                 seed=spec.closed_loop_seed, steps=spec.closed_loop_steps, env=env)
         summary = run_campaign(campaign, out / "closed_loop", force=args.force, resume=args.resume,
                                progress=not args.quiet, executor=ExecutorSettings(workers=args.workers))
-        sunny = summary["policies"]["sunny"]
-        n = int(sunny["episodes"]) if "episodes" in sunny else spec.closed_loop_scenes
-        crashed = int(sunny["episodes_with_collision"])
+        sunny = summary.policies["sunny"]
+        n, crashed = sunny.episodes, sunny.episodes_with_collision
         closed = {"map": "highway", "weather": "clear_noon", "scenes": n, "seed": spec.closed_loop_seed,
                   "steps": spec.closed_loop_steps, "episodes_with_collision": crashed,
                   "collision_free_share": round((n - crashed) / n, 4), "campaign": str(out / "closed_loop")}

@@ -240,7 +240,7 @@ def bench_campaign(scenes: int = 8, steps: int = 256, executors: tuple[str, ...]
                     t0 = time.perf_counter()
                     summary = run_campaign(spec, folder, progress=False, executor=ExecutorSettings(kind, n))
                     seconds = time.perf_counter() - t0
-                    body = json.dumps(summary["policies"], sort_keys=True)
+                    body = json.dumps(summary.to_json()["policies"], sort_keys=True)
                     first = first or body
                     sent = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()
                                and p.parts[len(folder.parts)] in ("episodes", "steps", "frames", "records"))
