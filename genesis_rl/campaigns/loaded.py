@@ -7,7 +7,7 @@ so code written against the row dictionaries reads it unchanged while new code u
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -15,6 +15,7 @@ from typing import Any
 
 from genesis_rl.campaigns.campaign_spec import CampaignSpec
 from genesis_rl.campaigns.layout import CampaignFolder
+from genesis_rl.core.fields_mapping import FieldsMapping
 
 
 def _frozen(value: Any) -> Mapping[str, Any]:
@@ -22,7 +23,7 @@ def _frozen(value: Any) -> Mapping[str, Any]:
 
 
 @dataclass(frozen=True)
-class EpisodeRow(Mapping[str, Any]):
+class EpisodeRow(FieldsMapping):
     """One finished episode (``episodes/<policy>/scene_NNNN.json``)."""
 
     policy: str
@@ -50,15 +51,6 @@ class EpisodeRow(Mapping[str, Any]):
     @property
     def collided(self) -> bool:
         return self.first_collision_step is not None
-
-    def __getitem__(self, key: str) -> Any:
-        return self.fields[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.fields)
-
-    def __len__(self) -> int:
-        return len(self.fields)
 
 
 @dataclass(frozen=True)

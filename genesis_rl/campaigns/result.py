@@ -9,13 +9,14 @@ unchanged, and they compare equal to the ``summary.json`` they were made from.
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 from genesis_rl.campaigns.layout import CampaignFolder
+from genesis_rl.core.fields_mapping import FieldsMapping
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,7 @@ class MeanInterval:
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: compared as a mapping, so equal to the dict it was made from
-class PolicySummary(Mapping[str, Any]):
+class PolicySummary(FieldsMapping):
     """One policy's entry in ``summary.json``: how many episodes, how many collided, and how they failed."""
 
     policy: str
@@ -60,18 +61,9 @@ class PolicySummary(Mapping[str, Any]):
             raise KeyError(f"'{name}' is not a metric of policy '{self.policy}'")
         return MeanInterval.from_json(value)
 
-    def __getitem__(self, key: str) -> Any:
-        return self.fields[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.fields)
-
-    def __len__(self) -> int:
-        return len(self.fields)
-
 
 @dataclass(frozen=True, eq=False)
-class CampaignResult(Mapping[str, Any]):
+class CampaignResult(FieldsMapping):
     """What ``run_campaign`` returns: the summary it wrote to ``summary.json`` and the run's own figures (its
     seconds, workers and executor, which summary.json leaves out so that it is the same however it ran)."""
 
@@ -105,9 +97,3 @@ class CampaignResult(Mapping[str, Any]):
 
     def __getitem__(self, key: str) -> Any:
         return self.policies if key == "policies" else self.fields[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.fields)
-
-    def __len__(self) -> int:
-        return len(self.fields)
