@@ -41,10 +41,13 @@ FREE_FLOW_TIME_GAP = 1.5
 FREE_FLOW_RADIUS = 200.0
 
 
+_COLOURS = list(PALETTE)
+
+
 def _vehicle(rng, road_map, role, lane, s, make, speed_frac, traffic: str = "mixed") -> VehicleSpec:
     x, y, _, yaw = road_map.pose(lane, s)
     succ = road_map.lanes[lane].successors
-    color_name = str(rng.choice(list(PALETTE)))
+    color_name = _COLOURS[int(rng.integers(len(_COLOURS)))]  # rng.choice(_COLOURS)'s draw, without its overhead
     limit = road_map.speed_limit(lane)
     ap = None if role == "ego" else draw_autopilot(rng, limit, role, traffic)
     return VehicleSpec(role, make, color_name, PALETTE[color_name], int(lane), float(s), x, y, yaw,
