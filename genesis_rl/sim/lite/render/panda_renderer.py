@@ -156,6 +156,22 @@ def _upload_static(parent: NodePath, scene: StaticScene) -> None:
         node.add_switch(1.0e7, scene.tile_lod_m)
 
 
+#: the static scene of each map this process built, by the map object (``load_map`` keeps one per name; the map
+#: is held here so that its id is not reused): the highway's takes seconds to build, and each camera size, each
+#: episode running beside another and each oracle replay needs a renderer of its own. The upload only reads it.
+_STATIC_SCENES: dict[int, tuple[RoadMap, StaticScene]] = {}
+_STATIC_SCENES_KEPT = 4
+
+
+def _static_scene(road_map: RoadMap) -> StaticScene:
+    hit = _STATIC_SCENES.get(id(road_map))
+    if hit is None or hit[0] is not road_map:
+        hit = _STATIC_SCENES[id(road_map)] = (road_map, build_static_scene(road_map))
+        while len(_STATIC_SCENES) > _STATIC_SCENES_KEPT:
+            del _STATIC_SCENES[next(iter(_STATIC_SCENES))]
+    return hit[1]
+
+
 # --- the renderer -------------------------------------------------------------------------------------
 class LiteRenderer:
     """Renders a :class:`RoadMap` and its vehicles from the ego's camera."""
@@ -249,7 +265,7 @@ class LiteRenderer:
 
     # -- static scene ----------------------------------------------------------------------------------
     def _build_static(self) -> None:
-        scene = build_static_scene(self.map)
+        scene = _static_scene(self.map)
         _upload_static(self.root.attach_new_node("static"), scene)
         lamps = scene.lamps
         self._lamps = lamps.keys
