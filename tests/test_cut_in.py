@@ -66,16 +66,27 @@ def test_the_careful_driver_is_checked_by_hand_on_a_braking_lead():
     assert event_for_collision(events, near, len(near) - 1) == braking
 
 
-def test_the_careful_driver_holds_its_speed_until_the_situation_is_critical():
-    """A lead 60 m ahead at 20 m/s brakes gently (1 m/s^2): 3 s of headway is not critical, so the careful
-    driver keeps its speed until the time-to-collision or the headway falls under 2 s, then reacts."""
-    gentle = _blind_ego_behind_a_braking_lead(60.0, decel=1.0)
-    ev = careful_driver_evidence(gentle, len(gentle) - 1, ActorEvent("lead_braking", 5, 1.0, 1.0), DT)
-    # gap 60 - 0.5 t'^2 (t' after onset): the headway gap / 20 m/s falls under 2 s at t' = sqrt(40) = 6.32 s,
-    # before the time-to-collision gap / t' does (t' = 9.1 s)
-    assert ev["critical_s"] == pytest.approx(1.0 + 40**0.5, abs=0.05)
-    assert ev["brake_from_s"] == pytest.approx(ev["critical_s"] + 0.75)
-    assert not ev["collides"]
+def test_a_braking_lead_is_critical_once_perceived_so_a_longer_gap_never_costs_the_careful_driver():
+    """A lead braking to a stop is critical from its brake lights on: the careful driver reacts 0.4 + 0.75 s after
+    the onset whatever the gap, so a driver that avoided the lead from some gap avoids it from every longer one.
+    Gated on the headway (as cut-ins are), it had held its speed from 50-70 m until the headway fell under 2 s
+    and then hit a lead braking at 6 m/s^2, which it avoided from 30 m."""
+    braking = ActorEvent("lead_braking", 5, 1.0, 1.0)
+    for decel in (1.0, 3.0, 6.0):
+        verdicts = []
+        for gap0 in (10.0, 15.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0):
+            records = _blind_ego_behind_a_braking_lead(gap0, decel=decel)
+            ev = careful_driver_evidence(records, len(records) - 1, braking, DT)
+            assert ev["critical_s"] == pytest.approx(1.4) and ev["brake_from_s"] == pytest.approx(2.15)
+            verdicts.append(ev["collides"])
+        assert verdicts == sorted(verdicts, reverse=True), (decel, verdicts)  # collides, ..., then avoids for good
+        assert verdicts[-1] is False and (decel < 6.0 or verdicts[0] is True)
+    # the old gate's case: from 60 m (3 s at 20 m/s) behind a lead braking at 6 m/s^2 it now keeps about 38 m
+    records = _blind_ego_behind_a_braking_lead(60.0)
+    ev = careful_driver_evidence(records, len(records) - 1, braking, DT)
+    assert not ev["collides"] and ev["min_gap_m"] == pytest.approx(60.0 + 33.33 - 55.24, abs=0.15)
+    # a cut-in is still gated: far ahead and closing slowly, it is not critical when perceived
+    assert not R157.critical(60.0, 20.0, 19.0) and R157.critical(30.0, 20.0, 19.0)
 
 
 def test_blame_with_a_careful_driver_reference_never_calls_an_avoidable_collision_unavoidable():
@@ -362,3 +373,23 @@ def test_a_lead_braking_while_the_cutter_crosses_does_not_hide_the_cut_ins_perce
         assert math.isfinite(cut.perceived_ttc_s)
     finally:
         sim.destroy()
+
+
+def test_a_verdict_of_the_older_careful_driver_is_made_again_when_a_campaign_is_summarised():
+    """Rows written with the headway-gated reference are re-judged from their steps: the blind ego 60 m behind
+    a lead braking at 6 m/s^2 was 'unavoidable' (that reference hit the lead too); today's stops 38 m short."""
+    from genesis_rl.campaigns.summary import rejudge_careful_driver
+
+    records = _blind_ego_behind_a_braking_lead(60.0)
+    braking = ActorEvent("lead_braking", 5, 1.0, 1.0)
+    old = {"mode": "non_detection", "blame": "unavoidable", "evidence": {"stoppable": True}, "oracle_collides": None,
+           "reference": "UN R157 careful driver",
+           "careful_driver": {"reference": "UN R157 careful driver", "collides": True, "min_gap_m": -0.2}}
+    again = rejudge_careful_driver(old, [braking.as_dict()], records)
+    assert again["blame"] == "control" and again["reference"] == R157.name
+    assert again["careful_driver"]["collides"] is False and again["careful_driver"]["min_gap_m"] > 30.0
+    assert again["mode"] == "non_detection" and old["blame"] == "unavoidable"  # the row's other labels stay
+    # today's verdicts, and blames without a careful driver, are left as the campaign made them
+    assert rejudge_careful_driver(again, [braking.as_dict()], records) is again
+    plain = {"blame": "perception", "evidence": {}, "oracle_collides": False}
+    assert rejudge_careful_driver(plain, [], records) is plain

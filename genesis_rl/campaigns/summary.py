@@ -18,9 +18,13 @@ from genesis_rl.core.files.spreadsheet import safe_rows
 from genesis_rl.core.stats import bootstrap_mean_ci, paired_comparison
 from genesis_rl.core.text import terminal_safe
 from genesis_rl.labels.actor_summary import cut_in_markdown, cut_in_summary
+from genesis_rl.labels.blame import blame_label, reference_name
+from genesis_rl.labels.careful_driver import R157, careful_driver_evidence, event_for_collision
 from genesis_rl.labels.distinct import natural_summary
 from genesis_rl.labels.failure_modes import FAILURE_MODES, LABELLER_VERSION, FailureModeThresholds, label_collision
 from genesis_rl.loop.rules.rulebook import Rulebook, build_rulebook
+from genesis_rl.sim.interface import ActorEvent
+from genesis_rl.world.step_record import StepRecord
 
 #: Episode-row metrics summarised besides the rules' violations.
 OTHER_METRICS = ("mean_iou", "return")
@@ -66,9 +70,10 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     if row.get("labeller_version") == LABELLER_VERSION:
         return row
     if row.get("first_collision_step") is not None:
-        failure = label_collision(read_step_records(steps_path(folder, policy, row["scene"]), row.get("steps")))
-        if failure and row.get("failure"):  # the blame, conditions and naturalness stay; the mode is relabelled
-            failure = {**row["failure"], **failure}
+        records = read_step_records(steps_path(folder, policy, row["scene"]), row.get("steps"))
+        failure = label_collision(records)
+        if failure and row.get("failure"):  # the conditions and naturalness stay; the mode is relabelled
+            failure = rejudge_careful_driver({**row["failure"], **failure}, row.get("actor_events") or [], records)
         row.update(failure=failure, failure_mode=failure["mode"] if failure else None)
     row["labeller_version"] = LABELLER_VERSION
     try:
@@ -76,6 +81,24 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     except OSError:  # a read-only campaign: the relabelled row is used as it is, and relabelled next time again
         pass
     return row
+
+
+def rejudge_careful_driver(failure: dict[str, Any], actor_events: list[dict[str, Any]],
+                           records: list[StepRecord]) -> dict[str, Any]:
+    """``failure`` with its careful-driver evidence and blame made again by today's reference, where an older one
+    (another ``reference`` name) judged it: its verdict decides whether the failure counts, and the reference
+    changed (a braking lead became critical once perceived). Other blames stay as the campaign made them."""
+    careful = failure.get("careful_driver")
+    if not isinstance(careful, dict) or careful.get("reference") == R157.name or len(records) < 2:
+        return failure
+    hit_at = next((i for i, r in enumerate(records) if r.collision.collided), None)
+    event = None if hit_at is None else event_for_collision([ActorEvent.from_dict(e) for e in actor_events],
+                                                            records, hit_at)
+    if hit_at is None or event is None:
+        return failure
+    again = careful_driver_evidence(records, hit_at, event, records[1].time_s - records[0].time_s)
+    return {**failure, "careful_driver": again, "reference": reference_name(again),
+            "blame": blame_label(failure.get("evidence") or {}, failure.get("oracle_collides"), again)}
 
 
 def summarize_campaign(folder: Path, write: bool = True,

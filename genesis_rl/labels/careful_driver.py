@@ -10,8 +10,12 @@ implements them (``ControllerALKS_R157SM``):
 - *perception*: a cut-in can be perceived once the cutter has wandered 0.375 m toward the ego's lane
   (``ActorEvent.perceivable_s``, measured by the simulator), a braking lead at its onset (its brake lights);
   the risk then takes 0.4 s to perceive;
-- *criticality*: it reacts only once the situation is critical, a time-to-collision or a time headway under
-  2 s (esmini's criterion), checked from the end of the perception time on; the speed is held until then;
+- *criticality*: a braking lead is critical as soon as it is perceived (esmini's ``alwaysTrigOnScenario``); a
+  cut-in only once the time-to-collision or the time headway falls under 2 s (esmini's criterion), checked
+  from the end of the perception time on; the speed is held until then. Gating a braking lead on the headway
+  as well punished a longer gap: a driver 2.5-3.5 s behind a lead braking to a stop at 4-6 m/s^2 held its speed
+  until the headway fell under 2 s and then hit the much slower lead, where one 1.5-2 s behind reacted at once
+  and stopped in time (``tests/test_cut_in.py``);
 - *reaction*: 0.75 s more before the brake acts; the speed is held meanwhile;
 - *braking*: the deceleration rises at 12.65 m/s^3 to 0.774 g (7.59 m/s^2, reached after 0.6 s) and is held
   until the car stops.
@@ -47,13 +51,15 @@ class CarefulDriver:
     """R157's competent and careful driver (module docstring): perception and reaction times [s], the
     deceleration it brakes at [m/s^2] and how fast it gets there [m/s^3]."""
 
-    name: str = "UN R157 careful driver"
+    name: str = "UN R157 careful driver (a braking lead critical once perceived)"
     perception_s: float = 0.4
     reaction_s: float = 0.75
     max_decel: float = 0.774 * G
     jerk: float = 0.774 * G / 0.6
     critical_ttc_s: float = 2.0
     critical_headway_s: float = 2.0
+    #: events critical as soon as they are perceived, without the time-to-collision or headway gate
+    always_critical: tuple[str, ...] = ("lead_braking",)
 
     def critical(self, gap: float, speed: float, actor_speed: float) -> bool:
         """Whether a gap [m] at these speeds [m/s] is critical: time-to-collision or time headway under 2 s."""
@@ -104,9 +110,11 @@ def careful_driver_evidence(records: Sequence[StepRecord], hit_at: int, event: A
     v_ref = float(records[k0].ego.speed)
     out["speed_m_s"] = round(v_ref, 3)
 
+    always = event.kind in driver.always_critical
+
     def check_critical(t: float, gap: float, actor_speed: float) -> None:
         nonlocal brake_at
-        if math.isinf(brake_at) and t >= perceived - 1e-9 and driver.critical(gap, v_ref, actor_speed):
+        if math.isinf(brake_at) and t >= perceived - 1e-9 and (always or driver.critical(gap, v_ref, actor_speed)):
             brake_at = t + driver.reaction_s
 
     x_rec = x_ref = 0.0  # distance driven since records[k0]: by the recorded ego, by the reference

@@ -32,7 +32,9 @@ from genesis_rl.world.step_record import RecordedBox, StepRecord
 FAILURE_MODES = ("non_detection", "intermittent_detection", "delayed_detection", "lost_detection", "detected",
                  "out_of_view")
 MATCH_IOU = 0.3
-LABELLER_VERSION = 2  # bumped when the rules or thresholds change: summaries relabel older episode rows
+#: bumped when the rules or thresholds change: summaries relabel older episode rows (3: their careful-driver verdicts
+#: are made again where an older reference made them, ``campaigns.summary.rejudge_careful_driver``)
+LABELLER_VERSION = 3
 
 
 @dataclass(frozen=True)
