@@ -306,29 +306,10 @@ def test_ctrl_c_while_the_command_line_imports_is_one_line(monkeypatch, capsys) 
     assert capsys.readouterr().err == "interrupted\n"
 
 
-TINY_SAC = """
-[env]
-map = "urban"
-scenes = 3
-system = "blind"
-episode_steps = 10
-camera_width = 64
-camera_height = 48
-observation = "features"
-obs_history = 2
-
-[sac]
-buffer_size = 100
-learning_starts = 8
-batch_size = 8
-
-[train]
-algorithm = "sac"
-total_timesteps = 64
-checkpoint_every = 16
-seed = 3
-torch_threads = 1
-"""
+TINY_SAC = tiny_run(env={"observation": "features", "obs_history": 2, "obs_width": None, "obs_height": None},
+                    ppo={"n_steps": None, "batch_size": None, "n_epochs": None},
+                    train={"algorithm": "sac", "total_timesteps": 64},
+                    sac={"buffer_size": 100, "learning_starts": 8, "batch_size": 8})
 
 
 def _sac_state(path: Path) -> dict:
@@ -373,7 +354,7 @@ def test_a_resumed_sac_run_matches_an_uninterrupted_one(tmp_path, capsys) -> Non
 def test_evaluate_plays_a_sac_agent(tmp_path, capsys) -> None:
     """The agent policy loads a SAC run (its config names the learner) and keeps its actions in the box."""
     config = tmp_path / "sac.toml"
-    config.write_text(TINY_SAC.replace("total_timesteps = 64", "total_timesteps = 16"))
+    config.write_text(TINY_SAC.replace("total_timesteps = 64", "total_timesteps = 16", 1))
     run = tmp_path / "run"
     assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
     from genesis_rl.adversaries import load_agent

@@ -15,39 +15,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from builders import tiny_run
 
 from genesis_rl.commands.cli import main
 
 PLUGINS = Path(__file__).parent / "plugins"
 
-TINY = """
-[env]
-map = "urban"
-scenes = 3
-system = "blind"
-episode_steps = 10
-camera_width = 64
-camera_height = 48
-observation = "features"
-obs_history = 2
-
-[sac]
-buffer_size = 100
-learning_starts = 8
-batch_size = 8
-
-[ppo]
-n_steps = 16
-batch_size = 8
-n_epochs = 2
-
-[train]
-algorithm = "ALGO"
-total_timesteps = 32
-checkpoint_every = 16
-seed = 3
-torch_threads = 1
-"""
+#: the tiny run with a features observation and a [sac] table, its learner named by ALGO
+TINY = tiny_run(env={"observation": "features", "obs_history": 2, "obs_width": None, "obs_height": None},
+                train={"algorithm": "ALGO", "total_timesteps": 32},
+                sac={"buffer_size": 100, "learning_starts": 8, "batch_size": 8})
 
 
 class _Payload:

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+from builders import tiny_run
 
 from genesis_rl.commands.cli import main
 from genesis_rl.core.errors import UserInputError
@@ -138,33 +140,12 @@ def test_an_absolute_start_action_names_one_altitude_whatever_the_draw_and_the_c
 
 #: SAC with a start head for a few dozen steps on the oracle inside highway_day (oracle_highway's system and ODD),
 #: trained on urban scenes as the zoo's agents are: the plumbing is under test
-TINY_HEAD_AGENT = """
-[env]
-map = "urban"
-scenes = 3
-system = "oracle"
-odd = "{odd}"
-dynamics = "natural"
-observation = "features"
-start_head = true
-episode_steps = 10
-camera_width = 64
-camera_height = 48
-
-[sac]
-learning_starts = 8
-batch_size = 8
-buffer_size = 1000
-net_arch = [8]
-
-[train]
-algorithm = "sac"
-total_timesteps = 32
-envs = 1
-checkpoint_every = 16
-seed = 1
-torch_threads = 1
-"""
+def tiny_head_agent(odd: Path) -> str:
+    return tiny_run(env={"system": "oracle", "odd": str(odd), "dynamics": "natural", "observation": "features",
+                         "start_head": True, "obs_width": None, "obs_height": None},
+                    ppo={"n_steps": None, "batch_size": None, "n_epochs": None},
+                    train={"algorithm": "sac", "total_timesteps": 32, "envs": 1, "seed": 1},
+                    sac={"learning_starts": 8, "batch_size": 8, "buffer_size": 1000, "net_arch": [8]})
 
 
 @pytest.mark.render
@@ -179,7 +160,7 @@ def test_a_trained_head_chooses_its_start_in_natural_campaigns_only(tmp_path, ca
 
     run = tmp_path / "head"
     config = tmp_path / "head.toml"
-    config.write_text(TINY_HEAD_AGENT.format(odd=ODD_DIR / "highway_day.toml"))
+    config.write_text(tiny_head_agent(ODD_DIR / "highway_day.toml"))
     assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
     capsys.readouterr()
     assert main(["train", "--out", str(run), "--resume", "--steps", "48", "--quiet"]) == 0  # mid-episode
@@ -222,7 +203,7 @@ def test_evaluate_warns_when_a_start_head_agent_plays_a_fixed_start(tmp_path, ca
     command says so, and names --start natural; under --start natural it says nothing."""
     run = tmp_path / "head"
     config = tmp_path / "head.toml"
-    config.write_text(TINY_HEAD_AGENT.format(odd=ODD_DIR / "highway_day.toml"))
+    config.write_text(tiny_head_agent(ODD_DIR / "highway_day.toml"))
     assert main(["train", "--config", str(config), "--out", str(run), "--quiet"]) == 0
     for start, warned in (("fixed", True), ("natural", False)):
         capsys.readouterr()
