@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    from genesis_rl.commands.cli_args import seed_int
+    from genesis_rl.commands.cli_args import SEED
 
     bm = subparsers.add_parser(
         "benchmark", help="every adversary on systems whose weaknesses are known (the zoo); a leaderboard",
@@ -138,7 +138,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     help="trials (campaign seeds) per member (default 10)")
     bm.add_argument("--scenes", type=int, default=MATRIX_DEFAULTS["scenes"],
                     help="scenes a trial plays per policy (default 5)")
-    bm.add_argument("--seed", type=seed_int, default=MATRIX_DEFAULTS["seed"],
+    bm.add_argument("--seed", type=int, action=SEED, default=MATRIX_DEFAULTS["seed"],
                     help="the first trial's seed; trial k uses seed + k")
     bm.add_argument("--steps", type=int, default=MATRIX_DEFAULTS["steps"],
                     help="steps per episode, the simulator-step budget of a trial (default: each member's own)")

@@ -30,15 +30,9 @@ def count(low: int = 1, limit: Limit | None = None) -> type[argparse.Action]:
 
     return Count
 
-def seed_int(text: str) -> int:
-    """An integer >= 0: numpy's generators refuse negative seeds, and would do so with a traceback."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got '{text}'") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
-    return value
+#: ``type=int, action=SEED``: a seed flag, an integer >= 0 (numpy's generators refuse negative seeds, and would
+#: do so with a traceback), refused as count flags are, naming the flag
+SEED = count(0)
 
 
 def add_odd_arguments(parser: argparse.ArgumentParser) -> None:

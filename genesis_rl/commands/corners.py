@@ -6,7 +6,7 @@ import argparse
 import json
 import time
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 
 
@@ -20,7 +20,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--map", default=None, help="map of the scenes (default: the config's env.map, the training map)")
     p.add_argument("--scenes", type=int, action=count(1, limits.SCENES), default=10,
                    help="training scenes drawn by --seed (default: 10)")
-    p.add_argument("--seed", type=seed_int, default=0, help="draws the scenes and their episode seeds")
+    p.add_argument("--seed", type=int, action=SEED, default=0, help="draws the scenes and their episode seeds")
     p.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=None,
                    help="steps per episode (default: the config's)")
     p.add_argument("--out", required=True, help="output JSON")

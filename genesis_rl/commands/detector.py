@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 
@@ -100,7 +100,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     help="training frames (default: the shipped recipe's 3600; 4 frames per scene)")
     tr.add_argument("--epochs", type=int, action=count(1, limits.EPOCHS), default=None,
                     help="training epochs (default: the shipped recipe's)")
-    tr.add_argument("--seed", type=seed_int, default=0, help="seed of weather draws, init, shuffling, augmentation")
+    tr.add_argument("--seed", type=int, action=SEED, default=0,
+                    help="seed of weather draws, init, shuffling, augmentation")
     tr.add_argument("--condition", default="typical",
                     help="weather distribution of the training frames (default: typical, the shipped recipe; "
                          "day_night: the zoo's dusk-blind detector; sun_behind: its glare-blind one, docs/zoo.md)")
@@ -119,7 +120,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     ev.add_argument("--conditions", default=None,
                     help="comma-separated conditions (default: all: typical, clear, fog30, fog60, fog90, rain, "
                          "night, wet_road, low_sun_glare)")
-    ev.add_argument("--seed", type=seed_int, default=7, help="seed of traffic steps and weather draws")
+    ev.add_argument("--seed", type=int, action=SEED, default=7, help="seed of traffic steps and weather draws")
     ev.add_argument("--out", default="out/detector_eval",
                     help="output directory (detector_eval.md, detector_eval.png, detector_eval.json)")
     ev.add_argument("--force", action="store_true", help="overwrite existing outputs")

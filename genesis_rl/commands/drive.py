@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
@@ -180,8 +180,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="map name: urban or highway (default: highway; scenes generated with --seed)")
     p.add_argument("--catalog", default=None, help="take scenes from this catalog file instead")
     p.add_argument("--scene", default="0", help="scene index (3) or range START:STOP (0:50); default: 0")
-    p.add_argument("--seed", type=seed_int, default=0, help="catalog seed when no --catalog is given")
-    p.add_argument("--episode-seed", type=seed_int, default=0, help="seed of NPC behaviour and sensor noise")
+    p.add_argument("--seed", type=int, action=SEED, default=0, help="catalog seed when no --catalog is given")
+    p.add_argument("--episode-seed", type=int, action=SEED, default=0, help="seed of NPC behaviour and sensor noise")
     p.add_argument("--weather", default="clear_noon", help=_weather_help() + ". The base of --schedule.")
     p.add_argument("--schedule", default=None, help="CSV of per-step knob values: one row a step, one column a knob")
     p.add_argument("--system", default="builtin",

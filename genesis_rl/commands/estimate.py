@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 
@@ -97,7 +97,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--weights", default=None,
                    help="the member's system with these detector weights (a hardened one: genesis-rl harden); "
                         "default: the member's own")
-    p.add_argument("--seed", type=seed_int, default=0, help="every draw flows from it (default 0)")
+    p.add_argument("--seed", type=int, action=SEED, default=0, help="every draw flows from it (default 0)")
     p.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1,
                    help="episode processes (results do not depend on it)")
     p.add_argument("--out", required=True, help="output folder: episodes.csv, estimate.json, estimate.png")

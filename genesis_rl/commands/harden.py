@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.harden.page import clear_text
@@ -137,7 +137,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="after the rounds, re-test the weights before any round and every round's on this many "
                         "held-out scenes (the same for all; default 0: none). 20 scenes cannot tell a rate of 0.10 "
                         "from 0.05; may be added on --resume")
-    p.add_argument("--seed", type=seed_int, default=0, help="the retraining's draws flow from it (default 0)")
+    p.add_argument("--seed", type=int, action=SEED, default=0, help="the retraining's draws flow from it (default 0)")
     p.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1,
                    help="episode processes (results do not depend on it)")
     p.add_argument("--force", action="store_true", help="replace a hardening already in --out")

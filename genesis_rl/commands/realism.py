@@ -10,7 +10,7 @@ import json
 import time
 from pathlib import Path
 
-from genesis_rl.commands.cli_args import seed_int
+from genesis_rl.commands.cli_args import SEED
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 
@@ -125,7 +125,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     rp.add_argument("--sizes", default="320x240,640x480", help="frame sizes (default: 320x240,640x480)")
     rp.add_argument("--scenes", type=int, default=60, help="held-out scenes per map (default 60)")
     rp.add_argument("--frames-per-scene", type=int, default=2, help="frames per scene (default 2)")
-    rp.add_argument("--seed", type=seed_int, default=7, help="seed of the traffic states (default 7)")
+    rp.add_argument("--seed", type=int, action=SEED, default=7, help="seed of the traffic states (default 7)")
     rp.add_argument("--closed-loop-scenes", type=int, default=50,
                     help="highway scenes driven at clear noon by the system (default 50; 0 skips)")
     rp.add_argument("--closed-loop-steps", type=int, default=512, help="steps per closed-loop episode (default 512)")

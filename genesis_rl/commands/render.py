@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.core.files import output_folder
@@ -162,7 +162,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "with --seed)")
     p.add_argument("--catalog", default=None, help="take the scene from this catalog file instead")
     p.add_argument("--scene", type=int, action=count(0), default=0, help="scene index (default: 0)")
-    p.add_argument("--seed", type=seed_int, default=0, help="catalog seed when no --catalog is given")
+    p.add_argument("--seed", type=int, action=SEED, default=0, help="catalog seed when no --catalog is given")
     p.add_argument("--weather", default=None, help=_weather_help())
     p.add_argument("--sweep", action="store_true", help="write a contact sheet sweeping each knob")
     p.add_argument("--width", type=int, default=320, help="image width [px] (default: 320)")

@@ -6,7 +6,7 @@ import argparse
 import json
 import time
 
-from genesis_rl.commands.cli_args import count, seed_int
+from genesis_rl.commands.cli_args import SEED, count
 from genesis_rl.core import limits
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.sim.backends import (
@@ -24,7 +24,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--map", default="urban", help="map name: urban (train) or highway (test); default: urban")
     p.add_argument("--count", type=int, action=count(1, limits.SCENES), default=None,
                    help="number of scenes (default: 1202 urban, 1199 highway)")
-    p.add_argument("--seed", type=seed_int, default=0, help="catalog seed: the same seed gives the same catalog")
+    p.add_argument("--seed", type=int, action=SEED, default=0,
+                   help="catalog seed: the same seed gives the same catalog")
     p.add_argument("--generator", default="builtin", choices=["builtin", "scenic"],
                    help="builtin (default) or scenic: the paper's Scenic 3 program (pip install -e .[scenic]; "
                         "lite maps through their OpenDRIVE export, CARLA maps from the server)")

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from genesis_rl.commands.cli_args import add_odd_arguments, add_scale_arguments, odd_overrides_from_args, seed_int
+from genesis_rl.commands.cli_args import SEED, add_odd_arguments, add_scale_arguments, odd_overrides_from_args
 from genesis_rl.core.errors import UserInputError
 from genesis_rl.sim.backends import (
     add_backend_arguments,
@@ -38,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "(an LSTM policy with memory of the episode: [ppo] and [recurrent])")
     p.add_argument("--n-steps", type=int, default=None, help="steps per PPO update (ppo.n_steps)")
     p.add_argument("--episode-steps", type=int, default=None, help="steps per episode (env.episode_steps)")
-    p.add_argument("--seed", type=seed_int, default=None, help="training seed (train.seed)")
+    p.add_argument("--seed", type=int, action=SEED, default=None, help="training seed (train.seed)")
     p.add_argument("--knobs", default=None, help="comma list of knobs the agent turns (env.knobs)")
     p.add_argument("--disable-knobs", default=None, help="comma list of knobs held at their start (ablation)")
     p.add_argument("--system", default=None, help="system under test (env.system)")

@@ -118,7 +118,7 @@ def _truth(args: argparse.Namespace) -> int:
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    from genesis_rl.commands.cli_args import seed_int
+    from genesis_rl.commands.cli_args import SEED
 
     zp = subparsers.add_parser("zoo", help="systems under test with known in-ODD weaknesses; sweep their ground truth")
     zsub = zp.add_subparsers(dest="zoo_command", required=True)
@@ -137,7 +137,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                          "knobs: sweep one, hold the other inside it)")
     sw.add_argument("--scenes", type=int, action=count(1, limits.SCENES), default=8,
                     help="scenes (episodes) per value (default 8)")
-    sw.add_argument("--seed", type=seed_int, default=0, help="campaign seed: which scenes and episode seeds")
+    sw.add_argument("--seed", type=int, action=SEED, default=0, help="campaign seed: which scenes and episode seeds")
     sw.add_argument("--steps", type=int, action=count(1, limits.SIM_STEPS), default=None,
                     help="steps per episode (default: the member's own)")
     sw.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1, help="parallel episodes")
@@ -161,7 +161,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     tr.add_argument("--onsets", default=None,
                     help="comma list of fixed onsets [s] to search (default every second of the episode but "
                          "its last 4)")
-    tr.add_argument("--seed", type=seed_int, default=0, help="catalog seed and the source of the world seeds")
+    tr.add_argument("--seed", type=int, action=SEED, default=0, help="catalog seed and the source of the world seeds")
     tr.add_argument("--workers", type=int, action=count(1, limits.WORKERS), default=1, help="parallel episodes")
     tr.add_argument("--out", required=True, help="result file, .json (the plot beside it, .png)")
     tr.add_argument("--force", action="store_true", help="replace an existing result")
