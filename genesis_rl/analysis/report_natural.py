@@ -171,7 +171,8 @@ def section(folder: Path, summary: dict[str, Any], rows: dict[str, list[dict[str
              "replay) avoids it; <i>control</i>, the vehicle was visible with room to stop, or the ego drove too "
              "fast for the visibility; <i>unavoidable</i>, neither. When the tester's actor knob acted on the "
              "vehicle hit (a cut-in, the lead braking), UN R157's competent and careful driver decides instead: "
-             "perceives after 0.4 s, reacts after 0.75 s more, brakes at up to 0.774 g; the collision is "
+             "perceives after 0.4 s, reacts after 0.75 s more (to a braking lead at once, to a cut-in once it is "
+             "critical), brakes at up to 0.774 g; the collision is "
              "<i>unavoidable</i> when that driver collides too, and is then not the system's failure "
              "(docs/actors.md).</p>")
     for i, c in enumerate(clusters[:max_frames], 1):
