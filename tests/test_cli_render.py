@@ -69,7 +69,8 @@ def test_bad_command_lines_exit_2_with_a_message_and_touch_nothing(tmp_path, cap
     cases = [
         (("scenes", "--map", "urban", "--count", "3", "--seed", "-5", "--out", str(tmp_path / "s.json")),
          "--seed = -5; allowed: an integer >= 0"),
-        (("drive", "--episode-seed", "-1", "--out", str(tmp_path / "d")), "--episode-seed = -1; allowed: an integer >= 0"),
+        (("drive", "--episode-seed", "-1", "--out", str(tmp_path / "d")),
+         "--episode-seed = -1; allowed: an integer >= 0"),
         (("render", "--out", str(a_file)), f"--out '{a_file}': '{a_file}' is a file; expected a folder"),
         (("scenes", "--map", "urban", "--count", "2", "--out", str(a_dir), "--force"),
          f"output '{a_dir}' is a directory; expected a file path"),
