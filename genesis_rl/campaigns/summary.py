@@ -72,7 +72,8 @@ def _current_labels(folder: Path, policy: str, path: Path) -> dict[str, Any]:
     if row.get("first_collision_step") is not None:
         records = read_step_records(steps_path(folder, policy, row["scene"]), row.get("steps"))
         failure = label_collision(records)
-        if failure and row.get("failure"):  # the conditions and naturalness stay; the mode is relabelled
+        if failure and row.get("failure"):  # the conditions and naturalness stay; the mode is relabelled, and
+            # a careful-driver verdict of an older reference is made again (with the blame it decides)
             failure = rejudge_careful_driver({**row["failure"], **failure}, row.get("actor_events") or [], records)
         row.update(failure=failure, failure_mode=failure["mode"] if failure else None)
     row["labeller_version"] = LABELLER_VERSION
